@@ -1,0 +1,255 @@
+"""Collinearity model: rotation, projection, analytic Jacobians, multi-ray intersection.
+
+Conventions (DESIGN.md, docs/conventions.md)
+--------------------------------------------
+* World frame: east, north, up (metres). Camera frame: x right, y to the image top, z towards
+  the viewer; the camera looks along -z.
+* ``R_world_from_cam = Rx(omega) @ Ry(phi) @ Rz(kappa)`` (active, right-handed). A nadir camera
+  with omega = phi = kappa = 0 has the image top to the north.
+* A world point ``X`` maps to ``p = R^T (X - X0)``, photo coordinates ``x = -f p_x / p_z``,
+  ``y = -f p_y / p_z`` and OpenCV pixels ``u = cx + x``, ``v = cy - y``.
+* EOP vector: ``[X0_m, Y0_m, Z0_m, omega_rad, phi_rad, kappa_rad]``.
+
+All functions are vectorised over a leading axis; shapes are given in the docstrings.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from seqat.types import FloatArray, PinholeCamera
+
+#: Rays whose largest pairwise angle is below this are treated as parallel (radians).
+MIN_INTERSECTION_ANGLE_RAD = 1e-6
+
+
+def wrap_angle(angle_rad: FloatArray | float) -> FloatArray:
+    """Wrap angles to ``[-pi, pi)``."""
+    return (np.asarray(angle_rad) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def rotation_matrix(omega_rad: FloatArray | float, phi_rad: FloatArray | float,
+                    kappa_rad: FloatArray | float) -> FloatArray:
+    """Camera-to-world rotation ``Rx(omega) Ry(phi) Rz(kappa)``.
+
+    Parameters
+    ----------
+    omega_rad, phi_rad, kappa_rad : (...) float
+        Angles in radians (broadcast together).
+
+    Returns
+    -------
+    (..., 3, 3) float
+        ``R_world_from_cam``.
+    """
+    o, p, k = np.broadcast_arrays(np.asarray(omega_rad, dtype=np.float64),
+                                  np.asarray(phi_rad, dtype=np.float64),
+                                  np.asarray(kappa_rad, dtype=np.float64))
+    co, so, cp, sp, ck, sk = np.cos(o), np.sin(o), np.cos(p), np.sin(p), np.cos(k), np.sin(k)
+    R = np.empty(o.shape + (3, 3))
+    R[..., 0, 0] = cp * ck
+    R[..., 0, 1] = -cp * sk
+    R[..., 0, 2] = sp
+    R[..., 1, 0] = co * sk + so * sp * ck
+    R[..., 1, 1] = co * ck - so * sp * sk
+    R[..., 1, 2] = -so * cp
+    R[..., 2, 0] = so * sk - co * sp * ck
+    R[..., 2, 1] = so * ck + co * sp * sk
+    R[..., 2, 2] = co * cp
+    return R
+
+
+def angles_from_rotation(R_world_from_cam: FloatArray) -> FloatArray:
+    """Inverse of :func:`rotation_matrix`.
+
+    Parameters
+    ----------
+    R_world_from_cam : (..., 3, 3) float
+
+    Returns
+    -------
+    (..., 3) float
+        ``[omega, phi, kappa]`` in radians, ``phi`` in ``[-pi/2, pi/2]``.
+    """
+    R = np.asarray(R_world_from_cam, dtype=np.float64)
+    phi = np.arcsin(np.clip(R[..., 0, 2], -1.0, 1.0))
+    omega = np.arctan2(-R[..., 1, 2], R[..., 2, 2])
+    kappa = np.arctan2(-R[..., 0, 1], R[..., 0, 0])
+    return np.stack([omega, phi, kappa], axis=-1)
+
+
+def _rotation_axes(eop: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Rotation matrices and the world axes ``a_k`` of the three angle rotations.
+
+    ``dR/d theta_k = [a_k]x R`` with ``a_omega = e_x``, ``a_phi = Rx e_y``,
+    ``a_kappa = Rx Ry e_z``.
+
+    Returns
+    -------
+    R : (n, 3, 3) float
+    axes : (n, 3, 3) float
+        ``axes[:, k]`` is ``a_k`` for angle ``k`` (omega, phi, kappa).
+    """
+    omega, phi = eop[:, 3], eop[:, 4]
+    R = rotation_matrix(omega, phi, eop[:, 5])
+    n = eop.shape[0]
+    axes = np.zeros((n, 3, 3))
+    axes[:, 0, 0] = 1.0
+    co, so, cp, sp = np.cos(omega), np.sin(omega), np.cos(phi), np.sin(phi)
+    axes[:, 1] = np.stack([np.zeros(n), co, so], axis=-1)  # Rx e_y
+    axes[:, 2] = np.stack([sp, -so * cp, co * cp], axis=-1)  # Rx Ry e_z
+    return R, axes
+
+
+def project(eop: FloatArray, X_world_m: FloatArray, camera: PinholeCamera) -> FloatArray:
+    """Project world points into pixels.
+
+    Parameters
+    ----------
+    eop : (n, 6) float
+        Exterior orientation per point (one row per observation).
+    X_world_m : (n, 3) float
+    camera : PinholeCamera
+
+    Returns
+    -------
+    (n, 2) float
+        ``[u, v]`` OpenCV pixels. Points behind the camera give values but are meaningless;
+        check :func:`depth` where it matters.
+    """
+    eop = np.atleast_2d(np.asarray(eop, dtype=np.float64))
+    X = np.atleast_2d(np.asarray(X_world_m, dtype=np.float64))
+    R = rotation_matrix(eop[:, 3], eop[:, 4], eop[:, 5])
+    p = np.einsum("nji,nj->ni", R, X - eop[:, :3])
+    f = camera.f_px
+    u = camera.cx_px - f * p[:, 0] / p[:, 2]
+    v = camera.cy_px + f * p[:, 1] / p[:, 2]
+    return np.stack([u, v], axis=-1)
+
+
+def depth(eop: FloatArray, X_world_m: FloatArray) -> FloatArray:
+    """Distance of each point in front of its camera along the viewing axis (``-p_z``), metres.
+
+    Parameters
+    ----------
+    eop : (n, 6) float
+    X_world_m : (n, 3) float
+
+    Returns
+    -------
+    (n,) float
+        Positive in front of the camera.
+    """
+    eop = np.atleast_2d(np.asarray(eop, dtype=np.float64))
+    R = rotation_matrix(eop[:, 3], eop[:, 4], eop[:, 5])
+    return -np.einsum("nj,nj->n", R[:, :, 2], np.atleast_2d(X_world_m) - eop[:, :3])
+
+
+def project_with_jacobians(eop: FloatArray, X_world_m: FloatArray, camera: PinholeCamera
+                           ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Project world points and return the analytic Jacobians of ``[u, v]``.
+
+    Parameters
+    ----------
+    eop : (n, 6) float
+    X_world_m : (n, 3) float
+    camera : PinholeCamera
+
+    Returns
+    -------
+    uv_px : (n, 2) float
+    J_eop : (n, 2, 6) float
+        ``d[u, v] / d[X0, Y0, Z0, omega, phi, kappa]`` (pixels per metre / per radian).
+    J_point : (n, 2, 3) float
+        ``d[u, v] / d[X, Y, Z]`` (pixels per metre).
+    """
+    eop = np.atleast_2d(np.asarray(eop, dtype=np.float64))
+    X = np.atleast_2d(np.asarray(X_world_m, dtype=np.float64))
+    R, axes = _rotation_axes(eop)
+    d = X - eop[:, :3]
+    p = np.einsum("nji,nj->ni", R, d)  # R^T d
+    f = camera.f_px
+    inv_z = 1.0 / p[:, 2]
+    # d[u, v]/dp: u = cx - f px/pz, v = cy + f py/pz
+    dudp = np.stack([-f * inv_z, np.zeros_like(inv_z), f * p[:, 0] * inv_z**2], axis=-1)
+    dvdp = np.stack([np.zeros_like(inv_z), f * inv_z, -f * p[:, 1] * inv_z**2], axis=-1)
+    duv_dp = np.stack([dudp, dvdp], axis=1)  # (n, 2, 3)
+    Rt = np.swapaxes(R, 1, 2)
+    J_point = duv_dp @ Rt  # dp/dX = R^T
+    # dp/dtheta_k = -R^T (a_k x d)
+    cross = np.cross(axes, d[:, None, :])  # (n, 3 angles, 3)
+    dp_dangles = -np.einsum("nij,nkj->nik", Rt, cross)  # (n, 3 comps, 3 angles)
+    J_eop = np.empty((eop.shape[0], 2, 6))
+    J_eop[:, :, :3] = -J_point
+    J_eop[:, :, 3:] = duv_dp @ dp_dangles
+    uv = np.stack([camera.cx_px - f * p[:, 0] * inv_z, camera.cy_px + f * p[:, 1] * inv_z], axis=-1)
+    return uv, J_eop, J_point
+
+
+def rays_world(eop: FloatArray, uv_px: FloatArray, camera: PinholeCamera) -> FloatArray:
+    """Unit viewing rays in the world frame through the given pixels.
+
+    Parameters
+    ----------
+    eop : (n, 6) float
+    uv_px : (n, 2) float
+
+    Returns
+    -------
+    (n, 3) float
+    """
+    eop = np.atleast_2d(np.asarray(eop, dtype=np.float64))
+    uv = np.atleast_2d(np.asarray(uv_px, dtype=np.float64))
+    R = rotation_matrix(eop[:, 3], eop[:, 4], eop[:, 5])
+    ray_cam = np.stack([uv[:, 0] - camera.cx_px, camera.cy_px - uv[:, 1],
+                        np.full(uv.shape[0], -camera.f_px)], axis=-1)
+    ray = np.einsum("nij,nj->ni", R, ray_cam)
+    return ray / np.linalg.norm(ray, axis=1, keepdims=True)
+
+
+def intersect_rays(eop: FloatArray, uv_px: FloatArray, point_index: FloatArray, n_points: int,
+                   camera: PinholeCamera) -> tuple[FloatArray, FloatArray]:
+    """Least-squares multi-ray intersection of many points at once.
+
+    Minimises, per point, the sum of squared perpendicular distances to its rays:
+    ``sum_i (I - d_i d_i^T)(X - C_i) = 0``.
+
+    Parameters
+    ----------
+    eop : (k, 6) float
+        EOP of the image of each observation.
+    uv_px : (k, 2) float
+    point_index : (k,) int
+        Point of each observation, in ``[0, n_points)``.
+    n_points : int
+    camera : PinholeCamera
+
+    Returns
+    -------
+    X_world_m : (n_points, 3) float
+        NaN for points with fewer than two rays or (near-)parallel rays.
+    max_angle_rad : (n_points,) float
+        Largest angle between the point's rays (a measure of intersection strength).
+    """
+    eop = np.atleast_2d(np.asarray(eop, dtype=np.float64))
+    idx = np.asarray(point_index, dtype=np.int64)
+    d = rays_world(eop, uv_px, camera)
+    C = eop[:, :3]
+    proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    A = np.zeros((n_points, 3, 3))
+    b = np.zeros((n_points, 3))
+    np.add.at(A, idx, proj)
+    np.add.at(b, idx, np.einsum("kij,kj->ki", proj, C))
+    # Largest ray angle per point: angle of each ray to the point's mean ray, doubled bound.
+    mean_dir = np.zeros((n_points, 3))
+    np.add.at(mean_dir, idx, d)
+    norm = np.linalg.norm(mean_dir, axis=1, keepdims=True)
+    mean_dir = np.divide(mean_dir, norm, out=np.zeros_like(mean_dir), where=norm > 0)
+    ang = np.arccos(np.clip(np.einsum("ki,ki->k", d, mean_dir[idx]), -1.0, 1.0))
+    max_angle = np.zeros(n_points)
+    np.maximum.at(max_angle, idx, 2.0 * ang)
+    X = np.full((n_points, 3), np.nan)
+    ok = max_angle > MIN_INTERSECTION_ANGLE_RAD
+    if np.any(ok):
+        X[ok] = np.linalg.solve(A[ok], b[ok][:, :, None])[:, :, 0]
+    return X, max_angle

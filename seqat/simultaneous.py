@@ -1,0 +1,530 @@
+"""Simultaneous aerial triangulation (Sim) with GPS/INS stochastic constraints.
+
+Seed 000 §2.1 (Choi & Lee 2012, Eq. 1-6): image observations plus the GPS/INS EOPs as
+stochastic constraints; ground points (GP) eliminated per 3x3 block (Schur complement), the
+reduced EOP normal matrix ``N_r = N_ee + N_z - N_ep N_pp^-1 N_ep^T`` (sparse, banded along a
+strip) factorised with a sparse LU; GPs back-substituted; Gauss-Newton to convergence;
+a posteriori sigma0 and cofactor blocks of EOPs and GPs.
+
+Coordinates here are *local* (the caller subtracts an origin for conditioning).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from enum import Enum
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from seqat.errors import EstimationError
+from seqat.geometry import intersect_rays, project, project_with_jacobians, wrap_angle
+from seqat.types import (
+    EOP_SIZE,
+    GP_SIZE,
+    EopEstimate,
+    FloatArray,
+    Frame,
+    ImageUpdate,
+    PinholeCamera,
+    PointEstimate,
+    Solution,
+)
+
+#: Columns of the reduced inverse solved at once when extracting cofactor blocks.
+COVARIANCE_CHUNK_IMAGES = 200
+
+
+class Covariance(Enum):
+    """Which cofactors an adjustment returns."""
+
+    NONE = "none"
+    BLOCKS = "blocks"  # 6x6 per image, 3x3 per point
+    FULL = "full"  # dense matrix over [EOPs..., GPs...] (small blocks only)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SimOptions:
+    """Options of the simultaneous adjustment."""
+
+    max_iterations: int = 20
+    position_tolerance_m: float = 1e-6  # convergence: max |correction| of EOP and GP positions
+    angle_tolerance_rad: float = 1e-9  # convergence: max |correction| of angles
+    min_rays: int = 2  # a tie point enters the adjustment once seen in this many images
+    covariance_every_frame: bool = True  # per-frame refits also compute the cofactor blocks
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class BlockData:
+    """Observations of a block in local coordinates.
+
+    Attributes
+    ----------
+    nav_eop : (n, 6) float
+        GPS/INS EOP constraints (local metres, radians).
+    nav_sigma : (n, 6) float
+    obs_image : (k,) int
+    obs_point : (k,) int
+        Indices into the point arrays, ``[0, m)``.
+    obs_uv : (k, 2) float
+        Pixels.
+    obs_sigma_px : (k,) float
+    n_points : int
+    """
+
+    nav_eop: FloatArray
+    nav_sigma: FloatArray
+    obs_image: np.ndarray
+    obs_point: np.ndarray
+    obs_uv: FloatArray
+    obs_sigma_px: FloatArray
+    n_points: int
+
+    @property
+    def n_images(self) -> int:
+        return int(self.nav_eop.shape[0])
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class SimResult:
+    """Typed result of :func:`adjust_block`.
+
+    ``eop_cofactor`` (n, 6, 6) and ``gp_cofactor`` (m, 3, 3) are cofactors (multiply by
+    ``sigma0**2`` for covariances); ``full_cofactor`` is the dense inverse normal matrix over
+    ``[eop_0..eop_{n-1}, gp_0..gp_{m-1}]`` when requested.
+    """
+
+    eop: FloatArray
+    gp: FloatArray
+    converged: bool
+    iterations: int
+    sigma0: float
+    redundancy: int
+    weighted_ssr: float
+    rms_px: float
+    reduced_size: int
+    eop_cofactor: FloatArray | None = None
+    gp_cofactor: FloatArray | None = None
+    full_cofactor: FloatArray | None = None
+
+
+@dataclass(eq=False)
+class _Normals:
+    """Normal equations of one linearisation, GP-reduced."""
+
+    lu: spla.SuperLU
+    N_ep: sp.csr_matrix  # (6n, 3m)
+    Nep_blocks: FloatArray  # (k, 6, 3) the block of each observation
+    Npp_inv: FloatArray  # (m, 3, 3)
+    b_p: FloatArray  # (3m,)
+    size: int
+
+
+def _eop_residual(nav_eop: FloatArray, eop: FloatArray) -> FloatArray:
+    """``nav - eop`` with the angle differences wrapped."""
+    r = nav_eop - eop
+    r[:, 3:] = wrap_angle(r[:, 3:])
+    return r
+
+
+def _linearise(camera: PinholeCamera, data: BlockData, eop: FloatArray, gp: FloatArray
+               ) -> tuple[_Normals, FloatArray, FloatArray]:
+    """Build and factorise the reduced normal equations at ``(eop, gp)``.
+
+    Returns the factorisation and the reduced right-hand side, plus the right-hand side of
+    the points.
+    """
+    n, m = data.n_images, data.n_points
+    img, pt = data.obs_image, data.obs_point
+    uv, Je, Jp = project_with_jacobians(eop[img], gp[pt], camera)
+    w = 1.0 / data.obs_sigma_px**2
+    ell = data.obs_uv - uv  # (k, 2)
+    wJe = Je * w[:, None, None]
+    wJp = Jp * w[:, None, None]
+    Nee = np.zeros((n, EOP_SIZE, EOP_SIZE))
+    np.add.at(Nee, img, np.einsum("kri,krj->kij", wJe, Je))
+    Nee[:, np.arange(EOP_SIZE), np.arange(EOP_SIZE)] += 1.0 / data.nav_sigma**2
+    b_e = np.zeros((n, EOP_SIZE))
+    np.add.at(b_e, img, np.einsum("kri,kr->ki", wJe, ell))
+    b_e += _eop_residual(data.nav_eop, eop) / data.nav_sigma**2
+    Npp = np.zeros((m, GP_SIZE, GP_SIZE))
+    np.add.at(Npp, pt, np.einsum("kri,krj->kij", wJp, Jp))
+    b_p = np.zeros((m, GP_SIZE))
+    np.add.at(b_p, pt, np.einsum("kri,kr->ki", wJp, ell))
+    Nep_blocks = np.einsum("kri,krj->kij", wJe, Jp)  # (k, 6, 3)
+    try:
+        Npp_inv = np.linalg.inv(Npp)
+    except np.linalg.LinAlgError as err:
+        raise EstimationError(f"singular 3x3 ground point normal block ({m} points)") from err
+    rows = (EOP_SIZE * img[:, None, None] + np.arange(EOP_SIZE)[None, :, None]).repeat(GP_SIZE, 2)
+    cols = (GP_SIZE * pt[:, None, None] + np.arange(GP_SIZE)[None, None, :]).repeat(EOP_SIZE, 1)
+    N_ep = sp.csr_matrix((Nep_blocks.ravel(), (rows.ravel(), cols.ravel())),
+                         shape=(EOP_SIZE * n, GP_SIZE * m))
+    Npp_inv_sp = sp.bsr_matrix((Npp_inv, np.arange(m), np.arange(m + 1)),
+                               shape=(GP_SIZE * m, GP_SIZE * m)).tocsr()
+    U1 = N_ep @ Npp_inv_sp  # N_ep N_pp^-1  (Eq. 5, U_1)
+    Nee_sp = sp.bsr_matrix((Nee, np.arange(n), np.arange(n + 1)),
+                           shape=(EOP_SIZE * n, EOP_SIZE * n)).tocsr()
+    N_r = (Nee_sp - U1 @ N_ep.T).tocsc()
+    rhs = b_e.ravel() - U1 @ b_p.ravel()
+    try:
+        lu = spla.splu(N_r)
+    except RuntimeError as err:
+        raise EstimationError(f"reduced EOP normal matrix ({N_r.shape[0]}) is singular") from err
+    return _Normals(lu=lu, N_ep=N_ep, Nep_blocks=Nep_blocks, Npp_inv=Npp_inv, b_p=b_p.ravel(), size=N_r.shape[0]), rhs, ell
+
+
+def _back_substitute(nrm: _Normals, delta_e: FloatArray) -> FloatArray:
+    """GP corrections ``N_pp^-1 (b_p - N_ep^T delta_e)`` (Eq. 6)."""
+    r = (nrm.b_p - nrm.N_ep.T @ delta_e).reshape(-1, GP_SIZE)
+    return np.einsum("mij,mj->mi", nrm.Npp_inv, r)
+
+
+def _eop_cofactor_blocks(nrm: _Normals, n: int, pairs: tuple[np.ndarray, np.ndarray] | None = None
+                         ) -> tuple[FloatArray, FloatArray]:
+    """Diagonal 6x6 blocks of ``N_r^-1`` and, optionally, its blocks ``(a[k], b[k])``.
+
+    ``N_r^-1`` is solved ``COVARIANCE_CHUNK_IMAGES`` images (columns) at a time, so memory stays
+    ``O(n * chunk)``.
+
+    Returns
+    -------
+    diag : (n, 6, 6) float
+    pair_blocks : (len(a), 6, 6) float
+    """
+    diag = np.empty((n, EOP_SIZE, EOP_SIZE))
+    a, b = pairs if pairs is not None else (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    pair_blocks = np.empty((a.size, EOP_SIZE, EOP_SIZE))
+    for start in range(0, n, COVARIANCE_CHUNK_IMAGES):
+        stop = min(n, start + COVARIANCE_CHUNK_IMAGES)
+        cols = np.arange(EOP_SIZE * start, EOP_SIZE * stop)
+        rhs = np.zeros((EOP_SIZE * n, cols.size))
+        rhs[cols, np.arange(cols.size)] = 1.0
+        X = nrm.lu.solve(rhs)  # (6n, 6c) columns of N_r^-1
+        Xb = X.reshape(n, EOP_SIZE, stop - start, EOP_SIZE)
+        idx = np.arange(start, stop)
+        diag[start:stop] = Xb[idx, :, idx - start, :]
+        sel = (b >= start) & (b < stop)
+        pair_blocks[sel] = Xb[a[sel], :, b[sel] - start, :]
+    return diag, pair_blocks
+
+
+def _gp_cofactors(nrm: _Normals, data: BlockData) -> FloatArray:
+    """3x3 cofactor of every GP: ``N_pp^-1 + V^T N_r^-1 V`` with ``V = N_ep N_pp^-1`` (Eq. 5, U_3)."""
+    n, m = data.n_images, data.n_points
+    img, pt = data.obs_image, data.obs_point
+    U = nrm.Nep_blocks @ nrm.Npp_inv[pt]  # 6x3 block N_ep(i, p) N_pp^-1(p) per observation
+    # All ordered pairs (o1, o2) of observations of the same point.
+    order = np.argsort(pt, kind="stable")
+    counts = np.bincount(pt, minlength=m)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rep = counts[pt[order]]
+    o1 = np.repeat(order, rep)
+    within = np.arange(o1.size) - np.repeat(np.cumsum(rep) - rep, rep)
+    o2 = order[np.repeat(starts[pt[order]], rep) + within]
+    _, Qpairs = _eop_cofactor_blocks(nrm, n, (img[o1], img[o2]))
+    contrib = np.einsum("kia,kij,kjb->kab", U[o1], Qpairs, U[o2])
+    Qp = nrm.Npp_inv.copy()
+    np.add.at(Qp, pt[o1], contrib)
+    return Qp
+
+
+def _full_cofactor(nrm: _Normals, n: int, m: int) -> FloatArray:
+    """Dense inverse normal matrix over ``[EOPs, GPs]`` (Eq. 5)."""
+    Qee = nrm.lu.solve(np.eye(EOP_SIZE * n))
+    Qee = 0.5 * (Qee + Qee.T)
+    Npp_inv_sp = sp.bsr_matrix((nrm.Npp_inv, np.arange(m), np.arange(m + 1)),
+                               shape=(GP_SIZE * m, GP_SIZE * m)).tocsr()
+    U1 = (nrm.N_ep @ Npp_inv_sp).toarray()  # N_ep N_pp^-1
+    Qep = -Qee @ U1  # U_2
+    Qpp = Npp_inv_sp.toarray() + U1.T @ Qee @ U1  # U_3
+    Qpp = 0.5 * (Qpp + Qpp.T)
+    return np.block([[Qee, Qep], [Qep.T, Qpp]])
+
+
+def adjust_block(camera: PinholeCamera, data: BlockData, eop0: FloatArray, gp0: FloatArray,
+                 options: SimOptions = SimOptions(), covariance: Covariance = Covariance.BLOCKS
+                 ) -> SimResult:
+    """Simultaneous adjustment by Gauss-Newton (seed 000 §2.1).
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+    data : BlockData
+        Observations in local coordinates.
+    eop0 : (n, 6) float
+        Initial EOPs (local).
+    gp0 : (m, 3) float
+        Initial GP coordinates (local), all finite.
+    options : SimOptions
+    covariance : Covariance
+
+    Returns
+    -------
+    SimResult
+
+    Raises
+    ------
+    EstimationError
+        Singular reduced system or GP block.
+    """
+    n, m = data.n_images, data.n_points
+    if not np.all(np.isfinite(gp0)):
+        raise EstimationError("initial ground point coordinates must be finite")
+    eop = np.array(eop0, dtype=np.float64)
+    gp = np.array(gp0, dtype=np.float64)
+    converged = False
+    iterations = 0
+    nrm: _Normals | None = None
+    for iterations in range(1, options.max_iterations + 1):
+        nrm, rhs, _ = _linearise(camera, data, eop, gp)
+        delta_e = nrm.lu.solve(rhs)
+        if not np.all(np.isfinite(delta_e)):
+            raise EstimationError(f"non-finite correction in iteration {iterations} "
+                                  f"(reduced system of order {nrm.size})")
+        delta_p = _back_substitute(nrm, delta_e).reshape(m, GP_SIZE)
+        de = delta_e.reshape(n, EOP_SIZE)
+        eop += de
+        gp += delta_p
+        max_pos = max(np.max(np.abs(de[:, :3]), initial=0.0), np.max(np.abs(delta_p), initial=0.0))
+        max_ang = np.max(np.abs(de[:, 3:]), initial=0.0)
+        if max_pos < options.position_tolerance_m and max_ang < options.angle_tolerance_rad:
+            converged = True
+            break
+    assert nrm is not None
+    img, pt = data.obs_image, data.obs_point
+    res_img = data.obs_uv - project(eop[img], gp[pt], camera)
+    res_nav = _eop_residual(data.nav_eop, eop)
+    ssr = float(np.sum(res_img**2 / data.obs_sigma_px[:, None] ** 2)
+                + np.sum(res_nav**2 / data.nav_sigma**2))
+    redundancy = 2 * img.size - GP_SIZE * m
+    sigma0 = float(np.sqrt(ssr / redundancy)) if redundancy > 0 else float("nan")
+    rms_px = float(np.sqrt(np.mean(res_img**2))) if img.size else float("nan")
+    eop_cof = gp_cof = full = None
+    if covariance is Covariance.FULL:
+        full = _full_cofactor(nrm, n, m)
+        eop_cof = np.stack([full[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n)])
+        off = EOP_SIZE * n
+        gp_cof = np.stack([full[off + 3 * j:off + 3 * j + 3, off + 3 * j:off + 3 * j + 3]
+                           for j in range(m)]) if m else np.zeros((0, 3, 3))
+    elif covariance is Covariance.BLOCKS:
+        eop_cof, _ = _eop_cofactor_blocks(nrm, n)
+        gp_cof = _gp_cofactors(nrm, data) if m else np.zeros((0, 3, 3))
+    return SimResult(eop=eop, gp=gp, converged=converged, iterations=iterations, sigma0=sigma0,
+                     redundancy=redundancy, weighted_ssr=ssr, rms_px=rms_px,
+                     reduced_size=nrm.size, eop_cofactor=eop_cof, gp_cofactor=gp_cof,
+                     full_cofactor=full)
+
+
+def sigma_scale(sigma0: float, redundancy: int) -> float:
+    """Factor applied to cofactors' square roots: the a posteriori sigma0 (1 without redundancy)."""
+    return sigma0 if redundancy > 0 and np.isfinite(sigma0) else 1.0
+
+
+def rms_point_sigma(variances_m2: FloatArray) -> tuple[float, float, float]:
+    """r.m.s. of the GP standard errors per coordinate (seed 003 §4.4).
+
+    Parameters
+    ----------
+    variances_m2 : (m, 3) float
+        Variances of X, Y, Z of each point.
+
+    Returns
+    -------
+    tuple of 3 float
+        Metres; NaN without points.
+    """
+    if variances_m2.shape[0] == 0:
+        return (float("nan"),) * 3  # type: ignore[return-value]
+    rms = np.sqrt(np.mean(variances_m2, axis=0))
+    return (float(rms[0]), float(rms[1]), float(rms[2]))
+
+
+@dataclass(eq=False)
+class _Catalogue:
+    """Growing store of the frames seen so far (used by the simultaneous baseline)."""
+
+    image_ids: list[str] = field(default_factory=list)
+    nav_eop: list[FloatArray] = field(default_factory=list)
+    nav_sigma: list[FloatArray] = field(default_factory=list)
+    point_index: dict[str, int] = field(default_factory=dict)
+    point_ids: list[str] = field(default_factory=list)
+    obs_image: list[int] = field(default_factory=list)
+    obs_point: list[int] = field(default_factory=list)
+    obs_uv: list[FloatArray] = field(default_factory=list)
+    obs_sigma: list[float] = field(default_factory=list)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class SimState:
+    """Everything a simultaneous solution knows, for handing over to the sequential stage.
+
+    Point indices refer to ``point_ids`` (every point seen, adjusted or not); ``selected``
+    lists the adjusted ones in the order of ``result.gp``.
+    """
+
+    origin: FloatArray  # (3,) world metres subtracted from every coordinate
+    image_ids: tuple[str, ...]
+    point_ids: tuple[str, ...]
+    selected: np.ndarray
+    obs_image: np.ndarray
+    obs_point: np.ndarray
+    obs_uv: FloatArray
+    obs_sigma_px: FloatArray
+    result: SimResult
+
+
+class SimultaneousAT:
+    """The Sim baseline as a streaming estimator: refit the whole block after each frame.
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+    options : SimOptions
+    refit_every_frame : bool
+        ``False`` only buffers frames; :meth:`solution` then solves once (``--final-only``).
+    """
+
+    def __init__(self, camera: PinholeCamera, options: SimOptions = SimOptions(), *,
+                 refit_every_frame: bool = True) -> None:
+        self.camera = camera
+        self.options = options
+        self.refit_every_frame = refit_every_frame
+        self._cat = _Catalogue()
+        self._origin: FloatArray | None = None
+        self._result: SimResult | None = None
+        self._point_sel: np.ndarray = np.zeros(0, dtype=np.int64)
+        self._eop_est: FloatArray = np.zeros((0, EOP_SIZE))
+        self._gp_est: FloatArray = np.zeros((0, GP_SIZE))
+        self._dirty = False
+
+    def add_frame(self, frame: Frame) -> ImageUpdate:
+        """Add one image; refit everything when ``refit_every_frame``."""
+        t0 = time.perf_counter()
+        cat = self._cat
+        if self._origin is None:
+            self._origin = np.round(frame.nav_eop[:3])
+        i = len(cat.image_ids)
+        cat.image_ids.append(frame.image_id)
+        nav = frame.nav_eop.copy()
+        nav[:3] -= self._origin
+        cat.nav_eop.append(nav)
+        cat.nav_sigma.append(frame.nav_sigma)
+        for pid, uv in zip(frame.point_ids, frame.uv_px):
+            j = cat.point_index.get(pid)
+            if j is None:
+                j = cat.point_index[pid] = len(cat.point_ids)
+                cat.point_ids.append(pid)
+            cat.obs_image.append(i)
+            cat.obs_point.append(j)
+            cat.obs_uv.append(uv)
+            cat.obs_sigma.append(frame.sigma_px)
+        self._eop_est = np.vstack([self._eop_est, nav[None]])
+        self._dirty = True
+        iterations = 0
+        if self.refit_every_frame:
+            cov = Covariance.BLOCKS if self.options.covariance_every_frame else Covariance.NONE
+            iterations = self._solve(cov).iterations
+        return self._update_record(frame, i, (time.perf_counter() - t0) * 1e3, iterations)
+
+    def _block(self) -> tuple[BlockData, np.ndarray, FloatArray, FloatArray]:
+        """Block of all points with at least ``min_rays`` observations and initial values."""
+        cat = self._cat
+        oi = np.asarray(cat.obs_image, dtype=np.int64)
+        op = np.asarray(cat.obs_point, dtype=np.int64)
+        uv = np.asarray(cat.obs_uv, dtype=np.float64).reshape(-1, 2)
+        sg = np.asarray(cat.obs_sigma, dtype=np.float64)
+        n_pts = len(cat.point_ids)
+        counts = np.bincount(op, minlength=n_pts)
+        # Initial GP values: previous estimate where known, else intersection at current EOPs.
+        known = np.full(n_pts, False)
+        gp_init = np.full((n_pts, 3), np.nan)
+        if self._point_sel.size:
+            gp_init[self._point_sel] = self._gp_est
+            known[self._point_sel] = True
+        need = (~known) & (counts >= self.options.min_rays)
+        if np.any(need):
+            mask = need[op]
+            X, _ = intersect_rays(self._eop_est[oi[mask]], uv[mask], op[mask], n_pts, self.camera)
+            gp_init[need] = X[need]
+        sel = np.flatnonzero((counts >= self.options.min_rays) & np.all(np.isfinite(gp_init), axis=1))
+        remap = np.full(n_pts, -1)
+        remap[sel] = np.arange(sel.size)
+        keep = remap[op] >= 0
+        data = BlockData(nav_eop=np.asarray(cat.nav_eop), nav_sigma=np.asarray(cat.nav_sigma),
+                         obs_image=oi[keep], obs_point=remap[op[keep]], obs_uv=uv[keep],
+                         obs_sigma_px=sg[keep], n_points=int(sel.size))
+        return data, sel, self._eop_est, gp_init[sel]
+
+    def export_state(self, covariance: Covariance = Covariance.FULL) -> SimState:
+        """Adjust the frames so far and return the solution with its observations."""
+        if self._origin is None:
+            raise EstimationError("no frames were added")
+        res = self._solve(covariance)
+        cat = self._cat
+        return SimState(origin=self._origin, image_ids=tuple(cat.image_ids),
+                        point_ids=tuple(cat.point_ids), selected=self._point_sel.copy(),
+                        obs_image=np.asarray(cat.obs_image, dtype=np.int64),
+                        obs_point=np.asarray(cat.obs_point, dtype=np.int64),
+                        obs_uv=np.asarray(cat.obs_uv, dtype=np.float64).reshape(-1, 2),
+                        obs_sigma_px=np.asarray(cat.obs_sigma, dtype=np.float64), result=res)
+
+    def _solve(self, covariance: Covariance) -> SimResult:
+        data, sel, eop0, gp0 = self._block()
+        res = adjust_block(self.camera, data, eop0, gp0, self.options, covariance)
+        self._result, self._point_sel = res, sel
+        self._eop_est, self._gp_est = res.eop.copy(), res.gp.copy()
+        self._n_obs = np.bincount(data.obs_point, minlength=data.n_points)
+        self._dirty = False
+        return res
+
+    def _update_record(self, frame: Frame, i: int, ms: float, iterations: int) -> ImageUpdate:
+        res = self._result if not self._dirty else None
+        n = i + 1
+        eop = self._eop_est[i].copy()
+        eop[:3] += self._origin  # type: ignore[operator]
+        sigma = np.full(EOP_SIZE, np.nan)
+        sigma0, red, rms_gp = float("nan"), 0, (float("nan"),) * 3
+        if res is not None:
+            scale = sigma_scale(res.sigma0, res.redundancy)
+            sigma0, red = res.sigma0, res.redundancy
+            if res.eop_cofactor is not None:
+                sigma = np.sqrt(np.diagonal(res.eop_cofactor[i])) * scale
+            if res.gp_cofactor is not None:
+                rms_gp = rms_point_sigma(np.diagonal(res.gp_cofactor, axis1=1, axis2=2) * scale**2)
+        n_pts = int(self._point_sel.size)
+        return ImageUpdate(
+            image_id=frame.image_id, index=i, stage="sim", update_ms=ms, window_images=n,
+            window_first_image=self._cat.image_ids[0], window_params=6 * n + 3 * n_pts,
+            window_eop_params=6 * n, window_gp_params=3 * n_pts, inverse_sizes=(0, 0),
+            sim_reduced_size=6 * n if res is not None else 0, sigma0=sigma0, redundancy=red,
+            rms_gp_sigma_m=rms_gp,  # type: ignore[arg-type]
+            n_points_total=n_pts, new_points=0, observations_used=len(frame.point_ids),
+            observations_skipped=0, iterations=iterations,
+            eop=EopEstimate(image_id=frame.image_id, eop=eop, sigma=sigma))
+
+    def solution(self) -> Solution:
+        """Final estimates of every image and point with standard deviations."""
+        if not self._cat.image_ids:
+            raise EstimationError("no frames were added")
+        if self._dirty or self._result is None or self._result.eop_cofactor is None:
+            self._solve(Covariance.BLOCKS)
+        res = self._result
+        assert res is not None and res.eop_cofactor is not None and res.gp_cofactor is not None
+        scale = sigma_scale(res.sigma0, res.redundancy)
+        origin = self._origin
+        eops = []
+        for i, iid in enumerate(self._cat.image_ids):
+            e = res.eop[i].copy()
+            e[:3] += origin  # type: ignore[operator]
+            eops.append(EopEstimate(image_id=iid, eop=e,
+                                    sigma=np.sqrt(np.diagonal(res.eop_cofactor[i])) * scale))
+        pts = []
+        for j, gi in enumerate(self._point_sel):
+            pts.append(PointEstimate(point_id=self._cat.point_ids[gi], xyz_m=res.gp[j] + origin,
+                                     sigma_m=np.sqrt(np.diagonal(res.gp_cofactor[j])) * scale,
+                                     n_obs=int(self._n_obs[j])))
+        return Solution(eops=tuple(eops), points=tuple(pts), sigma0=res.sigma0,
+                        redundancy=res.redundancy)

@@ -1,0 +1,158 @@
+"""Value objects shared by the estimators: camera, frame (one image's input), solutions.
+
+Conventions (docs/conventions.md): world frame east-north-up in metres; EOP vector
+``[X0_m, Y0_m, Z0_m, omega_rad, phi_rad, kappa_rad]`` with the camera->world rotation
+``R = Rx(omega) Ry(phi) Rz(kappa)``; image points in OpenCV pixels (u right, v down, origin
+at the centre of the top-left pixel) of an ideal pinhole camera (distortion removed upstream).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from seqat.errors import InputDataError
+
+FloatArray = NDArray[np.float64]
+
+#: Number of exterior orientation parameters per image.
+EOP_SIZE = 6
+#: Number of coordinates per ground point.
+GP_SIZE = 3
+
+
+@dataclass(frozen=True, kw_only=True)
+class PinholeCamera:
+    """Ideal pinhole camera in pixels (square pixels; distortion is removed before seqat)."""
+
+    f_px: float
+    cx_px: float
+    cy_px: float
+    width_px: int
+    height_px: int
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.f_px) and self.f_px > 0):
+            raise InputDataError(f"camera f_px must be a positive number, got {self.f_px!r}")
+        if self.width_px <= 0 or self.height_px <= 0:
+            raise InputDataError(
+                f"camera size must be positive, got {self.width_px} x {self.height_px} px"
+            )
+        for name in ("cx_px", "cy_px"):
+            if not np.isfinite(getattr(self, name)):
+                raise InputDataError(f"camera {name} must be finite, got {getattr(self, name)!r}")
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Frame:
+    """Everything the estimator receives for one image, in acquisition order.
+
+    Attributes
+    ----------
+    image_id : str
+    nav_eop : (6,) float
+        GPS/INS exterior orientation in the world frame, ``[X, Y, Z]`` metres and
+        ``[omega, phi, kappa]`` radians.
+    nav_sigma : (6,) float
+        Standard deviation of each ``nav_eop`` component (metres, radians), all > 0.
+    point_ids : tuple[str, ...]
+        Ground point (track) id of each observation, unique within the frame.
+    uv_px : (k, 2) float
+        Observed pixel coordinates of the ``k`` observations (ideal pinhole pixels).
+    sigma_px : float
+        Standard deviation of an image coordinate, pixels.
+    """
+
+    image_id: str
+    nav_eop: FloatArray
+    nav_sigma: FloatArray
+    point_ids: tuple[str, ...]
+    uv_px: FloatArray
+    sigma_px: float = 1.0
+
+    def __post_init__(self) -> None:
+        nav = np.asarray(self.nav_eop, dtype=np.float64).reshape(-1)
+        sig = np.asarray(self.nav_sigma, dtype=np.float64).reshape(-1)
+        uv = np.asarray(self.uv_px, dtype=np.float64).reshape(-1, 2)
+        where = f"image {self.image_id!r}"
+        if nav.shape != (EOP_SIZE,) or not np.all(np.isfinite(nav)):
+            raise InputDataError(f"{where}: nav_eop must be 6 finite numbers, got {nav!r}")
+        if sig.shape != (EOP_SIZE,) or not np.all(np.isfinite(sig)) or np.any(sig <= 0):
+            raise InputDataError(f"{where}: nav_sigma must be 6 positive numbers, got {sig!r}")
+        if uv.shape[0] != len(self.point_ids):
+            raise InputDataError(
+                f"{where}: {len(self.point_ids)} point ids but {uv.shape[0]} image points"
+            )
+        if not np.all(np.isfinite(uv)):
+            raise InputDataError(f"{where}: image coordinates must be finite")
+        if len(set(self.point_ids)) != len(self.point_ids):
+            raise InputDataError(f"{where}: a point id appears twice in one image")
+        if not (np.isfinite(self.sigma_px) and self.sigma_px > 0):
+            raise InputDataError(f"{where}: sigma_px must be positive, got {self.sigma_px!r}")
+        object.__setattr__(self, "nav_eop", nav)
+        object.__setattr__(self, "nav_sigma", sig)
+        object.__setattr__(self, "uv_px", uv)
+        object.__setattr__(self, "point_ids", tuple(self.point_ids))
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class EopEstimate:
+    """Estimated exterior orientation of one image with its standard deviations."""
+
+    image_id: str
+    eop: FloatArray  # (6,) world metres / radians
+    sigma: FloatArray  # (6,) metres / radians (scaled by the a posteriori sigma0)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class PointEstimate:
+    """Estimated ground point with standard deviations and the number of image observations."""
+
+    point_id: str
+    xyz_m: FloatArray  # (3,) world metres
+    sigma_m: FloatArray  # (3,)
+    n_obs: int
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Solution:
+    """All parameters known so far (window and frozen), in first-seen order."""
+
+    eops: tuple[EopEstimate, ...]
+    points: tuple[PointEstimate, ...]
+    sigma0: float
+    redundancy: int
+
+
+@dataclass(frozen=True, kw_only=True)
+class ImageUpdate:
+    """What the estimator reports after each image (seed 000 Figs 8-11, seed 003 §4.4).
+
+    ``inverse_sizes`` are the orders of the two matrices inverted in the update:
+    ``[I + P2bar A21 N11^-1 A21^T]`` and ``(M22 + L22)`` (0, 0 in the initial Sim stage,
+    where ``sim_reduced_size`` gives the order of the reduced EOP normal matrix instead).
+    """
+
+    image_id: str
+    index: int
+    stage: str  # "initial-sim" | "sequential" | "sim"
+    update_ms: float
+    window_images: int
+    window_first_image: str
+    window_params: int
+    window_eop_params: int
+    window_gp_params: int
+    inverse_sizes: tuple[int, int]
+    sim_reduced_size: int
+    sigma0: float
+    redundancy: int
+    rms_gp_sigma_m: tuple[float, float, float]
+    n_points_total: int
+    new_points: int
+    observations_used: int
+    observations_skipped: int
+    iterations: int
+    eop: EopEstimate
+    images_left_window: int = 0  # Seq-R: images that left the window before this update

@@ -1,0 +1,169 @@
+"""The sequential update of the estimates and of the inverse normal matrix (seed 000 Eq. 10-14).
+
+Notation of seed 000 §2.2 (derivation in docs/algorithm.md):
+
+* ``xi_1`` existing parameters with cofactor ``Q = N11^-1`` (the *window*); ``xi_2`` new ones.
+* ``y_2 = A21 xi_1 + A22 xi_2 + e_2`` rows touching existing parameters (y12 and y21 of the
+  paper; weights ``P2``), ``y_3 = A32 xi_2 + e_3`` rows touching only new parameters (y22 and
+  the GPS/INS constraints z2; weights ``P3``).
+* ``D = M22 + L22 = A22^T P2 A22 + A32^T P3 A32``,
+  ``P2bar = P2 - P2 A22 D^-1 A22^T P2``, ``P23bar = -P2 A22 D^-1 A32^T P3``,
+  ``S = I + P2bar A21 N11^-1 A21^T``.
+* Eq. 13 (corrected): ``xi_1 += N11^-1 A21^T S^-1 {P2bar (y2 - A21 xi_1) + P23bar y3}``;
+  Eq. 14: ``xi_2 = D^-1 {A22^T P2 (y2 - A21 xi_1_new) + A32^T P3 y3}``.
+* Eq. 11-12: ``N_r^-1 = N11^-1 - N11^-1 A21^T S^-1 P2bar A21 N11^-1``,
+  ``W1 = M12 D^-1``, ``Q12 = -N_r^-1 W1``, ``Q22 = D^-1 + W1^T N_r^-1 W1``.
+
+Only ``S`` (order m2 = rows of y2) and ``D`` (order n2 = new parameters) are inverted.
+
+Everything here is written in *corrections* from a linearisation point: ``xi_1 = x1 + d1``
+with prior ``d1 ~ (0, Q)``, ``xi_2 = x2_0 + d2``; ``l2``, ``l3`` are the reduced observations
+(observed minus computed at the linearisation point, plus ``A * d_lin`` when iterating).
+``A21`` is given only on the *touched* existing parameters (indices ``touched``); the other
+columns of ``A21`` are zero.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from seqat.errors import EstimationError
+from seqat.types import FloatArray
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class LinearRows:
+    """New observation rows, linearised.
+
+    Attributes
+    ----------
+    A21 : (m2, t) float
+        Design of the y2 rows on the touched existing parameters.
+    A22 : (m2, n2) float
+        Design of the y2 rows on the new parameters.
+    w2 : (m2,) float
+        Weights (diagonal of ``P2``).
+    l2 : (m2,) float
+    A32 : (m3, n2) float
+    w3 : (m3,) float
+    l3 : (m3,) float
+    """
+
+    A21: FloatArray
+    A22: FloatArray
+    w2: FloatArray
+    l2: FloatArray
+    A32: FloatArray
+    w3: FloatArray
+    l3: FloatArray
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class UpdateSolution:
+    """Corrections and the intermediate matrices reused by :func:`update_cofactor`.
+
+    ``delta1_touched`` is ``d1`` on the touched parameters only; the full ``d1`` is
+    ``G @ kappa`` (see :meth:`delta1`).
+    """
+
+    G: FloatArray  # (n1, m2)  N11^-1 A21^T
+    H: FloatArray  # (m2, m2)  A21 N11^-1 A21^T
+    P2bar: FloatArray  # (m2, m2)
+    S: FloatArray  # (m2, m2)  I + P2bar H
+    D_inv: FloatArray  # (n2, n2)  (M22 + L22)^-1
+    kappa: FloatArray  # (m2,)  S^-1 {P2bar l2 + P23bar l3}
+    delta1_touched: FloatArray  # (t,)
+    delta2: FloatArray  # (n2,)
+    ssr_increment: float  # increase of the weighted sum of squared residuals
+
+    def delta1(self) -> FloatArray:
+        """Correction of every existing parameter, (n1,)."""
+        return self.G @ self.kappa
+
+
+def _spd_inverse(M: FloatArray, what: str) -> FloatArray:
+    """Inverse of a symmetric positive definite matrix, or :class:`EstimationError`."""
+    try:
+        np.linalg.cholesky(M)  # raises unless positive definite
+    except np.linalg.LinAlgError as err:
+        ev = np.linalg.eigvalsh(M)
+        raise EstimationError(f"{what} ({M.shape[0]}x{M.shape[0]}) is not positive definite: "
+                              f"eigenvalues from {ev[0]:.3g} to {ev[-1]:.3g}") from err
+    inv = np.linalg.inv(M)
+    return 0.5 * (inv + inv.T)
+
+
+def solve_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows) -> UpdateSolution:
+    """Estimate the corrections of existing and new parameters (Eq. 13-14).
+
+    Parameters
+    ----------
+    Q : (n1, n1) float
+        Cofactor (inverse normal matrix) of the existing parameters.
+    touched : (t,) int
+        Indices of the existing parameters that the y2 rows involve.
+    rows : LinearRows
+
+    Returns
+    -------
+    UpdateSolution
+    """
+    A21, A22, A32 = rows.A21, rows.A22, rows.A32
+    w2, w3 = rows.w2, rows.w3
+    P2A22 = w2[:, None] * A22
+    D = A22.T @ P2A22 + A32.T @ (w3[:, None] * A32)  # M22 + L22
+    D_inv = _spd_inverse(D, "(M22 + L22)")
+    P2bar = -(P2A22 @ D_inv @ P2A22.T)
+    P2bar[np.diag_indices_from(P2bar)] += w2
+    P23bar_l3 = -P2A22 @ (D_inv @ (A32.T @ (w3 * rows.l3)))
+    G = Q[:, touched] @ A21.T
+    H = A21 @ G[touched]
+    m2 = A21.shape[0]
+    S = P2bar @ H
+    S[np.diag_indices_from(S)] += 1.0
+    try:
+        kappa = np.linalg.solve(S, P2bar @ rows.l2 + P23bar_l3)
+    except np.linalg.LinAlgError as err:
+        raise EstimationError(f"[I + P2bar A21 N11^-1 A21^T] ({m2}x{m2}) is singular") from err
+    d1t = G[touched] @ kappa
+    d2 = D_inv @ (P2A22.T @ (rows.l2 - A21 @ d1t) + A32.T @ (w3 * rows.l3))
+    v2 = rows.l2 - A21 @ d1t - A22 @ d2
+    v3 = rows.l3 - A32 @ d2
+    # Omega grows by the new rows' weighted residuals plus d1^T N11 d1 = kappa^T H kappa.
+    ssr = float(kappa @ H @ kappa + np.sum(w2 * v2**2) + np.sum(w3 * v3**2))
+    return UpdateSolution(G=G, H=H, P2bar=P2bar, S=S, D_inv=D_inv, kappa=kappa,
+                          delta1_touched=d1t, delta2=d2, ssr_increment=ssr)
+
+
+def update_cofactor(Q: FloatArray, touched: np.ndarray, rows: LinearRows, sol: UpdateSolution
+                    ) -> FloatArray:
+    """New cofactor of ``[xi_1, xi_2]`` (Eq. 11-12); ``Q`` is overwritten with ``N_r^-1``.
+
+    Parameters
+    ----------
+    Q : (n1, n1) float
+        Cofactor of the existing parameters; modified in place.
+    touched : (t,) int
+    rows : LinearRows
+    sol : UpdateSolution
+        From :func:`solve_update` with the same ``Q`` and ``rows``.
+
+    Returns
+    -------
+    (n1 + n2, n1 + n2) float
+    """
+    T = np.linalg.solve(sol.S, sol.P2bar)  # S^-1 P2bar (symmetric)
+    T = 0.5 * (T + T.T)
+    Q -= (sol.G @ T) @ sol.G.T  # Eq. 12: N_r^-1
+    W1t = (rows.A21.T @ (rows.w2[:, None] * rows.A22)) @ sol.D_inv  # M12 D^-1 on touched rows
+    Q12 = -Q[:, touched] @ W1t
+    Q22 = sol.D_inv + W1t.T @ Q[np.ix_(touched, touched)] @ W1t
+    n1, n2 = Q.shape[0], Q22.shape[0]
+    out = np.empty((n1 + n2, n1 + n2))
+    out[:n1, :n1] = Q
+    out[:n1, n1:] = Q12
+    out[n1:, :n1] = Q12.T
+    out[n1:, n1:] = 0.5 * (Q22 + Q22.T)
+    return out

@@ -1,0 +1,124 @@
+"""Seq-F and Seq-R (seed 000 §2.2-2.3) against batch solutions and truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from seqat.sequential import SequentialAT, SequentialOptions
+from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
+from seqat.simultaneous import SimOptions, SimultaneousAT
+from seqat.window import eop_correlations, first_over_threshold
+
+#: Sequential == batch of the same linearised system (issue: <= 1e-9 relative).
+BATCH_REL_TOL = 1e-9
+
+
+def _run(flight: SimulatedFlight, **kw: object) -> SequentialAT:
+    est = SequentialAT(flight.camera, SequentialOptions(**kw), record=True)  # type: ignore[arg-type]
+    for fr in flight.frames():
+        est.add_frame(fr)
+    return est
+
+
+def _columns(keys: list[tuple[str, int]]) -> list[tuple[str, int, int]]:
+    return [(k, i, c) for (k, i) in keys for c in range(6 if k == "e" else 3)]
+
+
+@pytest.mark.parametrize("iterations", [1, 3])
+def test_seq_f_equals_batch_of_same_linearisation(short_strip: SimulatedFlight, iterations: int) -> None:
+    est = _run(short_strip, correlation_threshold=None, initial_images=5,
+               max_update_iterations=iterations)
+    assert est.initial_state is not None and est.recorded
+    keys0, x0, Q0 = est.initial_state
+    cols = _columns(est._w.keys)  # final window = every parameter (Seq-F)
+    pos = {c: k for k, c in enumerate(cols)}
+    n = len(cols)
+    N = np.zeros((n, n))
+    c = np.zeros(n)
+    i0 = np.array([pos[k] for k in _columns(keys0)])
+    N0 = np.linalg.inv(Q0)
+    N[np.ix_(i0, i0)] += N0
+    c[i0] += N0 @ x0
+    for rec in est.recorded:
+        idx = np.array([pos[k] for k in rec.columns])
+        WA = rec.w[:, None] * rec.A
+        N[np.ix_(idx, idx)] += rec.A.T @ WA
+        c[idx] += WA.T @ rec.b
+    x_batch = np.linalg.solve(N, c)
+    Q_batch = np.linalg.inv(N)
+    x_seq, Q_seq = est._w.x, est._w.Q
+    # Relative to the size of the corrections the adjustment made (x itself is dominated by
+    # the coordinates' magnitude), per parameter kind.
+    for sel in (np.array([k[0] == "e" and k[2] < 3 for k in cols]),
+                np.array([k[0] == "e" and k[2] >= 3 for k in cols]),
+                np.array([k[0] == "p" for k in cols])):
+        ref = np.max(np.abs(np.sqrt(np.diagonal(Q_batch))[sel]))
+        assert np.max(np.abs(x_seq[sel] - x_batch[sel])) / ref < 1e-6  # well below 1 sigma
+    assert np.max(np.abs(x_seq - x_batch)) / np.max(np.abs(x_batch)) < BATCH_REL_TOL
+    sd = np.sqrt(np.diagonal(Q_batch))
+    rel_Q = np.max(np.abs(Q_seq - Q_batch) / np.outer(sd, sd))
+    assert rel_Q < BATCH_REL_TOL
+
+
+def test_seq_r_with_zero_threshold_is_seq_f(short_strip: SimulatedFlight) -> None:
+    a = _run(short_strip, correlation_threshold=None).solution()
+    b = _run(short_strip, correlation_threshold=0.0).solution()
+    np.testing.assert_array_equal([e.eop for e in a.eops], [e.eop for e in b.eops])
+    np.testing.assert_array_equal([p.xyz_m for p in a.points], [p.xyz_m for p in b.points])
+
+
+def test_sequential_agrees_with_sim(short_strip: SimulatedFlight) -> None:
+    f = short_strip
+    sim = SimultaneousAT(f.camera, SimOptions(), refit_every_frame=False)
+    for fr in f.frames():
+        sim.add_frame(fr)
+    ref = sim.solution()
+    E_ref = np.array([e.eop for e in ref.eops])
+    for thr in (None, 0.1):
+        sol = _run(f, correlation_threshold=thr).solution()
+        E = np.array([e.eop for e in sol.eops])
+        assert len(sol.points) == len(ref.points)
+        assert np.sqrt(np.mean((E - E_ref)[:, :3] ** 2)) < 0.05  # metres
+        assert np.degrees(np.sqrt(np.mean((E - E_ref)[:, 3:] ** 2))) < 0.01
+        assert sol.sigma0 == pytest.approx(ref.sigma0, rel=0.1)
+        # Standard deviations agree with Sim's where the image is still in the window.
+        np.testing.assert_allclose(sol.eops[-1].sigma, ref.eops[-1].sigma, rtol=0.15)
+
+
+def test_seq_r_window_stays_bounded() -> None:
+    f = simulate_strip(StripSimConfig(n_images=200, n_points=158), seed=4)
+    est = SequentialAT(f.camera, SequentialOptions(correlation_threshold=0.1))
+    ups = [est.add_frame(fr) for fr in f.frames()]
+    sizes = np.array([u.window_params for u in ups])
+    mid, late = np.median(sizes[60:120]), np.median(sizes[140:])
+    assert late < 1.3 * mid  # flat, not growing with the sequence
+    assert sizes.max() < 0.5 * (6 * 200 + 3 * 158)
+    assert sum(u.images_left_window for u in ups) > 100
+    sol = est.solution()
+    assert len(sol.eops) == 200 and all(np.all(np.isfinite(e.sigma)) for e in sol.eops)
+
+
+def test_update_reports_paper_quantities(short_strip: SimulatedFlight) -> None:
+    est = SequentialAT(short_strip.camera, SequentialOptions(initial_images=8))
+    ups = [est.add_frame(fr) for fr in short_strip.frames()]
+    assert [u.stage for u in ups[:8]] == ["initial-sim"] * 8
+    seq = ups[8:]
+    assert all(u.stage == "sequential" for u in seq)
+    # S has one row per y2 observation coordinate; D one per new parameter (6 + 3 per new GP).
+    assert all(u.inverse_sizes[1] == 6 + 3 * u.new_points for u in seq)
+    assert all(u.inverse_sizes[0] % 2 == 0 and u.inverse_sizes[0] > 0 for u in seq)
+    assert all(u.window_params == u.window_eop_params + u.window_gp_params for u in seq)
+    assert all(np.isfinite(u.rms_gp_sigma_m).all() for u in seq)
+
+
+def test_window_rule_first_over_threshold() -> None:
+    # Three images; image 0 weakly, image 1 strongly correlated with the last one (2).
+    Q = np.eye(18)
+    Q[0:6, 12:18] = Q[12:18, 0:6] = 0.05 * np.eye(6)
+    Q[6:12, 12:18] = Q[12:18, 6:12] = 0.5 * np.eye(6)
+    rho = eop_correlations(Q, np.array([0, 6, 12]), 12)
+    np.testing.assert_allclose(rho, [0.05, 0.5, 1.0])
+    assert first_over_threshold(rho, 0.1) == 1
+    assert first_over_threshold(np.array([0.05, 0.5, 0.01, 1.0]), 0.1) == 1  # later dips stay
+    assert first_over_threshold(rho, 0.0) == 0

@@ -1,0 +1,95 @@
+"""Sim (seed 000 §2.1): known answers and agreement with truth on seeded strips."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from seqat.geometry import intersect_rays, project
+from seqat.simulate import SimulatedFlight
+from seqat.simultaneous import BlockData, Covariance, SimOptions, SimultaneousAT, adjust_block
+
+#: Noise-free data must be reproduced to this (metres / radians).
+EXACT_TOL = 1e-6
+#: Two computations of one cofactor agree to this, on the correlation scale.
+CORRELATION_TOL = 1e-9
+
+
+def _solve(flight: SimulatedFlight) -> SimultaneousAT:
+    sim = SimultaneousAT(flight.camera, SimOptions(), refit_every_frame=False)
+    for fr in flight.frames():
+        sim.add_frame(fr)
+    return sim
+
+
+def test_noise_free_block_returns_truth(short_strip: SimulatedFlight) -> None:
+    f = short_strip
+    exact = project(f.truth_eop[f.obs_image], f.truth_xyz[f.obs_point], f.camera)
+    clean = dataclasses.replace(f, obs_uv=exact, nav_eop=f.truth_eop.copy())
+    sol = _solve(clean).solution()
+    E = np.array([e.eop for e in sol.eops])
+    np.testing.assert_allclose(E[:, :3], f.truth_eop[:, :3], atol=EXACT_TOL)
+    np.testing.assert_allclose(E[:, 3:], f.truth_eop[:, 3:], atol=EXACT_TOL)
+    assert sol.sigma0 < 1e-4
+
+
+def test_sim_improves_on_direct_georeferencing(short_strip: SimulatedFlight) -> None:
+    f = short_strip
+    sol = _solve(f).solution()
+    E = np.array([e.eop for e in sol.eops])
+    err_att = np.sqrt(np.mean((E[:, 3:] - f.truth_eop[:, 3:]) ** 2))
+    nav_att = np.sqrt(np.mean((f.nav_eop[:, 3:] - f.truth_eop[:, 3:]) ** 2))
+    assert err_att < 0.8 * nav_att
+    # GPs: far better than intersecting with the GPS/INS orientation.
+    idx = {p: i for i, p in enumerate(f.point_ids)}
+    P = np.array([p.xyz_m for p in sol.points])
+    T = f.truth_xyz[[idx[p.point_id] for p in sol.points]]
+    X_dir, _ = intersect_rays(f.nav_eop[f.obs_image], f.obs_uv, f.obs_point, len(f.point_ids), f.camera)
+    rmse_dir = np.sqrt(np.mean((X_dir - f.truth_xyz) ** 2))
+    assert np.sqrt(np.mean((P - T) ** 2)) < 0.5 * rmse_dir
+    assert 0.8 < sol.sigma0 < 1.2
+
+
+def test_sigmas_describe_the_errors(short_strip: SimulatedFlight) -> None:
+    f = short_strip
+    sol = _solve(f).solution()
+    E = np.array([e.eop for e in sol.eops])
+    S = np.array([e.sigma for e in sol.eops])
+    z = (E - f.truth_eop) / S
+    # Normalised errors of a consistent estimator have r.m.s. ~ 1 (loose: few, correlated samples).
+    assert 0.5 < np.sqrt(np.mean(z**2)) < 1.6
+
+
+def _local_block(f: SimulatedFlight) -> tuple[BlockData, np.ndarray, np.ndarray]:
+    origin = np.array([f.nav_eop[0, 0], f.nav_eop[0, 1], 0.0])
+    nav = f.nav_eop.copy()
+    nav[:, :3] -= origin
+    data = BlockData(nav_eop=nav, nav_sigma=np.tile(f.nav_sigma, (len(f.image_ids), 1)),
+                     obs_image=f.obs_image, obs_point=f.obs_point, obs_uv=f.obs_uv,
+                     obs_sigma_px=np.full(f.obs_image.size, f.sigma_px), n_points=len(f.point_ids))
+    return data, nav, f.truth_xyz - origin
+
+
+def test_block_and_full_cofactors_agree(short_strip: SimulatedFlight) -> None:
+    data, eop0, gp0 = _local_block(short_strip)
+    full = adjust_block(short_strip.camera, data, eop0, gp0, covariance=Covariance.FULL)
+    blocks = adjust_block(short_strip.camera, data, eop0, gp0, covariance=Covariance.BLOCKS)
+    assert full.full_cofactor is not None and full.eop_cofactor is not None
+    assert blocks.eop_cofactor is not None and blocks.gp_cofactor is not None and full.gp_cofactor is not None
+    for a, b in ((blocks.eop_cofactor, full.eop_cofactor), (blocks.gp_cofactor, full.gp_cofactor)):
+        sd = np.sqrt(np.diagonal(b, axis1=1, axis2=2))
+        scale = sd[:, :, None] * sd[:, None, :]  # compare on the correlation scale
+        np.testing.assert_allclose(a / scale, b / scale, rtol=0, atol=CORRELATION_TOL)
+    Q = full.full_cofactor
+    np.testing.assert_allclose(Q, Q.T, atol=1e-14)
+    assert np.all(np.linalg.eigvalsh(Q) > 0)
+
+
+def test_adjust_block_rejects_non_finite_start(short_strip: SimulatedFlight) -> None:
+    from seqat.errors import EstimationError
+
+    data, eop0, gp0 = _local_block(short_strip)
+    with pytest.raises(EstimationError, match="finite"):
+        adjust_block(short_strip.camera, data, eop0, np.full_like(gp0, np.nan))

@@ -1,0 +1,86 @@
+"""Seq-F update (seed 000 Eq. 10-14) == batch least squares of the same linear system."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from seqat.update import LinearRows, solve_update, update_cofactor
+
+#: Relative agreement required between sequential and batch solutions.
+REL_TOL = 1e-9
+
+
+def _random_rows(rng: np.random.Generator, n1: int, n2: int, m2: int, m3: int
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Dense designs on all existing columns, new columns, and weights."""
+    A21_full = np.zeros((m2, n1))
+    touched = np.sort(rng.choice(n1, size=min(n1, 7), replace=False))
+    A21_full[:, touched] = rng.normal(size=(m2, touched.size))
+    A22 = rng.normal(size=(m2, n2))
+    A32 = rng.normal(size=(m3, n2))
+    return A21_full, touched, A22, A32
+
+
+def _rel(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-300))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_chained_updates_equal_batch(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n1 = 12
+    # Initial stage: a well-posed linear LS with normal matrix N0 and rhs c0.
+    A0 = rng.normal(size=(40, n1))
+    w0 = rng.uniform(0.5, 2.0, 40)
+    y0 = rng.normal(size=40)
+    N_batch = A0.T @ (w0[:, None] * A0)
+    c_batch = A0.T @ (w0 * y0)
+    Q = np.linalg.inv(N_batch)
+    x = Q @ c_batch
+    for _stage in range(4):
+        n_old = x.size
+        n2, m2, m3 = 5, 9, 8
+        A21_full, touched, A22, A32 = _random_rows(rng, n_old, n2, m2, m3)
+        w2, w3 = rng.uniform(0.5, 2.0, m2), rng.uniform(0.5, 2.0, m3)
+        y2, y3 = rng.normal(size=m2), rng.normal(size=m3)
+        x2_0 = rng.normal(size=n2)  # linearisation point of the new parameters
+        # Reduced observations in corrections from (x, x2_0).
+        l2 = y2 - A21_full @ x - A22 @ x2_0
+        l3 = y3 - A32 @ x2_0
+        rows = LinearRows(A21=A21_full[:, touched], A22=A22, w2=w2, l2=l2, A32=A32, w3=w3, l3=l3)
+        sol = solve_update(Q, touched, rows)
+        x_new = np.concatenate([x + sol.delta1(), x2_0 + sol.delta2])
+        Q_new = update_cofactor(Q.copy(), touched, rows, sol)
+        # Batch: grow the normal equations with the new rows and solve from scratch.
+        N_batch = np.block([[N_batch, np.zeros((n_old, n2))], [np.zeros((n2, n_old)), np.zeros((n2, n2))]])
+        c_batch = np.concatenate([c_batch, np.zeros(n2)])
+        A2 = np.hstack([A21_full, A22])
+        A3 = np.hstack([np.zeros((m3, n_old)), A32])
+        N_batch += A2.T @ (w2[:, None] * A2) + A3.T @ (w3[:, None] * A3)
+        c_batch += A2.T @ (w2 * y2) + A3.T @ (w3 * y3)
+        x_batch = np.linalg.solve(N_batch, c_batch)
+        Q_batch = np.linalg.inv(N_batch)
+        assert _rel(x_new, x_batch) < REL_TOL
+        assert _rel(Q_new, Q_batch) < REL_TOL
+        x, Q = x_new, Q_new
+
+
+def test_ssr_increment_matches_batch_objective() -> None:
+    rng = np.random.default_rng(7)
+    n1, n2, m2, m3 = 6, 4, 7, 6
+    A0 = rng.normal(size=(20, n1))
+    y0 = rng.normal(size=20)
+    N0 = A0.T @ A0
+    x = np.linalg.solve(N0, A0.T @ y0)
+    ssr0 = float(np.sum((y0 - A0 @ x) ** 2))
+    A21_full, touched, A22, A32 = _random_rows(rng, n1, n2, m2, m3)
+    y2, y3 = rng.normal(size=m2), rng.normal(size=m3)
+    rows = LinearRows(A21=A21_full[:, touched], A22=A22, w2=np.ones(m2), l2=y2 - A21_full @ x,
+                      A32=A32, w3=np.ones(m3), l3=y3)
+    sol = solve_update(np.linalg.inv(N0), touched, rows)
+    A = np.block([[A0, np.zeros((20, n2))], [A21_full, A22], [np.zeros((m3, n1)), A32]])
+    y = np.concatenate([y0, y2, y3])
+    xb = np.linalg.lstsq(A, y, rcond=None)[0]
+    ssr_batch = float(np.sum((y - A @ xb) ** 2))
+    assert ssr0 + sol.ssr_increment == pytest.approx(ssr_batch, rel=1e-10)
