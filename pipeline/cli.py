@@ -1,0 +1,224 @@
+"""The ``seqat`` command line (DESIGN.md "Command line").
+
+Commands only parse arguments, call one stage function and print its typed summary.
+Exit codes: 0 success; 2 bad input or configuration (any :class:`~seqat.errors.SeqatError`,
+one line ``seqat: error: <message>`` on stderr, and usage errors); 1 anything else (a one-line
+message; the traceback with ``--debug`` or ``SEQAT_DEBUG=1``). Stages write their outputs
+atomically, so a failed command leaves nothing half-written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import os
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, ParamSpec, TypeVar
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from seqat.errors import SeqatError
+
+#: Exit code for bad input or configuration (also click's usage errors).
+EXIT_BAD_INPUT = 2
+#: Exit code for any other failure.
+EXIT_FAILURE = 1
+#: Conventional exit code after Ctrl-C (128 + SIGINT).
+EXIT_INTERRUPTED = 130
+#: Environment variable that turns on tracebacks like ``--debug``.
+DEBUG_ENV = "SEQAT_DEBUG"
+
+P = ParamSpec("P")
+R = TypeVar("R")
+
+app = typer.Typer(
+    name="seqat",
+    help="Sequential aerial triangulation of UAV image sequences.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+@dataclasses.dataclass(kw_only=True)
+class _Options:
+    """Global options of the current invocation (set by the app callback)."""
+
+    debug: bool = False
+
+
+_OPTIONS = _Options()
+
+
+@app.callback()
+def _main(
+    debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks of internal errors.")]
+    = False,
+) -> None:
+    """Sequential aerial triangulation of UAV image sequences."""
+    _OPTIONS.debug = debug
+
+
+def _debug_enabled() -> bool:
+    return _OPTIONS.debug or os.environ.get(DEBUG_ENV, "") not in ("", "0")
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+def _guarded(command: Callable[P, R]) -> Callable[P, R]:
+    """Map exceptions to the exit codes of the command-line contract."""
+
+    @functools.wraps(command)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        try:
+            return command(*args, **kwargs)
+        except (typer.Exit, typer.Abort):
+            raise
+        except SeqatError as err:
+            typer.echo(f"seqat: error: {_one_line(str(err))}", err=True)
+            raise typer.Exit(EXIT_BAD_INPUT) from err
+        except KeyboardInterrupt as err:
+            typer.echo("seqat: interrupted", err=True)
+            raise typer.Exit(EXIT_INTERRUPTED) from err
+        except Exception as err:  # noqa: BLE001 - the contract: anything else exits 1
+            if _debug_enabled():
+                traceback.print_exc()
+            typer.echo(f"seqat: internal error: {type(err).__name__}: {_one_line(str(err))} "
+                       f"(rerun with --debug or {DEBUG_ENV}=1 for the traceback)", err=True)
+            raise typer.Exit(EXIT_FAILURE) from err
+
+    return wrapper
+
+
+def _console() -> Console:
+    return Console()
+
+
+#: Display formats: metres to the millimetre, degrees to 1e-4, anything else 6 digits.
+METRE_FORMAT = ".3f"
+DEGREE_FORMAT = ".4f"
+GENERAL_FORMAT = ".6g"
+
+
+def _fmt(value: object, spec: str = GENERAL_FORMAT) -> str:
+    if isinstance(value, float):
+        return "-" if math.isnan(value) else format(value, spec)
+    if isinstance(value, tuple) and all(isinstance(v, float) for v in value):
+        return "  ".join(_fmt(v, spec) for v in value)
+    return str(value)
+
+
+def _table(title: str, rows: list[tuple[str, str]]) -> Table:
+    table = Table(title=title, show_header=False, title_justify="left")
+    table.add_column("what", style="bold")
+    table.add_column("value")
+    for key, value in rows:
+        table.add_row(key, value)
+    return table
+
+
+@app.command()
+@_guarded
+def simulate(
+    config: Annotated[Path, typer.Argument(help="Simulation config (configs/*_sim.yaml).")],
+    out: Annotated[Path, typer.Option("--out", help="Flight folder to write.")],
+    seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 0,
+) -> None:
+    """Simulate a flight and write it as a flight folder with truth/."""
+    from pipeline.simulate_io import simulate_to_folder
+
+    summary = simulate_to_folder(config, out, seed)
+    _console().print(_table("seqat simulate", [
+        ("flight", str(summary.out_dir)),
+        ("crs", summary.crs),
+        ("seed", str(summary.seed)),
+        ("images", str(summary.n_images)),
+        ("points", str(summary.n_points)),
+        ("observations", str(summary.n_observations)),
+        ("duration", f"{summary.duration_s:.1f} s"),
+    ]))
+
+
+@app.command()
+@_guarded
+def run(
+    flight: Annotated[Path, typer.Argument(help="Flight folder.")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")],
+    method: Annotated[str, typer.Option("--method", help="seq-r, seq-f or sim.")] = "seq-r",
+    final_only: Annotated[bool, typer.Option(
+        "--final-only", help="sim: adjust once after the last image.")] = False,
+    threshold: Annotated[float | None, typer.Option(
+        "--threshold", help="seq-r: EOP correlation threshold in [0, 1].")] = None,
+    initial_images: Annotated[int | None, typer.Option(
+        "--initial-images", help="Images of the initial simultaneous stage.")] = None,
+    options: Annotated[Path | None, typer.Option(
+        "--options", help="Estimator options YAML (sections sequential:, sim:).")] = None,
+    progress: Annotated[bool, typer.Option(
+        "--progress/--no-progress", help="Progress bar on a terminal.")] = True,
+) -> None:
+    """Adjust a flight folder and write eop.csv, points.csv and run.json."""
+    from pipeline.runner import Method, run_flight
+    from seqat.errors import ConfigError
+
+    try:
+        chosen = Method(method)
+    except ValueError as err:
+        raise ConfigError(f"--method: expected one of "
+                          f"{', '.join(m.value for m in Method)}, got {method!r}") from err
+    summary = run_flight(flight, out, method=chosen, final_only=final_only,
+                         options_path=options, threshold=threshold,
+                         initial_images=initial_images, progress=progress)
+    t = summary.update_ms
+    rows = [
+        ("method", summary.method.value + (" (final only)" if final_only else "")),
+        ("images / points / observations",
+         f"{summary.n_images} / {summary.n_points} / {summary.n_observations}"),
+        ("sigma0 (redundancy)", f"{_fmt(summary.sigma0, '.4f')} ({summary.redundancy})"),
+        ("update ms median / p95 / max", f"{t.median_ms:.1f} / {t.p95_ms:.1f} / "
+                                         f"{t.max_ms:.1f}"),
+    ]
+    ts = summary.sequential_update_ms
+    if math.isfinite(ts.median_ms):
+        rows.append(("  sequential stage only", f"{ts.median_ms:.1f} / {ts.p95_ms:.1f} / "
+                                                f"{ts.max_ms:.1f}"))
+    rows += [
+        ("total update / wall", f"{t.total_ms / 1e3:.2f} s / {summary.wall_s:.2f} s"),
+    ]
+    acc = summary.accuracy
+    if acc is not None:
+        rows += [
+            ("EOP position RMSE x y z (m)", _fmt(acc.pos_rmse_m, METRE_FORMAT)),
+            ("  GPS/INS input (m)", _fmt(acc.nav_pos_rmse_m, METRE_FORMAT)),
+            ("EOP attitude RMSE ω φ κ (deg)", _fmt(acc.att_rmse_deg, DEGREE_FORMAT)),
+            ("  GPS/INS input (deg)", _fmt(acc.nav_att_rmse_deg, DEGREE_FORMAT)),
+            ("ground point RMSE x y z (m)", _fmt(acc.gp_rmse_m, METRE_FORMAT)),
+        ]
+    rows.append(("results", str(summary.out_dir)))
+    _console().print(_table(f"seqat run {summary.flight_dir}", rows))
+
+
+@app.command()
+@_guarded
+def bench(
+    config: Annotated[Path, typer.Argument(help="Simulation config (configs/*_sim.yaml).")],
+    out: Annotated[Path, typer.Option("--out", help="Benchmark output folder.")] = Path(
+        "out/bench"),
+    seed: Annotated[list[int] | None, typer.Option(
+        "--seed", help="Seed of one simulated flight (repeat for several).")] = None,
+) -> None:
+    """Compare Seq-R, Seq-F and Sim on simulated flights."""
+    from pipeline.bench import run_bench
+
+    result = (run_bench(config, out, seeds=tuple(seed)) if seed else run_bench(config, out))
+    if dataclasses.is_dataclass(result) and not isinstance(result, type):
+        rows = [(f.name, _fmt(getattr(result, f.name))) for f in dataclasses.fields(result)
+                if isinstance(getattr(result, f.name), str | int | float | Path)]
+        _console().print(_table("seqat bench", rows))
+    _console().print(f"benchmark written to {out}")

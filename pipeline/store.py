@@ -1,0 +1,386 @@
+"""Result files of a run: ``eop.csv``, ``points.csv``, ``run.json`` (docs/formats.md).
+
+Every file is written atomically: a temporary file in the same folder, ``fsync``, then
+``os.replace`` (and an ``fsync`` of the folder), so a reader never sees a half-written file and
+a failed run leaves the previous results untouched. :func:`write_files_atomically` publishes a
+set of files together and removes the output folder again if it created it and failed.
+
+Numbers are written with Python's shortest round-trip representation (``repr``): reading a
+file back gives the written float64 values exactly (angles pass through degrees, so they
+round-trip to about 1e-15 relative).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import enum
+import json
+import math
+import os
+import tempfile
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.accuracy import Accuracy
+from pipeline.csvio import format_csv_line, read_csv
+from pipeline.tables import EopTable, PointTable
+from seqat.errors import InputDataError
+from seqat.types import EopEstimate, ImageUpdate, PointEstimate, Solution
+
+#: Columns of the output ``eop.csv``.
+EOP_COLUMNS = ("image", "x_m", "y_m", "z_m", "omega_deg", "phi_deg", "kappa_deg",
+               "sx_m", "sy_m", "sz_m", "somega_deg", "sphi_deg", "skappa_deg")
+#: Columns of the output ``points.csv``.
+POINT_COLUMNS = ("point", "x_m", "y_m", "z_m", "sx_m", "sy_m", "sz_m", "n_obs")
+#: File names inside a run's output folder.
+EOP_FILE = "eop.csv"
+POINTS_FILE = "points.csv"
+RUN_FILE = "run.json"
+#: Version of the ``run.json`` layout (bumped on incompatible changes).
+RUN_JSON_VERSION = 1
+#: Percentiles of the per-image update time reported in ``run.json``.
+TIMING_PERCENTILES = (95.0, 99.0)
+#: Indentation of ``run.json``.
+JSON_INDENT = 1
+#: Number of position (metres) and angle (radians) components of an EOP vector.
+XYZ = 3
+
+
+def fmt(value: float) -> str:
+    """Shortest decimal text that reads back as the same float64 (``nan`` for NaN)."""
+    return repr(float(value))
+
+
+# --------------------------------------------------------------------------------------------
+# Atomic writing
+# --------------------------------------------------------------------------------------------
+
+
+def _file_mode() -> int:
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+def _write_temp(folder: Path, name: str, text: str) -> Path:
+    """Write ``text`` to a new temporary file in ``folder`` and fsync it."""
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as handle:
+            handle.write(text)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.chmod(tmp, _file_mode())
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    return Path(tmp)
+
+
+def fsync_dir(folder: Path) -> None:
+    """Make a rename inside ``folder`` durable (no-op where directories cannot be opened)."""
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def atomic_write_text(path: Path | str, text: str) -> None:
+    """Replace ``path`` by ``text`` atomically (temp file in the same folder, fsync, rename)."""
+    path = Path(path)
+    tmp = _write_temp(path.parent, path.name, text)
+    try:
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    fsync_dir(path.parent)
+
+
+def write_files_atomically(out_dir: Path | str, files: Mapping[str, str]) -> tuple[Path, ...]:
+    """Publish several text files into ``out_dir`` together.
+
+    All files are first written to temporary files in ``out_dir``; only when every one is on
+    disk are they renamed into place. On failure the temporary files are removed, and so are
+    the folders this call created.
+
+    Parameters
+    ----------
+    out_dir : Path or str
+        Created (with parents) if absent.
+    files : Mapping[str, str]
+        File name -> text.
+
+    Returns
+    -------
+    tuple[Path, ...]
+        The written paths, in the order of ``files``.
+    """
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputDataError(f"{out}: exists and is not a folder")
+    created: list[Path] = []
+    probe = out
+    while not probe.exists():
+        created.append(probe)
+        probe = probe.parent
+    out.mkdir(parents=True, exist_ok=True)
+    temps: dict[str, Path] = {}
+    try:
+        for name, text in files.items():
+            temps[name] = _write_temp(out, name, text)
+        for name, tmp in temps.items():
+            os.replace(tmp, out / name)
+    except BaseException:
+        for tmp in temps.values():
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+        for folder in created:  # deepest first; only empty folders go
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
+    fsync_dir(out)
+    return tuple(out / name for name in files)
+
+
+# --------------------------------------------------------------------------------------------
+# eop.csv / points.csv
+# --------------------------------------------------------------------------------------------
+
+
+def _eop_fields(eop: np.ndarray, sigma: np.ndarray) -> list[str]:
+    """Position, angles (deg) and their sigmas of one image as formatted fields."""
+    values = np.concatenate([eop[:XYZ], np.degrees(eop[XYZ:]), sigma[:XYZ],
+                             np.degrees(sigma[XYZ:])])
+    return [fmt(v) for v in values]
+
+
+def format_eop_csv(eops: Sequence[EopEstimate]) -> str:
+    """Text of an ``eop.csv`` (angles converted to degrees)."""
+    lines = [format_csv_line(EOP_COLUMNS)]
+    lines += [format_csv_line([e.image_id, *_eop_fields(e.eop, e.sigma)]) for e in eops]
+    return "".join(lines)
+
+
+def format_points_csv(points: Sequence[PointEstimate]) -> str:
+    """Text of a ``points.csv``."""
+    lines = [format_csv_line(POINT_COLUMNS)]
+    lines += [format_csv_line([p.point_id, *(fmt(v) for v in p.xyz_m),
+                               *(fmt(v) for v in p.sigma_m), str(int(p.n_obs))])
+              for p in points]
+    return "".join(lines)
+
+
+def write_eop_csv(path: Path | str, eops: Sequence[EopEstimate]) -> None:
+    """Write ``eop.csv`` atomically."""
+    atomic_write_text(path, format_eop_csv(eops))
+
+
+def write_points_csv(path: Path | str, points: Sequence[PointEstimate]) -> None:
+    """Write ``points.csv`` atomically."""
+    atomic_write_text(path, format_points_csv(points))
+
+
+def read_eop_csv(path: Path | str) -> EopTable:
+    """Read an output ``eop.csv``; sigmas may be ``nan``, ids must be unique.
+
+    Returns
+    -------
+    EopTable
+        Metres and radians.
+    """
+    ids: list[str] = []
+    values: list[list[float]] = []
+    first: dict[str, int] = {}
+    for row in read_csv(path, EOP_COLUMNS):
+        image = row.ident("image")
+        if image in first:
+            raise row.error(f"duplicate image {image!r} (first at line {first[image]})")
+        first[image] = row.line
+        ids.append(image)
+        values.append([row.number(c) for c in EOP_COLUMNS[1:7]]
+                      + [row.number(c, allow_nan=True) for c in EOP_COLUMNS[7:]])
+    arr = np.asarray(values, dtype=np.float64).reshape(-1, 12)
+    eop, sigma = arr[:, :6].copy(), arr[:, 6:].copy()
+    eop[:, XYZ:] = np.radians(eop[:, XYZ:])
+    sigma[:, XYZ:] = np.radians(sigma[:, XYZ:])
+    return EopTable(image_ids=tuple(ids), eop=eop, sigma=sigma)
+
+
+def read_points_csv(path: Path | str) -> PointTable:
+    """Read an output ``points.csv``; sigmas may be ``nan``, ids must be unique."""
+    ids: list[str] = []
+    xyz: list[list[float]] = []
+    sig: list[list[float]] = []
+    n_obs: list[int] = []
+    first: dict[str, int] = {}
+    for row in read_csv(path, POINT_COLUMNS):
+        point = row.ident("point")
+        if point in first:
+            raise row.error(f"duplicate point {point!r} (first at line {first[point]})")
+        first[point] = row.line
+        ids.append(point)
+        xyz.append([row.number(c) for c in ("x_m", "y_m", "z_m")])
+        sig.append([row.number(c, allow_nan=True) for c in ("sx_m", "sy_m", "sz_m")])
+        n_obs.append(row.integer("n_obs"))
+    return PointTable(point_ids=tuple(ids), xyz_m=np.asarray(xyz, dtype=np.float64).reshape(-1, 3),
+                      sigma_m=np.asarray(sig, dtype=np.float64).reshape(-1, 3),
+                      n_obs=np.asarray(n_obs, dtype=np.int64))
+
+
+def eop_table(eops: Sequence[EopEstimate]) -> EopTable:
+    """Stack estimates into an :class:`EopTable`."""
+    return EopTable(image_ids=tuple(e.image_id for e in eops),
+                    eop=np.asarray([e.eop for e in eops], dtype=np.float64).reshape(-1, 6),
+                    sigma=np.asarray([e.sigma for e in eops], dtype=np.float64).reshape(-1, 6))
+
+
+def point_table(points: Sequence[PointEstimate]) -> PointTable:
+    """Stack estimates into a :class:`PointTable`."""
+    return PointTable(point_ids=tuple(p.point_id for p in points),
+                      xyz_m=np.asarray([p.xyz_m for p in points], dtype=np.float64).reshape(-1, 3),
+                      sigma_m=np.asarray([p.sigma_m for p in points],
+                                         dtype=np.float64).reshape(-1, 3),
+                      n_obs=np.asarray([p.n_obs for p in points], dtype=np.int64))
+
+
+# --------------------------------------------------------------------------------------------
+# run.json
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class TimingStats:
+    """Statistics of the per-image update times, milliseconds (NaN when there are none)."""
+
+    median_ms: float
+    p95_ms: float
+    p99_ms: float
+    max_ms: float
+    total_ms: float
+
+    @classmethod
+    def from_samples(cls, samples_ms: Sequence[float] | np.ndarray) -> TimingStats:
+        """Summarise update times (milliseconds)."""
+        t = np.asarray(samples_ms, dtype=np.float64)
+        if t.size == 0:
+            nan = float("nan")
+            return cls(median_ms=nan, p95_ms=nan, p99_ms=nan, max_ms=nan, total_ms=0.0)
+        p95, p99 = np.percentile(t, TIMING_PERCENTILES)
+        return cls(median_ms=float(np.median(t)), p95_ms=float(p95), p99_ms=float(p99),
+                   max_ms=float(t.max()), total_ms=float(t.sum()))
+
+
+@dataclass(frozen=True, kw_only=True)
+class RunTotals:
+    """Totals of a run (``run.json`` ``totals``)."""
+
+    images: int
+    points: int
+    observations: int
+    update_ms: TimingStats  # every image, initial simultaneous stage included
+    sequential_update_ms: TimingStats  # images of the sequential stage only (Seq-R / Seq-F)
+    wall_s: float
+    sigma0: float
+    redundancy: int
+    accuracy: Accuracy | None = None
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class RunRecord:
+    """Everything ``run.json`` holds.
+
+    Attributes
+    ----------
+    method : str
+        ``seq-r``, ``seq-f`` or ``sim``.
+    flight : str
+        The flight folder.
+    options : object
+        The estimator options (a dataclass such as ``SequentialOptions``), serialised field
+        by field.
+    final_only : bool
+    images : tuple[ImageUpdate, ...]
+        One record per image, in acquisition order.
+    totals : RunTotals
+    """
+
+    method: str
+    flight: str
+    options: object
+    final_only: bool
+    images: tuple[ImageUpdate, ...]
+    totals: RunTotals
+
+
+def eop_json(eop: EopEstimate) -> dict[str, object]:
+    """An EOP estimate with the units and names of ``eop.csv`` (JSON-ready)."""
+    return {"image": eop.image_id,
+            **{c: _finite_or_none(float(v))
+               for c, v in zip(EOP_COLUMNS[1:], np.concatenate(
+                   [eop.eop[:XYZ], np.degrees(eop.eop[XYZ:]), eop.sigma[:XYZ],
+                    np.degrees(eop.sigma[XYZ:])]), strict=True)}}
+
+
+def _finite_or_none(value: float) -> float | None:
+    return value if math.isfinite(value) else None
+
+
+def to_jsonable(value: object) -> object:
+    """Convert dataclasses, numpy values, enums and paths to JSON types (NaN/inf -> null)."""
+    if isinstance(value, EopEstimate):
+        return eop_json(value)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, enum.Enum):
+        return to_jsonable(value.value)
+    if isinstance(value, bool | str) or value is None:
+        return value
+    if isinstance(value, int | np.integer):
+        return int(value)
+    if isinstance(value, float | np.floating):
+        return _finite_or_none(float(value))
+    if isinstance(value, np.ndarray):
+        return [to_jsonable(v) for v in value.tolist()]
+    if isinstance(value, Mapping):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [to_jsonable(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"cannot serialise {type(value).__name__} to JSON")
+
+
+def format_run_json(record: RunRecord) -> str:
+    """Text of ``run.json`` (strict JSON: non-finite numbers become ``null``)."""
+    doc = {"version": RUN_JSON_VERSION, **to_jsonable(record)}  # type: ignore[dict-item]
+    return json.dumps(doc, indent=JSON_INDENT, allow_nan=False) + "\n"
+
+
+def write_run_json(path: Path | str, record: RunRecord) -> None:
+    """Write ``run.json`` atomically."""
+    atomic_write_text(path, format_run_json(record))
+
+
+def write_run_outputs(out_dir: Path | str, solution: Solution, record: RunRecord) -> (
+        tuple[Path, ...]):
+    """Publish ``eop.csv``, ``points.csv`` and ``run.json`` of a run together.
+
+    Returns
+    -------
+    tuple[Path, ...]
+        The three paths.
+    """
+    return write_files_atomically(out_dir, {
+        EOP_FILE: format_eop_csv(solution.eops),
+        POINTS_FILE: format_points_csv(solution.points),
+        RUN_FILE: format_run_json(record),
+    })

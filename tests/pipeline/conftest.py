@@ -1,0 +1,79 @@
+"""Fixtures of the pipeline tests, and the ``shared`` marker.
+
+Tests marked ``shared`` need the shared data folder: ``../shared`` beside the repository (as
+CI checks it out) or ``/work/shared``. When neither exists they are skipped, never failed
+(the hook below sees every collected test, ``tests/seqat`` included).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pipeline.simulate_io import write_simulated_flight
+from seqat.simulate import SimulatedFlight, simulate_strip
+
+from .sample_flight import FLIGHT_FILES, SIM_CRS, SIM_SEED, SMALL_SIM, FlightMaker
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+#: Where the shared data folder may be, in order of preference.
+SHARED_CANDIDATES = (REPO_ROOT.parent / "shared", Path("/work/shared"))
+SHARED_ABSENT = "shared data folder (../shared or /work/shared) is absent"
+
+
+def shared_dir() -> Path | None:
+    """The shared folder (holding ``data/``), or None when it is absent."""
+    for candidate in SHARED_CANDIDATES:
+        if (candidate / "data").is_dir():
+            return candidate
+    return None
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Skip every test marked ``shared`` when the shared folder is absent."""
+    if shared_dir() is not None:
+        return
+    skip = pytest.mark.skip(reason=SHARED_ABSENT)
+    for item in items:
+        if "shared" in item.keywords:
+            item.add_marker(skip)
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """``<shared>/data``; skips the test when the shared folder is absent."""
+    found = shared_dir()
+    if found is None:
+        pytest.skip(SHARED_ABSENT)
+    return found / "data"
+
+
+@pytest.fixture
+def make_flight(tmp_path: Path) -> FlightMaker:
+    """Write the hand-written flight into ``tmp_path/flight``; keyword args replace files.
+
+    ``make_flight(**{"nav.csv": text})`` replaces a file's text; ``None`` omits the file.
+    """
+
+    def make(**files: str | None) -> Path:
+        folder = tmp_path / "flight"
+        folder.mkdir()
+        for name, text in {**FLIGHT_FILES, **files}.items():
+            if text is not None:
+                (folder / name).write_text(text, encoding="utf-8")
+        return folder
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def small_sim() -> SimulatedFlight:
+    """A seeded simulated strip with exact truth."""
+    return simulate_strip(SMALL_SIM, SIM_SEED)
+
+
+@pytest.fixture(scope="session")
+def small_sim_dir(small_sim: SimulatedFlight, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``small_sim`` written as a flight folder (read-only for the tests)."""
+    return write_simulated_flight(small_sim, SIM_CRS, tmp_path_factory.mktemp("sim") / "flight")
