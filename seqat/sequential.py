@@ -81,7 +81,7 @@ class SequentialOptions:
     min_rays: int = 2  # a tie point is born once seen in this many window images
     min_ray_angle_deg: float = 5.0  # ... and its rays spread at least this much (docs/algorithm.md)
     max_update_iterations: int = 3  # 1 = the paper's single linearisation
-    iteration_tolerance_px: float = 0.01  # stop iterating when the linearisation moves less
+    iteration_tolerance_px: float = 0.05  # stop iterating when the linearisation moves less (px)
     sim: SimOptions = SimOptions()
 
     def __post_init__(self) -> None:
