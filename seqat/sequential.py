@@ -13,9 +13,11 @@ inverted, the big system is never refactorised.
 Leaving parameters are *marginalised*: the window keeps the joint cofactor of what stays,
 which in covariance form is exactly the marginal of the full solution (dropping rows and
 columns of ``N^-1`` is marginalisation; dropping rows of ``N`` would be conditioning, i.e.
-fixing). The information of the leaving parameters' observations thus stays in the window;
-only the leaving parameters themselves stop being updated and keep their last estimate and
-sigma. See docs/algorithm.md.
+fixing). The information of the leaving parameters' observations thus stays in the window, and
+the real-time estimates equal Seq-F's; only the leaving parameters themselves stop being updated
+and keep their last estimate and sigma. With ``smoothing`` (default) each departure stores the
+Rauch-Tung-Striebel gain of the leaving parameters on the staying ones, and :meth:`solution`
+smooths the departed values with everything that came later. See docs/algorithm.md.
 
 New observation classes (seed 000 Eq. 7-8): y21 = new image x existing GP; y12 = existing
 window image x newly born GP (its earlier, pending observations); y22 = new image x new GP;
@@ -36,6 +38,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg as sla
 from threadpoolctl import ThreadpoolController
 
 from seqat.geometry import depth, intersect_rays, project_with_jacobians, wrap_angle
@@ -82,6 +85,7 @@ class SequentialOptions:
     min_ray_angle_deg: float = 5.0  # ... and its rays spread at least this much (docs/algorithm.md)
     max_update_iterations: int = 3  # 1 = the paper's single linearisation
     iteration_tolerance_px: float = 0.05  # stop iterating when the linearisation moves less (px)
+    smoothing: bool = True  # Seq-R: keep RTS gains so solution() can smooth departed parameters
     sim: SimOptions = SimOptions()
 
     def __post_init__(self) -> None:
@@ -109,6 +113,22 @@ class RecordedRows:
     A: FloatArray
     b: FloatArray
     w: FloatArray
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class _Departure:
+    """Parameters F leaving the Seq-R window and their Rauch-Tung-Striebel gain on the rest W.
+
+    Later data reach F only through W (F is never observed again), so given the final
+    (smoothed) estimate of W the final estimate of F is ``x_F + J (x_W_final - x_W)`` with
+    ``J = Q_FW Q_WW^-1`` taken at departure (Rauch, Tung & Striebel 1965).
+    """
+
+    leaving: tuple[Key, ...]
+    staying: tuple[Key, ...]
+    x_leaving: FloatArray
+    x_staying: FloatArray
+    gain: FloatArray  # (|F|, |W|)
 
 
 @dataclass(eq=False)
@@ -163,6 +183,7 @@ class SequentialAT:
         self._pending: dict[int, list[tuple[int, FloatArray, float]]] = {}
         self._frozen_eop: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._frozen_gp: dict[int, tuple[FloatArray, FloatArray]] = {}
+        self._departures: list[_Departure] = []
         self._ssr = 0.0
         self._redundancy = 0
         self.recorded: list[RecordedRows] | None = [] if record else None
@@ -181,14 +202,29 @@ class SequentialAT:
                 return self._add_initial(frame)
             return self._add_sequential(frame)
 
-    def solution(self) -> Solution:
-        """Estimates of every image and point so far (window and frozen), with sigmas."""
+    def solution(self, *, smoothed: bool | None = None) -> Solution:
+        """Estimates of every image and point so far (window and departed), with sigmas.
+
+        Parameters
+        ----------
+        smoothed : bool, optional
+            Seq-R only: apply the RTS backward pass to the parameters that left the window, so
+            they also benefit from the data that came after they left (the result then equals
+            Seq-F's). ``False`` gives the frozen, real-time values of the paper. Default:
+            ``options.smoothing``. The sigmas of departed parameters stay those at departure
+            (an upper bound of the smoothed ones).
+        """
         if self._initial is not None:
             return self._initial.solution()
+        if smoothed is None:
+            smoothed = self.options.smoothing
+        if smoothed and not self.options.smoothing:
+            raise ValueError("smoothed=True needs SequentialOptions(smoothing=True)")
         scale = sigma_scale(self.sigma0, self._redundancy)
         w, origin = self._w, self._origin
         assert origin is not None
         sd = np.sqrt(np.diagonal(w.Q)) * scale
+        final = self._smoothed_departed() if smoothed else {}
         eops = []
         for i, iid in enumerate(self._image_ids):
             if ("e", i) in w.offset:
@@ -196,7 +232,7 @@ class SequentialAT:
                 val, sig = w.x[idx].copy(), sd[idx]
             else:
                 val, sig = self._frozen_eop[i]
-                val = val.copy()
+                val = final.get(("e", i), val).copy()
             val[:3] += origin
             val[3:] = wrap_angle(val[3:])
             eops.append(EopEstimate(image_id=iid, eop=val, sigma=sig))
@@ -207,11 +243,25 @@ class SequentialAT:
                 xyz, sig = w.x[idx] + origin, sd[idx]
             else:
                 xyz, sig = self._frozen_gp[p]
-                xyz = xyz + origin
+                xyz = final.get(("p", p), xyz) + origin
             pts.append(PointEstimate(point_id=self._point_ids[p], xyz_m=xyz, sigma_m=sig,
                                      n_obs=self._gp_nobs[p]))
         return Solution(eops=tuple(eops), points=tuple(pts), sigma0=self.sigma0,
                         redundancy=self._redundancy)
+
+    def _smoothed_departed(self) -> dict[Key, FloatArray]:
+        """RTS backward pass over the departures, newest first: O(sum |F| |W|)."""
+        w = self._w
+        value: dict[Key, FloatArray] = {k: w.x[w.index(k)] for k in w.keys}
+        for dep in reversed(self._departures):
+            x_w = np.concatenate([value[k] for k in dep.staying])
+            x_f = dep.x_leaving + dep.gain @ (x_w - dep.x_staying)
+            off = 0
+            for k in dep.leaving:
+                size = EOP_SIZE if k[0] == "e" else GP_SIZE
+                value[k] = x_f[off:off + size]
+                off += size
+        return value
 
     # ------------------------------------------------------------------ initial stage (Sim)
     def _add_initial(self, frame: Frame) -> ImageUpdate:
@@ -296,9 +346,16 @@ class SequentialAT:
                 self._frozen_gp[p] = (w.x[idx].copy(), sd[idx])
                 del self._gp_count[p]
         keep_keys = [k for k in w.keys if k not in leaving]
-        keep = np.concatenate([np.arange(w.offset[k], w.offset[k] + (EOP_SIZE if k[0] == "e" else GP_SIZE))
-                               for k in keep_keys])
-        w.Q = w.Q[np.ix_(keep, keep)]
+        leave_keys = [k for k in w.keys if k in leaving]
+        keep, leave = (np.concatenate([w.index(k) for k in keys]) for keys in (keep_keys, leave_keys))
+        Q_ww = w.Q[np.ix_(keep, keep)]
+        if self.options.smoothing:
+            gain = sla.cho_solve(sla.cho_factor(Q_ww, check_finite=False),
+                                 w.Q[np.ix_(keep, leave)], check_finite=False).T
+            self._departures.append(_Departure(leaving=tuple(leave_keys), staying=tuple(keep_keys),
+                                               x_leaving=w.x[leave], x_staying=w.x[keep],
+                                               gain=gain))
+        w.Q = Q_ww
         w.x = w.x[keep]
         w.relayout(keep_keys)
         return start
