@@ -249,6 +249,30 @@ class SequentialAT:
         return Solution(eops=tuple(eops), points=tuple(pts), sigma0=self.sigma0,
                         redundancy=self._redundancy)
 
+    def window_solution(self) -> Solution:
+        """Current estimates of the window's images and GPs with sigmas: O(window), any time.
+
+        During the initial stage the window is every image so far (the Sim solution).
+        """
+        if self._initial is not None:
+            return self._initial.solution()
+        w, origin = self._w, self._origin
+        assert origin is not None
+        sd = np.sqrt(np.diagonal(w.Q)) * sigma_scale(self.sigma0, self._redundancy)
+        eops, pts = [], []
+        for k in w.keys:
+            idx = w.index(k)
+            if k[0] == "e":
+                val = w.x[idx].copy()
+                val[:3] += origin
+                val[3:] = wrap_angle(val[3:])
+                eops.append(EopEstimate(image_id=self._image_ids[k[1]], eop=val, sigma=sd[idx]))
+            else:
+                pts.append(PointEstimate(point_id=self._point_ids[k[1]], xyz_m=w.x[idx] + origin,
+                                         sigma_m=sd[idx], n_obs=self._gp_nobs[k[1]]))
+        return Solution(eops=tuple(eops), points=tuple(pts), sigma0=self.sigma0,
+                        redundancy=self._redundancy)
+
     def _smoothed_departed(self) -> dict[Key, FloatArray]:
         """RTS backward pass over the departures, newest first: O(sum |F| |W|)."""
         w = self._w

@@ -110,6 +110,12 @@ def test_update_reports_paper_quantities(short_strip: SimulatedFlight) -> None:
     assert all(u.inverse_sizes[0] % 2 == 0 and u.inverse_sizes[0] > 0 for u in seq)
     assert all(u.window_params == u.window_eop_params + u.window_gp_params for u in seq)
     assert all(np.isfinite(u.rms_gp_sigma_m).all() for u in seq)
+    # The window's current estimates: the last image is in it, with the update's values.
+    win = est.window_solution()
+    assert len(win.eops) == seq[-1].window_images
+    assert 3 * len(win.points) == seq[-1].window_gp_params
+    np.testing.assert_array_equal(win.eops[-1].eop, seq[-1].eop.eop)
+    np.testing.assert_array_equal(win.eops[-1].sigma, seq[-1].eop.sigma)
 
 
 def test_window_rule_first_over_threshold() -> None:
