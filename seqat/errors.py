@@ -16,4 +16,7 @@ class InputDataError(SeqatError, OSError):
 
 
 class EstimationError(SeqatError):
-    """An adjustment cannot be computed (singular system, degenerate geometry); carries the numbers."""
+    """An adjustment cannot be computed (singular system, degenerate geometry).
+
+    The message carries the numbers (matrix order, eigenvalues, iteration).
+    """

@@ -28,8 +28,9 @@ def wrap_angle(angle_rad: FloatArray | float) -> FloatArray:
     return (np.asarray(angle_rad) + np.pi) % (2.0 * np.pi) - np.pi
 
 
-def rotation_matrix(omega_rad: FloatArray | float, phi_rad: FloatArray | float,
-                    kappa_rad: FloatArray | float) -> FloatArray:
+def rotation_matrix(
+    omega_rad: FloatArray | float, phi_rad: FloatArray | float, kappa_rad: FloatArray | float
+) -> FloatArray:
     """Camera-to-world rotation ``Rx(omega) Ry(phi) Rz(kappa)``.
 
     Parameters
@@ -42,9 +43,11 @@ def rotation_matrix(omega_rad: FloatArray | float, phi_rad: FloatArray | float,
     (..., 3, 3) float
         ``R_world_from_cam``.
     """
-    o, p, k = np.broadcast_arrays(np.asarray(omega_rad, dtype=np.float64),
-                                  np.asarray(phi_rad, dtype=np.float64),
-                                  np.asarray(kappa_rad, dtype=np.float64))
+    o, p, k = np.broadcast_arrays(
+        np.asarray(omega_rad, dtype=np.float64),
+        np.asarray(phi_rad, dtype=np.float64),
+        np.asarray(kappa_rad, dtype=np.float64),
+    )
     co, so, cp, sp, ck, sk = np.cos(o), np.sin(o), np.cos(p), np.sin(p), np.cos(k), np.sin(k)
     R = np.empty(o.shape + (3, 3))
     R[..., 0, 0] = cp * ck
@@ -145,8 +148,9 @@ def depth(eop: FloatArray, X_world_m: FloatArray) -> FloatArray:
     return -np.einsum("nj,nj->n", R[:, :, 2], np.atleast_2d(X_world_m) - eop[:, :3])
 
 
-def project_with_jacobians(eop: FloatArray, X_world_m: FloatArray, camera: PinholeCamera
-                           ) -> tuple[FloatArray, FloatArray, FloatArray]:
+def project_with_jacobians(
+    eop: FloatArray, X_world_m: FloatArray, camera: PinholeCamera
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Project world points and return the analytic Jacobians of ``[u, v]``.
 
     Parameters
@@ -201,14 +205,21 @@ def rays_world(eop: FloatArray, uv_px: FloatArray, camera: PinholeCamera) -> Flo
     eop = np.atleast_2d(np.asarray(eop, dtype=np.float64))
     uv = np.atleast_2d(np.asarray(uv_px, dtype=np.float64))
     R = rotation_matrix(eop[:, 3], eop[:, 4], eop[:, 5])
-    ray_cam = np.stack([uv[:, 0] - camera.cx_px, camera.cy_px - uv[:, 1],
-                        np.full(uv.shape[0], -camera.f_px)], axis=-1)
+    ray_cam = np.stack(
+        [uv[:, 0] - camera.cx_px, camera.cy_px - uv[:, 1], np.full(uv.shape[0], -camera.f_px)],
+        axis=-1,
+    )
     ray = np.einsum("nij,nj->ni", R, ray_cam)
     return ray / np.linalg.norm(ray, axis=1, keepdims=True)
 
 
-def intersect_rays(eop: FloatArray, uv_px: FloatArray, point_index: FloatArray, n_points: int,
-                   camera: PinholeCamera) -> tuple[FloatArray, FloatArray]:
+def intersect_rays(
+    eop: FloatArray,
+    uv_px: FloatArray,
+    point_index: FloatArray,
+    n_points: int,
+    camera: PinholeCamera,
+) -> tuple[FloatArray, FloatArray]:
     """Least-squares multi-ray intersection of many points at once.
 
     Minimises, per point, the sum of squared perpendicular distances to its rays:

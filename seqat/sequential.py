@@ -92,14 +92,18 @@ class SequentialOptions:
         from seqat.errors import ConfigError
 
         if self.correlation_threshold is not None and not 0 <= self.correlation_threshold <= 1:
-            raise ConfigError(f"correlation_threshold: expected a value in [0, 1] or null, "
-                              f"got {self.correlation_threshold!r}")
+            raise ConfigError(
+                f"correlation_threshold: expected a value in [0, 1] or null, "
+                f"got {self.correlation_threshold!r}"
+            )
         if self.initial_images < 1:
             raise ConfigError(f"initial_images: expected >= 1, got {self.initial_images}")
         if self.min_rays < 2:
             raise ConfigError(f"min_rays: expected >= 2, got {self.min_rays}")
         if self.max_update_iterations < 1:
-            raise ConfigError(f"max_update_iterations: expected >= 1, got {self.max_update_iterations}")
+            raise ConfigError(
+                f"max_update_iterations: expected >= 1, got {self.max_update_iterations}"
+            )
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -164,8 +168,13 @@ class SequentialAT:
         Keep every image's linearised rows (:attr:`recorded`) to verify against batch.
     """
 
-    def __init__(self, camera: PinholeCamera, options: SequentialOptions = SequentialOptions(),
-                 *, record: bool = False) -> None:
+    def __init__(
+        self,
+        camera: PinholeCamera,
+        options: SequentialOptions = SequentialOptions(),
+        *,
+        record: bool = False,
+    ) -> None:
         self.camera = camera
         self.options = options
         sim_opts = dataclasses.replace(options.sim, min_rays=options.min_rays)
@@ -193,7 +202,9 @@ class SequentialAT:
     @property
     def sigma0(self) -> float:
         """A posteriori standard error of unit weight."""
-        return float(np.sqrt(self._ssr / self._redundancy)) if self._redundancy > 0 else float("nan")
+        return (
+            float(np.sqrt(self._ssr / self._redundancy)) if self._redundancy > 0 else float("nan")
+        )
 
     def add_frame(self, frame: Frame) -> ImageUpdate:
         """Add the next image and update the triangulation."""
@@ -244,10 +255,14 @@ class SequentialAT:
             else:
                 xyz, sig = self._frozen_gp[p]
                 xyz = final.get(("p", p), xyz) + origin
-            pts.append(PointEstimate(point_id=self._point_ids[p], xyz_m=xyz, sigma_m=sig,
-                                     n_obs=self._gp_nobs[p]))
-        return Solution(eops=tuple(eops), points=tuple(pts), sigma0=self.sigma0,
-                        redundancy=self._redundancy)
+            pts.append(
+                PointEstimate(
+                    point_id=self._point_ids[p], xyz_m=xyz, sigma_m=sig, n_obs=self._gp_nobs[p]
+                )
+            )
+        return Solution(
+            eops=tuple(eops), points=tuple(pts), sigma0=self.sigma0, redundancy=self._redundancy
+        )
 
     def window_solution(self) -> Solution:
         """Current estimates of the window's images and GPs with sigmas: O(window), any time.
@@ -268,10 +283,17 @@ class SequentialAT:
                 val[3:] = wrap_angle(val[3:])
                 eops.append(EopEstimate(image_id=self._image_ids[k[1]], eop=val, sigma=sd[idx]))
             else:
-                pts.append(PointEstimate(point_id=self._point_ids[k[1]], xyz_m=w.x[idx] + origin,
-                                         sigma_m=sd[idx], n_obs=self._gp_nobs[k[1]]))
-        return Solution(eops=tuple(eops), points=tuple(pts), sigma0=self.sigma0,
-                        redundancy=self._redundancy)
+                pts.append(
+                    PointEstimate(
+                        point_id=self._point_ids[k[1]],
+                        xyz_m=w.x[idx] + origin,
+                        sigma_m=sd[idx],
+                        n_obs=self._gp_nobs[k[1]],
+                    )
+                )
+        return Solution(
+            eops=tuple(eops), points=tuple(pts), sigma0=self.sigma0, redundancy=self._redundancy
+        )
 
     def _smoothed_departed(self) -> dict[Key, FloatArray]:
         """RTS backward pass over the departures, newest first: O(sum |F| |W|)."""
@@ -283,7 +305,7 @@ class SequentialAT:
             off = 0
             for k in dep.leaving:
                 size = EOP_SIZE if k[0] == "e" else GP_SIZE
-                value[k] = x_f[off:off + size]
+                value[k] = x_f[off : off + size]
                 off += size
         return value
 
@@ -320,14 +342,16 @@ class SequentialAT:
         self._gp_order = [int(j) for j in st.selected]
         for i in range(n):
             self._img_points[i] = []
-        for i, j, uv, s in zip(st.obs_image, st.obs_point, st.obs_uv, st.obs_sigma_px):
+        for i, j, uv, s in zip(st.obs_image, st.obs_point, st.obs_uv, st.obs_sigma_px, strict=True):
             i, j = int(i), int(j)
             self._img_points[i].append(j)
             if j in selected:
                 self._gp_count[j] = self._gp_count.get(j, 0) + 1
                 self._gp_nobs[j] = self._gp_nobs.get(j, 0) + 1
             else:
-                self._pending.setdefault(j, []).append((i, np.asarray(uv, dtype=np.float64), float(s)))
+                self._pending.setdefault(j, []).append(
+                    (i, np.asarray(uv, dtype=np.float64), float(s))
+                )
         self._ssr, self._redundancy = res.weighted_ssr, res.redundancy
         self.initial_state = (keys, self._w.x.copy(), self._w.Q.copy())
         self._initial = None
@@ -339,8 +363,11 @@ class SequentialAT:
         if thr is None or len(self._window_images) < 2:
             return 0
         w = self._w
-        offs = np.fromiter((w.offset[("e", j)] for j in self._window_images), dtype=np.int64,
-                           count=len(self._window_images))
+        offs = np.fromiter(
+            (w.offset[("e", j)] for j in self._window_images),
+            dtype=np.int64,
+            count=len(self._window_images),
+        )
         start = first_over_threshold(eop_correlations(w.Q, offs, int(offs[-1])), thr)
         if start == 0:
             return 0
@@ -371,14 +398,25 @@ class SequentialAT:
                 del self._gp_count[p]
         keep_keys = [k for k in w.keys if k not in leaving]
         leave_keys = [k for k in w.keys if k in leaving]
-        keep, leave = (np.concatenate([w.index(k) for k in keys]) for keys in (keep_keys, leave_keys))
+        keep, leave = (
+            np.concatenate([w.index(k) for k in keys]) for keys in (keep_keys, leave_keys)
+        )
         Q_ww = w.Q[np.ix_(keep, keep)]
         if self.options.smoothing:
-            gain = sla.cho_solve(sla.cho_factor(Q_ww, check_finite=False),
-                                 w.Q[np.ix_(keep, leave)], check_finite=False).T
-            self._departures.append(_Departure(leaving=tuple(leave_keys), staying=tuple(keep_keys),
-                                               x_leaving=w.x[leave], x_staying=w.x[keep],
-                                               gain=gain))
+            gain = sla.cho_solve(
+                sla.cho_factor(Q_ww, check_finite=False),
+                w.Q[np.ix_(keep, leave)],
+                check_finite=False,
+            ).T
+            self._departures.append(
+                _Departure(
+                    leaving=tuple(leave_keys),
+                    staying=tuple(keep_keys),
+                    x_leaving=w.x[leave],
+                    x_staying=w.x[keep],
+                    gain=gain,
+                )
+            )
         w.Q = Q_ww
         w.x = w.x[keep]
         w.relayout(keep_keys)
@@ -405,7 +443,7 @@ class SequentialAT:
         y21_pts, y21_uv = [], []
         candidates: list[int] = []
         skipped = 0
-        for p, uv in zip(pts, frame.uv_px):
+        for p, uv in zip(pts, frame.uv_px, strict=True):
             if ("p", p) in w.offset:
                 y21_pts.append(p)
                 y21_uv.append(uv)
@@ -421,12 +459,17 @@ class SequentialAT:
         # --- layout of the new parameters: [EOP of image i, born GPs]
         n2 = EOP_SIZE + GP_SIZE * len(born)
         x2_0 = np.concatenate([nav, born_xyz.ravel()])
-        y12 = [(j, b, uv, s) for b, p in enumerate(born) for (j, uv, s) in self._pending[p] if j != i]
+        y12 = [
+            (j, b, uv, s) for b, p in enumerate(born) for (j, uv, s) in self._pending[p] if j != i
+        ]
         y22 = [(b, uv, s) for b, p in enumerate(born) for (j, uv, s) in self._pending[p] if j == i]
         touched_keys: list[Key] = [("p", p) for p in y21_pts]
         touched_keys += list(dict.fromkeys(("e", j) for (j, _, _, _) in y12))
-        touched = (np.concatenate([w.index(k) for k in touched_keys]) if touched_keys
-                   else np.zeros(0, dtype=np.int64))
+        touched = (
+            np.concatenate([w.index(k) for k in touched_keys])
+            if touched_keys
+            else np.zeros(0, dtype=np.int64)
+        )
         col_of = {}
         c = 0
         for k in touched_keys:
@@ -436,19 +479,28 @@ class SequentialAT:
         # One entry per image row: (EOP column, GP column, uv, sigma, in y2) in z = [x1t, x2].
         t = touched.size
         obs: list[tuple[int, int, FloatArray, float, bool]] = [
-            (t, col_of[("p", p)], uv, frame.sigma_px, True) for p, uv in zip(y21_pts, y21_uv)]
-        obs += [(col_of[("e", j)], t + EOP_SIZE + GP_SIZE * b, uv, s, True) for (j, b, uv, s) in y12]
+            (t, col_of[("p", p)], uv, frame.sigma_px, True)
+            for p, uv in zip(y21_pts, y21_uv, strict=True)
+        ]
+        obs += [
+            (col_of[("e", j)], t + EOP_SIZE + GP_SIZE * b, uv, s, True) for (j, b, uv, s) in y12
+        ]
         obs += [(t, t + EOP_SIZE + GP_SIZE * b, uv, s, False) for (b, uv, s) in y22]
         builder = _RowBuilder(cam, t, n2, obs, nav, frame.nav_sigma)
         x1t = w.x[touched]
         d1t = np.zeros(touched.size)
         d2 = np.zeros(n2)
         iterations = 0
-        for iterations in range(1, opts.max_update_iterations + 1):
+        while iterations < opts.max_update_iterations:
+            iterations += 1
             rows = builder.rows(x1t, x2_0, d1t, d2)
             sol = solve_update(w.Q, touched, rows)
-            moved = np.concatenate([rows.A21 @ (sol.delta1_touched - d1t) + rows.A22 @ (sol.delta2 - d2),
-                                    rows.A32 @ (sol.delta2 - d2)])
+            moved = np.concatenate(
+                [
+                    rows.A21 @ (sol.delta1_touched - d1t) + rows.A22 @ (sol.delta2 - d2),
+                    rows.A32 @ (sol.delta2 - d2),
+                ]
+            )
             d1t, d2 = sol.delta1_touched, sol.delta2
             if np.max(np.abs(moved), initial=0.0) < opts.iteration_tolerance_px:
                 break
@@ -471,17 +523,20 @@ class SequentialAT:
             self._gp_count[p] = self._gp_nobs[p] = len(obs)
             self._gp_order.append(p)
         ms = (time.perf_counter() - t0) * 1e3
-        return self._report(frame, i, ms, rows, n2, len(born), len(pts) - skipped, skipped,
-                            iterations, dropped)
+        return self._report(
+            frame, i, ms, rows, n2, len(born), len(pts) - skipped, skipped, iterations, dropped
+        )
 
-    def _birth(self, candidates: list[int], i: int, nav: FloatArray) -> tuple[list[int], FloatArray]:
+    def _birth(
+        self, candidates: list[int], i: int, nav: FloatArray
+    ) -> tuple[list[int], FloatArray]:
         """Intersect candidate tie points; return those with a usable geometry and their XYZ."""
         if not candidates:
             return [], np.zeros((0, GP_SIZE))
         w = self._w
         eops, uvs, idx = [], [], []
         for c, p in enumerate(candidates):
-            for (j, uv, _) in self._pending[p]:
+            for j, uv, _ in self._pending[p]:
                 eops.append(nav if j == i else w.x[w.index(("e", j))])
                 uvs.append(uv)
                 idx.append(c)
@@ -496,23 +551,43 @@ class SequentialAT:
         sel = np.flatnonzero(ok)
         return [candidates[c] for c in sel], X[sel]
 
-    def _record(self, touched_keys: list[Key], touched: np.ndarray, born: list[int], i: int,
-                rows: LinearRows, x1t: FloatArray, x2_0: FloatArray) -> None:
+    def _record(
+        self,
+        touched_keys: list[Key],
+        touched: np.ndarray,
+        born: list[int],
+        i: int,
+        rows: LinearRows,
+        x1t: FloatArray,
+        x2_0: FloatArray,
+    ) -> None:
         cols: list[tuple[str, int, int]] = []
         for k in touched_keys + [("e", i)] + [("p", p) for p in born]:
             cols += [(k[0], k[1], c) for c in range(EOP_SIZE if k[0] == "e" else GP_SIZE)]
         m2, m3 = rows.l2.size, rows.l3.size
         A = np.zeros((m2 + m3, len(cols)))
-        A[:m2, :touched.size] = rows.A21
-        A[:m2, touched.size:] = rows.A22
-        A[m2:, touched.size:] = rows.A32
+        A[:m2, : touched.size] = rows.A21
+        A[:m2, touched.size :] = rows.A22
+        A[m2:, touched.size :] = rows.A32
         b = np.concatenate([rows.l2, rows.l3]) + A @ np.concatenate([x1t, x2_0])
         assert self.recorded is not None
-        self.recorded.append(RecordedRows(columns=tuple(cols), A=A, b=b,
-                                          w=np.concatenate([rows.w2, rows.w3])))
+        self.recorded.append(
+            RecordedRows(columns=tuple(cols), A=A, b=b, w=np.concatenate([rows.w2, rows.w3]))
+        )
 
-    def _report(self, frame: Frame, i: int, ms: float, rows: LinearRows, n2: int, n_born: int,
-                used: int, skipped: int, iterations: int, dropped: int) -> ImageUpdate:
+    def _report(
+        self,
+        frame: Frame,
+        i: int,
+        ms: float,
+        rows: LinearRows,
+        n2: int,
+        n_born: int,
+        used: int,
+        skipped: int,
+        iterations: int,
+        dropped: int,
+    ) -> ImageUpdate:
         w = self._w
         scale = sigma_scale(self.sigma0, self._redundancy)
         idx = w.index(("e", i))
@@ -524,17 +599,30 @@ class SequentialAT:
         rms = rms_point_sigma(var)
         n_img = len(self._window_images)
         return ImageUpdate(
-            image_id=frame.image_id, index=i, stage="sequential", update_ms=ms,
-            window_images=n_img, window_first_image=self._image_ids[self._window_images[0]],
-            window_params=w.x.size, window_eop_params=EOP_SIZE * n_img,
+            image_id=frame.image_id,
+            index=i,
+            stage="sequential",
+            update_ms=ms,
+            window_images=n_img,
+            window_first_image=self._image_ids[self._window_images[0]],
+            window_params=w.x.size,
+            window_eop_params=EOP_SIZE * n_img,
             window_gp_params=w.x.size - EOP_SIZE * n_img,
-            inverse_sizes=(rows.l2.size, n2), sim_reduced_size=0, sigma0=self.sigma0,
-            redundancy=self._redundancy, rms_gp_sigma_m=rms,  # type: ignore[arg-type]
-            n_points_total=len(self._gp_order), new_points=n_born, observations_used=used,
-            observations_skipped=skipped, iterations=iterations,
-            eop=EopEstimate(image_id=frame.image_id, eop=eop,
-                            sigma=np.sqrt(np.diagonal(w.Q)[idx]) * scale),
-            images_left_window=dropped)
+            inverse_sizes=(rows.l2.size, n2),
+            sim_reduced_size=0,
+            sigma0=self.sigma0,
+            redundancy=self._redundancy,
+            rms_gp_sigma_m=rms,  # type: ignore[arg-type]
+            n_points_total=len(self._gp_order),
+            new_points=n_born,
+            observations_used=used,
+            observations_skipped=skipped,
+            iterations=iterations,
+            eop=EopEstimate(
+                image_id=frame.image_id, eop=eop, sigma=np.sqrt(np.diagonal(w.Q)[idx]) * scale
+            ),
+            images_left_window=dropped,
+        )
 
 
 class _RowBuilder:
@@ -557,9 +645,15 @@ class _RowBuilder:
         GPS/INS constraint of the new image (local), its sigma.
     """
 
-    def __init__(self, cam: PinholeCamera, t: int, n2: int,
-                 obs: list[tuple[int, int, FloatArray, float, bool]], nav: FloatArray,
-                 nav_sigma: FloatArray) -> None:
+    def __init__(
+        self,
+        cam: PinholeCamera,
+        t: int,
+        n2: int,
+        obs: list[tuple[int, int, FloatArray, float, bool]],
+        nav: FloatArray,
+        nav_sigma: FloatArray,
+    ) -> None:
         self.cam, self.t, self.n2 = cam, t, n2
         self.nav = nav
         y2 = [o for o in obs if o[4]]
@@ -583,7 +677,9 @@ class _RowBuilder:
         self.k = k
         self.ncol = ncol
 
-    def rows(self, x1t: FloatArray, x2_0: FloatArray, d1t: FloatArray, d2: FloatArray) -> LinearRows:
+    def rows(
+        self, x1t: FloatArray, x2_0: FloatArray, d1t: FloatArray, d2: FloatArray
+    ) -> LinearRows:
         """Rows linearised at ``(x1t + d1t, x2_0 + d2)``; reduced observations in corrections
         from ``(x1t, x2_0)``: ``l = y - f(x_lin) + A (x_lin - x_prior)``."""
         t, k = self.t, self.k
@@ -594,13 +690,20 @@ class _RowBuilder:
             uv, Je, Jp = project_with_jacobians(z[self.eidx], z[self.pidx], self.cam)
             A.flat[self.flat_e] = Je.ravel()
             A.flat[self.flat_p] = Jp.ravel()
-            ell[:2 * k] = self.obs - uv.ravel()
+            ell[: 2 * k] = self.obs - uv.ravel()
         # GPS/INS constraint of the new EOP (linear, A = I): nav - e_new, angles wrapped.
         A[2 * k + np.arange(EOP_SIZE), t + np.arange(EOP_SIZE)] = 1.0
-        dz = self.nav - z[t:t + EOP_SIZE]
+        dz = self.nav - z[t : t + EOP_SIZE]
         dz[3:] = wrap_angle(dz[3:])
-        ell[2 * k:] = dz
+        ell[2 * k :] = dz
         ell += A @ np.concatenate([d1t, d2])
         m2 = self.m2
-        return LinearRows(A21=A[:m2, :t], A22=A[:m2, t:], w2=self.w[:m2], l2=ell[:m2],
-                          A32=A[m2:, t:], w3=self.w[m2:], l3=ell[m2:])
+        return LinearRows(
+            A21=A[:m2, :t],
+            A22=A[:m2, t:],
+            w2=self.w[:m2],
+            l2=ell[:m2],
+            A32=A[m2:, t:],
+            w3=self.w[m2:],
+            l3=ell[m2:],
+        )

@@ -55,12 +55,21 @@ class StripSimConfig:
     def __post_init__(self) -> None:
         from seqat.errors import ConfigError
 
-        positive = ("frame_rate_hz", "speed_m_s", "height_m", "focal_mm", "pixel_um",
-                    "sigma_position_m", "sigma_attitude_deg", "sigma_px")
+        positive = (
+            "frame_rate_hz",
+            "speed_m_s",
+            "height_m",
+            "focal_mm",
+            "pixel_um",
+            "sigma_position_m",
+            "sigma_attitude_deg",
+            "sigma_px",
+        )
         for name in positive:
             if not getattr(self, name) > 0:
-                raise ConfigError(f"simulation.{name}: expected a positive number, "
-                                  f"got {getattr(self, name)!r}")
+                raise ConfigError(
+                    f"simulation.{name}: expected a positive number, got {getattr(self, name)!r}"
+                )
         if self.n_images < 2:
             raise ConfigError(f"simulation.n_images: expected at least 2, got {self.n_images}")
         if self.n_points < 1:
@@ -68,9 +77,13 @@ class StripSimConfig:
 
     @property
     def camera(self) -> PinholeCamera:
-        return PinholeCamera(f_px=self.focal_mm * 1e3 / self.pixel_um,
-                             cx_px=(self.width_px - 1) / 2.0, cy_px=(self.height_px - 1) / 2.0,
-                             width_px=self.width_px, height_px=self.height_px)
+        return PinholeCamera(
+            f_px=self.focal_mm * 1e3 / self.pixel_um,
+            cx_px=(self.width_px - 1) / 2.0,
+            cy_px=(self.height_px - 1) / 2.0,
+            width_px=self.width_px,
+            height_px=self.height_px,
+        )
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -95,9 +108,14 @@ class SimulatedFlight:
         bounds = np.searchsorted(self.obs_image, np.arange(len(self.image_ids) + 1))
         for i, iid in enumerate(self.image_ids):
             sl = slice(bounds[i], bounds[i + 1])
-            yield Frame(image_id=iid, nav_eop=self.nav_eop[i], nav_sigma=self.nav_sigma,
-                        point_ids=tuple(self.point_ids[j] for j in self.obs_point[sl]),
-                        uv_px=self.obs_uv[sl], sigma_px=self.sigma_px)
+            yield Frame(
+                image_id=iid,
+                nav_eop=self.nav_eop[i],
+                nav_sigma=self.nav_sigma,
+                point_ids=tuple(self.point_ids[j] for j in self.obs_point[sl]),
+                uv_px=self.obs_uv[sl],
+                sigma_px=self.sigma_px,
+            )
 
 
 def _wander(rng: np.random.Generator, t: FloatArray, amplitude: float) -> FloatArray:
@@ -111,8 +129,10 @@ def _wander(rng: np.random.Generator, t: FloatArray, amplitude: float) -> FloatA
 
 def _terrain(rng: np.random.Generator, relief_m: float, mean_m: float):  # type: ignore[no-untyped-def]
     """A smooth random terrain height function ``z(e, n)`` (local metres)."""
-    waves = [(rng.uniform(*TERRAIN_WAVELENGTH_M), rng.uniform(0, np.pi), rng.uniform(0, 2 * np.pi))
-             for _ in range(2)]
+    waves = [
+        (rng.uniform(*TERRAIN_WAVELENGTH_M), rng.uniform(0, np.pi), rng.uniform(0, 2 * np.pi))
+        for _ in range(2)
+    ]
 
     def z(e: FloatArray, n: FloatArray) -> FloatArray:
         h = np.zeros(np.broadcast(e, n).shape)
@@ -178,10 +198,15 @@ def simulate_strip(config: StripSimConfig, seed: int) -> SimulatedFlight:
         j = np.arange(lo[i], hi[i])
         if j.size == 0:
             continue
-        e = np.repeat(truth_local[i:i + 1], j.size, axis=0)
+        e = np.repeat(truth_local[i : i + 1], j.size, axis=0)
         uv = project(e, pts_local[j], cam)
-        ok = ((depth(e, pts_local[j]) > 0) & (uv[:, 0] >= mg) & (uv[:, 0] <= cam.width_px - 1 - mg)
-              & (uv[:, 1] >= mg) & (uv[:, 1] <= cam.height_px - 1 - mg))
+        ok = (
+            (depth(e, pts_local[j]) > 0)
+            & (uv[:, 0] >= mg)
+            & (uv[:, 0] <= cam.width_px - 1 - mg)
+            & (uv[:, 1] >= mg)
+            & (uv[:, 1] <= cam.height_px - 1 - mg)
+        )
         obs_i.append(np.full(int(ok.sum()), i))
         obs_j.append(j[ok])
         obs_uv.append(uv[ok])
@@ -201,15 +226,23 @@ def simulate_strip(config: StripSimConfig, seed: int) -> SimulatedFlight:
     origin = np.array([config.origin_e_m, config.origin_n_m, 0.0])
     truth_eop = truth_local.copy()
     truth_eop[:, :3] += origin
-    nav_sigma = np.array([config.sigma_position_m] * 3 + [np.radians(config.sigma_attitude_deg)] * 3)
+    nav_sigma = np.array(
+        [config.sigma_position_m] * 3 + [np.radians(config.sigma_attitude_deg)] * 3
+    )
     nav_eop = truth_eop + rng.normal(0.0, 1.0, (n, EOP_SIZE)) * nav_sigma
     width = max(4, len(str(n)))
     pwidth = max(4, len(str(kept.size)))
     return SimulatedFlight(
-        camera=cam, image_ids=tuple(f"img_{i + 1:0{width}d}" for i in range(n)), times_s=t,
-        truth_eop=truth_eop, nav_eop=nav_eop, nav_sigma=nav_sigma,
+        camera=cam,
+        image_ids=tuple(f"img_{i + 1:0{width}d}" for i in range(n)),
+        times_s=t,
+        truth_eop=truth_eop,
+        nav_eop=nav_eop,
+        nav_sigma=nav_sigma,
         point_ids=tuple(f"p{j + 1:0{pwidth}d}" for j in range(kept.size)),
-        truth_xyz=pts_local[kept] + origin, obs_image=oi, obs_point=oj, obs_uv=ouv,
-        sigma_px=config.sigma_px)
-
-
+        truth_xyz=pts_local[kept] + origin,
+        obs_image=oi,
+        obs_point=oj,
+        obs_uv=ouv,
+        sigma_px=config.sigma_px,
+    )

@@ -129,8 +129,9 @@ def _eop_residual(nav_eop: FloatArray, eop: FloatArray) -> FloatArray:
     return r
 
 
-def _linearise(camera: PinholeCamera, data: BlockData, eop: FloatArray, gp: FloatArray
-               ) -> tuple[_Normals, FloatArray, FloatArray]:
+def _linearise(
+    camera: PinholeCamera, data: BlockData, eop: FloatArray, gp: FloatArray
+) -> tuple[_Normals, FloatArray, FloatArray]:
     """Build and factorise the reduced normal equations at ``(eop, gp)``.
 
     Returns the factorisation and the reduced right-hand side, plus the right-hand side of
@@ -160,20 +161,34 @@ def _linearise(camera: PinholeCamera, data: BlockData, eop: FloatArray, gp: Floa
         raise EstimationError(f"singular 3x3 ground point normal block ({m} points)") from err
     rows = (EOP_SIZE * img[:, None, None] + np.arange(EOP_SIZE)[None, :, None]).repeat(GP_SIZE, 2)
     cols = (GP_SIZE * pt[:, None, None] + np.arange(GP_SIZE)[None, None, :]).repeat(EOP_SIZE, 1)
-    N_ep = sp.csr_matrix((Nep_blocks.ravel(), (rows.ravel(), cols.ravel())),
-                         shape=(EOP_SIZE * n, GP_SIZE * m))
-    Npp_inv_sp = sp.bsr_matrix((Npp_inv, np.arange(m), np.arange(m + 1)),
-                               shape=(GP_SIZE * m, GP_SIZE * m)).tocsr()
+    N_ep = sp.csr_matrix(
+        (Nep_blocks.ravel(), (rows.ravel(), cols.ravel())), shape=(EOP_SIZE * n, GP_SIZE * m)
+    )
+    Npp_inv_sp = sp.bsr_matrix(
+        (Npp_inv, np.arange(m), np.arange(m + 1)), shape=(GP_SIZE * m, GP_SIZE * m)
+    ).tocsr()
     U1 = N_ep @ Npp_inv_sp  # N_ep N_pp^-1  (Eq. 5, U_1)
-    Nee_sp = sp.bsr_matrix((Nee, np.arange(n), np.arange(n + 1)),
-                           shape=(EOP_SIZE * n, EOP_SIZE * n)).tocsr()
+    Nee_sp = sp.bsr_matrix(
+        (Nee, np.arange(n), np.arange(n + 1)), shape=(EOP_SIZE * n, EOP_SIZE * n)
+    ).tocsr()
     N_r = (Nee_sp - U1 @ N_ep.T).tocsc()
     rhs = b_e.ravel() - U1 @ b_p.ravel()
     try:
         lu = spla.splu(N_r)
     except RuntimeError as err:
         raise EstimationError(f"reduced EOP normal matrix ({N_r.shape[0]}) is singular") from err
-    return _Normals(lu=lu, N_ep=N_ep, Nep_blocks=Nep_blocks, Npp_inv=Npp_inv, b_p=b_p.ravel(), size=N_r.shape[0]), rhs, ell
+    return (
+        _Normals(
+            lu=lu,
+            N_ep=N_ep,
+            Nep_blocks=Nep_blocks,
+            Npp_inv=Npp_inv,
+            b_p=b_p.ravel(),
+            size=N_r.shape[0],
+        ),
+        rhs,
+        ell,
+    )
 
 
 def _back_substitute(nrm: _Normals, delta_e: FloatArray) -> FloatArray:
@@ -182,8 +197,9 @@ def _back_substitute(nrm: _Normals, delta_e: FloatArray) -> FloatArray:
     return np.einsum("mij,mj->mi", nrm.Npp_inv, r)
 
 
-def _eop_cofactor_blocks(nrm: _Normals, n: int, pairs: tuple[np.ndarray, np.ndarray] | None = None
-                         ) -> tuple[FloatArray, FloatArray]:
+def _eop_cofactor_blocks(
+    nrm: _Normals, n: int, pairs: tuple[np.ndarray, np.ndarray] | None = None
+) -> tuple[FloatArray, FloatArray]:
     """Diagonal 6x6 blocks of ``N_r^-1`` and, optionally, its blocks ``(a[k], b[k])``.
 
     ``N_r^-1`` is solved ``COVARIANCE_CHUNK_IMAGES`` images (columns) at a time, so memory stays
@@ -212,7 +228,10 @@ def _eop_cofactor_blocks(nrm: _Normals, n: int, pairs: tuple[np.ndarray, np.ndar
 
 
 def _gp_cofactors(nrm: _Normals, data: BlockData) -> FloatArray:
-    """3x3 cofactor of every GP: ``N_pp^-1 + V^T N_r^-1 V`` with ``V = N_ep N_pp^-1`` (Eq. 5, U_3)."""
+    """3x3 cofactor of every GP (Eq. 5, ``U_3``).
+
+    ``N_pp^-1 + V^T N_r^-1 V`` with ``V = N_ep N_pp^-1``.
+    """
     n, m = data.n_images, data.n_points
     img, pt = data.obs_image, data.obs_point
     U = nrm.Nep_blocks @ nrm.Npp_inv[pt]  # 6x3 block N_ep(i, p) N_pp^-1(p) per observation
@@ -235,8 +254,9 @@ def _full_cofactor(nrm: _Normals, n: int, m: int) -> FloatArray:
     """Dense inverse normal matrix over ``[EOPs, GPs]`` (Eq. 5)."""
     Qee = nrm.lu.solve(np.eye(EOP_SIZE * n))
     Qee = 0.5 * (Qee + Qee.T)
-    Npp_inv_sp = sp.bsr_matrix((nrm.Npp_inv, np.arange(m), np.arange(m + 1)),
-                               shape=(GP_SIZE * m, GP_SIZE * m)).tocsr()
+    Npp_inv_sp = sp.bsr_matrix(
+        (nrm.Npp_inv, np.arange(m), np.arange(m + 1)), shape=(GP_SIZE * m, GP_SIZE * m)
+    ).tocsr()
     U1 = (nrm.N_ep @ Npp_inv_sp).toarray()  # N_ep N_pp^-1
     Qep = -Qee @ U1  # U_2
     Qpp = Npp_inv_sp.toarray() + U1.T @ Qee @ U1  # U_3
@@ -244,9 +264,14 @@ def _full_cofactor(nrm: _Normals, n: int, m: int) -> FloatArray:
     return np.block([[Qee, Qep], [Qep.T, Qpp]])
 
 
-def adjust_block(camera: PinholeCamera, data: BlockData, eop0: FloatArray, gp0: FloatArray,
-                 options: SimOptions = SimOptions(), covariance: Covariance = Covariance.BLOCKS
-                 ) -> SimResult:
+def adjust_block(
+    camera: PinholeCamera,
+    data: BlockData,
+    eop0: FloatArray,
+    gp0: FloatArray,
+    options: SimOptions = SimOptions(),
+    covariance: Covariance = Covariance.BLOCKS,
+) -> SimResult:
     """Simultaneous adjustment by Gauss-Newton (seed 000 §2.1).
 
     Parameters
@@ -282,8 +307,10 @@ def adjust_block(camera: PinholeCamera, data: BlockData, eop0: FloatArray, gp0: 
         nrm, rhs, _ = _linearise(camera, data, eop, gp)
         delta_e = nrm.lu.solve(rhs)
         if not np.all(np.isfinite(delta_e)):
-            raise EstimationError(f"non-finite correction in iteration {iterations} "
-                                  f"(reduced system of order {nrm.size})")
+            raise EstimationError(
+                f"non-finite correction in iteration {iterations} "
+                f"(reduced system of order {nrm.size})"
+            )
         delta_p = _back_substitute(nrm, delta_e).reshape(m, GP_SIZE)
         de = delta_e.reshape(n, EOP_SIZE)
         eop += de
@@ -297,25 +324,45 @@ def adjust_block(camera: PinholeCamera, data: BlockData, eop0: FloatArray, gp0: 
     img, pt = data.obs_image, data.obs_point
     res_img = data.obs_uv - project(eop[img], gp[pt], camera)
     res_nav = _eop_residual(data.nav_eop, eop)
-    ssr = float(np.sum(res_img**2 / data.obs_sigma_px[:, None] ** 2)
-                + np.sum(res_nav**2 / data.nav_sigma**2))
+    ssr = float(
+        np.sum(res_img**2 / data.obs_sigma_px[:, None] ** 2)
+        + np.sum(res_nav**2 / data.nav_sigma**2)
+    )
     redundancy = 2 * img.size - GP_SIZE * m
     sigma0 = float(np.sqrt(ssr / redundancy)) if redundancy > 0 else float("nan")
     rms_px = float(np.sqrt(np.mean(res_img**2))) if img.size else float("nan")
     eop_cof = gp_cof = full = None
     if covariance is Covariance.FULL:
         full = _full_cofactor(nrm, n, m)
-        eop_cof = np.stack([full[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n)])
+        eop_cof = np.stack([full[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] for i in range(n)])
         off = EOP_SIZE * n
-        gp_cof = np.stack([full[off + 3 * j:off + 3 * j + 3, off + 3 * j:off + 3 * j + 3]
-                           for j in range(m)]) if m else np.zeros((0, 3, 3))
+        gp_cof = (
+            np.stack(
+                [
+                    full[off + 3 * j : off + 3 * j + 3, off + 3 * j : off + 3 * j + 3]
+                    for j in range(m)
+                ]
+            )
+            if m
+            else np.zeros((0, 3, 3))
+        )
     elif covariance is Covariance.BLOCKS:
         eop_cof, _ = _eop_cofactor_blocks(nrm, n)
         gp_cof = _gp_cofactors(nrm, data) if m else np.zeros((0, 3, 3))
-    return SimResult(eop=eop, gp=gp, converged=converged, iterations=iterations, sigma0=sigma0,
-                     redundancy=redundancy, weighted_ssr=ssr, rms_px=rms_px,
-                     reduced_size=nrm.size, eop_cofactor=eop_cof, gp_cofactor=gp_cof,
-                     full_cofactor=full)
+    return SimResult(
+        eop=eop,
+        gp=gp,
+        converged=converged,
+        iterations=iterations,
+        sigma0=sigma0,
+        redundancy=redundancy,
+        weighted_ssr=ssr,
+        rms_px=rms_px,
+        reduced_size=nrm.size,
+        eop_cofactor=eop_cof,
+        gp_cofactor=gp_cof,
+        full_cofactor=full,
+    )
 
 
 def sigma_scale(sigma0: float, redundancy: int) -> float:
@@ -387,8 +434,13 @@ class SimultaneousAT:
         ``False`` only buffers frames; :meth:`solution` then solves once (``--final-only``).
     """
 
-    def __init__(self, camera: PinholeCamera, options: SimOptions = SimOptions(), *,
-                 refit_every_frame: bool = True) -> None:
+    def __init__(
+        self,
+        camera: PinholeCamera,
+        options: SimOptions = SimOptions(),
+        *,
+        refit_every_frame: bool = True,
+    ) -> None:
         self.camera = camera
         self.options = options
         self.refit_every_frame = refit_every_frame
@@ -412,7 +464,7 @@ class SimultaneousAT:
         nav[:3] -= self._origin
         cat.nav_eop.append(nav)
         cat.nav_sigma.append(frame.nav_sigma)
-        for pid, uv in zip(frame.point_ids, frame.uv_px):
+        for pid, uv in zip(frame.point_ids, frame.uv_px, strict=True):
             j = cat.point_index.get(pid)
             if j is None:
                 j = cat.point_index[pid] = len(cat.point_ids)
@@ -449,13 +501,21 @@ class SimultaneousAT:
             mask = need[op]
             X, _ = intersect_rays(self._eop_est[oi[mask]], uv[mask], op[mask], n_pts, self.camera)
             gp_init[need] = X[need]
-        sel = np.flatnonzero((counts >= self.options.min_rays) & np.all(np.isfinite(gp_init), axis=1))
+        sel = np.flatnonzero(
+            (counts >= self.options.min_rays) & np.all(np.isfinite(gp_init), axis=1)
+        )
         remap = np.full(n_pts, -1)
         remap[sel] = np.arange(sel.size)
         keep = remap[op] >= 0
-        data = BlockData(nav_eop=np.asarray(cat.nav_eop), nav_sigma=np.asarray(cat.nav_sigma),
-                         obs_image=oi[keep], obs_point=remap[op[keep]], obs_uv=uv[keep],
-                         obs_sigma_px=sg[keep], n_points=int(sel.size))
+        data = BlockData(
+            nav_eop=np.asarray(cat.nav_eop),
+            nav_sigma=np.asarray(cat.nav_sigma),
+            obs_image=oi[keep],
+            obs_point=remap[op[keep]],
+            obs_uv=uv[keep],
+            obs_sigma_px=sg[keep],
+            n_points=int(sel.size),
+        )
         return data, sel, self._eop_est, gp_init[sel]
 
     def export_state(self, covariance: Covariance = Covariance.FULL) -> SimState:
@@ -464,12 +524,17 @@ class SimultaneousAT:
             raise EstimationError("no frames were added")
         res = self._solve(covariance)
         cat = self._cat
-        return SimState(origin=self._origin, image_ids=tuple(cat.image_ids),
-                        point_ids=tuple(cat.point_ids), selected=self._point_sel.copy(),
-                        obs_image=np.asarray(cat.obs_image, dtype=np.int64),
-                        obs_point=np.asarray(cat.obs_point, dtype=np.int64),
-                        obs_uv=np.asarray(cat.obs_uv, dtype=np.float64).reshape(-1, 2),
-                        obs_sigma_px=np.asarray(cat.obs_sigma, dtype=np.float64), result=res)
+        return SimState(
+            origin=self._origin,
+            image_ids=tuple(cat.image_ids),
+            point_ids=tuple(cat.point_ids),
+            selected=self._point_sel.copy(),
+            obs_image=np.asarray(cat.obs_image, dtype=np.int64),
+            obs_point=np.asarray(cat.obs_point, dtype=np.int64),
+            obs_uv=np.asarray(cat.obs_uv, dtype=np.float64).reshape(-1, 2),
+            obs_sigma_px=np.asarray(cat.obs_sigma, dtype=np.float64),
+            result=res,
+        )
 
     def _solve(self, covariance: Covariance) -> SimResult:
         data, sel, eop0, gp0 = self._block()
@@ -496,14 +561,27 @@ class SimultaneousAT:
                 rms_gp = rms_point_sigma(np.diagonal(res.gp_cofactor, axis1=1, axis2=2) * scale**2)
         n_pts = int(self._point_sel.size)
         return ImageUpdate(
-            image_id=frame.image_id, index=i, stage="sim", update_ms=ms, window_images=n,
-            window_first_image=self._cat.image_ids[0], window_params=6 * n + 3 * n_pts,
-            window_eop_params=6 * n, window_gp_params=3 * n_pts, inverse_sizes=(0, 0),
-            sim_reduced_size=6 * n if res is not None else 0, sigma0=sigma0, redundancy=red,
+            image_id=frame.image_id,
+            index=i,
+            stage="sim",
+            update_ms=ms,
+            window_images=n,
+            window_first_image=self._cat.image_ids[0],
+            window_params=6 * n + 3 * n_pts,
+            window_eop_params=6 * n,
+            window_gp_params=3 * n_pts,
+            inverse_sizes=(0, 0),
+            sim_reduced_size=6 * n if res is not None else 0,
+            sigma0=sigma0,
+            redundancy=red,
             rms_gp_sigma_m=rms_gp,  # type: ignore[arg-type]
-            n_points_total=n_pts, new_points=0, observations_used=len(frame.point_ids),
-            observations_skipped=0, iterations=iterations,
-            eop=EopEstimate(image_id=frame.image_id, eop=eop, sigma=sigma))
+            n_points_total=n_pts,
+            new_points=0,
+            observations_used=len(frame.point_ids),
+            observations_skipped=0,
+            iterations=iterations,
+            eop=EopEstimate(image_id=frame.image_id, eop=eop, sigma=sigma),
+        )
 
     def solution(self) -> Solution:
         """Final estimates of every image and point with standard deviations."""
@@ -519,12 +597,21 @@ class SimultaneousAT:
         for i, iid in enumerate(self._cat.image_ids):
             e = res.eop[i].copy()
             e[:3] += origin  # type: ignore[operator]
-            eops.append(EopEstimate(image_id=iid, eop=e,
-                                    sigma=np.sqrt(np.diagonal(res.eop_cofactor[i])) * scale))
+            eops.append(
+                EopEstimate(
+                    image_id=iid, eop=e, sigma=np.sqrt(np.diagonal(res.eop_cofactor[i])) * scale
+                )
+            )
         pts = []
         for j, gi in enumerate(self._point_sel):
-            pts.append(PointEstimate(point_id=self._cat.point_ids[gi], xyz_m=res.gp[j] + origin,
-                                     sigma_m=np.sqrt(np.diagonal(res.gp_cofactor[j])) * scale,
-                                     n_obs=int(self._n_obs[j])))
-        return Solution(eops=tuple(eops), points=tuple(pts), sigma0=res.sigma0,
-                        redundancy=res.redundancy)
+            pts.append(
+                PointEstimate(
+                    point_id=self._cat.point_ids[gi],
+                    xyz_m=res.gp[j] + origin,
+                    sigma_m=np.sqrt(np.diagonal(res.gp_cofactor[j])) * scale,
+                    n_obs=int(self._n_obs[j]),
+                )
+            )
+        return Solution(
+            eops=tuple(eops), points=tuple(pts), sigma0=res.sigma0, redundancy=res.redundancy
+        )

@@ -89,8 +89,10 @@ def _spd_inverse(M: FloatArray, what: str) -> FloatArray:
         np.linalg.cholesky(M)  # raises unless positive definite
     except np.linalg.LinAlgError as err:
         ev = np.linalg.eigvalsh(M)
-        raise EstimationError(f"{what} ({M.shape[0]}x{M.shape[0]}) is not positive definite: "
-                              f"eigenvalues from {ev[0]:.3g} to {ev[-1]:.3g}") from err
+        raise EstimationError(
+            f"{what} ({M.shape[0]}x{M.shape[0]}) is not positive definite: "
+            f"eigenvalues from {ev[0]:.3g} to {ev[-1]:.3g}"
+        ) from err
     inv = np.linalg.inv(M)
     return 0.5 * (inv + inv.T)
 
@@ -133,12 +135,22 @@ def solve_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows) -> Update
     v3 = rows.l3 - A32 @ d2
     # Omega grows by the new rows' weighted residuals plus d1^T N11 d1 = kappa^T H kappa.
     ssr = float(kappa @ H @ kappa + np.sum(w2 * v2**2) + np.sum(w3 * v3**2))
-    return UpdateSolution(G=G, H=H, P2bar=P2bar, S=S, D_inv=D_inv, kappa=kappa,
-                          delta1_touched=d1t, delta2=d2, ssr_increment=ssr)
+    return UpdateSolution(
+        G=G,
+        H=H,
+        P2bar=P2bar,
+        S=S,
+        D_inv=D_inv,
+        kappa=kappa,
+        delta1_touched=d1t,
+        delta2=d2,
+        ssr_increment=ssr,
+    )
 
 
-def update_cofactor(Q: FloatArray, touched: np.ndarray, rows: LinearRows, sol: UpdateSolution
-                    ) -> FloatArray:
+def update_cofactor(
+    Q: FloatArray, touched: np.ndarray, rows: LinearRows, sol: UpdateSolution
+) -> FloatArray:
     """New cofactor of ``[xi_1, xi_2]`` (Eq. 11-12); ``Q`` is overwritten with ``N_r^-1``.
 
     Parameters

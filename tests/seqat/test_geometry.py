@@ -52,10 +52,13 @@ def test_kappa_90_turns_image_top_to_west() -> None:
 
 def test_rotation_angle_round_trip() -> None:
     rng = np.random.default_rng(3)
-    ang = np.column_stack([rng.uniform(-np.pi, np.pi, 50), rng.uniform(-1.5, 1.5, 50),
-                           rng.uniform(-np.pi, np.pi, 50)])
+    ang = np.column_stack(
+        [rng.uniform(-np.pi, np.pi, 50), rng.uniform(-1.5, 1.5, 50), rng.uniform(-np.pi, np.pi, 50)]
+    )
     R = rotation_matrix(ang[:, 0], ang[:, 1], ang[:, 2])
-    np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), R.shape), atol=1e-14)
+    np.testing.assert_allclose(
+        R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), R.shape), atol=1e-14
+    )
     np.testing.assert_allclose(angles_from_rotation(R), ang, atol=1e-12)
 
 

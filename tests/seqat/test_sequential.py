@@ -26,9 +26,12 @@ def _columns(keys: list[tuple[str, int]]) -> list[tuple[str, int, int]]:
 
 
 @pytest.mark.parametrize("iterations", [1, 3])
-def test_seq_f_equals_batch_of_same_linearisation(short_strip: SimulatedFlight, iterations: int) -> None:
-    est = _run(short_strip, correlation_threshold=None, initial_images=5,
-               max_update_iterations=iterations)
+def test_seq_f_equals_batch_of_same_linearisation(
+    short_strip: SimulatedFlight, iterations: int
+) -> None:
+    est = _run(
+        short_strip, correlation_threshold=None, initial_images=5, max_update_iterations=iterations
+    )
     assert est.initial_state is not None and est.recorded
     keys0, x0, Q0 = est.initial_state
     cols = _columns(est._w.keys)  # final window = every parameter (Seq-F)
@@ -50,9 +53,11 @@ def test_seq_f_equals_batch_of_same_linearisation(short_strip: SimulatedFlight, 
     x_seq, Q_seq = est._w.x, est._w.Q
     # Relative to the size of the corrections the adjustment made (x itself is dominated by
     # the coordinates' magnitude), per parameter kind.
-    for sel in (np.array([k[0] == "e" and k[2] < 3 for k in cols]),
-                np.array([k[0] == "e" and k[2] >= 3 for k in cols]),
-                np.array([k[0] == "p" for k in cols])):
+    for sel in (
+        np.array([k[0] == "e" and k[2] < 3 for k in cols]),
+        np.array([k[0] == "e" and k[2] >= 3 for k in cols]),
+        np.array([k[0] == "p" for k in cols]),
+    ):
         ref = np.max(np.abs(np.sqrt(np.diagonal(Q_batch))[sel]))
         assert np.max(np.abs(x_seq[sel] - x_batch[sel])) / ref < 1e-6  # well below 1 sigma
     assert np.max(np.abs(x_seq - x_batch)) / np.max(np.abs(x_batch)) < BATCH_REL_TOL
@@ -142,15 +147,19 @@ def test_seq_r_real_time_estimates_equal_seq_f(strip_120: SimulatedFlight) -> No
     ur = [r.add_frame(fr) for fr in strip_120.frames()]
     uf = [f.add_frame(fr) for fr in strip_120.frames()]
     assert sum(u.images_left_window for u in ur) > 50  # the window really was cut
-    d = np.array([a.eop.eop - b.eop.eop for a, b in zip(ur, uf)])
+    d = np.array([a.eop.eop - b.eop.eop for a, b in zip(ur, uf, strict=True)])
     assert np.max(np.abs(d[:, :3])) < 1e-8  # metres
     assert np.max(np.abs(d[:, 3:])) < 1e-12  # radians
     np.testing.assert_allclose([u.eop.sigma for u in ur], [u.eop.sigma for u in uf], rtol=1e-8)
     assert ur[-1].sigma0 == pytest.approx(uf[-1].sigma0, rel=1e-12)
     # The RTS backward pass gives the departed parameters Seq-F's final values ...
     sr, sf = r.solution(), f.solution()
-    np.testing.assert_allclose([e.eop for e in sr.eops], [e.eop for e in sf.eops], rtol=0, atol=1e-8)
-    np.testing.assert_allclose([p.xyz_m for p in sr.points], [p.xyz_m for p in sf.points], rtol=0, atol=1e-8)
+    np.testing.assert_allclose(
+        [e.eop for e in sr.eops], [e.eop for e in sf.eops], rtol=0, atol=1e-8
+    )
+    np.testing.assert_allclose(
+        [p.xyz_m for p in sr.points], [p.xyz_m for p in sf.points], rtol=0, atol=1e-8
+    )
     # ... while the frozen (paper) values of departed images differ from them.
     frozen = np.array([e.eop for e in r.solution(smoothed=False).eops])
     assert np.max(np.abs(frozen[:, :3] - np.array([e.eop for e in sf.eops])[:, :3])) > 1e-3

@@ -46,7 +46,9 @@ def test_sim_improves_on_direct_georeferencing(short_strip: SimulatedFlight) -> 
     idx = {p: i for i, p in enumerate(f.point_ids)}
     P = np.array([p.xyz_m for p in sol.points])
     T = f.truth_xyz[[idx[p.point_id] for p in sol.points]]
-    X_dir, _ = intersect_rays(f.nav_eop[f.obs_image], f.obs_uv, f.obs_point, len(f.point_ids), f.camera)
+    X_dir, _ = intersect_rays(
+        f.nav_eop[f.obs_image], f.obs_uv, f.obs_point, len(f.point_ids), f.camera
+    )
     rmse_dir = np.sqrt(np.mean((X_dir - f.truth_xyz) ** 2))
     assert np.sqrt(np.mean((P - T) ** 2)) < 0.5 * rmse_dir
     assert 0.8 < sol.sigma0 < 1.2
@@ -66,9 +68,15 @@ def _local_block(f: SimulatedFlight) -> tuple[BlockData, np.ndarray, np.ndarray]
     origin = np.array([f.nav_eop[0, 0], f.nav_eop[0, 1], 0.0])
     nav = f.nav_eop.copy()
     nav[:, :3] -= origin
-    data = BlockData(nav_eop=nav, nav_sigma=np.tile(f.nav_sigma, (len(f.image_ids), 1)),
-                     obs_image=f.obs_image, obs_point=f.obs_point, obs_uv=f.obs_uv,
-                     obs_sigma_px=np.full(f.obs_image.size, f.sigma_px), n_points=len(f.point_ids))
+    data = BlockData(
+        nav_eop=nav,
+        nav_sigma=np.tile(f.nav_sigma, (len(f.image_ids), 1)),
+        obs_image=f.obs_image,
+        obs_point=f.obs_point,
+        obs_uv=f.obs_uv,
+        obs_sigma_px=np.full(f.obs_image.size, f.sigma_px),
+        n_points=len(f.point_ids),
+    )
     return data, nav, f.truth_xyz - origin
 
 
@@ -77,7 +85,11 @@ def test_block_and_full_cofactors_agree(short_strip: SimulatedFlight) -> None:
     full = adjust_block(short_strip.camera, data, eop0, gp0, covariance=Covariance.FULL)
     blocks = adjust_block(short_strip.camera, data, eop0, gp0, covariance=Covariance.BLOCKS)
     assert full.full_cofactor is not None and full.eop_cofactor is not None
-    assert blocks.eop_cofactor is not None and blocks.gp_cofactor is not None and full.gp_cofactor is not None
+    assert (
+        blocks.eop_cofactor is not None
+        and blocks.gp_cofactor is not None
+        and full.gp_cofactor is not None
+    )
     for a, b in ((blocks.eop_cofactor, full.eop_cofactor), (blocks.gp_cofactor, full.gp_cofactor)):
         sd = np.sqrt(np.diagonal(b, axis1=1, axis2=2))
         scale = sd[:, :, None] * sd[:, None, :]  # compare on the correlation scale

@@ -11,8 +11,9 @@ from seqat.update import LinearRows, solve_update, update_cofactor
 REL_TOL = 1e-9
 
 
-def _random_rows(rng: np.random.Generator, n1: int, n2: int, m2: int, m3: int
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _random_rows(
+    rng: np.random.Generator, n1: int, n2: int, m2: int, m3: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Dense designs on all existing columns, new columns, and weights."""
     A21_full = np.zeros((m2, n1))
     touched = np.sort(rng.choice(n1, size=min(n1, 7), replace=False))
@@ -53,7 +54,9 @@ def test_chained_updates_equal_batch(seed: int) -> None:
         x_new = np.concatenate([x + sol.delta1(), x2_0 + sol.delta2])
         Q_new = update_cofactor(Q.copy(), touched, rows, sol)
         # Batch: grow the normal equations with the new rows and solve from scratch.
-        N_batch = np.block([[N_batch, np.zeros((n_old, n2))], [np.zeros((n2, n_old)), np.zeros((n2, n2))]])
+        N_batch = np.block(
+            [[N_batch, np.zeros((n_old, n2))], [np.zeros((n2, n_old)), np.zeros((n2, n2))]]
+        )
         c_batch = np.concatenate([c_batch, np.zeros(n2)])
         A2 = np.hstack([A21_full, A22])
         A3 = np.hstack([np.zeros((m3, n_old)), A32])
@@ -76,8 +79,15 @@ def test_ssr_increment_matches_batch_objective() -> None:
     ssr0 = float(np.sum((y0 - A0 @ x) ** 2))
     A21_full, touched, A22, A32 = _random_rows(rng, n1, n2, m2, m3)
     y2, y3 = rng.normal(size=m2), rng.normal(size=m3)
-    rows = LinearRows(A21=A21_full[:, touched], A22=A22, w2=np.ones(m2), l2=y2 - A21_full @ x,
-                      A32=A32, w3=np.ones(m3), l3=y3)
+    rows = LinearRows(
+        A21=A21_full[:, touched],
+        A22=A22,
+        w2=np.ones(m2),
+        l2=y2 - A21_full @ x,
+        A32=A32,
+        w3=np.ones(m3),
+        l3=y3,
+    )
     sol = solve_update(np.linalg.inv(N0), touched, rows)
     A = np.block([[A0, np.zeros((20, n2))], [A21_full, A22], [np.zeros((m3, n1)), A32]])
     y = np.concatenate([y0, y2, y3])
