@@ -94,3 +94,24 @@ def test_ssr_increment_matches_batch_objective() -> None:
     xb = np.linalg.lstsq(A, y, rcond=None)[0]
     ssr_batch = float(np.sum((y - A @ xb) ** 2))
     assert ssr0 + sol.ssr_increment == pytest.approx(ssr_batch, rel=1e-10)
+
+
+def test_undetermined_new_parameter_is_an_estimation_error() -> None:
+    from seqat.errors import EstimationError
+
+    rng = np.random.default_rng(3)
+    n1, n2, m2 = 6, 3, 4
+    Q = np.eye(n1)
+    A22 = rng.normal(size=(m2, n2))
+    A22[:, 2] = 0.0  # no observation touches the third new parameter
+    rows = LinearRows(
+        A21=rng.normal(size=(m2, 2)),
+        A22=A22,
+        w2=np.ones(m2),
+        l2=rng.normal(size=m2),
+        A32=np.zeros((0, n2)),
+        w3=np.zeros(0),
+        l3=np.zeros(0),
+    )
+    with pytest.raises(EstimationError, match=r"\(M22 \+ L22\) \(3x3\) is not positive definite"):
+        solve_update(Q, np.array([0, 1]), rows)
