@@ -38,7 +38,6 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg as sla
 from threadpoolctl import ThreadpoolController
 
 from seqat.geometry import depth, intersect_rays, project_with_jacobians, wrap_angle
@@ -68,6 +67,9 @@ from seqat.window import eop_correlations, first_over_threshold
 UPDATE_BLAS_THREADS = 1
 _BLAS = ThreadpoolController()
 
+#: A tie point whose rays would otherwise leave the window is born with at least this spread.
+MIN_FORCED_RAY_ANGLE_DEG = 1.0
+
 #: A GP stays in the Seq-R window only while this many window images (new one included) see it.
 MIN_WINDOW_RAYS = 2
 
@@ -82,7 +84,7 @@ class SequentialOptions:
     correlation_threshold: float | None = 0.1  # None: Seq-F (no window cut)
     initial_images: int = 10  # images adjusted simultaneously before the sequential stage
     min_rays: int = 2  # a tie point is born once seen in this many window images
-    min_ray_angle_deg: float = 5.0  # ... and its rays spread at least this much (docs/algorithm.md)
+    min_ray_angle_deg: float = 8.0  # ... and its rays spread at least this much (docs/algorithm.md)
     max_update_iterations: int = 3  # 1 = the paper's single linearisation
     iteration_tolerance_px: float = 0.05  # stop iterating when the linearisation moves less (px)
     smoothing: bool = True  # Seq-R: keep RTS gains so solution() can smooth departed parameters
@@ -137,10 +139,15 @@ class _Departure:
 
 @dataclass(eq=False)
 class _Window:
-    """Parameters being updated: estimates, cofactor, and their block layout."""
+    """Parameters being updated: estimates, cofactor, and their block layout.
+
+    ``L`` is the information matrix ``Q^-1`` of the window, kept only for smoothing (it gives
+    the RTS gain of leaving parameters without inverting ``Q``).
+    """
 
     x: FloatArray = field(default_factory=lambda: np.zeros(0))
     Q: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
+    L: FloatArray | None = None
     keys: list[Key] = field(default_factory=list)
     offset: dict[Key, int] = field(default_factory=dict)
 
@@ -155,6 +162,17 @@ class _Window:
     def index(self, key: Key) -> np.ndarray:
         off = self.offset[key]
         return np.arange(off, off + (EOP_SIZE if key[0] == "e" else GP_SIZE))
+
+    def indices(self, keys: list[Key]) -> np.ndarray:
+        """Parameter indices of several blocks, concatenated in the order of ``keys``."""
+        if not keys:
+            return np.zeros(0, dtype=np.int64)
+        offs = np.fromiter((self.offset[k] for k in keys), dtype=np.int64, count=len(keys))
+        sizes = np.fromiter(
+            (EOP_SIZE if k[0] == "e" else GP_SIZE for k in keys), dtype=np.int64, count=len(keys)
+        )
+        starts = np.cumsum(sizes) - sizes
+        return np.repeat(offs - starts, sizes) + np.arange(int(sizes.sum()))
 
 
 class SequentialAT:
@@ -193,6 +211,7 @@ class SequentialAT:
         self._frozen_eop: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._frozen_gp: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._departures: list[_Departure] = []
+        self._forced: set[int] = set()  # pending points already held back once (never twice)
         self._ssr = 0.0
         self._redundancy = 0
         self.recorded: list[RecordedRows] | None = [] if record else None
@@ -337,6 +356,8 @@ class SequentialAT:
         self._w.relayout(keys)
         self._w.x = np.concatenate([res.eop.ravel(), res.gp.ravel()])
         self._w.Q = res.full_cofactor
+        if self.options.smoothing:
+            self._w.L = np.linalg.inv(res.full_cofactor)
         self._window_images.extend(range(n))
         selected = set(int(j) for j in st.selected)
         self._gp_order = [int(j) for j in st.selected]
@@ -369,6 +390,7 @@ class SequentialAT:
             count=len(self._window_images),
         )
         start = first_over_threshold(eop_correlations(w.Q, offs, int(offs[-1])), thr)
+        start = self._hold_pending_rays(start, frame_points)
         if start == 0:
             return 0
         scale = sigma_scale(self.sigma0, self._redundancy)
@@ -390,6 +412,7 @@ class SequentialAT:
                         self._pending[p] = rest
                     else:
                         del self._pending[p]
+                        self._forced.discard(p)
         for p in changed:
             if self._gp_count[p] + (p in frame_points) < MIN_WINDOW_RAYS:
                 leaving.add(("p", p))
@@ -398,16 +421,13 @@ class SequentialAT:
                 del self._gp_count[p]
         keep_keys = [k for k in w.keys if k not in leaving]
         leave_keys = [k for k in w.keys if k in leaving]
-        keep, leave = (
-            np.concatenate([w.index(k) for k in keys]) for keys in (keep_keys, leave_keys)
-        )
-        Q_ww = w.Q[np.ix_(keep, keep)]
-        if self.options.smoothing:
-            gain = sla.cho_solve(
-                sla.cho_factor(Q_ww, check_finite=False),
-                w.Q[np.ix_(keep, leave)],
-                check_finite=False,
-            ).T
+        keep, leave = w.indices(keep_keys), w.indices(leave_keys)
+        if w.L is not None:
+            # E[x_F | x_W] = x_F - L_FF^-1 L_FW (x_W - x_W0): the RTS gain from the information
+            # matrix; marginalising F out of L is its Schur complement.
+            L_fw = w.L[np.ix_(leave, keep)]
+            gain = -np.linalg.solve(w.L[np.ix_(leave, leave)], L_fw)
+            w.L = w.L[np.ix_(keep, keep)] + L_fw.T @ gain
             self._departures.append(
                 _Departure(
                     leaving=tuple(leave_keys),
@@ -417,9 +437,39 @@ class SequentialAT:
                     gain=gain,
                 )
             )
-        w.Q = Q_ww
+        w.Q = w.Q[np.ix_(keep, keep)]
         w.x = w.x[keep]
         w.relayout(keep_keys)
+        return start
+
+    def _hold_pending_rays(self, start: int, frame_points: set[int]) -> int:
+        """Never lose tie rays by waiting: shorten the cut before the first leaving image that
+        holds pending rays of a point with ``min_rays`` rays, and have those points born now.
+
+        Without this, a window shorter than the span a point needs to reach
+        ``min_ray_angle_deg`` would drop every ray before birth: no new ties, lower
+        correlations, a shorter window (observed: collapse to 2 images). Each point is held
+        back at most once; its images leave at the next cut.
+        """
+        min_rays = self.options.min_rays
+        for h in range(start):
+            j = self._window_images[h]
+            live = [
+                p
+                for p in self._img_points[j]
+                if p in self._pending
+                and p not in self._forced
+                and len(self._pending[p]) + (p in frame_points) >= min_rays
+            ]
+            if live:
+                for jj in list(self._window_images)[h:start]:
+                    self._forced.update(
+                        p
+                        for p in self._img_points[jj]
+                        if p in self._pending
+                        and len(self._pending[p]) + (p in frame_points) >= min_rays
+                    )
+                return h
         return start
 
     def _add_sequential(self, frame: Frame) -> ImageUpdate:
@@ -454,7 +504,10 @@ class SequentialAT:
                 lst.append((i, uv, frame.sigma_px))
                 if len(lst) >= opts.min_rays:
                     candidates.append(p)
+        in_frame = set(candidates)
+        candidates += [p for p in self._forced if p not in in_frame and p in self._pending]
         born, born_xyz = self._birth(candidates, i, nav)
+        self._forced.difference_update(born)
 
         # --- layout of the new parameters: [EOP of image i, born GPs]
         n2 = EOP_SIZE + GP_SIZE * len(born)
@@ -465,11 +518,7 @@ class SequentialAT:
         y22 = [(b, uv, s) for b, p in enumerate(born) for (j, uv, s) in self._pending[p] if j == i]
         touched_keys: list[Key] = [("p", p) for p in y21_pts]
         touched_keys += list(dict.fromkeys(("e", j) for (j, _, _, _) in y12))
-        touched = (
-            np.concatenate([w.index(k) for k in touched_keys])
-            if touched_keys
-            else np.zeros(0, dtype=np.int64)
-        )
+        touched = w.indices(touched_keys)
         col_of = {}
         c = 0
         for k in touched_keys:
@@ -508,6 +557,8 @@ class SequentialAT:
             self._record(touched_keys, touched, born, i, rows, x1t, x2_0)
         w.x = np.concatenate([w.x + sol.delta1(), x2_0 + sol.delta2])
         w.Q = update_cofactor(w.Q, touched, rows, sol)
+        if w.L is not None:
+            w.L = _add_information(w.L, touched, rows)
         w.relayout(w.keys + [("e", i)] + [("p", p) for p in born])
         self._ssr += sol.ssr_increment
         self._redundancy += rows.l2.size + rows.l3.size - n2
@@ -542,7 +593,13 @@ class SequentialAT:
                 idx.append(c)
         E, UV, I = np.asarray(eops), np.asarray(uvs), np.asarray(idx)
         X, spread = intersect_rays(E, UV, I, len(candidates), self.camera)
-        ok = np.all(np.isfinite(X), axis=1) & (spread >= np.radians(self.options.min_ray_angle_deg))
+        min_angle = np.radians(
+            [
+                MIN_FORCED_RAY_ANGLE_DEG if p in self._forced else self.options.min_ray_angle_deg
+                for p in candidates
+            ]
+        )
+        ok = np.all(np.isfinite(X), axis=1) & (spread >= min_angle)
         front = np.ones(len(candidates), dtype=bool)
         if np.any(ok):
             d = depth(E, np.nan_to_num(X)[I])
@@ -623,6 +680,22 @@ class SequentialAT:
             ),
             images_left_window=dropped,
         )
+
+
+def _add_information(L: FloatArray, touched: np.ndarray, rows: LinearRows) -> FloatArray:
+    """Information matrix after adding new parameters and the rows ``y2``, ``y3`` (Eq. 10).
+
+    ``L`` (n1, n1) is extended by ``n2`` new parameters; ``A^T P A`` of the rows is added on
+    the touched and new columns only.
+    """
+    n1, n2 = L.shape[0], rows.A22.shape[1]
+    out = np.zeros((n1 + n2, n1 + n2))
+    out[:n1, :n1] = L
+    cols = np.concatenate([touched, n1 + np.arange(n2)])
+    A2 = np.hstack([rows.A21, rows.A22])
+    out[np.ix_(cols, cols)] += A2.T @ (rows.w2[:, None] * A2)
+    out[n1:, n1:] += rows.A32.T @ (rows.w3[:, None] * rows.A32)
+    return out
 
 
 class _RowBuilder:
