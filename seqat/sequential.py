@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from seqat.geometry import depth, intersect_rays, project_with_jacobians, wrap_angle
+from seqat.geometry import depth, intersect_rays, project, project_with_jacobians, wrap_angle
 from seqat.simultaneous import (
     Covariance,
     SimOptions,
@@ -86,7 +86,7 @@ class SequentialOptions:
     min_rays: int = 2  # a tie point is born once seen in this many window images
     min_ray_angle_deg: float = 8.0  # ... and its rays spread at least this much (docs/algorithm.md)
     max_update_iterations: int = 3  # 1 = the paper's single linearisation
-    iteration_tolerance_px: float = 0.05  # stop iterating when the linearisation moves less (px)
+    iteration_tolerance_px: float = 0.01  # stop when the rows predict the new estimate this well
     smoothing: bool = True  # Seq-R: keep RTS gains so solution() can smooth departed parameters
     sim: SimOptions = SimOptions()
 
@@ -540,18 +540,16 @@ class SequentialAT:
         d1t = np.zeros(touched.size)
         d2 = np.zeros(n2)
         iterations = 0
-        while iterations < opts.max_update_iterations:
+        while True:
             iterations += 1
             rows = builder.rows(x1t, x2_0, d1t, d2)
             sol = solve_update(w.Q, touched, rows)
-            moved = np.concatenate(
-                [
-                    rows.A21 @ (sol.delta1_touched - d1t) + rows.A22 @ (sol.delta2 - d2),
-                    rows.A32 @ (sol.delta2 - d2),
-                ]
-            )
             d1t, d2 = sol.delta1_touched, sol.delta2
-            if np.max(np.abs(moved), initial=0.0) < opts.iteration_tolerance_px:
+            # Converged when the rows, linearised where they were, still describe the image
+            # points at the new estimate: re-linearising would move it by less than that.
+            if iterations >= opts.max_update_iterations or (
+                builder.linearisation_error(x1t, x2_0, d1t, d2) < opts.iteration_tolerance_px
+            ):
                 break
         if self.recorded is not None:
             self._record(touched_keys, touched, born, i, rows, x1t, x2_0)
@@ -770,6 +768,7 @@ class _RowBuilder:
         dz[3:] = wrap_angle(dz[3:])
         ell[2 * k :] = dz
         ell += A @ np.concatenate([d1t, d2])
+        self._A, self._ell = A, ell
         m2 = self.m2
         return LinearRows(
             A21=A[:m2, :t],
@@ -780,3 +779,16 @@ class _RowBuilder:
             w3=self.w[m2:],
             l3=ell[m2:],
         )
+
+    def linearisation_error(
+        self, x1t: FloatArray, x2_0: FloatArray, d1t: FloatArray, d2: FloatArray
+    ) -> float:
+        """Largest difference (px) between the image points projected at ``(d1t, d2)`` and the
+        last linearised rows' prediction there; 0 without image rows."""
+        k = self.k
+        if k == 0:
+            return 0.0
+        z = np.concatenate([x1t + d1t, x2_0 + d2])
+        true_resid = self.obs - project(z[self.eidx], z[self.pidx], self.cam).ravel()
+        lin_resid = self._ell[: 2 * k] - self._A[: 2 * k] @ np.concatenate([d1t, d2])
+        return float(np.max(np.abs(true_resid - lin_resid)))
