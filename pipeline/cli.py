@@ -212,13 +212,23 @@ def bench(
         "out/bench"),
     seed: Annotated[list[int] | None, typer.Option(
         "--seed", help="Seed of one simulated flight (repeat for several).")] = None,
+    threshold: Annotated[list[float] | None, typer.Option(
+        "--threshold", help="Seq-R correlation threshold (repeat for several).")] = None,
 ) -> None:
-    """Compare Seq-R, Seq-F and Sim on simulated flights."""
+    """Compare direct georeferencing, Seq-R, Seq-F and Sim on simulated flights."""
     from pipeline.bench import run_bench
 
-    result = (run_bench(config, out, seeds=tuple(seed)) if seed else run_bench(config, out))
-    if dataclasses.is_dataclass(result) and not isinstance(result, type):
-        rows = [(f.name, _fmt(getattr(result, f.name))) for f in dataclasses.fields(result)
-                if isinstance(getattr(result, f.name), str | int | float | Path)]
-        _console().print(_table("seqat bench", rows))
+    kwargs: dict[str, tuple[int, ...] | tuple[float, ...]] = {}
+    if seed:
+        kwargs["seeds"] = tuple(seed)
+    if threshold:
+        kwargs["thresholds"] = tuple(threshold)
+    report = run_bench(config, out, **kwargs)  # type: ignore[arg-type]
+    table = Table(title="seqat bench: targets", title_justify="left")
+    for col in ("method", "check", "value", "target", "result"):
+        table.add_column(col)
+    for c in report.checks:
+        table.add_row(c.label, c.name, f"{c.value:.4g} {c.unit}", f"{c.target:g} {c.unit}",
+                      "PASS" if c.passed else "FAIL")
+    _console().print(table)
     _console().print(f"benchmark written to {out}")

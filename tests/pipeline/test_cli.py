@@ -82,18 +82,23 @@ def test_debug_shows_traceback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, 
     assert 'raise RuntimeError("boom' in result.stderr
 
 
-def test_bench_passes_config_out_and_seeds(tmp_path: Path,
-                                          monkeypatch: pytest.MonkeyPatch) -> None:
+def test_bench_passes_config_out_seeds_and_thresholds(tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     calls: list[tuple[object, ...]] = []
     fake = types.ModuleType("pipeline.bench")
 
-    def run_bench(config_path: Path, out_dir: Path, *, seeds: tuple[int, ...] = (1,)) -> None:
-        calls.append((config_path, out_dir, seeds))
+    def run_bench(config_path: Path, out_dir: Path, *, seeds: tuple[int, ...] = (1,),
+                  thresholds: tuple[float, ...] = (0.1,)) -> types.SimpleNamespace:
+        calls.append((config_path, out_dir, seeds, thresholds))
+        check = types.SimpleNamespace(label="Seq-R", name="median update time", value=1.5,
+                                      target=2.0, unit="ms", passed=True)
+        return types.SimpleNamespace(checks=(check,))
 
     fake.run_bench = run_bench  # type: ignore[attr-defined]
     monkeypatch.setitem(sys.modules, "pipeline.bench", fake)
     config = REPO_ROOT / "configs" / "paper_sim.yaml"
     result = CliRunner().invoke(app, ["bench", str(config), "--out", str(tmp_path / "b"),
-                                      "--seed", "3", "--seed", "4"])
+                                      "--seed", "3", "--seed", "4", "--threshold", "0.05"])
     assert result.exit_code == 0, result.output
-    assert calls == [(config, tmp_path / "b", (3, 4))]
+    assert calls == [(config, tmp_path / "b", (3, 4), (0.05,))]
+    assert "median update time" in result.output and "PASS" in result.output
