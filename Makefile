@@ -39,7 +39,8 @@ test: $(STAMP) sysdeps
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP) sysdeps
-	$(BIN)/seqat bench configs/paper_sim.yaml --out out/bench
+	$(BIN)/seqat bench configs/paper_sim.yaml --out out/bench --seed 1 --seed 2 --seed 3 \
+		--threshold 0.1 --threshold 0.03 --threshold 0.01
 
 clean:
 	rm -rf out .pytest_cache
