@@ -228,7 +228,8 @@ def bench(
     for col in ("method", "check", "value", "target", "result"):
         table.add_column(col)
     for c in report.checks:
-        table.add_row(c.label, c.name, f"{c.value:.4g} {c.unit}", f"{c.target:g} {c.unit}",
+        bound = f"within ±{c.target:g}" if c.two_sided else f"≤ {c.target:g}"
+        table.add_row(c.label, c.name, f"{c.value:.4g} {c.unit}", f"{bound} {c.unit}",
                       "PASS" if c.passed else "FAIL")
     _console().print(table)
     _console().print(f"benchmark written to {out}")

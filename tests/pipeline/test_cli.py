@@ -91,7 +91,7 @@ def test_bench_passes_config_out_seeds_and_thresholds(tmp_path: Path,
                   thresholds: tuple[float, ...] = (0.1,)) -> types.SimpleNamespace:
         calls.append((config_path, out_dir, seeds, thresholds))
         check = types.SimpleNamespace(label="Seq-R", name="median update time", value=1.5,
-                                      target=2.0, unit="ms", passed=True)
+                                      target=2.0, unit="ms", two_sided=False, passed=True)
         return types.SimpleNamespace(checks=(check,))
 
     fake.run_bench = run_bench  # type: ignore[attr-defined]
@@ -102,3 +102,4 @@ def test_bench_passes_config_out_seeds_and_thresholds(tmp_path: Path,
     assert result.exit_code == 0, result.output
     assert calls == [(config, tmp_path / "b", (3, 4), (0.05,))]
     assert "median update time" in result.output and "PASS" in result.output
+    assert "≤ 2 ms" in result.output
