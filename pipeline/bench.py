@@ -62,6 +62,7 @@ from pipeline.bench_report import (
     Triple,
     mean_triple,
     render_markdown,
+    rms_of,
     write_figures,
 )
 from pipeline.config import load_simulate_config
@@ -110,10 +111,6 @@ def _triple(a: FloatArray) -> Triple:
     return (float(a[0]), float(a[1]), float(a[2]))
 
 
-def _overall(t: Triple) -> float:
-    return float(np.sqrt(np.mean(np.square(t))))
-
-
 def _eop_diff(a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Position (m) and wrapped attitude (deg) differences ``a - b``."""
     d = a - b
@@ -125,13 +122,10 @@ def _accuracy(snap: _Snapshot, flight: SimulatedFlight) -> Accuracy:
     dpos, datt = _eop_diff(snap.eop, flight.truth_eop[:n])
     pos, att = _triple(_rms(dpos)), _triple(_rms(datt))
     gp = _triple(_rms(snap.xyz - flight.truth_xyz[snap.points]))
-    return Accuracy(
-        pos_rmse_m=pos,
-        att_rmse_deg=att,
-        gp_rmse_m=gp,
-        pos_m=_overall(pos),
-        att_deg=_overall(att),
-        gp_m=_overall(gp),
+    return Accuracy.from_rmse(
+        pos,
+        att,
+        gp,
         n_images=n,
         n_points=int(snap.points.size),
     )
@@ -219,7 +213,7 @@ def _series(updates: Sequence[ImageUpdate]) -> Series:
         inverse_b=tuple(u.inverse_sizes[1] for u in updates),
         sim_reduced_size=tuple(u.sim_reduced_size for u in updates),
         sigma0=tuple(u.sigma0 for u in updates),
-        rms_gp_sigma_m=tuple(_overall(u.rms_gp_sigma_m) for u in updates),
+        rms_gp_sigma_m=tuple(rms_of(u.rms_gp_sigma_m) for u in updates),
     )
 
 
@@ -466,13 +460,10 @@ def _summary(results: Sequence[SeedResult]) -> tuple[MethodRun, ...]:
             mean_triple([a.att_rmse_deg for a in accs]),
         )
         gp = mean_triple([a.gp_rmse_m for a in accs])
-        acc = Accuracy(
-            pos_rmse_m=pos,
-            att_rmse_deg=att,
-            gp_rmse_m=gp,
-            pos_m=_overall(pos),
-            att_deg=_overall(att),
-            gp_m=_overall(gp),
+        acc = Accuracy.from_rmse(
+            pos,
+            att,
+            gp,
             n_images=accs[0].n_images,
             n_points=int(round(np.mean([a.n_points for a in accs]))),
         )

@@ -61,6 +61,11 @@ SEQUENTIAL = (Method.SEQ_R, Method.SEQ_R_SMOOTHED, Method.SEQ_F)
 
 
 # ---------------------------------------------------------------------------- report types
+def rms_of(t: Triple) -> float:
+    """r.m.s. of three components (NaN propagates)."""
+    return float(np.sqrt(np.mean(np.square(t))))
+
+
 @dataclass(frozen=True, kw_only=True)
 class Accuracy:
     """RMSE against truth per component, and the r.m.s. over the three (the paper's figures)."""
@@ -73,6 +78,14 @@ class Accuracy:
     gp_m: float
     n_images: int
     n_points: int
+
+    @classmethod
+    def from_rmse(cls, pos: Triple, att: Triple, gp: Triple, *, n_images: int,
+                  n_points: int) -> Accuracy:
+        """From the per-component RMSEs; the single figures are their r.m.s."""
+        return cls(pos_rmse_m=pos, att_rmse_deg=att, gp_rmse_m=gp, pos_m=rms_of(pos),
+                   att_deg=rms_of(att), gp_m=rms_of(gp), n_images=n_images,
+                   n_points=n_points)
 
 
 @dataclass(frozen=True, kw_only=True)
