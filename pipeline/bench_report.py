@@ -242,7 +242,8 @@ def write_figures(first: SeedResult, curves: Sequence[Curve], fig_dir: Path) -> 
 
     fig_dir.mkdir(parents=True, exist_ok=True)
     colours = {"Direct (GPS/INS)": "tab:green", "Seq-F": "tab:blue", "Sim": "tab:pink"}
-    reds = iter(["tab:red", "tab:orange", "tab:brown", "tab:purple", "tab:olive"])
+    reds = iter(["tab:red", "tab:orange", "tab:brown", "tab:purple", "tab:olive", "tab:cyan",
+                 "black"])
     for m in first.methods:
         colours.setdefault(m.label, next(reds, "tab:gray"))
     seq_r = next(m for m in first.methods if m.method == Method.SEQ_R)
@@ -376,7 +377,9 @@ def write_figures(first: SeedResult, curves: Sequence[Curve], fig_dir: Path) -> 
     for m in first.methods:
         if m.method in (Method.SEQ_R, Method.SEQ_F):
             assert m.series is not None
-            ax.plot(x, m.series.window_params, label=m.label, color=colours[m.label], lw=1.0)
+            same_as_default = "without RTS gains" in m.label  # the same window, drawn dotted
+            ax.plot(x, m.series.window_params, label=m.label, color=colours[m.label], lw=1.0,
+                    ls=":" if same_as_default else "-")
     ax.set(
         xlabel=x_label,
         ylabel="parameters in the update (window)",
