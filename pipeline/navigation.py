@@ -20,9 +20,9 @@ from typing import Literal
 
 import numpy as np
 import pyproj
-from pyproj.exceptions import CRSError, ProjError
+from pyproj.exceptions import ProjError
 
-from pipeline.flight import METRE_UNITS, MIN_IMAGES
+from pipeline.flight import MIN_IMAGES, resolve_projected_crs
 from pipeline.image_metadata import (
     AttitudeFrame,
     HeightKind,
@@ -107,7 +107,8 @@ def utm_epsg(lon_deg: float, lat_deg: float) -> int:
     return (32600 if lat_deg >= 0.0 else 32700) + zone
 
 
-def resolve_working_crs(crs: str, first_lon_deg: float, first_lat_deg: float) -> pyproj.CRS:
+def resolve_working_crs(crs: str, first_lon_deg: float, first_lat_deg: float, *,
+                        source: str = "flight.yaml") -> pyproj.CRS:
     """The projected working CRS of a flight with geodetic navigation.
 
     Parameters
@@ -118,27 +119,18 @@ def resolve_working_crs(crs: str, first_lon_deg: float, first_lat_deg: float) ->
         optionally compound with a vertical CRS (``EPSG:32617+5773``: orthometric heights).
     first_lon_deg, first_lat_deg : float
         First GPS fix, degrees.
+    source : str
+        Where ``crs`` came from (for messages).
 
     Raises
     ------
-    ConfigError
-        Unknown CRS (PROJ's message attached), not projected, or axes not in metres.
+    InputDataError
+        Unknown CRS (PROJ's message attached), not projected, or axes not in metres (the
+        checks of :func:`pipeline.flight.resolve_projected_crs`).
     """
     if crs.strip().lower() == "auto":
         return pyproj.CRS.from_epsg(utm_epsg(first_lon_deg, first_lat_deg))
-    try:
-        parsed = pyproj.CRS.from_user_input(crs)
-    except CRSError as err:
-        raise ConfigError(f"crs: unknown CRS {crs!r}: {err}") from err
-    horizontal = _horizontal(parsed)
-    if horizontal is None or not horizontal.is_projected:
-        raise ConfigError(f"crs: {crs!r} ({parsed.name}) is not a projected CRS; seqat works "
-                          "in east/north/up metres")
-    units = {axis.unit_name for axis in parsed.axis_info}
-    if not units <= set(METRE_UNITS):
-        raise ConfigError(f"crs: {crs!r} ({parsed.name}) has axes in "
-                          f"{', '.join(sorted(units))}; a metre CRS is needed")
-    return parsed
+    return resolve_projected_crs(crs, source)
 
 
 def _horizontal(crs: pyproj.CRS) -> pyproj.CRS | None:
@@ -412,8 +404,10 @@ def read_image_folder_nav(folder: Path | str, crs: str = "auto",
     InputDataError
         No such folder, fewer than :data:`~pipeline.flight.MIN_IMAGES` images, an unreadable
         image, an image without GPS position.
+    InputDataError
+        Bad CRS (also).
     ConfigError
-        Bad CRS, missing geoid grid.
+        Missing geoid grid.
     """
     folder = Path(folder)
     if not folder.is_dir():

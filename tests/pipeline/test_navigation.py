@@ -170,8 +170,8 @@ def test_auto_crs_is_utm_zone_of_first_fix() -> None:
 
 
 @pytest.mark.parametrize("crs", ["EPSG:4326", "EPSG:2994", "EPSG:99999999"])
-def test_unsuitable_crs_is_config_error(crs: str) -> None:
-    with pytest.raises(ConfigError, match="crs:"):
+def test_unsuitable_crs_is_input_data_error(crs: str) -> None:
+    with pytest.raises(InputDataError, match="flight.yaml: crs:"):
         resolve_working_crs(crs, -83.3, 41.0)
 
 
