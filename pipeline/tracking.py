@@ -47,16 +47,18 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.config import CameraConfig
 from seqat.errors import ConfigError, InputDataError
 from seqat.geometry import rays_world
 from seqat.types import EOP_SIZE, FloatArray, PinholeCamera
+
+if TYPE_CHECKING:  # pipeline.config holds TrackerOptions in FlightConfig: no import cycle
+    from pipeline.config import CameraConfig
 
 #: Smallest working width accepted (SIFT needs some octaves), pixels.
 MIN_WORKING_WIDTH_PX = 64
