@@ -28,7 +28,7 @@ and the other starts a fresh track. Both count as ``split_conflicts``. Hence a t
 holds two features of one image.
 
 Memory: the tracker holds per image only the working-resolution keypoints (float32), the
-descriptors (uint8: OpenCV's SIFT descriptors are integers 0..255), the point id number of each
+descriptors (uint8), the point id number of each
 keypoint and the nav EOP, never pixels. An image is dropped once its footprint has not
 overlapped (``>= min_overlap``) any of the last ``stale_after_images`` new images, and at most
 ``max_held_images`` are held (the least recently overlapped go first). Footprints are
@@ -75,6 +75,12 @@ MIN_RAY_DEPRESSION_RAD = math.radians(5.0)
 #: A footprint corner farther than this multiple of the height above the plane counts as
 #: horizon too (an oblique corner would otherwise span kilometres).
 MAX_FOOTPRINT_RANGE_FACTOR = 20.0
+#: OpenCV's SIFT defaults (Lowe 2004): layers per octave, edge threshold, base blur.
+SIFT_OCTAVE_LAYERS = 3
+SIFT_EDGE_THRESHOLD = 10.0
+SIFT_SIGMA = 1.6
+#: ORB pyramid scale factor (OpenCV's default).
+ORB_SCALE_FACTOR = 1.2
 #: Digits of the point id counter (``t0000001``).
 POINT_ID_DIGITS = 7
 #: Image sizes accepted: gray (H, W) or 3-channel BGR (H, W, 3).
@@ -110,7 +116,9 @@ class TrackerOptions:
         Descriptor matcher for SIFT (ORB always uses brute-force Hamming). FLANN is ~3-6x
         faster at 4000 features per image.
     sift_contrast_threshold : float
-        SIFT ``contrastThreshold`` (OpenCV default 0.04).
+        SIFT ``contrastThreshold``. OpenCV's default 0.04 finds only 5-20 features on the
+        low-contrast fields of the Seneca flight (gray std ~13); 0.01 finds 4000 there (the
+        ``max_features`` strongest are kept, so textured images are unaffected).
     max_held_images : int
         At most this many images are held for matching (>= ``neighbours``).
     stale_after_images : int
@@ -133,7 +141,7 @@ class TrackerOptions:
     min_inliers: int = 15
     geometry: Literal["fundamental", "homography"] = "fundamental"
     matcher: Literal["flann", "brute_force"] = "flann"
-    sift_contrast_threshold: float = 0.04
+    sift_contrast_threshold: float = 0.01
     max_held_images: int = 60
     stale_after_images: int = 40
     default_height_above_ground_m: float = 100.0
@@ -270,11 +278,15 @@ class Tracker:
         #: Full / working scale along u and v.
         self.scale_uv = (camera.width_px / w, camera.height_px / h)
         if options.detector == "sift":
+            # precise upscale: without it OpenCV's SIFT keypoints are 0.25 px (working
+            # resolution) right of and below the true position (its doubled first octave is
+            # resampled centre-aligned, then halved corner-aligned).
             self._detector = cv2.SIFT_create(
-                nfeatures=options.max_features,
-                contrastThreshold=options.sift_contrast_threshold)
+                options.max_features, SIFT_OCTAVE_LAYERS, options.sift_contrast_threshold,
+                SIFT_EDGE_THRESHOLD, SIFT_SIGMA, cv2.CV_8U, True)
         else:
-            self._detector = cv2.ORB_create(nfeatures=options.max_features)
+            self._detector = cv2.ORB_create(nfeatures=options.max_features,
+                                            scaleFactor=ORB_SCALE_FACTOR)
         if options.opencv_threads > 0:
             cv2.setNumThreads(options.opencv_threads)
         self._held: list[_HeldImage] = []
@@ -394,9 +406,13 @@ class Tracker:
         n_bytes = 128 if self.options.detector == "sift" else 32
         if desc is None or len(keypoints) == 0:
             return np.zeros((0, 2), np.float32), np.zeros((0, n_bytes), np.uint8)
-        kp = np.array([k.pt for k in keypoints], dtype=np.float32).reshape(-1, 2)
-        # SIFT descriptors are integers 0..255 stored as float32: uint8 is lossless, 4x smaller.
-        return kp, np.ascontiguousarray(np.clip(np.rint(desc), 0, 255).astype(np.uint8))
+        kp = np.array([k.pt for k in keypoints], dtype=np.float64).reshape(-1, 2)
+        if self.options.detector == "orb":
+            # ORB reports a level-l corner at x_l * s_l; the level was resampled centre-aligned
+            # (cv2.resize), so the pixel is (x_l + 0.5) s_l - 0.5: add 0.5 (s_l - 1).
+            level = np.array([k.octave for k in keypoints], dtype=np.float64)
+            kp += 0.5 * (ORB_SCALE_FACTOR**level - 1.0)[:, None]
+        return kp.astype(np.float32), np.ascontiguousarray(desc, dtype=np.uint8)
 
     # ----------------------------------------------------------------------------------------
     def _footprint(self, nav: FloatArray, plane_z: float) -> NDArray[np.float32] | None:
