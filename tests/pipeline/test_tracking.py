@@ -9,13 +9,14 @@ mapped back to the ground through the true homography.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
 from pipeline.config import CameraConfig, build_dataclass
-from pipeline.tracking import TrackedImage, Tracker, TrackerOptions
+from pipeline.tracking import TrackedImage, Tracker, TrackerOptions, read_gray_image
 from seqat.errors import ConfigError, InputDataError
 from seqat.geometry import project
 from seqat.types import Frame, PinholeCamera
@@ -185,6 +186,27 @@ def test_detected_blob_maps_to_its_full_resolution_centre(width: int) -> None:
     out = tracker.add_image("blob", image, np.array([0, 0, 100.0, 0, 0, 0]), None)
     err = np.linalg.norm(out.uv_px - centre, axis=1).min()
     assert err < 0.5  # full-resolution pixels
+
+
+def test_reduced_jpeg_decode_gives_the_same_full_resolution_pixels(
+        texture: np.ndarray, sift_run: StripRun, tmp_path: Path) -> None:
+    path = tmp_path / "view.jpg"
+    assert cv2.imwrite(str(path), render(texture, sift_run.eops[0]),
+                       [cv2.IMWRITE_JPEG_QUALITY, 95])
+    tracker = Tracker(TrackerOptions(working_width_px=600), CAMERA)
+    assert tracker.decode_factor == 2
+    reduced = read_gray_image(path, tracker.decode_factor)
+    assert reduced.shape == (HEIGHT_PX // 2, WIDTH_PX // 2)
+    nav = sift_run.eops[0]
+    uv_reduced = tracker.add_image("r", reduced, nav, 0.0).uv_px
+    uv_full = Tracker(TrackerOptions(working_width_px=600), CAMERA).add_image(
+        "f", read_gray_image(path), nav, 0.0).uv_px
+    nearest = np.array([np.linalg.norm(uv_full - p, axis=1).min() for p in uv_reduced[:500]])
+    assert np.median(nearest) < 0.05  # full-resolution pixels: no shift between decodes
+    with pytest.raises(InputDataError, match="reduced by 2, 4, 8 to at least 600 x 450 px"):
+        tracker.add_image("q", read_gray_image(path, 4), nav, 0.0)
+    with pytest.raises(InputDataError, match="cannot read"):
+        read_gray_image(tmp_path / "missing.jpg")
 
 
 def test_images_apart_by_nav_are_never_matched(texture: np.ndarray, sift_run: StripRun) -> None:
