@@ -470,7 +470,7 @@ class Tracker:
                 continue
             area, _ = cv2.intersectConvexConvex(new_fp, fp)
             overlap = float(area) / new_area
-            if overlap >= opts.min_overlap:
+            if area > 0.0 and overlap >= opts.min_overlap:
                 h.last_overlap_seq = self._seq
                 overlapping.append(_Candidate(held=h, overlap=overlap))
         overlapping.sort(key=lambda c: (-c.overlap, -c.held.seq))

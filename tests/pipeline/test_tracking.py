@@ -209,9 +209,11 @@ def test_reduced_jpeg_decode_gives_the_same_full_resolution_pixels(
         read_gray_image(tmp_path / "missing.jpg")
 
 
-def test_images_apart_by_nav_are_never_matched(texture: np.ndarray, sift_run: StripRun) -> None:
+@pytest.mark.parametrize("min_overlap", [0.15, 0.0])
+def test_images_apart_by_nav_are_never_matched(texture: np.ndarray, sift_run: StripRun,
+                                               min_overlap: float) -> None:
     eops = sift_run.eops
-    tracker = Tracker(TrackerOptions(working_width_px=600), CAMERA)
+    tracker = Tracker(TrackerOptions(working_width_px=600, min_overlap=min_overlap), CAMERA)
     first = tracker.add_image("a", render(texture, eops[0]), eops[0], 0.0)
     far = eops[0] + np.array([1000.0, 0, 0, 0, 0, 0])  # same pixels, footprint 1 km away
     out = tracker.add_image("b", render(texture, eops[0]), far, 0.0)
