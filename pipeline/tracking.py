@@ -636,7 +636,8 @@ def read_gray_image(path: Path | str, decode_factor: int = 1) -> NDArray[np.uint
     path : Path or str
     decode_factor : {1, 2, 4, 8}
         :attr:`Tracker.decode_factor`: the libjpeg scaled decode skips most of the IDCT and
-        the downscale of the full image (~30 ms of ~70 ms per 3600 x 2700 JPEG at 1000 px).
+        the downscale of the full image (decode + working copy of a 3600 x 2700 JPEG: 43
+        instead of 57 ms at 1000 px, 38 instead of 55 ms at 800 px).
 
     Returns
     -------
