@@ -24,8 +24,7 @@ import numpy as np
 
 from pipeline.flight import Flight, ObservationStats
 from pipeline.store import format_observation_lines
-from pipeline.tracking import Tracker, TrackerOptions, TrackStats
-from seqat.errors import InputDataError
+from pipeline.tracking import Tracker, TrackerOptions, TrackStats, read_gray_image
 from seqat.types import FloatArray, Frame, ImageUpdate
 
 #: Update the tracker's terrain height from the estimator every this many images.
@@ -71,19 +70,18 @@ class ObservationSource:
         return "".join(self._lines)
 
 
-def read_gray(path: Path, width_px: int, height_px: int) -> np.ndarray:
-    """An image as 8-bit gray at the camera's size (resampled if it has another size).
+def read_tracker_image(path: Path, tracker: Tracker, width_px: int, height_px: int) -> np.ndarray:
+    """An image as 8-bit gray for the tracker: reduced JPEG decode, camera size / factor.
 
-    Raises
-    ------
-    InputDataError
-        OpenCV cannot decode the file.
+    An image of another size (same aspect ratio, checked by :func:`pipeline.flight.read_flight`)
+    is resampled to the size the tracker expects.
     """
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise InputDataError(f"{path}: OpenCV cannot decode the image")
-    if image.shape != (height_px, width_px):
-        image = cv2.resize(image, (width_px, height_px), interpolation=cv2.INTER_AREA)
+    factor = tracker.decode_factor
+    image = read_gray_image(path, factor)
+    want = (height_px // factor, width_px // factor)
+    if image.shape != want:
+        full = read_gray_image(path, 1)
+        image = cv2.resize(full, (want[1], want[0]), interpolation=cv2.INTER_AREA)
     return image
 
 
@@ -124,7 +122,7 @@ class ImageSource:
         for row, (image_id, path) in enumerate(zip(flight.nav.image_ids, flight.image_paths,
                                                    strict=True)):
             t0 = time.perf_counter()
-            gray = read_gray(path, cam.width_px, cam.height_px)
+            gray = read_tracker_image(path, self._tracker, cam.width_px, cam.height_px)
             self._read_ms.append((time.perf_counter() - t0) * 1e3)
             tracked = self._tracker.add_image(image_id, gray, flight.nav.eop[row],
                                               self._ground_z)

@@ -63,6 +63,10 @@ if TYPE_CHECKING:  # pipeline.config holds TrackerOptions in FlightConfig: no im
 
 #: Smallest working width accepted (SIFT needs some octaves), pixels.
 MIN_WORKING_WIDTH_PX = 64
+#: The plane gate is never tighter than this many MAGSAC thresholds.
+PLANE_GATE_MIN_FACTOR = 3.0
+#: Smallest height above the ground plane used by the plane gate, metres.
+MIN_HEIGHT_M = 1.0
 #: Fewest point correspondences of the geometric model (8-point fundamental matrix).
 MIN_MODEL_POINTS = 8
 #: Confidence and iteration cap of USAC_MAGSAC.
@@ -136,6 +140,10 @@ class TrackerOptions:
         ``Z_camera - default_height_above_ground_m``.
     opencv_threads : int
         ``cv2.setNumThreads`` applied by the tracker (process-wide); 0 leaves OpenCV's setting.
+    max_relief_fraction : float or None
+        Plane gate after the fundamental matrix: terrain relief tolerated off the pair's
+        dominant plane, as a fraction of the height above ground (:meth:`Tracker._plane_gate`);
+        ``None`` switches the gate off (steep terrain, oblique views).
     """
 
     detector: Literal["sift", "orb"] = "sift"
@@ -153,6 +161,7 @@ class TrackerOptions:
     stale_after_images: int = 40
     default_height_above_ground_m: float = 100.0
     opencv_threads: int = 2
+    max_relief_fraction: float | None = 0.15
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, expected: str) -> None:
@@ -180,6 +189,8 @@ class TrackerOptions:
         need(self.default_height_above_ground_m > 0.0, "default_height_above_ground_m",
              "a positive number")
         need(self.opencv_threads >= 0, "opencv_threads", "an integer >= 0")
+        need(self.max_relief_fraction is None or self.max_relief_fraction > 0.0,
+             "max_relief_fraction", "a positive number or null")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -373,7 +384,8 @@ class Tracker:
         plane_z = (float(ground_z_m) if ground_z_m is not None and math.isfinite(ground_z_m)
                    else float(nav[2]) - self.options.default_height_above_ground_m)
         candidates = self._select_candidates(nav, plane_z)
-        links, n_matches, n_inliers, n_pairs = self._match(kp_work, desc, candidates)
+        links, n_matches, n_inliers, n_pairs = self._match(kp_work, desc, candidates, nav,
+                                                           plane_z)
         point_nums, n_new, n_ext, n_conflicts = self._assign(len(kp_work), links)
         t2 = time.perf_counter()
 
@@ -481,9 +493,12 @@ class Tracker:
 
     # ----------------------------------------------------------------------------------------
     def _match(self, kp: NDArray[np.float32], desc: NDArray[np.uint8],
-               candidates: list[_Candidate]) -> tuple[dict[int, list[tuple[int, int, float]]],
-                                                       int, int, int]:
+               candidates: list[_Candidate], nav: FloatArray,
+               plane_z: float) -> tuple[dict[int, list[tuple[int, int, float]]], int, int, int]:
         """Match the new image with each candidate and verify each pair.
+
+        Verification: the geometric model (MAGSAC), then, with the fundamental matrix and
+        ``max_relief_fraction`` set, the plane gate (:meth:`_plane_gate`).
 
         Returns
         -------
@@ -533,12 +548,51 @@ class Tracker:
             mask = self._verify(held.kp_work[idx_old], kp[idx_new])
             if mask is None or int(mask.sum()) < opts.min_inliers:
                 continue
+            if opts.geometry == "fundamental" and opts.max_relief_fraction is not None:
+                mask &= self._plane_gate(held.kp_work[idx_old], kp[idx_new], mask,
+                                         held.nav_eop, nav, plane_z)
+                if int(mask.sum()) < opts.min_inliers:
+                    continue
             n_pairs += 1
             n_inliers += int(mask.sum())
             for i_new, i_old, d in zip(idx_new[mask].tolist(), idx_old[mask].tolist(),
                                        dist[mask].tolist(), strict=True):
                 links.setdefault(i_new, []).append((int(held.point_nums[i_old]), rank, d))
         return links, n_matches, n_inliers, n_pairs
+
+    def _plane_gate(self, pts_old: NDArray[np.float32], pts_new: NDArray[np.float32],
+                    mask: NDArray[np.bool_], nav_old: FloatArray, nav_new: FloatArray,
+                    plane_z: float) -> NDArray[np.bool_]:
+        """Matches within the parallax that terrain relief can cause, off the dominant plane.
+
+        The fundamental matrix cannot reject a wrong match that lies along its epipolar line,
+        and along a strip the epipolar lines run with the flight direction, the direction of
+        crop rows and roads: such matches give tie points metres or hundreds of metres off.
+        Seen from two nadir cameras a base ``B`` apart at height ``H`` over the ground, a
+        point ``dZ`` off the plane that a homography maps moves by about
+        ``f B / H * dZ / H`` pixels; matches farther than that from the pair's dominant-plane
+        homography (MAGSAC) are dropped. The gate is
+        ``max(PLANE_GATE_MIN_FACTOR * ransac_threshold_px, max_relief_fraction * f B / H)``
+        working pixels.
+        """
+        opts = self.options
+        height = max(float(0.5 * (nav_old[2] + nav_new[2])) - plane_z, MIN_HEIGHT_M)
+        base = float(np.linalg.norm(nav_new[:3] - nav_old[:3]))
+        f_work = self._pinhole.f_px / self.scale_uv[0]
+        assert opts.max_relief_fraction is not None
+        gate = max(PLANE_GATE_MIN_FACTOR * opts.ransac_threshold_px,
+                   opts.max_relief_fraction * f_work * base / height)
+        inl = np.flatnonzero(mask)
+        try:
+            H, _ = cv2.findHomography(pts_old[inl], pts_new[inl], cv2.USAC_MAGSAC, gate,
+                                      maxIters=RANSAC_MAX_ITERATIONS,
+                                      confidence=RANSAC_CONFIDENCE)
+        except cv2.error:
+            H = None
+        if H is None:
+            return np.zeros_like(mask)
+        mapped = cv2.perspectiveTransform(pts_old.reshape(1, -1, 2).astype(np.float64), H)[0]
+        return np.linalg.norm(mapped - pts_new, axis=1) <= gate
 
     def _verify(self, pts_old: NDArray[np.float32],
                 pts_new: NDArray[np.float32]) -> NDArray[np.bool_] | None:
