@@ -1,608 +1,355 @@
-"""``seqat reference OUT``: the COLMAP reference adjustment of a run (pycolmap + Ceres).
+"""``seqat reference OUT``: the COLMAP reference of a run, written to ``OUT/reference/``.
 
-The run's observations become a :class:`pycolmap.Reconstruction` (one ``OPENCV`` camera, the
-images with their poses as COLMAP's ``cam_from_world``, every tie point seen in at least two
-images as a 3D point with its track). COLMAP's Ceres bundle adjuster
-(``create_default_ceres_bundle_adjuster``) sets up the reprojection residuals; we add one
-GPS/INS prior residual block per image ourselves (``AbsolutePosePriorCost`` with the full 6x6
-covariance, or ``AbsolutePosePositionPriorCost``) and check the residual count. We do *not* use
-``create_pose_prior_bundle_adjuster``: it first RANSAC-aligns the model to the prior positions
-and, when that fails (collinear camera centres of a single strip), logs a warning and drops
-every prior.
-
-Same stochastic model as Sim (``seqat/simultaneous.py``):
-
-* COLMAP's reprojection residuals are in pixels, unweighted. Sim minimises
-  ``sum(v_img^2) / sigma_px^2 + sum(v_nav^2 / sigma_nav^2)``; multiplying by ``sigma_px^2``
-  gives the same minimiser, so each prior gets the covariance ``Sigma_prior / sigma_px^2``.
-* Sim's nav prior is on ``[X0, Y0, Z0, omega, phi, kappa]`` with a diagonal covariance.
-  COLMAP's 6-DoF prior residual is ``[log(R_cv R_cv,prior^T), R_cv (C_prior - C)]``
-  (rotation in the camera frame, then translation). To first order
-  ``rho = -R_cv A dtheta`` and ``tau = -R_cv dC`` (``A``: world axes of the angle rotations,
-  :func:`seqat.geometry.attitude_axes`), so the prior covariance is
-  ``J diag(sigma^2) J^T`` with ``J = [[0, -R_cv A], [-R_cv, 0]]``, evaluated at the prior.
-  The two objectives then agree to second order in the nav error (0.1 deg ~ 2e-3 rad), which
-  is what the agreement test measures (docs/benchmarks.md).
-
-Coordinates: the adjustment runs in local coordinates (world minus the rounded first nav
-position, as the estimators); every file holds world coordinates. Pixels: COLMAP puts the
-centre of the top-left pixel at (0.5, 0.5), OpenCV (ours) at (0, 0): ``u_colmap = u + 0.5``
-for observations and the principal point alike.
+Reads the run folder (nav = priors, observed pixels, the run's estimates as initial values),
+adjusts with :func:`pipeline.colmap_ba.adjust_reference` (COLMAP's Ceres bundle adjuster
+under Sim's stochastic model) and publishes ``OUT/reference/`` whole: ``colmap/`` (the COLMAP
+model, binary and text, world coordinates), ``eop.csv`` and ``points.csv`` (our formats) and
+``reference.json`` (docs/formats.md).
 """
 
 from __future__ import annotations
 
-import enum
-import time
-from collections.abc import Iterator
-from contextlib import contextmanager
+import json
+import os
+import shutil
+import tempfile
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from pathlib import Path
 
 import numpy as np
 
+from pipeline.camera import PixelCorrector, pinhole_camera
+from pipeline.colmap_ba import (
+    CAMERA_ID,
+    PriorKind,
+    ReferenceInput,
+    ReferenceOptions,
+    ReferenceResult,
+    adjust_reference,
+)
 from pipeline.config import CameraConfig
-from seqat.errors import ConfigError, EstimationError
-from seqat.geometry import attitude_axes, cv_pose_from_eop, eop_from_cv_pose, wrap_angle
-from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
+from pipeline.csvio import read_csv
+from pipeline.flight import OBSERVATION_COLUMNS, read_flight
+from pipeline.store import (
+    EOP_FILE,
+    JSON_INDENT,
+    POINTS_FILE,
+    RUN_FILE,
+    atomic_write_text,
+    format_eop_csv,
+    format_points_csv,
+    fsync_dir,
+    read_eop_csv,
+    read_points_csv,
+    to_jsonable,
+)
+from pipeline.tables import EopTable, NavTable, PointTable
+from seqat.errors import EstimationError, InputDataError
+from seqat.geometry import intersect_rays
+from seqat.types import EopEstimate, FloatArray, PointEstimate
 
-if TYPE_CHECKING:
-    import pycolmap
-
-#: COLMAP's pixel coordinates minus OpenCV's (centre of the top-left pixel: 0.5 vs 0).
-COLMAP_PIXEL_OFFSET = 0.5
-#: The single camera of a reference model.
-CAMERA_ID = 1
-#: Number of parameters of COLMAP's ``OPENCV`` model (fx, fy, cx, cy, k1, k2, p1, p2).
-OPENCV_PARAMS = 8
-#: ``FULL_OPENCV`` (used when k3 != 0): the 8 above plus k3, k4, k5, k6 (k4-k6 stay 0).
-FULL_OPENCV_PARAMS = 12
-#: Indices of k4, k5, k6 in ``FULL_OPENCV``: held at 0 when self-calibrating.
-FULL_OPENCV_RATIONAL_IDX = (9, 10, 11)
-#: Rotation vector per unit of Ceres' quaternion tangent (it turns by twice the step norm).
-QUATERNION_TANGENT_TO_ROTATION = 2.0
-#: Residuals per image observation and per prior.
-OBS_RESIDUALS = 2
-POSE_PRIOR_RESIDUALS = 6
-POSITION_PRIOR_RESIDUALS = 3
-
-
-class PriorKind(enum.StrEnum):
-    """GPS/INS prior of each image."""
-
-    POSE = "pose"  # 6-DoF, AbsolutePosePriorCost with the full covariance (Sim's model)
-    POSITION = "position"  # AbsolutePosePositionPriorCost: attitude left free
-
-
-class RobustLoss(enum.StrEnum):
-    """Loss on the reprojection residuals (priors always use the squared loss)."""
-
-    TRIVIAL = "trivial"
-    HUBER = "huber"
-    CAUCHY = "cauchy"
-    SOFT_L1 = "soft_l1"
-
-
-@dataclass(frozen=True, kw_only=True)
-class ReferenceOptions:
-    """Options of the reference adjustment.
-
-    Attributes
-    ----------
-    prior : PriorKind
-    self_calibrate : bool
-        Also estimate fx, fy, cx, cy, k1, k2, p1, p2 (and k3 for a ``FULL_OPENCV`` camera).
-    robust_loss : RobustLoss
-        Off (``trivial``) by default, as in Sim.
-    loss_scale_sigmas : float
-        Scale of the robust loss in units of the image sigma.
-    max_iterations : int
-    function_tolerance, gradient_tolerance, parameter_tolerance : float
-        Ceres' stopping rules (tighter than COLMAP's defaults: the reference must converge
-        as far as Sim does, < 1 um).
-    covariance : bool
-        Posterior pose and point covariances (``pycolmap.estimate_ba_covariance``).
-    """
-
-    prior: PriorKind = PriorKind.POSE
-    self_calibrate: bool = False
-    robust_loss: RobustLoss = RobustLoss.TRIVIAL
-    loss_scale_sigmas: float = 3.0
-    max_iterations: int = 100
-    function_tolerance: float = 1e-15
-    gradient_tolerance: float = 1e-12
-    parameter_tolerance: float = 1e-12
-    covariance: bool = True
-
-    def __post_init__(self) -> None:
-        if self.max_iterations < 1:
-            raise ConfigError(f"max_iterations: expected >= 1, got {self.max_iterations}")
-        if not self.loss_scale_sigmas > 0:
-            raise ConfigError(f"loss_scale_sigmas: expected > 0, got {self.loss_scale_sigmas}")
+#: Sub-folder of a run folder holding the reference.
+REFERENCE_DIR = "reference"
+#: COLMAP model inside it (binary and text files side by side).
+COLMAP_MODEL_DIR = "colmap"
+#: The reference's own record.
+REFERENCE_JSON = "reference.json"
+#: Camera centres whose second singular value is below this fraction of the first are
+#: collinear: position-only priors then leave the roll about the line free.
+COLLINEAR_RATIO = 1e-3
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
-class ReferenceInput:
-    """Everything the reference adjustment needs, in world coordinates.
+class RunInputs:
+    """What the reference reads from a run folder (a view of ``pipeline.store`` outputs).
 
     Attributes
     ----------
+    path : Path
+        The run folder.
     camera : CameraConfig
-        The camera of the observed pixels (distortion included).
-    image_ids : tuple[str, ...]
-        Acquisition order.
-    nav_eop : (n, 6) float
-        GPS/INS EOPs (metres, radians): the priors.
+    nav : NavTable
+        GPS/INS in the working CRS (the priors, and direct georeferencing).
     nav_sigma : (6,) float
-        Their standard deviations (metres, radians).
-    sigma_px : float
-        Standard deviation of an image coordinate.
-    point_ids : tuple[str, ...]
-    obs_image, obs_point : (k,) int
-        Image and point index of each observation.
-    obs_uv_px : (k, 2) float
-        Observed OpenCV pixels (distorted).
-    eop0 : (n, 6) float
-        Initial EOPs (the run's estimates).
-    xyz0 : (m, 3) float
-        Initial points, finite (the run's estimates, else intersections).
+        Metres and radians.
+    sigma_image_px : float
+    observations_path : Path
+        ``image,point,x_px,y_px`` observed pixels.
+    eop : EopTable
+        The run's estimates (initial values).
+    points : PointTable
+    method : str
+    crs_wkt : str or None
     """
 
+    path: Path
     camera: CameraConfig
-    image_ids: tuple[str, ...]
-    nav_eop: FloatArray
+    nav: NavTable
     nav_sigma: FloatArray
-    sigma_px: float
-    point_ids: tuple[str, ...]
-    obs_image: np.ndarray
-    obs_point: np.ndarray
-    obs_uv_px: FloatArray
-    eop0: FloatArray
-    xyz0: FloatArray
-
-    def __post_init__(self) -> None:
-        n, m, k = len(self.image_ids), len(self.point_ids), self.obs_image.shape[0]
-        shapes = {"nav_eop": (self.nav_eop, (n, EOP_SIZE)), "eop0": (self.eop0, (n, EOP_SIZE)),
-                  "nav_sigma": (self.nav_sigma, (EOP_SIZE,)), "xyz0": (self.xyz0, (m, GP_SIZE)),
-                  "obs_point": (self.obs_point, (k,)), "obs_uv_px": (self.obs_uv_px, (k, 2))}
-        for name, (array, shape) in shapes.items():
-            if array.shape != shape:
-                raise ValueError(f"{name}: expected shape {shape}, got {array.shape}")
-        if not np.all(np.isfinite(self.xyz0)):
-            raise ValueError("xyz0: initial points must be finite")
+    sigma_image_px: float
+    observations_path: Path
+    eop: EopTable
+    points: PointTable
+    method: str
+    crs_wkt: str | None
 
 
-@dataclass(frozen=True, kw_only=True, eq=False)
-class ReferenceResult:
-    """Typed result of :func:`adjust_reference`.
+def read_run_inputs(out_dir: Path | str) -> RunInputs:
+    """Open a run folder for the reference (``eop.csv``, ``points.csv``, ``run.json``, flight).
 
-    Attributes
-    ----------
-    image_ids : tuple[str, ...]
-    eop : (n, 6) float
-        World metres, radians. Images without tie points keep their nav (``in_adjustment``).
-    eop_sigma : (n, 6) float
-        A posteriori standard deviations (``sigma0 * sqrt(q)``, as Sim); NaN where the
-        covariance was not computed.
-    in_adjustment : (n,) bool
-        Image has tie points (a pose parameter in the adjustment).
-    point_ids : tuple[str, ...]
-        Points adjusted (seen in >= 2 images).
-    xyz : (m, 3) float
-    xyz_sigma : (m, 3) float
-        NaN where the covariance was not computed.
-    n_obs : (m,) int
-    camera : CameraConfig
-        Adjusted camera (the input one without self-calibration).
-    converged : bool
-    termination : str
-        Ceres' termination type.
-    iterations : int
-    n_residuals : int
-        Residuals in the problem (checked: ``2 * observations + prior residuals``).
-    n_prior_residuals : int
-    sigma0, redundancy, rms_px : float, int, float
-        With Sim's definitions (``seqat/simultaneous.py``).
-    ba_s : float
-        Wall time of the Ceres solve.
-    covariance_status : str
-        ``computed``, ``off`` or the reason it failed.
-    origin : (3,) float
-        Local origin of the adjustment (world metres).
-    reconstruction : pycolmap.Reconstruction
-        The adjusted model in world coordinates.
+    Raises
+    ------
+    InputDataError
+        Not a run folder, or a file missing or malformed.
     """
-
-    image_ids: tuple[str, ...]
-    eop: FloatArray
-    eop_sigma: FloatArray
-    in_adjustment: np.ndarray
-    point_ids: tuple[str, ...]
-    xyz: FloatArray
-    xyz_sigma: FloatArray
-    n_obs: np.ndarray
-    camera: CameraConfig
-    converged: bool
-    termination: str
-    iterations: int
-    n_residuals: int
-    n_prior_residuals: int
-    sigma0: float
-    redundancy: int
-    rms_px: float
-    ba_s: float
-    covariance_status: str
-    origin: FloatArray
-    reconstruction: pycolmap.Reconstruction
-
-
-# --------------------------------------------------------------------------------------------
-# Conversions
-# --------------------------------------------------------------------------------------------
-
-
-def _import_pycolmap() -> tuple[object, object]:
-    """pycolmap and pyceres (pyceres makes the adjuster's ``problem`` reachable)."""
-    import pyceres
-    import pycolmap
-
-    return pycolmap, pyceres
-
-
-def colmap_camera(camera: CameraConfig, camera_id: int = CAMERA_ID) -> pycolmap.Camera:
-    """COLMAP ``OPENCV`` camera of a camera config (``FULL_OPENCV`` when ``k3 != 0``).
-
-    The principal point moves by +0.5 px (COLMAP's pixel convention).
-    """
-    import pycolmap
-
-    cx, cy = camera.cx_px + COLMAP_PIXEL_OFFSET, camera.cy_px + COLMAP_PIXEL_OFFSET
-    params = [camera.fx_px, camera.fy_px, cx, cy, camera.k1, camera.k2, camera.p1, camera.p2]
-    model = "OPENCV"
-    if camera.k3 != 0.0:
-        model = "FULL_OPENCV"
-        params += [camera.k3, 0.0, 0.0, 0.0]
-    return pycolmap.Camera(model=model, width=camera.width_px, height=camera.height_px,
-                           params=params, camera_id=camera_id)
-
-
-def camera_config_from_colmap(cam: pycolmap.Camera, template: CameraConfig) -> CameraConfig:
-    """The camera config of an (adjusted) COLMAP camera; inverse of :func:`colmap_camera`."""
-    p = np.asarray(cam.params, dtype=np.float64)
-    k3 = float(p[8]) if p.size == FULL_OPENCV_PARAMS else 0.0
-    distorted = bool(np.any(p[4:8] != 0.0)) or k3 != 0.0 or p[0] != p[1]
-    model = "OPENCV" if (template.model == "OPENCV" or distorted) else "PINHOLE"
-    return CameraConfig(model=model, width_px=template.width_px, height_px=template.height_px,
-                        fx_px=float(p[0]), fy_px=float(p[1]),
-                        cx_px=float(p[2]) - COLMAP_PIXEL_OFFSET,
-                        cy_px=float(p[3]) - COLMAP_PIXEL_OFFSET, k1=float(p[4]), k2=float(p[5]),
-                        p1=float(p[6]), p2=float(p[7]), k3=k3)
-
-
-def rigid_from_eop(eop: FloatArray) -> pycolmap.Rigid3d:
-    """COLMAP ``cam_from_world`` of one EOP ``[X0, Y0, Z0, omega, phi, kappa]``."""
-    import pycolmap
-
-    R, t = cv_pose_from_eop(np.asarray(eop, dtype=np.float64)[None])
-    return pycolmap.Rigid3d(pycolmap.Rotation3d(R[0]), t[0])
-
-
-def eop_from_rigid(cam_from_world: pycolmap.Rigid3d) -> FloatArray:
-    """EOP ``(6,)`` of a COLMAP ``cam_from_world``; inverse of :func:`rigid_from_eop`."""
-    R = np.asarray(cam_from_world.rotation.matrix(), dtype=np.float64)
-    return eop_from_cv_pose(R[None], np.asarray(cam_from_world.translation)[None])[0]
-
-
-def pose_prior_covariance(nav_eop: FloatArray, nav_sigma: FloatArray) -> FloatArray:
-    """Covariance of COLMAP's 6-DoF prior residual ``[rotation, translation]`` (see module).
-
-    Parameters
-    ----------
-    nav_eop : (n, 6) float
-        Prior EOPs (metres, radians).
-    nav_sigma : (6,) or (n, 6) float
-        Standard deviations of ``[X0, Y0, Z0, omega, phi, kappa]``.
-
-    Returns
-    -------
-    (n, 6, 6) float
-        ``J diag(sigma^2) J^T`` with ``J = [[0, -R_cv A], [-R_cv, 0]]``.
-    """
-    nav = np.atleast_2d(np.asarray(nav_eop, dtype=np.float64))
-    n = nav.shape[0]
-    var = np.broadcast_to(np.asarray(nav_sigma, dtype=np.float64) ** 2, (n, EOP_SIZE))
-    R_cv, _ = cv_pose_from_eop(nav)
-    J = np.zeros((n, 6, 6))
-    J[:, :3, 3:] = -R_cv @ attitude_axes(nav)
-    J[:, 3:, :3] = -R_cv
-    return np.einsum("nij,nj,nkj->nik", J, var, J)
-
-
-def eop_covariance_from_tangent(eop: FloatArray, cov_tangent: FloatArray) -> FloatArray:
-    """Covariance of ``[X0, Y0, Z0, omega, phi, kappa]`` from COLMAP's pose covariance.
-
-    COLMAP's tangent space of ``cam_from_world`` is ``[dq, dt]``: Ceres' quaternion manifold
-    ``q' = [cos|dq|, sin|dq| dq/|dq|] q`` turns by ``2|dq|``, so the rotation vector is
-    ``drho = 2 dq`` with ``R_cv' = Exp(drho) R_cv``, and ``t' = t + dt``. Then
-    ``dC = -R_cv^T ([t]x drho + dt)`` and ``dtheta = -A^-1 R_cv^T drho``.
-
-    Parameters
-    ----------
-    eop : (6,) float
-        The adjusted EOP (local or world coordinates, as ``cov_tangent``'s ``t``).
-    cov_tangent : (6, 6) float
-
-    Returns
-    -------
-    (6, 6) float
-    """
-    R_cv, t = cv_pose_from_eop(np.asarray(eop, dtype=np.float64)[None])
-    Rt = R_cv[0].T
-    tx = np.array([[0.0, -t[0, 2], t[0, 1]], [t[0, 2], 0.0, -t[0, 0]],
-                   [-t[0, 1], t[0, 0], 0.0]])
-    J = np.zeros((6, 6))
-    J[:3, :3] = -Rt @ tx * QUATERNION_TANGENT_TO_ROTATION
-    J[:3, 3:] = -Rt
-    J[3:, :3] = -np.linalg.solve(attitude_axes(np.asarray(eop)[None])[0], Rt)
-    J[3:, :3] *= QUATERNION_TANGENT_TO_ROTATION
-    return J @ cov_tangent @ J.T
-
-
-# --------------------------------------------------------------------------------------------
-# The model
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, kw_only=True, eq=False)
-class _Model:
-    """A reconstruction and how its ids map to ours."""
-
-    reconstruction: pycolmap.Reconstruction
-    image_rows: np.ndarray  # rows of ReferenceInput.image_ids in the adjustment
-    point_rows: np.ndarray  # rows of ReferenceInput.point_ids adjusted
-    point3D_ids: np.ndarray  # COLMAP id of each adjusted point
-    obs_used: np.ndarray  # (k,) bool: observation in the model
-
-
-def build_reconstruction(data: ReferenceInput, origin: FloatArray) -> _Model:
-    """The run as a :class:`pycolmap.Reconstruction` in local coordinates (world - origin).
-
-    Images get ids ``1..n`` in acquisition order and their EOP ``eop0`` as pose; points seen
-    in at least two images become 3D points (ids from 1) with their tracks.
-    """
-    import pycolmap
-
-    n, m = len(data.image_ids), len(data.point_ids)
-    counts = np.bincount(data.obs_point, minlength=m)
-    used_point = counts >= 2
-    obs_used = used_point[data.obs_point]
-    rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(colmap_camera(data.camera))
-    has_obs = np.bincount(data.obs_image[obs_used], minlength=n) > 0
-    image_rows = np.flatnonzero(has_obs)
-    eop_local = data.eop0.copy()
-    eop_local[:, :3] -= origin
-    uv = data.obs_uv_px + COLMAP_PIXEL_OFFSET
-    # point2D index of each used observation inside its image
-    point2d_idx = np.full(data.obs_image.shape[0], -1)
-    for i in image_rows:
-        rows = np.flatnonzero((data.obs_image == i) & obs_used)
-        point2d_idx[rows] = np.arange(rows.size)
-        image = pycolmap.Image(name=data.image_ids[i], keypoints=uv[rows],
-                               camera_id=CAMERA_ID, image_id=int(i) + 1)
-        rec.add_image_with_trivial_frame(image, rigid_from_eop(eop_local[i]))
-    point_rows = np.flatnonzero(used_point)
-    point3D_ids = np.zeros(point_rows.size, dtype=np.int64)
-    order = np.argsort(data.obs_point, kind="stable")
-    starts = np.searchsorted(data.obs_point[order], point_rows)
-    for j, (p, s) in enumerate(zip(point_rows, starts, strict=True)):
-        track = pycolmap.Track()
-        for o in order[s:s + counts[p]]:
-            track.add_element(int(data.obs_image[o]) + 1, int(point2d_idx[o]))
-        point3D_ids[j] = rec.add_point3D(data.xyz0[p] - origin, track)
-    return _Model(reconstruction=rec, image_rows=image_rows, point_rows=point_rows,
-                  point3D_ids=point3D_ids, obs_used=obs_used)
-
-
-@contextmanager
-def _quiet_glog() -> Iterator[None]:
-    """Silence COLMAP's INFO log lines during the solve (warnings stay)."""
-    import pycolmap
-
-    logging = pycolmap.logging
-    previous = logging.minloglevel
-    logging.minloglevel = int(logging.WARNING)
+    out = Path(out_dir)
+    run_json = out / RUN_FILE
+    if not run_json.is_file():
+        raise InputDataError(f"{out}: not a run folder (no {RUN_FILE}; run 'seqat run' first)")
     try:
-        yield
-    finally:
-        logging.minloglevel = previous
+        record = json.loads(run_json.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise InputDataError(f"{run_json}: cannot read: {err}") from err
+    flight = read_flight(record["flight"])
+    return RunInputs(path=out, camera=flight.config.camera, nav=flight.nav,
+                     nav_sigma=flight.config.nav.sigma_eop,
+                     sigma_image_px=flight.config.sigma_image_px,
+                     observations_path=flight.observations_path,
+                     eop=read_eop_csv(out / EOP_FILE), points=read_points_csv(out / POINTS_FILE),
+                     method=str(record.get("method")), crs_wkt=flight.crs.to_wkt())
 
 
-def _ba_options(options: ReferenceOptions, sigma_px: float) -> pycolmap.BundleAdjustmentOptions:
-    import pycolmap
-
-    ba = pycolmap.BundleAdjustmentOptions()
-    ba.print_summary = False
-    ba.refine_focal_length = options.self_calibrate
-    ba.refine_principal_point = options.self_calibrate
-    ba.refine_extra_params = options.self_calibrate
-    ba.ceres.loss_function_type = getattr(pycolmap.LossFunctionType,
-                                          options.robust_loss.value.upper())
-    ba.ceres.loss_function_scale = options.loss_scale_sigmas * sigma_px
-    solver = ba.ceres.solver_options
-    solver.max_num_iterations = options.max_iterations
-    solver.function_tolerance = options.function_tolerance
-    solver.gradient_tolerance = options.gradient_tolerance
-    solver.parameter_tolerance = options.parameter_tolerance
-    ba.ceres.solver_options = solver
-    return ba
-
-
-def _prior_cost(kind: PriorKind, nav_local: FloatArray, cov: FloatArray | None,
-                position_var: FloatArray) -> object:
-    import pycolmap.cost_functions as cf
-
-    if kind is PriorKind.POSE:
-        return cf.AbsolutePosePriorCost(cov, rigid_from_eop(nav_local))
-    return cf.AbsolutePosePositionPriorCost(np.diag(position_var), nav_local[:3])
-
-
-def adjust_reference(data: ReferenceInput,
-                     options: ReferenceOptions = ReferenceOptions()) -> ReferenceResult:
-    """Bundle-adjust the run's observations with COLMAP's Ceres adjuster and GPS/INS priors.
-
-    Parameters
-    ----------
-    data : ReferenceInput
-    options : ReferenceOptions
+def read_observations(path: Path, image_index: dict[str, int]) -> tuple[
+        np.ndarray, tuple[str, ...], np.ndarray, FloatArray]:
+    """Read ``image,point,x_px,y_px`` (observed pixels) into index arrays.
 
     Returns
     -------
-    ReferenceResult
+    obs_image : (k,) int
+        Row of the image in ``image_index``.
+    point_ids : tuple[str, ...]
+        In order of first sight.
+    obs_point : (k,) int
+    uv_px : (k, 2) float
+
+    Raises
+    ------
+    InputDataError
+        Unknown image, duplicate (image, point), malformed row.
+    """
+    images: list[int] = []
+    points: list[int] = []
+    uv: list[tuple[float, float]] = []
+    point_index: dict[str, int] = {}
+    seen: dict[tuple[int, int], int] = {}
+    for row in read_csv(path, OBSERVATION_COLUMNS):
+        image = row.ident("image")
+        i = image_index.get(image)
+        if i is None:
+            raise row.error(f"field 'image': unknown image {image!r} (not in the run's nav)")
+        j = point_index.setdefault(row.ident("point"), len(point_index))
+        if (i, j) in seen:
+            raise row.error(f"duplicate observation of point {row.values['point']!r} in image "
+                            f"{image!r} (first at line {seen[(i, j)]})")
+        seen[(i, j)] = row.line
+        images.append(i)
+        points.append(j)
+        uv.append((row.number("x_px"), row.number("y_px")))
+    return (np.asarray(images, dtype=np.int64), tuple(point_index),
+            np.asarray(points, dtype=np.int64), np.asarray(uv, dtype=np.float64).reshape(-1, 2))
+
+
+def reference_input(run: RunInputs) -> tuple[ReferenceInput, int]:
+    """Observations and initial values of the reference from a run.
+
+    Initial EOPs are the run's estimates (nav where it has none); initial points the run's
+    estimates, else a multi-ray intersection at those EOPs (ideal pixels). Points that
+    cannot be intersected are left out.
+
+    Returns
+    -------
+    ReferenceInput
+    int
+        Observations left out (points without an initial value).
+    """
+    nav = run.nav
+    index = nav.index()
+    obs_image, point_ids, obs_point, uv = read_observations(run.observations_path, index)
+    eop0 = nav.eop.copy()
+    est = run.eop.index()
+    for i, iid in enumerate(nav.image_ids):
+        if iid in est and np.all(np.isfinite(run.eop.eop[est[iid]])):
+            eop0[i] = run.eop.eop[est[iid]]
+    xyz0 = np.full((len(point_ids), 3), np.nan)
+    pts = run.points.index()
+    for j, pid in enumerate(point_ids):
+        if pid in pts:
+            xyz0[j] = run.points.xyz_m[pts[pid]]
+    missing = ~np.all(np.isfinite(xyz0), axis=1)
+    if np.any(missing):
+        sel = missing[obs_point]
+        ideal = PixelCorrector(camera=run.camera).ideal_pixels(uv[sel])
+        X, _ = intersect_rays(eop0[obs_image[sel]], ideal, obs_point[sel], len(point_ids),
+                              pinhole_camera(run.camera))
+        xyz0[missing] = X[missing]
+    ok = np.all(np.isfinite(xyz0), axis=1)
+    keep = ok[obs_point]
+    remap = np.cumsum(ok) - 1
+    data = ReferenceInput(camera=run.camera, image_ids=nav.image_ids, nav_eop=nav.eop,
+                          nav_sigma=np.asarray(run.nav_sigma, dtype=np.float64),
+                          sigma_px=run.sigma_image_px,
+                          point_ids=tuple(p for p, k in zip(point_ids, ok, strict=True) if k),
+                          obs_image=obs_image[keep], obs_point=remap[obs_point[keep]],
+                          obs_uv_px=uv[keep], eop0=eop0, xyz0=xyz0[ok])
+    return data, int(np.count_nonzero(~keep))
+
+
+def check_prior_geometry(data: ReferenceInput, prior: PriorKind) -> None:
+    """Position-only priors need camera centres that are not on one line.
 
     Raises
     ------
     EstimationError
-        No tie point, a residual count that does not match the problem built, or a failed
-        solve.
+        With the singular values of the centred positions.
     """
-    pycolmap, pyceres = _import_pycolmap()
-    origin = np.round(data.nav_eop[0, :3])
-    model = build_reconstruction(data, origin)
-    rec = model.reconstruction
-    if model.point_rows.size == 0:
-        raise EstimationError("no tie point is seen in two images: nothing to adjust")
-    config = pycolmap.BundleAdjustmentConfig()  # type: ignore[attr-defined]
-    for i in model.image_rows:
-        config.add_image(int(i) + 1)
-    if not options.self_calibrate:
-        config.set_constant_cam_intrinsics(CAMERA_ID)
-    ba_options = _ba_options(options, data.sigma_px)
-    adjuster = pycolmap.create_default_ceres_bundle_adjuster(  # type: ignore[attr-defined]
-        ba_options, config, rec)
-    problem = adjuster.problem
-    n_obs_used = int(np.count_nonzero(model.obs_used))
-    if problem.num_residuals() != OBS_RESIDUALS * n_obs_used:
-        raise EstimationError(f"COLMAP's problem has {problem.num_residuals()} reprojection "
-                              f"residuals, expected {OBS_RESIDUALS * n_obs_used} "
-                              f"({n_obs_used} observations)")
-    # GPS/INS priors: Sim's weights times sigma_px^2 (COLMAP's image residuals are unweighted).
-    scale = 1.0 / data.sigma_px**2
-    nav_local = data.nav_eop.copy()
-    nav_local[:, :3] -= origin
-    pose_cov = pose_prior_covariance(data.nav_eop, data.nav_sigma) * scale
-    position_var = data.nav_sigma[:3] ** 2 * scale
-    for i in model.image_rows:
-        frame = rec.frame(rec.image(int(i) + 1).frame_id)
-        cost = _prior_cost(options.prior, nav_local[i], pose_cov[i], position_var)
-        problem.add_residual_block(cost, None, [frame.rig_from_world.params])
-    per_prior = (POSE_PRIOR_RESIDUALS if options.prior is PriorKind.POSE
-                 else POSITION_PRIOR_RESIDUALS)
-    n_prior = per_prior * int(model.image_rows.size)
-    expected = OBS_RESIDUALS * n_obs_used + n_prior
-    if problem.num_residuals() != expected:
-        raise EstimationError(f"the problem has {problem.num_residuals()} residuals after adding "
-                              f"the priors, expected {expected}")
-    if options.self_calibrate and rec.camera(CAMERA_ID).params.size == FULL_OPENCV_PARAMS:
-        problem.set_manifold(rec.camera(CAMERA_ID).params, pyceres.SubsetManifold(
-            FULL_OPENCV_PARAMS, list(FULL_OPENCV_RATIONAL_IDX)))
-    t0 = time.perf_counter()
-    with _quiet_glog():
-        summary = adjuster.solve()
-    ba_s = time.perf_counter() - t0
-    ceres = summary.ceres_summary
-    termination = summary.termination_type.name
-    if not summary.is_solution_usable():
-        raise EstimationError(f"COLMAP bundle adjustment failed: {termination} "
-                              f"({ceres.message})")
-    n_residuals = int(ceres.num_residuals)
-    if n_residuals != expected:
-        raise EstimationError(f"Ceres solved {n_residuals} residuals, expected {expected}")
-
-    # Estimates back in our conventions (local coordinates first).
-    n = len(data.image_ids)
-    eop_local = nav_local.copy()  # images without ties keep their nav
-    for i in model.image_rows:
-        eop_local[i] = eop_from_rigid(rec.image(int(i) + 1).cam_from_world())
-    xyz_local = np.array([rec.point3D(int(pid)).xyz for pid in model.point3D_ids])
-    camera = camera_config_from_colmap(rec.camera(CAMERA_ID), data.camera)
-
-    # sigma0 with Sim's definitions.
-    uv_obs = data.obs_uv_px[model.obs_used] + COLMAP_PIXEL_OFFSET
-    img_used = data.obs_image[model.obs_used]
-    pt_local = np.full((len(data.point_ids), 3), np.nan)
-    pt_local[model.point_rows] = xyz_local
-    R_cv, t_cv = cv_pose_from_eop(eop_local)
-    p_cam = np.einsum("kij,kj->ki", R_cv[img_used], pt_local[data.obs_point[model.obs_used]])
-    p_cam += t_cv[img_used]
-    uv_hat = np.asarray(rec.camera(CAMERA_ID).img_from_cam(p_cam, check_cheirality=False))
-    v_img = uv_obs - uv_hat
-    v_nav = data.nav_eop - (eop_local + np.concatenate([origin, np.zeros(3)]))
-    v_nav[:, 3:] = wrap_angle(v_nav[:, 3:])
-    in_adj = np.zeros(n, dtype=bool)
-    in_adj[model.image_rows] = True
-    ssr = float(np.sum(v_img**2) / data.sigma_px**2
-                + np.sum((v_nav[in_adj] / data.nav_sigma) ** 2))
-    redundancy = OBS_RESIDUALS * n_obs_used - GP_SIZE * int(model.point_rows.size)
-    if options.prior is PriorKind.POSITION:
-        redundancy -= 3 * int(model.image_rows.size)  # attitudes without pseudo-observations
-    sigma0 = float(np.sqrt(ssr / redundancy)) if redundancy > 0 else float("nan")
-    rms_px = float(np.sqrt(np.mean(v_img**2)))
-    scale_post = sigma0 if np.isfinite(sigma0) else 1.0
-
-    eop_sigma = np.full((n, EOP_SIZE), np.nan)
-    eop_sigma[~in_adj] = data.nav_sigma
-    xyz_sigma = np.full((model.point_rows.size, GP_SIZE), np.nan)
-    status = "off"
-    if options.covariance:
-        status = _covariances(pycolmap, rec, adjuster, model, eop_local, data.sigma_px,
-                              scale_post, eop_sigma, xyz_sigma)
-
-    # The model in world coordinates.
-    rec.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), origin))  # type: ignore[attr-defined]
-    eop = eop_local.copy()
-    eop[:, :3] += origin
-    n_obs = np.bincount(data.obs_point[model.obs_used],
-                        minlength=len(data.point_ids))[model.point_rows]
-    return ReferenceResult(
-        image_ids=data.image_ids, eop=eop, eop_sigma=eop_sigma, in_adjustment=in_adj,
-        point_ids=tuple(data.point_ids[p] for p in model.point_rows), xyz=xyz_local + origin,
-        xyz_sigma=xyz_sigma, n_obs=n_obs, camera=camera,
-        converged=termination == "CONVERGENCE", termination=termination,
-        iterations=int(ceres.num_successful_steps + ceres.num_unsuccessful_steps),
-        n_residuals=n_residuals, n_prior_residuals=n_prior, sigma0=sigma0,
-        redundancy=redundancy, rms_px=rms_px, ba_s=ba_s, covariance_status=status,
-        origin=origin, reconstruction=rec)
+    if prior is not PriorKind.POSITION:
+        return
+    c = data.nav_eop[:, :3] - data.nav_eop[:, :3].mean(axis=0)
+    s = np.linalg.svd(c, compute_uv=False)
+    if s[1] < COLLINEAR_RATIO * s[0]:
+        raise EstimationError(
+            f"position-only priors: the camera centres lie on a line (singular values "
+            f"{s[0]:.3g}, {s[1]:.3g} m), which leaves the roll about it free; use the "
+            "6-DoF pose prior")
 
 
-def _covariances(pycolmap: object, rec: pycolmap.Reconstruction, adjuster: object,
-                 model: _Model, eop_local: FloatArray, sigma_px: float, sigma0: float,
-                 eop_sigma: FloatArray, xyz_sigma: FloatArray) -> str:
-    """Fill the a posteriori sigmas from ``pycolmap.estimate_ba_covariance``; return status.
+@dataclass(frozen=True, kw_only=True)
+class ReferenceRecord:
+    """``reference/reference.json``."""
 
-    COLMAP's covariances belong to the objective with unweighted image residuals, i.e. they
-    are Sim's cofactors divided by ``sigma_px^2``.
+    version: int
+    run: str
+    method_of_run: str
+    options: ReferenceOptions
+    camera_model: str
+    camera: CameraConfig
+    n_images: int
+    n_images_adjusted: int
+    n_points: int
+    n_observations: int
+    n_observations_left_out: int
+    n_residuals: int
+    n_prior_residuals: int
+    converged: bool
+    termination: str
+    iterations: int
+    sigma0: float
+    redundancy: int
+    rms_px: float
+    ba_s: float
+    covariance: str
+    origin_m: tuple[float, float, float]
+    pycolmap_version: str
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReferenceSummary:
+    """Typed result of :func:`run_reference` (what ``seqat reference`` prints)."""
+
+    out_dir: Path
+    reference_dir: Path
+    record: ReferenceRecord
+
+
+def _eop_estimates(result: ReferenceResult) -> list[EopEstimate]:
+    return [EopEstimate(image_id=iid, eop=result.eop[i], sigma=result.eop_sigma[i])
+            for i, iid in enumerate(result.image_ids)]
+
+
+def _point_estimates(result: ReferenceResult) -> list[PointEstimate]:
+    return [PointEstimate(point_id=pid, xyz_m=result.xyz[j], sigma_m=result.xyz_sigma[j],
+                          n_obs=int(result.n_obs[j])) for j, pid in enumerate(result.point_ids)]
+
+
+def write_reference(out_dir: Path, result: ReferenceResult, record: ReferenceRecord) -> Path:
+    """Publish ``out_dir/reference/`` whole: built in a temporary sibling, then renamed.
+
+    Returns
+    -------
+    Path
+        The reference folder.
     """
-    cov_options = pycolmap.BACovarianceOptions()  # type: ignore[attr-defined]
-    cov_options.params = pycolmap.BACovarianceOptionsParams.POSES_AND_POINTS  # type: ignore[attr-defined]
+    target = out_dir / REFERENCE_DIR
+    tmp = Path(tempfile.mkdtemp(dir=out_dir, prefix=f".{REFERENCE_DIR}.tmp-"))
+    old: Path | None = None
     try:
-        with _quiet_glog():
-            cov = pycolmap.estimate_ba_covariance(cov_options, rec, adjuster)  # type: ignore[attr-defined]
-    except RuntimeError as err:  # COLMAP's THROW_CHECKs
-        return f"failed: {' '.join(str(err).split())[:200]}"
-    if cov is None:
-        return "failed: pycolmap.estimate_ba_covariance returned no result"
-    factor = sigma_px**2 * sigma0**2
-    missing = 0
-    for i in model.image_rows:
-        c = cov.get_cam_cov_from_world(int(i) + 1)
-        if c is None or np.asarray(c).shape != (6, 6):
-            missing += 1
-            continue
-        q = eop_covariance_from_tangent(eop_local[i], np.asarray(c) * factor)
-        eop_sigma[i] = np.sqrt(np.clip(np.diagonal(q), 0.0, None))
-    for j, pid in enumerate(model.point3D_ids):
-        c = cov.get_point_cov(int(pid))
-        if c is not None and np.asarray(c).shape == (3, 3):
-            xyz_sigma[j] = np.sqrt(np.clip(np.diagonal(np.asarray(c)) * factor, 0.0, None))
-    return "computed" if missing == 0 else f"computed, {missing} image(s) without covariance"
+        model = tmp / COLMAP_MODEL_DIR
+        model.mkdir()
+        result.reconstruction.write_binary(str(model))
+        result.reconstruction.write_text(str(model))
+        atomic_write_text(tmp / EOP_FILE, format_eop_csv(_eop_estimates(result)))
+        atomic_write_text(tmp / POINTS_FILE, format_points_csv(_point_estimates(result)))
+        doc = to_jsonable(record)
+        atomic_write_text(tmp / REFERENCE_JSON,
+                          json.dumps(doc, indent=JSON_INDENT, allow_nan=False) + "\n")
+        fsync_dir(model)
+        if target.exists():
+            old = Path(tempfile.mkdtemp(dir=out_dir, prefix=f".{REFERENCE_DIR}.old-"))
+            os.replace(target, old / REFERENCE_DIR)
+        os.replace(tmp, target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if old is not None and (old / REFERENCE_DIR).exists() and not target.exists():
+            os.replace(old / REFERENCE_DIR, target)
+        raise
+    finally:
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    fsync_dir(out_dir)
+    return target
+
+
+def run_reference(out_dir: Path | str,
+                  options: ReferenceOptions | None = None) -> ReferenceSummary:
+    """Adjust a run's observations with COLMAP and write ``OUT/reference/``.
+
+    Parameters
+    ----------
+    out_dir : Path or str
+        A run folder (``seqat run ... --out OUT``).
+    options : ReferenceOptions
+
+    Returns
+    -------
+    ReferenceSummary
+
+    Raises
+    ------
+    InputDataError
+        Not a run folder, or malformed inputs (nothing is written).
+    EstimationError
+        The adjustment failed (nothing is written).
+    """
+    import pycolmap
+
+    options = options if options is not None else ReferenceOptions()
+    out = Path(out_dir)
+    run = read_run_inputs(out)
+    data, left_out = reference_input(run)
+    check_prior_geometry(data, options.prior)
+    result = adjust_reference(data, options)
+    cam = result.reconstruction.camera(CAMERA_ID)
+    record = ReferenceRecord(
+        version=1, run=str(out), method_of_run=run.method, options=options,
+        camera_model=cam.model.name, camera=result.camera, n_images=len(result.image_ids),
+        n_images_adjusted=int(np.count_nonzero(result.in_adjustment)),
+        n_points=len(result.point_ids), n_observations=int(np.sum(result.n_obs)),
+        n_observations_left_out=left_out, n_residuals=result.n_residuals,
+        n_prior_residuals=result.n_prior_residuals, converged=result.converged,
+        termination=result.termination, iterations=result.iterations, sigma0=result.sigma0,
+        redundancy=result.redundancy, rms_px=result.rms_px, ba_s=result.ba_s,
+        covariance=result.covariance_status,
+        origin_m=(float(result.origin[0]), float(result.origin[1]), float(result.origin[2])),
+        pycolmap_version=str(pycolmap.__version__))
+    folder = write_reference(out, result, record)
+    return ReferenceSummary(out_dir=out, reference_dir=folder, record=record)

@@ -266,14 +266,6 @@ def intersect_rays(
     return X, max_angle
 
 
-# --------------------------------------------------------------------------------------------
-# The OpenCV / COLMAP camera frame (x right, y down, z forward): ours with y and z negated.
-# --------------------------------------------------------------------------------------------
-
-#: ``R_cv_from_cam``: the OpenCV camera frame is ours with y and z negated.
-CV_FROM_CAM = np.diag([1.0, -1.0, -1.0])
-
-
 def attitude_axes(eop: FloatArray) -> FloatArray:
     """World axes of the three angle rotations, ``dR = [A dtheta]x R``.
 
@@ -290,46 +282,3 @@ def attitude_axes(eop: FloatArray) -> FloatArray:
     """
     _, axes = _rotation_axes(np.atleast_2d(np.asarray(eop, dtype=np.float64)))
     return np.swapaxes(axes, 1, 2)
-
-
-def cv_pose_from_eop(eop: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """COLMAP's ``cam_from_world`` (OpenCV camera frame) of EOPs.
-
-    ``R_cv_from_world = diag(1, -1, -1) R^T`` and ``t = -R_cv_from_world X0``, so that
-    ``p_cv = R_cv_from_world X + t`` (docs/conventions.md).
-
-    Parameters
-    ----------
-    eop : (n, 6) float
-
-    Returns
-    -------
-    R_cv_from_world : (n, 3, 3) float
-    t_cv_m : (n, 3) float
-    """
-    eop = np.atleast_2d(np.asarray(eop, dtype=np.float64))
-    R = rotation_matrix(eop[:, 3], eop[:, 4], eop[:, 5])
-    R_cv = CV_FROM_CAM @ np.swapaxes(R, 1, 2)
-    t = -np.einsum("nij,nj->ni", R_cv, eop[:, :3])
-    return R_cv, t
-
-
-def eop_from_cv_pose(R_cv_from_world: FloatArray, t_cv_m: FloatArray) -> FloatArray:
-    """Inverse of :func:`cv_pose_from_eop`.
-
-    Parameters
-    ----------
-    R_cv_from_world : (n, 3, 3) float
-    t_cv_m : (n, 3) float
-
-    Returns
-    -------
-    (n, 6) float
-        ``[X0, Y0, Z0, omega, phi, kappa]``.
-    """
-    R_cv = np.asarray(R_cv_from_world, dtype=np.float64).reshape(-1, 3, 3)
-    t = np.asarray(t_cv_m, dtype=np.float64).reshape(-1, 3)
-    Rt = np.swapaxes(R_cv, 1, 2)
-    X0 = -np.einsum("nij,nj->ni", Rt, t)
-    R_world_from_cam = Rt @ CV_FROM_CAM
-    return np.concatenate([X0, angles_from_rotation(R_world_from_cam)], axis=1)
