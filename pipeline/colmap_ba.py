@@ -492,8 +492,9 @@ def adjust_reference(data: ReferenceInput,
     v_nav[:, 3:] = wrap_angle(v_nav[:, 3:])
     in_adj = np.zeros(n, dtype=bool)
     in_adj[model.image_rows] = True
+    prior_cols = slice(0, EOP_SIZE if options.prior is PriorKind.POSE else 3)
     ssr = float(np.sum(v_img**2) / data.sigma_px**2
-                + np.sum((v_nav[in_adj] / data.nav_sigma) ** 2))
+                + np.sum((v_nav[in_adj] / data.nav_sigma)[:, prior_cols] ** 2))
     redundancy = OBS_RESIDUALS * n_obs_used - GP_SIZE * int(model.point_rows.size)
     if options.prior is PriorKind.POSITION:
         redundancy -= 3 * int(model.image_rows.size)  # attitudes without pseudo-observations

@@ -55,8 +55,9 @@ COLMAP_MODEL_DIR = "colmap"
 #: The reference's own record.
 REFERENCE_JSON = "reference.json"
 #: Camera centres whose second singular value is below this fraction of the first are
-#: collinear: position-only priors then leave the roll about the line free.
-COLLINEAR_RATIO = 1e-3
+#: (nearly) collinear: position-only priors then leave the roll about the line (almost) free.
+#: A straight strip with metre-level wander over a kilometre is ~1e-3.
+COLLINEAR_RATIO = 0.05
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
