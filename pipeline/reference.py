@@ -219,7 +219,7 @@ def check_prior_geometry(data: ReferenceInput, prior: PriorKind) -> None:
     s = np.linalg.svd(c, compute_uv=False)
     if s[1] < COLLINEAR_RATIO * s[0]:
         raise EstimationError(
-            f"position-only priors: the camera centres lie on a line (singular values "
+            f"position-only priors: the camera centres lie (nearly) on a line (singular values "
             f"{s[0]:.3g}, {s[1]:.3g} m), which leaves the roll about it free; use the "
             "6-DoF pose prior")
 
