@@ -29,22 +29,20 @@ from pipeline.colmap_ba import (
 )
 from pipeline.config import CameraConfig
 from pipeline.csvio import read_csv
-from pipeline.flight import OBSERVATION_COLUMNS, read_flight
+from pipeline.flight import OBSERVATION_COLUMNS
 from pipeline.store import (
     EOP_FILE,
     JSON_INDENT,
     POINTS_FILE,
-    RUN_FILE,
+    RunFolder,
     atomic_write_text,
     format_eop_csv,
     format_points_csv,
     fsync_dir,
-    read_eop_csv,
-    read_points_csv,
+    read_run,
     to_jsonable,
 )
-from pipeline.tables import EopTable, NavTable, PointTable
-from seqat.errors import EstimationError, InputDataError
+from seqat.errors import EstimationError
 from seqat.geometry import intersect_rays
 from seqat.types import EopEstimate, FloatArray, PointEstimate
 
@@ -58,66 +56,6 @@ REFERENCE_JSON = "reference.json"
 #: (nearly) collinear: position-only priors then leave the roll about the line (almost) free.
 #: A straight strip with metre-level wander over a kilometre is ~1e-3.
 COLLINEAR_RATIO = 0.05
-
-
-@dataclass(frozen=True, kw_only=True, eq=False)
-class RunInputs:
-    """What the reference reads from a run folder (a view of ``pipeline.store`` outputs).
-
-    Attributes
-    ----------
-    path : Path
-        The run folder.
-    camera : CameraConfig
-    nav : NavTable
-        GPS/INS in the working CRS (the priors, and direct georeferencing).
-    nav_sigma : (6,) float
-        Metres and radians.
-    sigma_image_px : float
-    observations_path : Path
-        ``image,point,x_px,y_px`` observed pixels.
-    eop : EopTable
-        The run's estimates (initial values).
-    points : PointTable
-    method : str
-    crs_wkt : str or None
-    """
-
-    path: Path
-    camera: CameraConfig
-    nav: NavTable
-    nav_sigma: FloatArray
-    sigma_image_px: float
-    observations_path: Path
-    eop: EopTable
-    points: PointTable
-    method: str
-    crs_wkt: str | None
-
-
-def read_run_inputs(out_dir: Path | str) -> RunInputs:
-    """Open a run folder for the reference (``eop.csv``, ``points.csv``, ``run.json``, flight).
-
-    Raises
-    ------
-    InputDataError
-        Not a run folder, or a file missing or malformed.
-    """
-    out = Path(out_dir)
-    run_json = out / RUN_FILE
-    if not run_json.is_file():
-        raise InputDataError(f"{out}: not a run folder (no {RUN_FILE}; run 'seqat run' first)")
-    try:
-        record = json.loads(run_json.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise InputDataError(f"{run_json}: cannot read: {err}") from err
-    flight = read_flight(record["flight"])
-    return RunInputs(path=out, camera=flight.config.camera, nav=flight.nav,
-                     nav_sigma=flight.config.nav.sigma_eop,
-                     sigma_image_px=flight.config.sigma_image_px,
-                     observations_path=flight.observations_path,
-                     eop=read_eop_csv(out / EOP_FILE), points=read_points_csv(out / POINTS_FILE),
-                     method=str(record.get("method")), crs_wkt=flight.crs.to_wkt())
 
 
 def read_observations(path: Path, image_index: dict[str, int]) -> tuple[
@@ -160,7 +98,7 @@ def read_observations(path: Path, image_index: dict[str, int]) -> tuple[
             np.asarray(points, dtype=np.int64), np.asarray(uv, dtype=np.float64).reshape(-1, 2))
 
 
-def reference_input(run: RunInputs) -> tuple[ReferenceInput, int]:
+def reference_input(run: RunFolder) -> tuple[ReferenceInput, int]:
     """Observations and initial values of the reference from a run.
 
     Initial EOPs are the run's estimates (nav where it has none); initial points the run's
@@ -335,7 +273,7 @@ def run_reference(out_dir: Path | str,
 
     options = options if options is not None else ReferenceOptions()
     out = Path(out_dir)
-    run = read_run_inputs(out)
+    run = read_run(out)
     data, left_out = reference_input(run)
     check_prior_geometry(data, options.prior)
     result = adjust_reference(data, options)

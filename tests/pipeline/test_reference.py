@@ -245,7 +245,7 @@ def test_cli_reference_bad_input_is_exit_2_one_line(tmp_path: Path, sim_run: Pat
     result = CliRunner().invoke(app, ["reference", str(tmp_path / "absent")])
     assert result.exit_code == 2
     assert result.stderr.startswith("seqat: error: ") and result.stderr.count("\n") == 1
-    assert "not a run folder" in result.stderr
+    assert "no such run folder" in result.stderr
     result = CliRunner().invoke(app, ["reference", str(sim_run), "--prior", "gps"])
     assert result.exit_code == 2
     assert result.stderr == ("seqat: error: --prior: expected one of pose, position, "
