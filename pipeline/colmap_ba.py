@@ -196,7 +196,8 @@ class ReferenceResult:
         Points adjusted (seen in >= 2 images).
     xyz : (m, 3) float
     xyz_sigma : (m, 3) float
-        NaN where the covariance was not computed.
+        NaN: COLMAP gives point covariances conditioned on the poses only (see
+        ``_covariances``).
     n_obs : (m,) int
     camera : CameraConfig
         Adjusted camera (the input one without self-calibration).
@@ -508,7 +509,7 @@ def adjust_reference(data: ReferenceInput,
     status = "off"
     if options.covariance:
         status = _covariances(pycolmap, rec, adjuster, model, eop_local, data.sigma_px,
-                              scale_post, eop_sigma, xyz_sigma)
+                              scale_post, eop_sigma)
 
     # The model in world coordinates.
     rec.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), origin))  # type: ignore[attr-defined]
@@ -529,14 +530,16 @@ def adjust_reference(data: ReferenceInput,
 
 def _covariances(pycolmap: object, rec: pycolmap.Reconstruction, adjuster: object,
                  model: _Model, eop_local: FloatArray, sigma_px: float, sigma0: float,
-                 eop_sigma: FloatArray, xyz_sigma: FloatArray) -> str:
-    """Fill the a posteriori sigmas from ``pycolmap.estimate_ba_covariance``; return status.
+                 eop_sigma: FloatArray) -> str:
+    """Fill the a posteriori pose sigmas from ``pycolmap.estimate_ba_covariance``; status.
 
     COLMAP's covariances belong to the objective with unweighted image residuals, i.e. they
-    are Sim's cofactors divided by ``sigma_px^2``.
+    are Sim's cofactors divided by ``sigma_px^2``. Point sigmas stay NaN: COLMAP's point
+    covariance is conditioned on the poses (``get_point_cov``), not the marginal one Sim
+    reports, and would understate them several times.
     """
     cov_options = pycolmap.BACovarianceOptions()  # type: ignore[attr-defined]
-    cov_options.params = pycolmap.BACovarianceOptionsParams.POSES_AND_POINTS  # type: ignore[attr-defined]
+    cov_options.params = pycolmap.BACovarianceOptionsParams.POSES  # type: ignore[attr-defined]
     try:
         with _quiet_glog():
             cov = pycolmap.estimate_ba_covariance(cov_options, rec, adjuster)  # type: ignore[attr-defined]
@@ -553,8 +556,4 @@ def _covariances(pycolmap: object, rec: pycolmap.Reconstruction, adjuster: objec
             continue
         q = eop_covariance_from_tangent(eop_local[i], np.asarray(c) * factor)
         eop_sigma[i] = np.sqrt(np.clip(np.diagonal(q), 0.0, None))
-    for j, pid in enumerate(model.point3D_ids):
-        c = cov.get_point_cov(int(pid))
-        if c is not None and np.asarray(c).shape == (3, 3):
-            xyz_sigma[j] = np.sqrt(np.clip(np.diagonal(np.asarray(c)) * factor, 0.0, None))
     return "computed" if missing == 0 else f"computed, {missing} image(s) without covariance"
