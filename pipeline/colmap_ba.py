@@ -212,6 +212,8 @@ class ReferenceResult:
         With Sim's definitions (``seqat/simultaneous.py``).
     ba_s : float
         Wall time of the Ceres solve.
+    linear_solver : str
+        Ceres' linear solver (COLMAP chooses it by the number of images).
     covariance_status : str
         ``computed``, ``off`` or the reason it failed.
     origin : (3,) float
@@ -238,6 +240,7 @@ class ReferenceResult:
     redundancy: int
     rms_px: float
     ba_s: float
+    linear_solver: str
     covariance_status: str
     origin: FloatArray
     reconstruction: pycolmap.Reconstruction
@@ -524,7 +527,8 @@ def adjust_reference(data: ReferenceInput,
         converged=termination == "CONVERGENCE", termination=termination,
         iterations=int(ceres.num_successful_steps + ceres.num_unsuccessful_steps),
         n_residuals=n_residuals, n_prior_residuals=n_prior, sigma0=sigma0,
-        redundancy=redundancy, rms_px=rms_px, ba_s=ba_s, covariance_status=status,
+        redundancy=redundancy, rms_px=rms_px, ba_s=ba_s,
+        linear_solver=str(ceres.linear_solver_type_used.name), covariance_status=status,
         origin=origin, reconstruction=rec)
 
 

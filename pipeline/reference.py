@@ -186,6 +186,7 @@ class ReferenceRecord:
     redundancy: int
     rms_px: float
     ba_s: float
+    linear_solver: str
     covariance: str
     origin_m: tuple[float, float, float]
     pycolmap_version: str
@@ -287,6 +288,7 @@ def run_reference(out_dir: Path | str,
         n_prior_residuals=result.n_prior_residuals, converged=result.converged,
         termination=result.termination, iterations=result.iterations, sigma0=result.sigma0,
         redundancy=result.redundancy, rms_px=result.rms_px, ba_s=result.ba_s,
+        linear_solver=result.linear_solver,
         covariance=result.covariance_status,
         origin_m=(float(result.origin[0]), float(result.origin[1]), float(result.origin[2])),
         pycolmap_version=str(pycolmap.__version__))
