@@ -447,6 +447,7 @@ def adjust_reference(data: ReferenceInput,
     nav_local[:, :3] -= origin
     pose_cov = pose_prior_covariance(data.nav_eop, data.nav_sigma) * scale
     position_var = data.nav_sigma[:3] ** 2 * scale
+    n_blocks = problem.num_parameter_blocks()
     for i in model.image_rows:
         frame = rec.frame(rec.image(int(i) + 1).frame_id)
         cost = _prior_cost(options.prior, nav_local[i], pose_cov[i], position_var)
@@ -458,6 +459,9 @@ def adjust_reference(data: ReferenceInput,
     if problem.num_residuals() != expected:
         raise EstimationError(f"the problem has {problem.num_residuals()} residuals after adding "
                               f"the priors, expected {expected}")
+    if problem.num_parameter_blocks() != n_blocks:  # a prior on a copy of a pose constrains nothing
+        raise EstimationError(f"the priors added {problem.num_parameter_blocks() - n_blocks} "
+                              "parameter blocks: they are not on the adjusted poses")
     if options.self_calibrate and rec.camera(CAMERA_ID).params.size == FULL_OPENCV_PARAMS:
         problem.set_manifold(rec.camera(CAMERA_ID).params, pyceres.SubsetManifold(
             FULL_OPENCV_PARAMS, list(FULL_OPENCV_RATIONAL_IDX)))
