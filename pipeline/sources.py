@@ -14,8 +14,9 @@ folder's ``observations.csv``.
 
 from __future__ import annotations
 
+import dataclasses
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,12 +24,14 @@ import cv2
 import numpy as np
 
 from pipeline.flight import Flight, ObservationStats
+from pipeline.resection import Resection, resect_attitude
 from pipeline.store import format_observation_lines
-from pipeline.tracking import Tracker, TrackerOptions, TrackStats, read_gray_image
+from pipeline.tracking import Tracker, TrackerOptions, read_gray_image
+from seqat.geometry import rays_world
 from seqat.types import FloatArray, Frame, ImageUpdate
 
-#: Update the tracker's terrain height from the estimator every this many images.
-GROUND_HEIGHT_EVERY = 5
+#: A ray must point down by at least this (z of the unit vector) to meet the terrain plane.
+MIN_RAY_DOWN = 0.2
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -50,7 +53,7 @@ class ObservationSource:
         self._frames = flight.frames()
         self._stats: ObservationStats = self._frames.validate()
         self._lines: list[str] = []
-        self.tracking_stats: tuple[TrackStats, ...] = ()
+        self.tracking_stats: tuple[Mapping[str, object], ...] = ()
 
     def __iter__(self) -> Iterator[Frame]:
         for frame, observed in self._frames.with_observed():
@@ -100,15 +103,18 @@ class ImageSource:
         self.tracking_options = options
         self._tracker = Tracker(options, flight.camera_config)
         self._ground_z: float | None = None
+        self._known: dict[str, FloatArray] = {}  # estimator's current ground points
+        self._eops: dict[str, FloatArray] = {}  # estimator's current EOPs (window)
+        self._last_obs: dict[str, tuple[str, FloatArray]] = {}  # point -> (image, ideal uv)
         self._lines: list[str] = []
-        self._stats: list[TrackStats] = []
+        self._stats: list[Mapping[str, object]] = []
         self._read_ms: list[float] = []
         self._points: set[str] = set()
         self._n_obs = 0
-        self._count = 0
 
     @property
-    def tracking_stats(self) -> tuple[TrackStats, ...]:
+    def tracking_stats(self) -> tuple[Mapping[str, object], ...]:
+        """Per image: the tracker's :class:`TrackStats` fields and the resection's counts."""
         return tuple(self._stats)
 
     @property
@@ -124,38 +130,74 @@ class ImageSource:
             t0 = time.perf_counter()
             gray = read_tracker_image(path, self._tracker, cam.width_px, cam.height_px)
             self._read_ms.append((time.perf_counter() - t0) * 1e3)
-            tracked = self._tracker.add_image(image_id, gray, flight.nav.eop[row],
-                                              self._ground_z)
-            self._stats.append(tracked.stats)
+            nav = flight.nav.eop[row]
+            tracked = self._tracker.add_image(image_id, gray, nav, self._ground_z)
             observed: FloatArray = np.asarray(tracked.uv_px, dtype=np.float64).reshape(-1, 2)
-            self._lines.append(format_observation_lines(image_id, tracked.point_ids, observed))
-            self._points.update(tracked.point_ids)
-            self._n_obs += len(tracked.point_ids)
-            yield Frame(image_id=image_id, nav_eop=flight.nav.eop[row],
-                        nav_sigma=flight.nav_sigma, point_ids=tracked.point_ids,
-                        uv_px=flight.corrector.ideal_pixels(observed),
-                        sigma_px=flight.config.sigma_image_px)
+            point_ids = tracked.point_ids
+            ideal = flight.corrector.ideal_pixels(observed)
+            res, known = self._resect(point_ids, ideal, nav)
+            for pid, uv in zip(point_ids, ideal, strict=True):
+                self._last_obs[pid] = (image_id, uv)
+            self._stats.append({**dataclasses.asdict(tracked.stats),
+                                "resection_points": res.n_points,
+                                "resection_known_points": known,
+                                "resection_inliers": res.n_inliers,
+                                "resection_used": res.eop is not None})
+            self._lines.append(format_observation_lines(image_id, point_ids, observed))
+            self._points.update(point_ids)
+            self._n_obs += len(point_ids)
+            yield Frame(image_id=image_id, nav_eop=nav, nav_sigma=flight.nav_sigma,
+                        point_ids=point_ids, uv_px=ideal,
+                        sigma_px=flight.config.sigma_image_px, initial_eop=res.eop)
 
     def feedback(self, update: ImageUpdate, estimator: object) -> None:
-        """Refresh the terrain height the tracker predicts footprints with.
+        """Take the estimator's current ground points after an update.
 
-        Every :data:`GROUND_HEIGHT_EVERY` images, the median height of the ground points in
-        the estimator's current window (or of all, for Sim).
+        They resect the next image (:mod:`pipeline.resection`), and their median height is
+        the terrain height the tracker predicts footprints with. Seq-R/Seq-F: the window's
+        points (O(window)); Sim: all points.
         """
-        self._count += 1
-        if self._count % GROUND_HEIGHT_EVERY and self._ground_z is not None:
-            return
         if update.n_points_total == 0:
             return
         window = getattr(estimator, "window_solution", None)
         solution = window() if window is not None else estimator.solution()  # type: ignore[attr-defined]
+        self._known = {p.point_id: p.xyz_m for p in solution.points}
+        self._eops = {e.image_id: e.eop for e in solution.eops}
+        self._last_obs = {p: o for p, o in self._last_obs.items() if o[0] in self._eops}
         if solution.points:
             self._ground_z = float(np.median([p.xyz_m[2] for p in solution.points]))
 
-    def stats(self) -> SourceStats:
-        observed = sum(1 for s in self._stats if s.features > 0)
-        return SourceStats(n_observations=self._n_obs, n_points=len(self._points),
-                           n_images_observed=observed)
+    def _resect(self, point_ids: tuple[str, ...], ideal: FloatArray,
+                nav: FloatArray) -> tuple[Resection, int]:
+        """Initial attitude of the new image (:func:`pipeline.resection.resect_attitude`).
 
-    def observations_text(self) -> str:
-        return "".join(self._lines)
+        Points: the estimator's ground points, plus tie points seen once before (in a
+        window image), placed where that image's ray meets the terrain plane ``Z =
+        ground_z``: along a strip with 50-60 % overlap most tracks have two rays, so without
+        them few images could be resected. Their relief errors (a degree or two) are within
+        the RANSAC threshold; the result is an initial value only.
+
+        Returns
+        -------
+        resection : Resection
+        known : int
+            Known ground points among the observations.
+        """
+        flight = self._flight
+        known = [k for k, p in enumerate(point_ids) if p in self._known]
+        xyz = [self._known[point_ids[k]] for k in known]
+        used = list(known)
+        if self._ground_z is not None:
+            plane = [k for k, p in enumerate(point_ids)
+                     if p not in self._known and p in self._last_obs]
+            if plane:
+                eops = np.array([self._eops[self._last_obs[point_ids[k]][0]] for k in plane])
+                uvs = np.array([self._last_obs[point_ids[k]][1] for k in plane])
+                rays = rays_world(eops, uvs, flight.camera)
+                down = rays[:, 2] < -MIN_RAY_DOWN
+                t = (self._ground_z - eops[down, 2]) / rays[down, 2]
+                xyz += list(eops[down, :3] + t[:, None] * rays[down])
+                used += [k for k, d in zip(plane, down, strict=True) if d]
+        res = resect_attitude(np.array(xyz).reshape(-1, 3), ideal[used], flight.camera, nav,
+                              self.tracking_options.resection_threshold_deg)
+        return res, len(known)

@@ -144,6 +144,18 @@ class TrackerOptions:
         Plane gate after the fundamental matrix: terrain relief tolerated off the pair's
         dominant plane, as a fraction of the height above ground (:meth:`Tracker._plane_gate`);
         ``None`` switches the gate off (steep terrain, oblique views).
+    emit_per_image : int or None
+        At most this many features of an image become observations (and can start or continue
+        tracks): every continuation of an emitted track, then new features spread over
+        ``emit_grid`` cells (strongest first, round robin over the cells). The estimator's
+        cost grows with the tie points in its window, so the default keeps tens of points
+        per image, as aerial triangulation does; ``None`` emits every feature.
+    emit_grid : (int, int)
+        Columns and rows of the grid new features are spread over.
+    resection_threshold_deg : float
+        RANSAC threshold (angle between an image ray and the direction from the GPS position
+        to its point) of the resection that gives each new image its initial attitude
+        (:mod:`pipeline.resection`).
     """
 
     detector: Literal["sift", "orb"] = "sift"
@@ -162,6 +174,9 @@ class TrackerOptions:
     default_height_above_ground_m: float = 100.0
     opencv_threads: int = 2
     max_relief_fraction: float | None = 0.15
+    emit_per_image: int | None = 200
+    resection_threshold_deg: float = 3.0
+    emit_grid: tuple[int, int] = (8, 6)
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, expected: str) -> None:
@@ -189,6 +204,12 @@ class TrackerOptions:
         need(self.default_height_above_ground_m > 0.0, "default_height_above_ground_m",
              "a positive number")
         need(self.opencv_threads >= 0, "opencv_threads", "an integer >= 0")
+        need(0.0 < self.resection_threshold_deg < 90.0, "resection_threshold_deg",
+             "a number in (0, 90)")
+        need(self.emit_per_image is None or self.emit_per_image >= 1, "emit_per_image",
+             "a positive integer or null")
+        need(len(self.emit_grid) == 2 and min(self.emit_grid) >= 1, "emit_grid",
+             "two positive integers [columns, rows]")
         need(self.max_relief_fraction is None or self.max_relief_fraction > 0.0,
              "max_relief_fraction", "a positive number or null")
 
@@ -200,7 +221,9 @@ class TrackStats:
     Attributes
     ----------
     features : int
-        Features detected and emitted.
+        Features detected (all are used to match).
+    emitted : int
+        Features that became observations (``TrackerOptions.emit_per_image``).
     candidates : tuple[str, ...]
         Held images matched, best predicted overlap first.
     pairs_matched : int
@@ -222,6 +245,7 @@ class TrackStats:
     """
 
     features: int
+    emitted: int
     candidates: tuple[str, ...]
     pairs_matched: int
     matches: int
@@ -242,7 +266,7 @@ class TrackedImage:
     ----------
     image_id : str
     point_ids : tuple[str, ...]
-        Track id of every kept feature, unique within the image.
+        Track id of every emitted feature, unique within the image.
     uv_px : (k, 2) float
         Observed pixels of the full-resolution image (OpenCV convention; lens distortion not
         removed: :class:`pipeline.camera.PixelCorrector` does that).
@@ -378,7 +402,8 @@ class Tracker:
         """
         t0 = time.perf_counter()
         nav = self._check_input(image_id, image, nav_eop)
-        kp_work, desc = self._detect(image)
+        kp_work, desc, response = self._detect(image)
+        n_detected = len(kp_work)
         t1 = time.perf_counter()
 
         plane_z = (float(ground_z_m) if ground_z_m is not None and math.isfinite(ground_z_m)
@@ -387,6 +412,13 @@ class Tracker:
         links, n_matches, n_inliers, n_pairs = self._match(kp_work, desc, candidates, nav,
                                                            plane_z)
         point_nums, n_new, n_ext, n_conflicts = self._assign(len(kp_work), links)
+        keep = self._emitted(kp_work, response, point_nums)
+        fresh = keep[point_nums[keep] < 0]
+        point_nums[fresh] = np.arange(self._next_point, self._next_point + len(fresh))
+        for num in point_nums[fresh].tolist():
+            self._tracks[num] = [1, 1]
+        self._next_point += len(fresh)
+        kp_work, desc, point_nums = kp_work[keep], desc[keep], point_nums[keep]
         t2 = time.perf_counter()
 
         held = _HeldImage(image_id=image_id, seq=self._seq, nav_eop=nav, kp_work=kp_work,
@@ -399,7 +431,8 @@ class Tracker:
         ids = tuple(f"t{n:0{POINT_ID_DIGITS}d}" for n in point_nums.tolist())
         t3 = time.perf_counter()
         stats = TrackStats(
-            features=len(ids), candidates=tuple(c.held.image_id for c in candidates),
+            features=n_detected, emitted=len(ids),
+            candidates=tuple(c.held.image_id for c in candidates),
             pairs_matched=n_pairs, matches=n_matches, inliers=n_inliers, new_tracks=n_new,
             extended_tracks=n_ext, split_conflicts=n_conflicts,
             detect_ms=1e3 * (t1 - t0), match_ms=1e3 * (t2 - t1), total_ms=1e3 * (t3 - t0))
@@ -429,22 +462,24 @@ class Tracker:
             raise InputDataError(f"image {image_id!r}: added twice")
         return nav
 
-    def _detect(self, image: NDArray[np.uint8]) -> tuple[NDArray[np.float32], NDArray[np.uint8]]:
-        """Gray working copy -> keypoints (n, 2) float32 and descriptors (n, d) uint8."""
+    def _detect(self, image: NDArray[np.uint8]) -> tuple[NDArray[np.float32], NDArray[np.uint8],
+                                                         FloatArray]:
+        """Gray working copy -> keypoints (n, 2) float32, descriptors (n, d) uint8, responses."""
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         if self.working_size_px != (gray.shape[1], gray.shape[0]):
             gray = cv2.resize(gray, self.working_size_px, interpolation=cv2.INTER_AREA)
         keypoints, desc = self._detector.detectAndCompute(gray, None)
         n_bytes = 128 if self.options.detector == "sift" else 32
         if desc is None or len(keypoints) == 0:
-            return np.zeros((0, 2), np.float32), np.zeros((0, n_bytes), np.uint8)
+            return np.zeros((0, 2), np.float32), np.zeros((0, n_bytes), np.uint8), np.zeros(0)
         kp = np.array([k.pt for k in keypoints], dtype=np.float64).reshape(-1, 2)
+        response = np.array([k.response for k in keypoints], dtype=np.float64)
         if self.options.detector == "orb":
             # ORB reports a level-l corner at x_l * s_l; the level was resampled centre-aligned
             # (cv2.resize), so the pixel is (x_l + 0.5) s_l - 0.5: add 0.5 (s_l - 1).
             level = np.array([k.octave for k in keypoints], dtype=np.float64)
             kp += 0.5 * (ORB_SCALE_FACTOR**level - 1.0)[:, None]
-        return kp.astype(np.float32), np.ascontiguousarray(desc, dtype=np.uint8)
+        return kp.astype(np.float32), np.ascontiguousarray(desc, dtype=np.uint8), response
 
     # ----------------------------------------------------------------------------------------
     def _footprint(self, nav: FloatArray, plane_z: float) -> NDArray[np.float32] | None:
@@ -653,12 +688,36 @@ class Tracker:
                 n_ext += 1
             track[0] += 1
             track[1] += 1
-        fresh = np.flatnonzero(~assigned)
-        point_nums[fresh] = np.arange(self._next_point, self._next_point + len(fresh))
-        for num in point_nums[fresh].tolist():
-            self._tracks[num] = [1, 1]
-        self._next_point += len(fresh)
+        point_nums[~assigned] = -1  # numbered by add_image if emitted
         return point_nums, n_new, n_ext, conflicts
+
+    def _emitted(self, kp: NDArray[np.float32], response: FloatArray,
+                 point_nums: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Indices of the features that become observations (``emit_per_image``).
+
+        Continuations of tracks first (all of them), then the strongest new feature of each
+        grid cell in turn, cells visited in order of their strongest feature.
+        """
+        opts = self.options
+        linked = np.flatnonzero(point_nums >= 0)
+        new = np.flatnonzero(point_nums < 0)
+        if opts.emit_per_image is None:
+            return np.sort(np.concatenate([linked, new]))
+        budget = max(0, opts.emit_per_image - linked.size)
+        if budget == 0 or new.size == 0:
+            return linked
+        cols, rows = opts.emit_grid
+        w, h = self.working_size_px
+        cx = np.clip((kp[new, 0] * cols / w).astype(np.int64), 0, cols - 1)
+        cy = np.clip((kp[new, 1] * rows / h).astype(np.int64), 0, rows - 1)
+        cell = cy * cols + cx
+        order = np.lexsort((-response[new], cell))  # by cell, strongest first within a cell
+        sorted_cell = cell[order]
+        first = np.searchsorted(sorted_cell, sorted_cell, side="left")
+        rank_in_cell = np.arange(order.size) - first
+        # round robin: all cells' best, then all cells' second best, ... (ties: stronger first)
+        pick = np.lexsort((-response[new][order], rank_in_cell))[:budget]
+        return np.sort(np.concatenate([linked, new[order[pick]]]))
 
     def _prune(self) -> None:
         """Drop stale images, then the least recently overlapped beyond ``max_held_images``."""

@@ -530,7 +530,11 @@ class SimultaneousAT:
             cat.obs_point.append(j)
             cat.obs_uv.append(uv)
             cat.obs_sigma.append(frame.sigma_px)
-        self._eop_est = np.vstack([self._eop_est, nav[None]])
+        init = nav
+        if frame.initial_eop is not None:
+            init = frame.initial_eop.copy()
+            init[:3] -= self._origin
+        self._eop_est = np.vstack([self._eop_est, init[None]])
         self._dirty = True
         iterations = 0
         if self.refit_every_frame:

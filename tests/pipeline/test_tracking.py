@@ -103,7 +103,13 @@ def track_spreads_px(run: StripRun) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def sift_run(texture: np.ndarray) -> StripRun:
-    return run_strip(texture, TrackerOptions(working_width_px=600))
+    return run_strip(texture, TrackerOptions(working_width_px=600, emit_per_image=None))
+
+
+@pytest.fixture(scope="module")
+def budget_run(texture: np.ndarray) -> StripRun:
+    return run_strip(texture, TrackerOptions(working_width_px=600, emit_per_image=200,
+                                             emit_grid=(4, 3)))
 
 
 def test_tracks_found_between_overlapping_images(sift_run: StripRun) -> None:
@@ -126,7 +132,8 @@ def test_track_observations_land_on_one_ground_point(sift_run: StripRun) -> None
 
 
 def test_homography_verification_tracks_are_all_exact(texture: np.ndarray) -> None:
-    run = run_strip(texture, TrackerOptions(working_width_px=600, geometry="homography"), n=3)
+    run = run_strip(texture, TrackerOptions(working_width_px=600, geometry="homography",
+                                            emit_per_image=None), n=3)
     spreads = track_spreads_px(run)
     assert len(spreads) > 1000
     assert np.percentile(spreads, 99) <= TRACK_TOL_PX
@@ -137,6 +144,7 @@ def test_every_feature_emitted_once_with_unique_ids(sift_run: StripRun) -> None:
     seen_in: dict[str, list[int]] = {}
     for k, img in enumerate(sift_run.out):
         assert len(img.point_ids) == len(set(img.point_ids)) == img.stats.features
+        assert img.stats.emitted == img.stats.features
         assert img.uv_px.shape == (img.stats.features, 2)
         Frame(image_id=img.image_id, nav_eop=sift_run.eops[k], nav_sigma=np.ones(6),
               point_ids=img.point_ids, uv_px=img.uv_px)  # the estimator accepts it
@@ -145,6 +153,26 @@ def test_every_feature_emitted_once_with_unique_ids(sift_run: StripRun) -> None:
     # no track holds two features of one image, whatever conflicts arose
     assert all(len(ks) == len(set(ks)) for ks in seen_in.values())
     assert all(pid[0] == "t" and pid[1:].isdigit() for pid in seen_in)
+
+
+def test_emission_budget_keeps_tracks_and_spreads_new_points(budget_run: StripRun) -> None:
+    """Every continuation is emitted; new points fill the grid cells evenly."""
+    emitted_before: set[str] = set()
+    for k, img in enumerate(budget_run.out):
+        s = img.stats
+        assert s.features > 1000 and len(img.point_ids) == s.emitted
+        continuing = [p for p in img.point_ids if p in emitted_before]
+        assert len(continuing) == s.new_tracks + s.extended_tracks  # only emitted tracks grow
+        assert s.emitted == max(200, len(continuing))
+        fresh = np.array([uv for p, uv in zip(img.point_ids, img.uv_px, strict=True)
+                          if p not in emitted_before])
+        cells = np.bincount((fresh[:, 0] * 4 // WIDTH_PX).astype(int)
+                            + 4 * (fresh[:, 1] * 3 // HEIGHT_PX).astype(int), minlength=12)
+        if k == 0:  # 200 over 12 cells: 16 or 17 each (+-1 for points on a cell border,
+            # as cells are cut at working resolution)
+            assert cells.min() >= 15 and cells.max() <= 18, cells
+        emitted_before.update(img.point_ids)
+    assert budget_run.out[-1].stats.extended_tracks > 20  # tracks still grow to 3+ images
 
 
 def test_conflicting_links_are_split_not_merged() -> None:
@@ -157,7 +185,7 @@ def test_conflicting_links_are_split_not_merged() -> None:
     links = {0: [(7, 0, 100.0), (7, 1, 120.0), (9, 2, 50.0)], 1: [(7, 0, 150.0)],
              2: [(9, 1, 80.0)]}
     nums, n_new, n_ext, conflicts = tracker._assign(4, links)
-    assert nums.tolist() == [7, 10, 9, 11]
+    assert nums.tolist() == [7, -1, 9, -1]  # -1: numbered when emitted
     assert (n_new, n_ext, conflicts) == (1, 1, 2)
     assert tracker._tracks[7] == [3, 3] and tracker._tracks[9] == [2, 2]
 
