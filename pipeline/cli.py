@@ -162,8 +162,12 @@ def run(
         "--options", help="Estimator options YAML (sections sequential:, sim:).")] = None,
     progress: Annotated[bool, typer.Option(
         "--progress/--no-progress", help="Progress bar on a terminal.")] = True,
+    observations: Annotated[Path | None, typer.Option(
+        "--observations", help="Image points to use instead of the flight's own or of "
+        "tracking (e.g. OUT/observations.csv of an earlier run).")] = None,
 ) -> None:
-    """Adjust a flight folder and write eop.csv, points.csv and run.json."""
+    """Adjust a flight folder and write eop.csv, points.csv, run.json, nav.csv and
+    observations.csv."""
     from pipeline.runner import Method, run_flight
     from seqat.errors import ConfigError
 
@@ -174,7 +178,8 @@ def run(
                           f"{', '.join(m.value for m in Method)}, got {method!r}") from err
     summary = run_flight(flight, out, method=chosen, final_only=final_only,
                          options_path=options, threshold=threshold,
-                         initial_images=initial_images, progress=progress)
+                         initial_images=initial_images, progress=progress,
+                         observations=observations)
     t = summary.update_ms
     rows = [
         ("method", summary.method.value + (" (final only)" if final_only else "")),

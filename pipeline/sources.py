@@ -28,7 +28,7 @@ from pipeline.resection import Resection, resect_attitude
 from pipeline.store import format_observation_lines
 from pipeline.tracking import Tracker, TrackerOptions, read_gray_image
 from seqat.geometry import rays_world
-from seqat.types import FloatArray, Frame, ImageUpdate
+from seqat.types import FloatArray, Frame, ImageUpdate, PinholeCamera
 
 #: A ray must point down by at least this (z of the unit vector) to meet the terrain plane.
 MIN_RAY_DOWN = 0.2
@@ -43,6 +43,77 @@ class SourceStats:
     n_images_observed: int
 
 
+class Initialiser:
+    """Initial attitude of each new image from the estimator's current state.
+
+    After every update (:meth:`feedback`) it keeps the estimator's current ground points and
+    EOPs (Seq-R/Seq-F: the window's, O(window); Sim: all) and the median ground height; for
+    each new frame (:meth:`resect`) it resects the attitude at the GPS position
+    (:func:`pipeline.resection.resect_attitude`) on the known ground points plus the tie
+    points seen once before, placed where that earlier image's ray meets the terrain plane
+    ``Z = ground_z``: along a strip with 50-60 % overlap most tracks have two rays, so
+    without them few images could be resected. Their relief errors (a degree or two) are
+    within the RANSAC threshold; the result is an initial value only.
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+        Ideal camera of the frames.
+    threshold_deg : float
+        RANSAC threshold of the resection.
+    """
+
+    def __init__(self, camera: PinholeCamera, threshold_deg: float) -> None:
+        self.camera = camera
+        self.threshold_deg = threshold_deg
+        self.ground_z: float | None = None
+        self._known: dict[str, FloatArray] = {}
+        self._eops: dict[str, FloatArray] = {}
+        self._last_obs: dict[str, tuple[str, FloatArray]] = {}  # point -> (image, ideal uv)
+
+    def resect(self, frame: Frame) -> tuple[Resection, int]:
+        """Resection of a new frame (ideal pixels); records its rays for later frames.
+
+        Returns
+        -------
+        resection : Resection
+        known : int
+            Known ground points among the observations.
+        """
+        point_ids, ideal = frame.point_ids, frame.uv_px
+        known = [k for k, p in enumerate(point_ids) if p in self._known]
+        xyz = [self._known[point_ids[k]] for k in known]
+        used = list(known)
+        if self.ground_z is not None:
+            plane = [k for k, p in enumerate(point_ids)
+                     if p not in self._known and p in self._last_obs]
+            if plane:
+                eops = np.array([self._eops[self._last_obs[point_ids[k]][0]] for k in plane])
+                uvs = np.array([self._last_obs[point_ids[k]][1] for k in plane])
+                rays = rays_world(eops, uvs, self.camera)
+                down = rays[:, 2] < -MIN_RAY_DOWN
+                t = (self.ground_z - eops[down, 2]) / rays[down, 2]
+                xyz += list(eops[down, :3] + t[:, None] * rays[down])
+                used += [k for k, d in zip(plane, down, strict=True) if d]
+        res = resect_attitude(np.array(xyz).reshape(-1, 3), ideal[used], self.camera,
+                              frame.nav_eop, self.threshold_deg)
+        for pid, uv in zip(point_ids, ideal, strict=True):
+            self._last_obs[pid] = (frame.image_id, uv)
+        return res, len(known)
+
+    def feedback(self, update: ImageUpdate, estimator: object) -> None:
+        """Take the estimator's current ground points and EOPs after an update."""
+        if update.n_points_total == 0:
+            return
+        window = getattr(estimator, "window_solution", None)
+        solution = window() if window is not None else estimator.solution()  # type: ignore[attr-defined]
+        self._known = {p.point_id: p.xyz_m for p in solution.points}
+        self._eops = {e.image_id: e.eop for e in solution.eops}
+        self._last_obs = {p: o for p, o in self._last_obs.items() if o[0] in self._eops}
+        if solution.points:
+            self.ground_z = float(np.median([p.xyz_m[2] for p in solution.points]))
+
+
 class ObservationSource:
     """Frames of an observations flight (validated in one streaming pass up front)."""
 
@@ -53,16 +124,19 @@ class ObservationSource:
         self._frames = flight.frames()
         self._stats: ObservationStats = self._frames.validate()
         self._lines: list[str] = []
+        self._init = Initialiser(flight.camera, flight.config.tracking.resection_threshold_deg)
         self.tracking_stats: tuple[Mapping[str, object], ...] = ()
 
     def __iter__(self) -> Iterator[Frame]:
         for frame, observed in self._frames.with_observed():
             self._lines.append(format_observation_lines(frame.image_id, frame.point_ids,
                                                         observed))
-            yield frame
+            res, _ = self._init.resect(frame)
+            yield dataclasses.replace(frame, initial_eop=res.eop)
 
     def feedback(self, update: ImageUpdate, estimator: object) -> None:
-        """Nothing to adapt for precomputed observations."""
+        """Take the estimator's state after an update (:meth:`Initialiser.feedback`)."""
+        self._init.feedback(update, estimator)
 
     def stats(self) -> SourceStats:
         return SourceStats(n_observations=self._stats.n_observations,
@@ -102,10 +176,7 @@ class ImageSource:
         self._flight = flight
         self.tracking_options = options
         self._tracker = Tracker(options, flight.camera_config)
-        self._ground_z: float | None = None
-        self._known: dict[str, FloatArray] = {}  # estimator's current ground points
-        self._eops: dict[str, FloatArray] = {}  # estimator's current EOPs (window)
-        self._last_obs: dict[str, tuple[str, FloatArray]] = {}  # point -> (image, ideal uv)
+        self._init = Initialiser(flight.camera, options.resection_threshold_deg)
         self._lines: list[str] = []
         self._stats: list[Mapping[str, object]] = []
         self._read_ms: list[float] = []
@@ -131,13 +202,13 @@ class ImageSource:
             gray = read_tracker_image(path, self._tracker, cam.width_px, cam.height_px)
             self._read_ms.append((time.perf_counter() - t0) * 1e3)
             nav = flight.nav.eop[row]
-            tracked = self._tracker.add_image(image_id, gray, nav, self._ground_z)
+            tracked = self._tracker.add_image(image_id, gray, nav, self._init.ground_z)
             observed: FloatArray = np.asarray(tracked.uv_px, dtype=np.float64).reshape(-1, 2)
             point_ids = tracked.point_ids
-            ideal = flight.corrector.ideal_pixels(observed)
-            res, known = self._resect(point_ids, ideal, nav)
-            for pid, uv in zip(point_ids, ideal, strict=True):
-                self._last_obs[pid] = (image_id, uv)
+            frame = Frame(image_id=image_id, nav_eop=nav, nav_sigma=flight.nav_sigma,
+                          point_ids=point_ids, uv_px=flight.corrector.ideal_pixels(observed),
+                          sigma_px=flight.config.sigma_image_px)
+            res, known = self._init.resect(frame)
             self._stats.append({**dataclasses.asdict(tracked.stats),
                                 "resection_points": res.n_points,
                                 "resection_known_points": known,
@@ -146,58 +217,16 @@ class ImageSource:
             self._lines.append(format_observation_lines(image_id, point_ids, observed))
             self._points.update(point_ids)
             self._n_obs += len(point_ids)
-            yield Frame(image_id=image_id, nav_eop=nav, nav_sigma=flight.nav_sigma,
-                        point_ids=point_ids, uv_px=ideal,
-                        sigma_px=flight.config.sigma_image_px, initial_eop=res.eop)
+            yield dataclasses.replace(frame, initial_eop=res.eop)
 
     def feedback(self, update: ImageUpdate, estimator: object) -> None:
-        """Take the estimator's current ground points after an update.
+        """Take the estimator's state after an update (:meth:`Initialiser.feedback`)."""
+        self._init.feedback(update, estimator)
 
-        They resect the next image (:mod:`pipeline.resection`), and their median height is
-        the terrain height the tracker predicts footprints with. Seq-R/Seq-F: the window's
-        points (O(window)); Sim: all points.
-        """
-        if update.n_points_total == 0:
-            return
-        window = getattr(estimator, "window_solution", None)
-        solution = window() if window is not None else estimator.solution()  # type: ignore[attr-defined]
-        self._known = {p.point_id: p.xyz_m for p in solution.points}
-        self._eops = {e.image_id: e.eop for e in solution.eops}
-        self._last_obs = {p: o for p, o in self._last_obs.items() if o[0] in self._eops}
-        if solution.points:
-            self._ground_z = float(np.median([p.xyz_m[2] for p in solution.points]))
+    def stats(self) -> SourceStats:
+        observed = sum(1 for s in self._stats if s["emitted"])
+        return SourceStats(n_observations=self._n_obs, n_points=len(self._points),
+                           n_images_observed=observed)
 
-    def _resect(self, point_ids: tuple[str, ...], ideal: FloatArray,
-                nav: FloatArray) -> tuple[Resection, int]:
-        """Initial attitude of the new image (:func:`pipeline.resection.resect_attitude`).
-
-        Points: the estimator's ground points, plus tie points seen once before (in a
-        window image), placed where that image's ray meets the terrain plane ``Z =
-        ground_z``: along a strip with 50-60 % overlap most tracks have two rays, so without
-        them few images could be resected. Their relief errors (a degree or two) are within
-        the RANSAC threshold; the result is an initial value only.
-
-        Returns
-        -------
-        resection : Resection
-        known : int
-            Known ground points among the observations.
-        """
-        flight = self._flight
-        known = [k for k, p in enumerate(point_ids) if p in self._known]
-        xyz = [self._known[point_ids[k]] for k in known]
-        used = list(known)
-        if self._ground_z is not None:
-            plane = [k for k, p in enumerate(point_ids)
-                     if p not in self._known and p in self._last_obs]
-            if plane:
-                eops = np.array([self._eops[self._last_obs[point_ids[k]][0]] for k in plane])
-                uvs = np.array([self._last_obs[point_ids[k]][1] for k in plane])
-                rays = rays_world(eops, uvs, flight.camera)
-                down = rays[:, 2] < -MIN_RAY_DOWN
-                t = (self._ground_z - eops[down, 2]) / rays[down, 2]
-                xyz += list(eops[down, :3] + t[:, None] * rays[down])
-                used += [k for k, d in zip(plane, down, strict=True) if d]
-        res = resect_attitude(np.array(xyz).reshape(-1, 3), ideal[used], flight.camera, nav,
-                              self.tracking_options.resection_threshold_deg)
-        return res, len(known)
+    def observations_text(self) -> str:
+        return "".join(self._lines)

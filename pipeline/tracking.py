@@ -288,7 +288,7 @@ class _HeldImage:
     nav_eop: FloatArray  # (6,)
     kp_work: NDArray[np.float32]  # (n, 2) working-resolution keypoints
     desc: NDArray[np.uint8]  # (n, d) descriptors
-    point_nums: NDArray[np.int64]  # (n,) point id number of each keypoint
+    point_nums: NDArray[np.int64]  # (n,) point id number of each keypoint, -1 if not emitted
     last_overlap_seq: int = field(default=0)
 
 
@@ -418,17 +418,20 @@ class Tracker:
         for num in point_nums[fresh].tolist():
             self._tracks[num] = [1, 1]
         self._next_point += len(fresh)
-        kp_work, desc, point_nums = kp_work[keep], desc[keep], point_nums[keep]
+        held_nums = np.full(len(kp_work), -1, dtype=np.int64)  # -1: not emitted
+        held_nums[keep] = point_nums[keep]
         t2 = time.perf_counter()
 
+        # every feature is held for matching (verification needs many matches); only the
+        # emitted ones carry tracks
         held = _HeldImage(image_id=image_id, seq=self._seq, nav_eop=nav, kp_work=kp_work,
-                          desc=desc, point_nums=point_nums, last_overlap_seq=self._seq)
+                          desc=desc, point_nums=held_nums, last_overlap_seq=self._seq)
         self._held.append(held)
         self._seq += 1
         self._prune()
 
-        uv_full = self.to_full_px(kp_work)
-        ids = tuple(f"t{n:0{POINT_ID_DIGITS}d}" for n in point_nums.tolist())
+        uv_full = self.to_full_px(kp_work[keep])
+        ids = tuple(f"t{n:0{POINT_ID_DIGITS}d}" for n in point_nums[keep].tolist())
         t3 = time.perf_counter()
         stats = TrackStats(
             features=n_detected, emitted=len(ids),
@@ -592,7 +595,9 @@ class Tracker:
             n_inliers += int(mask.sum())
             for i_new, i_old, d in zip(idx_new[mask].tolist(), idx_old[mask].tolist(),
                                        dist[mask].tolist(), strict=True):
-                links.setdefault(i_new, []).append((int(held.point_nums[i_old]), rank, d))
+                num = int(held.point_nums[i_old])
+                if num >= 0:  # a match with a feature that was not emitted carries no track
+                    links.setdefault(i_new, []).append((num, rank, d))
         return links, n_matches, n_inliers, n_pairs
 
     def _plane_gate(self, pts_old: NDArray[np.float32], pts_new: NDArray[np.float32],
@@ -736,7 +741,7 @@ class Tracker:
         self._held = keep
 
     def _release(self, held: _HeldImage) -> None:
-        for num in held.point_nums.tolist():
+        for num in held.point_nums[held.point_nums >= 0].tolist():
             track = self._tracks[num]
             track[1] -= 1
             if track[1] == 0:
