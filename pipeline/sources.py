@@ -70,15 +70,23 @@ class Initialiser:
         self._known: dict[str, FloatArray] = {}
         self._eops: dict[str, FloatArray] = {}
         self._last_obs: dict[str, tuple[str, FloatArray]] = {}  # point -> (image, ideal uv)
+        #: Observations of the last frame kept by :meth:`resect` (bool per observation).
+        self.kept = np.zeros(0, dtype=bool)
 
-    def resect(self, frame: Frame) -> tuple[Resection, int]:
-        """Resection of a new frame (ideal pixels); records its rays for later frames.
+    def resect(self, frame: Frame) -> tuple[Frame, Resection, int, int]:
+        """Resect a new frame (ideal pixels) and leave out the observations it rejects.
+
+        Records the kept rays for later frames.
 
         Returns
         -------
+        frame : Frame
+            With ``initial_eop`` (or ``None``) and without the rejected observations.
         resection : Resection
         known : int
             Known ground points among the observations.
+        rejected : int
+            Observations left out.
         """
         point_ids, ideal = frame.point_ids, frame.uv_px
         known = [k for k, p in enumerate(point_ids) if p in self._known]
@@ -97,9 +105,15 @@ class Initialiser:
                 used += [k for k, d in zip(plane, down, strict=True) if d]
         res = resect_attitude(np.array(xyz).reshape(-1, 3), ideal[used], self.camera,
                               frame.nav_eop, self.threshold_deg)
-        for pid, uv in zip(point_ids, ideal, strict=True):
+        keep = np.ones(len(point_ids), dtype=bool)
+        if res.eop is not None:
+            keep[np.asarray(used, dtype=np.int64)[~res.inliers]] = False
+        frame = dataclasses.replace(frame, point_ids=tuple(np.asarray(point_ids)[keep]),
+                                    uv_px=ideal[keep], initial_eop=res.eop)
+        for pid, uv in zip(frame.point_ids, frame.uv_px, strict=True):
             self._last_obs[pid] = (frame.image_id, uv)
-        return res, len(known)
+        self.kept = keep
+        return frame, res, len(known), int((~keep).sum())
 
     def feedback(self, update: ImageUpdate, estimator: object) -> None:
         """Take the estimator's current ground points and EOPs after an update."""
@@ -125,21 +139,23 @@ class ObservationSource:
         self._stats: ObservationStats = self._frames.validate()
         self._lines: list[str] = []
         self._init = Initialiser(flight.camera, flight.config.tracking.resection_threshold_deg)
+        self._rejected = 0
         self.tracking_stats: tuple[Mapping[str, object], ...] = ()
 
     def __iter__(self) -> Iterator[Frame]:
         for frame, observed in self._frames.with_observed():
+            frame, _, _, rejected = self._init.resect(frame)
+            self._rejected += rejected
             self._lines.append(format_observation_lines(frame.image_id, frame.point_ids,
-                                                        observed))
-            res, _ = self._init.resect(frame)
-            yield dataclasses.replace(frame, initial_eop=res.eop)
+                                                        observed[self._init.kept]))
+            yield frame
 
     def feedback(self, update: ImageUpdate, estimator: object) -> None:
         """Take the estimator's state after an update (:meth:`Initialiser.feedback`)."""
         self._init.feedback(update, estimator)
 
     def stats(self) -> SourceStats:
-        return SourceStats(n_observations=self._stats.n_observations,
+        return SourceStats(n_observations=self._stats.n_observations - self._rejected,
                            n_points=self._stats.n_points,
                            n_images_observed=self._stats.n_images_observed)
 
@@ -208,16 +224,18 @@ class ImageSource:
             frame = Frame(image_id=image_id, nav_eop=nav, nav_sigma=flight.nav_sigma,
                           point_ids=point_ids, uv_px=flight.corrector.ideal_pixels(observed),
                           sigma_px=flight.config.sigma_image_px)
-            res, known = self._init.resect(frame)
+            frame, res, known, rejected = self._init.resect(frame)
+            observed = observed[self._init.kept]
             self._stats.append({**dataclasses.asdict(tracked.stats),
                                 "resection_points": res.n_points,
                                 "resection_known_points": known,
                                 "resection_inliers": res.n_inliers,
-                                "resection_used": res.eop is not None})
-            self._lines.append(format_observation_lines(image_id, point_ids, observed))
-            self._points.update(point_ids)
-            self._n_obs += len(point_ids)
-            yield dataclasses.replace(frame, initial_eop=res.eop)
+                                "resection_used": res.eop is not None,
+                                "observations_rejected": rejected})
+            self._lines.append(format_observation_lines(image_id, frame.point_ids, observed))
+            self._points.update(frame.point_ids)
+            self._n_obs += len(frame.point_ids)
+            yield frame
 
     def feedback(self, update: ImageUpdate, estimator: object) -> None:
         """Take the estimator's state after an update (:meth:`Initialiser.feedback`)."""

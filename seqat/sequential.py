@@ -85,7 +85,7 @@ class SequentialOptions:
     initial_images: int = 10  # images adjusted simultaneously before the sequential stage
     min_rays: int = 2  # a tie point is born once seen in this many window images
     min_ray_angle_deg: float = 8.0  # ... and its rays spread at least this much (docs/algorithm.md)
-    max_update_iterations: int = 3  # 1 = the paper's single linearisation
+    max_update_iterations: int = 10  # 1 = the paper's single linearisation
     iteration_tolerance_px: float = 0.01  # stop when the rows predict the new estimate this well
     smoothing: bool = True  # Seq-R: keep RTS gains so solution() can smooth departed parameters
     sim: SimOptions = SimOptions()
