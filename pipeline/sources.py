@@ -73,10 +73,13 @@ class Initialiser:
         #: Observations of the last frame kept by :meth:`resect` (bool per observation).
         self.kept = np.zeros(0, dtype=bool)
 
-    def resect(self, frame: Frame) -> tuple[Frame, Resection, int, int]:
+    def resect(self, frame: Frame, *, reject: bool = True) -> tuple[Frame, Resection, int, int]:
         """Resect a new frame (ideal pixels) and leave out the observations it rejects.
 
-        Records the kept rays for later frames.
+        ``reject=False`` keeps every observation (precomputed or replayed image points,
+        already cleaned by the run that wrote them).
+
+        :meth:`record` the frame once it goes to the estimator.
 
         Returns
         -------
@@ -106,14 +109,17 @@ class Initialiser:
         res = resect_attitude(np.array(xyz).reshape(-1, 3), ideal[used], self.camera,
                               frame.nav_eop, self.threshold_deg)
         keep = np.ones(len(point_ids), dtype=bool)
-        if res.eop is not None:
+        if res.eop is not None and reject:
             keep[np.asarray(used, dtype=np.int64)[~res.inliers]] = False
         frame = dataclasses.replace(frame, point_ids=tuple(np.asarray(point_ids)[keep]),
                                     uv_px=ideal[keep], initial_eop=res.eop)
-        for pid, uv in zip(frame.point_ids, frame.uv_px, strict=True):
-            self._last_obs[pid] = (frame.image_id, uv)
         self.kept = keep
         return frame, res, len(known), int((~keep).sum())
+
+    def record(self, frame: Frame) -> None:
+        """Keep the rays of a frame sent to the estimator (plane points of later frames)."""
+        for pid, uv in zip(frame.point_ids, frame.uv_px, strict=True):
+            self._last_obs[pid] = (frame.image_id, uv)
 
     def feedback(self, update: ImageUpdate, estimator: object) -> None:
         """Take the estimator's current ground points and EOPs after an update."""
@@ -139,15 +145,14 @@ class ObservationSource:
         self._stats: ObservationStats = self._frames.validate()
         self._lines: list[str] = []
         self._init = Initialiser(flight.camera, flight.config.tracking.resection_threshold_deg)
-        self._rejected = 0
         self.tracking_stats: tuple[Mapping[str, object], ...] = ()
 
     def __iter__(self) -> Iterator[Frame]:
         for frame, observed in self._frames.with_observed():
-            frame, _, _, rejected = self._init.resect(frame)
-            self._rejected += rejected
+            frame, _, _, _ = self._init.resect(frame, reject=False)
+            self._init.record(frame)
             self._lines.append(format_observation_lines(frame.image_id, frame.point_ids,
-                                                        observed[self._init.kept]))
+                                                        observed))
             yield frame
 
     def feedback(self, update: ImageUpdate, estimator: object) -> None:
@@ -155,7 +160,7 @@ class ObservationSource:
         self._init.feedback(update, estimator)
 
     def stats(self) -> SourceStats:
-        return SourceStats(n_observations=self._stats.n_observations - self._rejected,
+        return SourceStats(n_observations=self._stats.n_observations,
                            n_points=self._stats.n_points,
                            n_images_observed=self._stats.n_images_observed)
 
@@ -224,12 +229,16 @@ class ImageSource:
             frame = Frame(image_id=image_id, nav_eop=nav, nav_sigma=flight.nav_sigma,
                           point_ids=point_ids, uv_px=flight.corrector.ideal_pixels(observed),
                           sigma_px=flight.config.sigma_image_px)
-            frame, res, known, rejected = self._init.resect(frame)
+            cleaned, first, known, rejected = self._init.resect(frame)
             observed = observed[self._init.kept]
+            # the initial value from the kept observations only, as a replay of them
+            # (--observations) computes it: the sequential result depends on it
+            frame, res, _, _ = self._init.resect(cleaned, reject=False)
+            self._init.record(frame)
             self._stats.append({**dataclasses.asdict(tracked.stats),
-                                "resection_points": res.n_points,
+                                "resection_points": first.n_points,
                                 "resection_known_points": known,
-                                "resection_inliers": res.n_inliers,
+                                "resection_inliers": first.n_inliers,
                                 "resection_used": res.eop is not None,
                                 "observations_rejected": rejected})
             self._lines.append(format_observation_lines(image_id, frame.point_ids, observed))

@@ -184,3 +184,37 @@ def test_waiting_for_ray_spread_never_starves_the_window(
         and min(u.window_images for u in ups[60:]) >= 8
     )
     assert healthy == hold  # the safeguard is what keeps it healthy
+
+
+def test_initial_eop_is_the_linearisation_point_not_an_observation(
+        short_strip: SimulatedFlight) -> None:
+    """Noise-free points and nav: the solution is the truth.
+
+    Started 6 deg off through ``initial_eop``, one Gauss-Newton step per image misses the
+    truth (the value is used as the start), and iterating to convergence returns to it
+    exactly (the value is not an observation: one 6 deg off would bias the result).
+    """
+    import dataclasses
+
+    from seqat.geometry import project
+
+    f = short_strip
+    exact = project(f.truth_eop[f.obs_image], f.truth_xyz[f.obs_point], f.camera)
+    clean = dataclasses.replace(f, obs_uv=exact, nav_eop=f.truth_eop.copy())
+    off = f.truth_eop.copy()
+    off[:, 3:] += np.radians(6.0)
+
+    def run(iterations: int, start: np.ndarray | None) -> np.ndarray:
+        opts = SequentialOptions(max_update_iterations=iterations, initial_images=3,
+                                 smoothing=False)
+        seq = SequentialAT(f.camera, opts)
+        for k, fr in enumerate(clean.frames()):
+            seq.add_frame(dataclasses.replace(
+                fr, initial_eop=None if start is None else start[k]))
+        return np.array([e.eop for e in seq.solution().eops])
+
+    np.testing.assert_allclose(run(1, None), f.truth_eop, atol=1e-6)
+    assert np.max(np.abs(run(1, off)[3:, 3:] - f.truth_eop[3:, 3:])) > 1e-3
+    converged = run(10, off)  # each update stops when the rows are right to 0.01 px
+    np.testing.assert_allclose(converged[:, :3], f.truth_eop[:, :3], atol=1e-3)
+    np.testing.assert_allclose(converged[:, 3:], f.truth_eop[:, 3:], atol=1e-6)
