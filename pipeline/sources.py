@@ -236,6 +236,7 @@ class ImageSource:
             frame, res, _, _ = self._init.resect(cleaned, reject=False)
             self._init.record(frame)
             self._stats.append({**dataclasses.asdict(tracked.stats),
+                                "read_ms": self._read_ms[-1],
                                 "resection_points": first.n_points,
                                 "resection_known_points": known,
                                 "resection_inliers": first.n_inliers,
