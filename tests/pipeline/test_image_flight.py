@@ -194,3 +194,18 @@ def test_resection_recovers_the_rotation_despite_outliers() -> None:
     angle = math.degrees(math.acos(np.clip((np.trace(R_err) - 1) / 2, -1, 1)))
     assert angle < 0.05
     assert not np.any(res.inliers[:15]) and np.all(res.inliers[15:])
+
+
+def test_flight_bench_compares_methods_on_the_same_tie_points(tmp_path: Path) -> None:
+    from pipeline.bench_flight import run_flight_bench
+
+    b = run_flight_bench(MINI, tmp_path)
+    doc = json.loads((tmp_path / "bench_flight.json").read_text())
+    assert doc["images"] == 18 and (tmp_path / "latency.png").stat().st_size > 0
+    # every run read the same observations
+    texts = {(tmp_path / m / "observations.csv").read_text() for m in ("seq-r", "sim", "seq-f")}
+    assert len(texts) == 1
+    assert sum(b.track_length_histogram.values()) == b.tracks > 100
+    assert b.track_length_median >= 2
+    assert 0.5 < b.sigma0["sim"] < 2.0 and b.rms_residual_px["sim"] < 2.0
+    assert b.latency_ms.median >= b.at_ms.median > 0
