@@ -77,7 +77,8 @@ class FlightBench:
     observations: int
     working_width_px: int
     image_width_px: int
-    rms_residual_px: dict[str, float]  # full resolution, per method
+    rms_residual_px: dict[str, float]  # full resolution, per method, every observation
+    median_residual_px: dict[str, float]  # of the point's image distance
     sigma0: dict[str, float]
     read_ms: Stats
     detect_ms: Stats
@@ -110,6 +111,14 @@ def _tracks(obs_path: Path) -> tuple[Counter[str], int]:
 
 def _rms_residual(out: Path) -> float:
     """RMS image residual (observed pixels minus projection, full resolution) of a run."""
+    return _residuals(out)[0]
+
+
+def _residuals(out: Path) -> tuple[float, float]:
+    """RMS and median image residual (px, full resolution) of every observation of
+    ``observations.csv`` whose image and point the run estimated (Seq-R leaves some out:
+    rays of images that left its window before a second ray came, and observations of
+    points that had left it)."""
     run = read_run(out)
     cam = run.camera
     pin = PinholeCamera(f_px=cam.fx_px, cx_px=cam.cx_px, cy_px=cam.cy_px, width_px=cam.width_px,
@@ -124,12 +133,12 @@ def _rms_residual(out: Path) -> float:
             X.append(p)
             UV.append((row.number("x_px"), row.number("y_px")))
     if not E:
-        return math.nan
+        return math.nan, math.nan
     from pipeline.camera import PixelCorrector
 
     ideal = PixelCorrector(camera=cam).ideal_pixels(np.asarray(UV))
     res = ideal - project(np.asarray(E), np.asarray(X), pin)
-    return float(np.sqrt(np.mean(res**2)))
+    return float(np.sqrt(np.mean(res**2))), float(np.median(np.hypot(res[:, 0], res[:, 1])))
 
 
 def _plot(path: Path, ids: list[str], parts: dict[str, list[float]]) -> None:
@@ -175,6 +184,7 @@ def run_flight_bench(flight: Path | str, out: Path | str) -> FlightBench:
           {"read": read_ms, "detect": detect, "match": match,
            "other tracking": [t - d - m for t, d, m in zip(total, detect, match, strict=True)],
            "AT update": at})
+    residuals = {m: _residuals(runs[m]) for m in runs}
     opts = record.get("tracking_options") or {}  # type: ignore[union-attr]
     bench = FlightBench(
         flight=str(flight), date=time.strftime("%Y-%m-%d"), machine=_machine(load),
@@ -186,7 +196,8 @@ def run_flight_bench(flight: Path | str, out: Path | str) -> FlightBench:
                                 sorted(Counter(lengths.tolist()).items())},
         observations=n_obs, working_width_px=int(opts.get("working_width_px", 0)),
         image_width_px=seq_r.camera.width_px,
-        rms_residual_px={m.value: _rms_residual(runs[m]) for m in runs},
+        rms_residual_px={m.value: residuals[m][0] for m in runs},
+        median_residual_px={m.value: residuals[m][1] for m in runs},
         sigma0={r.method: float(r.record["totals"]["sigma0"])  # type: ignore[index]
                 for r in (seq_r, sim, seq_f)},
         read_ms=Stats.of(read_ms), detect_ms=Stats.of(detect), match_ms=Stats.of(match),

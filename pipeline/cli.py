@@ -263,8 +263,9 @@ def _flight_bench(flight: Path, out: Path) -> None:
          f"{b.images} ({b.images_with_verified_pair}) / {b.skipped}"),
         ("tracks >= 2 rays, length median / mean",
          f"{b.tracks}, {b.track_length_median:g} / {b.track_length_mean:.2f}"),
-        ("rms residual px (seq-r / sim / seq-f)",
-         " / ".join(f"{b.rms_residual_px[m]:.2f}" for m in ("seq-r", "sim", "seq-f"))),
+        ("residual px rms, median (seq-r / sim / seq-f)",
+         " / ".join(f"{b.rms_residual_px[m]:.2f}, {b.median_residual_px[m]:.2f}"
+                    for m in ("seq-r", "sim", "seq-f"))),
         ("sigma0 (seq-r / sim / seq-f)",
          " / ".join(f"{b.sigma0[m]:.3f}" for m in ("seq-r", "sim", "seq-f"))),
         ("read / detect / match ms (median, p95, max)",
