@@ -1,10 +1,12 @@
-"""From the ``flight.yaml`` camera to seqat's ideal pinhole camera.
+"""From the ``flight.yaml`` camera to seqat's ideal pinhole camera, and back.
 
 seqat works with an ideal pinhole camera with square pixels (:class:`seqat.types.PinholeCamera`).
 A ``PINHOLE`` camera maps 1:1 (``f_px = fx_px = fy_px``). For an ``OPENCV`` camera, observed
 pixels are mapped to *ideal pixels* with ``cv2.undistortPoints`` using the new camera matrix
 ``P = [[fx, 0, cx], [0, fx, cy], [0, 0, 1]]``: this is ``P = K`` when ``fx = fy``, and
 otherwise also rescales ``v`` so that the ideal camera has square pixels with ``f_px = fx``.
+The way back (ideal -> observed, :func:`distort_normalized`, used by the orthorectifier) applies
+the OpenCV model in closed form, vectorised over whole grids.
 """
 
 from __future__ import annotations
@@ -68,3 +70,59 @@ class PixelCorrector:
                     UNDISTORT_EPS)
         out = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, cam.distortion, P=P, criteria=criteria)
         return np.asarray(out, dtype=np.float64).reshape(-1, 2)
+
+    def observed_pixels(self, uv_px: FloatArray) -> FloatArray:
+        """Add lens distortion (and pixel aspect) to ideal pixels: inverse of :meth:`ideal_pixels`.
+
+        Parameters
+        ----------
+        uv_px : (k, 2) float
+            Ideal pinhole pixels (:func:`pinhole_camera`).
+
+        Returns
+        -------
+        (k, 2) float
+            Observed OpenCV pixels.
+        """
+        uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
+        cam = self.camera
+        xn = (uv[:, 0] - cam.cx_px) / cam.fx_px
+        yn = (uv[:, 1] - cam.cy_px) / cam.fx_px
+        u, v = distort_normalized(xn, yn, cam)
+        return np.column_stack([u, v])
+
+
+def distort_normalized(xn: np.ndarray, yn: np.ndarray, camera: CameraConfig) -> (
+        tuple[np.ndarray, np.ndarray]):
+    """OpenCV projection of normalised camera coordinates to observed pixels.
+
+    ``r2 = xn^2 + yn^2``, ``radial = 1 + k1 r2 + k2 r2^2 + k3 r2^3``,
+    ``xd = xn radial + 2 p1 xn yn + p2 (r2 + 2 xn^2)``,
+    ``yd = yn radial + p1 (r2 + 2 yn^2) + 2 p2 xn yn``, ``u = fx xd + cx``, ``v = fy yd + cy``
+    (OpenCV's ``projectPoints`` model with ``k4..k6 = s1..s4 = 0``; pinned against it and
+    against :meth:`PixelCorrector.ideal_pixels` by tests/pipeline/test_camera.py).
+
+    Parameters
+    ----------
+    xn, yn : array of float32 or float64 (any shape)
+        Normalised coordinates in the OpenCV camera frame ``(x, -y, -z)``:
+        ``xn = x_cv / z_cv``, ``yn = y_cv / z_cv``.
+    camera : CameraConfig
+
+    Returns
+    -------
+    u_px, v_px : arrays of the input shape and dtype
+        Observed OpenCV pixels. Valid only within the image's field of view: far outside
+        it the polynomial may fold back (callers bound ``r2``).
+    """
+    dtype = np.result_type(xn, yn)
+    c = {name: dtype.type(getattr(camera, name)) for name in (
+        "fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2")}
+    if not camera.has_distortion:
+        return c["fx_px"] * xn + c["cx_px"], c["fy_px"] * yn + c["cy_px"]
+    r2 = xn * xn + yn * yn
+    radial = 1 + r2 * (c["k1"] + r2 * (c["k2"] + r2 * c["k3"]))
+    xy2 = 2 * xn * yn
+    xd = xn * radial + c["p1"] * xy2 + c["p2"] * (r2 + 2 * xn * xn)
+    yd = yn * radial + c["p1"] * (r2 + 2 * yn * yn) + c["p2"] * xy2
+    return c["fx_px"] * xd + c["cx_px"], c["fy_px"] * yd + c["cy_px"]
