@@ -177,9 +177,9 @@ class Dsm:
 
     def height_range(self, bounds: tuple[float, float, float, float]) -> tuple[float, float]:
         """Lowest and highest valid height inside ``(west, south, east, north)`` (NaN if none)."""
-        inv = ~self.transform
-        c0, r0 = inv * (bounds[0], bounds[3])
-        c1, r1 = inv * (bounds[2], bounds[1])
+        cw, ch = self.cell_m
+        c0, r0 = (bounds[0] - self.transform.c) / cw, (self.transform.f - bounds[3]) / ch
+        c1, r1 = (bounds[2] - self.transform.c) / cw, (self.transform.f - bounds[1]) / ch
         rows, cols = self.heights_m.shape
         r0, r1 = max(int(math.floor(r0)), 0), min(int(math.ceil(r1)), rows)
         c0, c1 = max(int(math.floor(c0)), 0), min(int(math.ceil(c1)), cols)
