@@ -76,7 +76,8 @@ def atomic_path(path: Path, suffix: str = ".tif") -> Iterator[Path]:
     fsync_dir(path.parent)
 
 
-def _colorinterp(count: int, alpha: bool) -> list[ColorInterp]:
+def colorinterp_for(count: int, alpha: bool) -> list[ColorInterp]:
+    """Colour interpretation of ``count`` bands: RGB or grey, plus alpha last."""
     colour = count - 1 if alpha else count
     base = ([ColorInterp.red, ColorInterp.green, ColorInterp.blue] if colour == 3
             else [ColorInterp.gray] * colour)
@@ -112,7 +113,7 @@ def write_cog(path: Path | str, data: np.ndarray, *, transform: Affine, crs: pyp
                "dtype": data.dtype.name, "crs": rasterio.crs.CRS.from_wkt(crs.to_wkt()),
                "transform": transform, "nodata": nodata, **cog_options(data.dtype.name)}
     with atomic_path(path) as tmp, rasterio.open(tmp, "w", **profile) as dst:
-        dst.colorinterp = _colorinterp(count, alpha)
+        dst.colorinterp = colorinterp_for(count, alpha)
         dst.write(data)
     return path
 

@@ -1,0 +1,227 @@
+"""Streaming mosaic of orthos, kept in tiles on disk (``mosaic.tif``).
+
+:class:`MosaicBuilder` receives one :class:`pipeline.ortho.OrthoResult` at a time and updates
+only the tiles of the global grid it touches; nothing but those tiles is in memory, so memory
+stays flat however long the flight. Per cell the mosaic keeps the image that sees it **most
+nadir** (smallest tangent of the off-nadir angle; for images at one height this is the nearest
+nadir point, so seamlines are the perpendicular bisectors between nadir points); across a
+seamline the two images are blended linearly over ``feather_px`` cells. ``finish()`` writes
+the tiles into a tiled GeoTIFF and converts it into the ``mosaic.tif`` COG with overviews
+(GDAL reads it block by block).
+
+Tile store: ``<work_dir>/<col>_<row>.npy`` (bands + alpha, the image type) and
+``<col>_<row>.off.npy`` (float32 off-nadir tangent, +inf where empty), written atomically;
+removed by ``finish()``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyproj
+import rasterio
+from rasterio.transform import from_origin
+from rasterio.windows import Window
+
+from pipeline.ortho import ALPHA_OPAQUE, OrthoResult
+from pipeline.raster import COG_BLOCK_PX, colorinterp_for, atomic_path, gtiff_to_cog
+from seqat.errors import ConfigError, InputDataError
+
+#: Mosaic tile size, cells (= the COG block size, so tiles map to whole blocks).
+TILE_PX = COG_BLOCK_PX
+#: Default seamline feather width, cells.
+FEATHER_PX = 8
+
+
+@dataclass(frozen=True, kw_only=True)
+class MosaicUpdate:
+    """What :meth:`MosaicBuilder.add` reports."""
+
+    image_id: str
+    tiles_touched: int
+    cells_updated: int
+    update_ms: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class MosaicResult:
+    """What :meth:`MosaicBuilder.finish` reports."""
+
+    path: Path
+    images: int
+    tiles: int
+    rows: int
+    cols: int
+    bounds: tuple[float, float, float, float]
+    finish_s: float
+
+
+class MosaicBuilder:
+    """Growing mosaic on the global ortho grid.
+
+    Parameters
+    ----------
+    path : Path
+        The ``mosaic.tif`` written by :meth:`finish`.
+    crs : pyproj.CRS
+    feather_px : int
+        Width of the blend across seamlines, cells (0: hard seams).
+    work_dir : Path, optional
+        Tile store (default: ``.<name>.tiles`` beside ``path``); emptied first.
+    """
+
+    def __init__(self, path: Path | str, crs: pyproj.CRS, *, feather_px: int = FEATHER_PX,
+                 work_dir: Path | None = None) -> None:
+        if feather_px < 0:
+            raise ConfigError(f"feather_px: expected >= 0, got {feather_px}")
+        self.path = Path(path)
+        self.crs = crs
+        self.feather_px = feather_px
+        self.work_dir = work_dir or self.path.parent / f".{self.path.name}.tiles"
+        if self.work_dir.exists():
+            shutil.rmtree(self.work_dir)
+        self.work_dir.mkdir(parents=True)
+        self.pixel_m: float | None = None
+        self.bands: int | None = None
+        self.dtype: np.dtype | None = None
+        self._tiles: set[tuple[int, int]] = set()
+        self._images = 0
+
+    # ----------------------------------------------------------------------------------------
+
+    def add(self, ortho: OrthoResult) -> MosaicUpdate:
+        """Paste one ortho into the tiles it touches.
+
+        Raises
+        ------
+        InputDataError
+            Its pixel size, band count or type differs from the first ortho's.
+        """
+        t0 = time.perf_counter()
+        r = ortho.raster
+        if self.pixel_m is None:
+            self.pixel_m, self.bands, self.dtype = r.pixel_m, r.pixels.shape[2], r.pixels.dtype
+        elif (r.pixel_m, r.pixels.shape[2], r.pixels.dtype) != (self.pixel_m, self.bands,
+                                                                 self.dtype):
+            raise InputDataError(
+                f"image {r.image_id!r}: ortho of {r.pixels.shape[2]} {r.pixels.dtype} band(s) at "
+                f"{r.pixel_m:g} m does not match the mosaic ({self.bands} {self.dtype} at "
+                f"{self.pixel_m:g} m)")
+        feather = (2.0 * self.feather_px * r.pixel_m / r.height_agl_m if self.feather_px
+                   else 0.0)
+        rows, cols = r.shape
+        T = TILE_PX
+        touched = updated = 0
+        for tr in range(r.row0 // T, (r.row0 + rows - 1) // T + 1):
+            for tc in range(r.col0 // T, (r.col0 + cols - 1) // T + 1):
+                # Overlap of tile (tc, tr) with the ortho, in ortho and in tile coordinates.
+                g_r0, g_r1 = max(tr * T, r.row0), min((tr + 1) * T, r.row0 + rows)
+                g_c0, g_c1 = max(tc * T, r.col0), min((tc + 1) * T, r.col0 + cols)
+                src = (slice(g_r0 - r.row0, g_r1 - r.row0), slice(g_c0 - r.col0, g_c1 - r.col0))
+                seen = r.seen[src]
+                if not seen.any():
+                    continue
+                dst = (slice(g_r0 - tr * T, g_r1 - tr * T), slice(g_c0 - tc * T, g_c1 - tc * T))
+                pix, off = self._load(tc, tr)
+                _blend(pix[dst], off[dst], r.pixels[src], seen, r.off_nadir[src], feather,
+                       ALPHA_OPAQUE[self.dtype])
+                self._save(tc, tr, pix, off)
+                touched += 1
+                updated += int(seen.sum())
+        self._images += 1
+        return MosaicUpdate(image_id=r.image_id, tiles_touched=touched, cells_updated=updated,
+                            update_ms=(time.perf_counter() - t0) * 1e3)
+
+    def finish(self) -> MosaicResult:
+        """Write ``mosaic.tif`` (COG with overviews, alpha band) and remove the tile store.
+
+        Raises
+        ------
+        InputDataError
+            No ortho was added.
+        """
+        t0 = time.perf_counter()
+        if not self._tiles or self.pixel_m is None or self.dtype is None or self.bands is None:
+            raise InputDataError(f"{self.path}: no ortho was added to the mosaic")
+        T, p = TILE_PX, self.pixel_m
+        tcs = [tc for tc, _ in self._tiles]
+        trs = [tr for _, tr in self._tiles]
+        tc0, tr0 = min(tcs), min(trs)
+        cols, rows = (max(tcs) - tc0 + 1) * T, (max(trs) - tr0 + 1) * T
+        transform = from_origin(tc0 * T * p, -tr0 * T * p, p, p)
+        count = self.bands + 1
+        profile = {"driver": "GTiff", "width": cols, "height": rows, "count": count,
+                   "dtype": self.dtype.name, "tiled": True, "blockxsize": T, "blockysize": T,
+                   "crs": rasterio.crs.CRS.from_wkt(self.crs.to_wkt()), "transform": transform,
+                   "sparse_ok": True, "BIGTIFF": "IF_SAFER"}
+        with atomic_path(self.work_dir / "mosaic_full.tif") as full:
+            with rasterio.open(full, "w", **profile) as dst:
+                dst.colorinterp = colorinterp_for(count, alpha=True)
+                for tc, tr in sorted(self._tiles, key=lambda t: (t[1], t[0])):
+                    pix, _ = self._load(tc, tr)
+                    dst.write(np.moveaxis(pix, 2, 0),
+                              window=Window((tc - tc0) * T, (tr - tr0) * T, T, T))
+            gtiff_to_cog(full, self.path)
+        shutil.rmtree(self.work_dir, ignore_errors=True)
+        bounds = (tc0 * T * p, -(tr0 * T + rows) * p, (tc0 * T + cols) * p, -tr0 * T * p)
+        return MosaicResult(path=self.path, images=self._images, tiles=len(self._tiles),
+                            rows=rows, cols=cols, bounds=bounds,
+                            finish_s=time.perf_counter() - t0)
+
+    # ----------------------------------------------------------------------------------------
+
+    def _tile_path(self, tc: int, tr: int, kind: str) -> Path:
+        return self.work_dir / f"{tc}_{tr}{kind}.npy"
+
+    def _load(self, tc: int, tr: int) -> tuple[np.ndarray, np.ndarray]:
+        assert self.dtype is not None and self.bands is not None
+        if (tc, tr) not in self._tiles:
+            return (np.zeros((TILE_PX, TILE_PX, self.bands + 1), self.dtype),
+                    np.full((TILE_PX, TILE_PX), np.inf, np.float32))
+        return np.load(self._tile_path(tc, tr, "")), np.load(self._tile_path(tc, tr, ".off"))
+
+    def _save(self, tc: int, tr: int, pix: np.ndarray, off: np.ndarray) -> None:
+        for kind, array in (("", pix), (".off", off)):
+            target = self._tile_path(tc, tr, kind)
+            fd, tmp = tempfile.mkstemp(dir=self.work_dir, suffix=".npy.tmp")
+            try:
+                with os.fdopen(fd, "wb") as handle:
+                    np.save(handle, array)
+                os.replace(tmp, target)
+            except BaseException:
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(tmp)
+                raise
+        self._tiles.add((tc, tr))
+
+
+def _blend(pix: np.ndarray, off: np.ndarray, new: np.ndarray, seen: np.ndarray,
+           new_off: np.ndarray, feather: float, opaque: int) -> None:
+    """Merge one ortho window into a tile window in place.
+
+    Where only the new image sees a cell it is taken; where both do, the weight of the new
+    image is ``clip(0.5 + (off_old - off_new) / feather, 0, 1)`` (a hard choice of the more
+    nadir view when ``feather`` is 0), so the blend spans about ``feather_px`` cells across
+    the seamline where both are equally nadir. ``off`` keeps the better of the two.
+    """
+    old_seen = pix[:, :, -1] > 0
+    if feather > 0:
+        with np.errstate(invalid="ignore"):
+            w = np.clip(0.5 + (off - new_off) / np.float32(feather), 0.0, 1.0)
+    else:
+        w = (new_off < off).astype(np.float32)
+    w = np.where(old_seen, w, 1.0).astype(np.float32)
+    w[~seen] = 0.0
+    colour = pix[:, :, :-1].astype(np.float32)
+    mixed = colour + w[:, :, None] * (new.astype(np.float32) - colour)
+    pix[:, :, :-1] = np.rint(mixed).astype(pix.dtype)
+    pix[:, :, -1] = np.where(seen | old_seen, opaque, 0).astype(pix.dtype)
+    off[:] = np.where(seen, np.minimum(off, new_off), off)
+
