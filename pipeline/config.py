@@ -29,6 +29,8 @@ from typing import Literal, TypeVar
 import numpy as np
 import yaml
 
+from pipeline.navigation import BoresightConfig
+from pipeline.tracking import TrackerOptions
 from seqat.errors import ConfigError, SeqatError
 from seqat.simulate import StripSimConfig
 from seqat.types import FloatArray
@@ -280,6 +282,9 @@ def _convert(tp: object, value: object, source: str, dotted: str) -> object:
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
+        others = [a for a in args if a is not type(None)]
+        if len(others) == 1:  # ``X | None``: X's own, more precise, error
+            return _convert(others[0], value, source, dotted)
         for arg in args:
             if arg is type(None):
                 continue
@@ -433,14 +438,31 @@ class CameraConfig:
         return bool(np.any(self.distortion != 0.0))
 
 
+#: Default a priori σ of GPS positions (x, y, z), metres: a consumer GNSS receiver.
+DEFAULT_SIGMA_POSITION_M = (3.0, 3.0, 5.0)
+#: Default a priori σ of INS attitudes (omega, phi, kappa), degrees: a low-grade IMU.
+DEFAULT_SIGMA_ATTITUDE_DEG = (2.0, 2.0, 5.0)
+
+
 @dataclass(frozen=True, kw_only=True)
 class NavConfig:
-    """``nav:`` section of ``flight.yaml``: the GPS/INS file and its a priori precision."""
+    """``nav:`` section of ``flight.yaml``: where the GPS/INS comes from and its precision.
 
+    ``source: file`` reads ``file`` (``frame: projected`` or ``geodetic``); ``source: images``
+    reads each image's EXIF/XMP (docs/formats.md). ``height`` is the height kind of a
+    geodetic ``nav.csv`` (``ellipsoidal`` WGS 84 or ``egm96`` orthometric). ``boresight`` and
+    ``lever_arm_m`` (GPS antenna -> camera, body axes x forward, y right, z down, metres) apply
+    to geodetic attitudes and positions only.
+    """
+
+    source: Literal["file", "images"] = "file"
     file: str = "nav.csv"
     frame: Literal["projected", "geodetic"] = "projected"
-    sigma_position_m: SigmaTriple
-    sigma_attitude_deg: SigmaTriple
+    height: Literal["ellipsoidal", "egm96"] = "ellipsoidal"
+    sigma_position_m: SigmaTriple = DEFAULT_SIGMA_POSITION_M
+    sigma_attitude_deg: SigmaTriple = DEFAULT_SIGMA_ATTITUDE_DEG
+    boresight: BoresightConfig = BoresightConfig()
+    lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         _triple(self.sigma_position_m, "sigma_position_m")
@@ -461,14 +483,15 @@ class FlightConfig:
     File names are relative to the flight folder (absolute paths are allowed).
     """
 
-    crs: str
-    camera: CameraConfig
-    nav: NavConfig
+    crs: str = "auto"
+    camera: CameraConfig | None = None
+    nav: NavConfig = NavConfig()
     sigma_image_px: float = 1.0
     observations: str | None = None
     images: str | None = None
     checkpoints: str | None = None
     lidar: str | tuple[str, ...] | None = None
+    tracking: TrackerOptions = TrackerOptions()
 
     def __post_init__(self) -> None:
         if not self.sigma_image_px > 0:

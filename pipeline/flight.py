@@ -1,4 +1,4 @@
-"""Flight folders: ``flight.yaml`` + ``nav.csv`` + ``observations.csv`` -> :class:`Frame` stream.
+"""Flight folders: ``flight.yaml`` + navigation + observations or images.
 
 :func:`read_flight` validates the configuration and the CRS and reads the navigation fully
 (one small row per image). :class:`FrameSource` then streams ``observations.csv`` and yields
@@ -16,14 +16,24 @@ import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import pyproj
-from pyproj.exceptions import CRSError
 
 from pipeline.camera import PixelCorrector, pinhole_camera
-from pipeline.config import FlightConfig, load_flight_config
+from pipeline.config import CameraConfig, FlightConfig, NavConfig, load_flight_config
 from pipeline.csvio import read_csv
+from pipeline.image_metadata import HeightKind, ImageMetadata, found_tags, read_image_metadata
+from pipeline.navigation import (
+    MIN_IMAGES,
+    geodetic_to_eop,
+    image_files,
+    read_image_folder_nav,
+    resolve_projected_crs,
+    resolve_working_crs,
+)
+from pipeline.store import NAV_COLUMNS, OBS_COLUMNS, RunInputs, SkippedImage
 from pipeline.tables import GroundPoints, NavTable
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import FloatArray, Frame, PinholeCamera
@@ -33,51 +43,50 @@ FLIGHT_YAML = "flight.yaml"
 #: Folder of the exact truth of simulated flights.
 TRUTH_DIR = "truth"
 #: Columns of a projected ``nav.csv`` and of ``truth/eop.csv``.
-NAV_PROJECTED_COLUMNS = ("image", "time_s", "x_m", "y_m", "z_m", "omega_deg", "phi_deg",
-                         "kappa_deg")
+NAV_PROJECTED_COLUMNS = NAV_COLUMNS
+#: Columns of a geodetic ``nav.csv``.
+NAV_GEODETIC_COLUMNS = ("image", "time_s", "lat_deg", "lon_deg", "h_m", "roll_deg",
+                        "pitch_deg", "yaw_deg")
 #: Columns of ``observations.csv``.
-OBSERVATION_COLUMNS = ("image", "point", "x_px", "y_px")
+OBSERVATION_COLUMNS = OBS_COLUMNS
 #: Columns of ``truth/points.csv`` and ``checkpoints.csv``.
 GROUND_POINT_COLUMNS = ("point", "x_m", "y_m", "z_m")
-#: An adjustment needs at least this many images.
-MIN_IMAGES = 2
+#: Default image sub-folder of a bare flight folder.
+IMAGES_DIR = "images"
+#: Diagonal of a 36 x 24 mm frame: 35 mm-equivalent focal lengths refer to it.
+FULL_FRAME_DIAGONAL_MM = 43.2666
+#: Relative aspect-ratio difference still taken as "the same camera, resized".
+ASPECT_TOLERANCE = 2e-3
 #: Half a pixel: observed pixel centres lie in ``[-0.5, width - 0.5]`` (OpenCV convention).
 HALF_PIXEL = 0.5
-#: Unit names pyproj gives for metre axes.
-METRE_UNITS = ("metre", "meter", "m")
 
-
-def resolve_projected_crs(crs: str, source: str) -> pyproj.CRS:
-    """Parse ``crs`` and check it is projected with metre axes.
-
-    Parameters
-    ----------
-    crs : str
-        Anything ``pyproj.CRS.from_user_input`` accepts (``EPSG:32652``, WKT, PROJ string).
-        A compound CRS (``EPSG:32652+5773``) fixes the vertical datum of the heights.
-    source : str
-        File the value came from (for messages).
-
-    Raises
-    ------
-    InputDataError
-        Unknown CRS (PROJ's message attached), geographic CRS, or axes not in metres.
-    """
-    if crs.strip().lower() == "auto":
-        raise InputDataError(f"{source}: crs: 'auto' (UTM zone of the first fix) needs geodetic "
-                             "nav; give an EPSG code for projected nav")
-    try:
-        parsed = pyproj.CRS.from_user_input(crs)
-    except CRSError as err:
-        raise InputDataError(f"{source}: crs: unknown CRS {crs!r}: {err}") from err
-    if not parsed.is_projected:
-        raise InputDataError(f"{source}: crs: {crs!r} ({parsed.name}) is not a projected CRS; "
-                             "seqat works in east/north/up metres")
-    units = {axis.unit_name for axis in parsed.axis_info}
-    if not units <= set(METRE_UNITS):
-        raise InputDataError(f"{source}: crs: {crs!r} ({parsed.name}) has axes in "
-                             f"{', '.join(sorted(units))}; a metre CRS is needed")
-    return parsed
+def _read_nav_rows(path: Path | str, columns: tuple[str, ...]) -> (
+        tuple[tuple[str, ...], FloatArray, FloatArray]):
+    """Ids, times and the 6 value columns of a ``nav.csv`` (validated, order kept)."""
+    ids: list[str] = []
+    times: list[float] = []
+    rows: list[list[float]] = []
+    first_line: dict[str, int] = {}
+    prev_time, prev_line = -math.inf, 0
+    for row in read_csv(path, columns):
+        image = row.ident("image")
+        if image in first_line:
+            raise row.error(f"duplicate nav row for image {image!r} (first at line "
+                            f"{first_line[image]})")
+        time_s = row.number("time_s")
+        if not time_s > prev_time:
+            raise row.error(f"nav out of time order: time_s {time_s!r} of image {image!r} is "
+                            f"not after {prev_time!r} (line {prev_line})")
+        values = [row.number(c) for c in columns[2:]]
+        first_line[image] = row.line
+        prev_time, prev_line = time_s, row.line
+        ids.append(image)
+        times.append(time_s)
+        rows.append(values)
+    if len(ids) < MIN_IMAGES:
+        raise InputDataError(f"{path}: {len(ids)} image(s); at least {MIN_IMAGES} are needed")
+    return (tuple(ids), np.asarray(times, dtype=np.float64),
+            np.asarray(rows, dtype=np.float64).reshape(-1, 6))
 
 
 def read_nav_projected(path: Path | str) -> NavTable:
@@ -97,31 +106,40 @@ def read_nav_projected(path: Path | str) -> NavTable:
         Malformed row, non-finite value, duplicate image, time not strictly increasing,
         fewer than :data:`MIN_IMAGES` rows.
     """
-    ids: list[str] = []
-    times: list[float] = []
-    rows: list[list[float]] = []
-    first_line: dict[str, int] = {}
-    prev_time, prev_line = -math.inf, 0
-    for row in read_csv(path, NAV_PROJECTED_COLUMNS):
-        image = row.ident("image")
-        if image in first_line:
-            raise row.error(f"duplicate nav row for image {image!r} (first at line "
-                            f"{first_line[image]})")
-        time_s = row.number("time_s")
-        if not time_s > prev_time:
-            raise row.error(f"nav out of time order: time_s {time_s!r} of image {image!r} is "
-                            f"not after {prev_time!r} (line {prev_line})")
-        values = [row.number(c) for c in NAV_PROJECTED_COLUMNS[2:]]
-        first_line[image] = row.line
-        prev_time, prev_line = time_s, row.line
-        ids.append(image)
-        times.append(time_s)
-        rows.append(values)
-    if len(ids) < MIN_IMAGES:
-        raise InputDataError(f"{path}: {len(ids)} image(s); at least {MIN_IMAGES} are needed")
-    eop = np.asarray(rows, dtype=np.float64)
+    ids, times, eop = _read_nav_rows(path, NAV_PROJECTED_COLUMNS)
     eop[:, 3:] = np.radians(eop[:, 3:])
-    return NavTable(image_ids=tuple(ids), times_s=np.asarray(times, dtype=np.float64), eop=eop)
+    return NavTable(image_ids=ids, times_s=times, eop=eop)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class GeodeticNav:
+    """A geodetic ``nav.csv``: WGS 84 fixes and aircraft attitude, as read (degrees)."""
+
+    image_ids: tuple[str, ...]
+    times_s: FloatArray
+    lat_lon_h: FloatArray  # (n, 3) degrees, degrees, metres
+    roll_pitch_yaw_deg: FloatArray  # (n, 3)
+
+
+def read_nav_geodetic(path: Path | str) -> GeodeticNav:
+    """Read a geodetic ``nav.csv``.
+
+    Columns ``image,time_s,lat_deg,lon_deg,h_m,roll_deg,pitch_deg,yaw_deg``: WGS 84 fix of the
+    GPS antenna, aircraft attitude (yaw from true north), degrees.
+
+    Raises
+    ------
+    InputDataError
+        As :func:`read_nav_projected`, and latitude or longitude out of range.
+    """
+    ids, times, values = _read_nav_rows(path, NAV_GEODETIC_COLUMNS)
+    bad = np.flatnonzero((np.abs(values[:, 0]) > 90.0) | (np.abs(values[:, 1]) > 180.0))
+    if bad.size:
+        i = int(bad[0])
+        raise InputDataError(f"{path}: image {ids[i]!r}: latitude {values[i, 0]!r} / longitude "
+                             f"{values[i, 1]!r} out of range (degrees, [-90, 90] / [-180, 180])")
+    return GeodeticNav(image_ids=ids, times_s=times, lat_lon_h=values[:, :3].copy(),
+                       roll_pitch_yaw_deg=values[:, 3:].copy())
 
 
 def read_ground_points(path: Path | str) -> GroundPoints:
@@ -142,36 +160,73 @@ def read_ground_points(path: Path | str) -> GroundPoints:
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class Flight:
-    """A validated flight folder (navigation read; observations streamed by :meth:`frames`).
+    """A validated flight folder: navigation read, images or observations located.
 
     Attributes
     ----------
     path : Path
         The flight folder.
     config : FlightConfig
+        ``flight.yaml`` (defaults for a bare folder of images).
     crs : pyproj.CRS
         Projected, metre axes; ``x_m`` is the easting and ``y_m`` the northing whatever the
         CRS's own axis order.
+    camera_config : CameraConfig
+        Camera of the observed pixels (full-resolution images).
+    camera_approximate : bool
+        The camera comes from EXIF, not from ``flight.yaml``.
     camera : PinholeCamera
         Ideal camera of the frames (distortion removed).
     corrector : PixelCorrector
         Observed -> ideal pixels.
     nav : NavTable
-        GPS/INS EOPs in acquisition order.
-    observations_path : Path
+        GPS/INS EOPs in the working CRS, acquisition order, usable images only.
+    nav_sigma : (6,) float
+        A priori σ, metres and radians.
+    observations_path : Path or None
+        ``observations.csv`` (observations flights); ``None`` for image flights.
+    images_dir : Path or None
+    image_paths : tuple[Path, ...]
+        One per ``nav`` row (image flights), else empty.
+    skipped : tuple[SkippedImage, ...]
+        Images of the flight left out, with the reason.
+    warnings : tuple[str, ...]
     """
 
     path: Path
     config: FlightConfig
     crs: pyproj.CRS
+    camera_config: CameraConfig
+    camera_approximate: bool
     camera: PinholeCamera
     corrector: PixelCorrector
     nav: NavTable
-    observations_path: Path
+    nav_sigma: FloatArray
+    observations_path: Path | None
+    images_dir: Path | None = None
+    image_paths: tuple[Path, ...] = ()
+    skipped: tuple[SkippedImage, ...] = ()
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def kind(self) -> Literal["observations", "images"]:
+        """``observations`` (precomputed image points) or ``images`` (tie points tracked)."""
+        return "observations" if self.observations_path is not None else "images"
 
     def frames(self) -> FrameSource:
-        """The flight as a lazy stream of frames in acquisition order."""
+        """The observations of an observations flight as a lazy stream of frames."""
+        if self.observations_path is None:
+            raise ConfigError(f"{self.path}: an image flight has no observations file; its "
+                              "frames come from the tracker (pipeline.tracking)")
         return FrameSource(self)
+
+    def inputs(self) -> RunInputs:
+        """What the estimator is given, for the run folder (:class:`RunInputs`)."""
+        return RunInputs(crs=self.crs, camera=self.camera_config,
+                         camera_approximate=self.camera_approximate, nav=self.nav,
+                         nav_sigma=self.nav_sigma, sigma_image_px=self.config.sigma_image_px,
+                         images_dir=self.images_dir, skipped=self.skipped,
+                         warnings=self.warnings)
 
 
 def _in_folder(folder: Path, name: str) -> Path:
@@ -179,43 +234,181 @@ def _in_folder(folder: Path, name: str) -> Path:
     return path if path.is_absolute() else folder / path
 
 
-def read_flight(flight_dir: Path | str) -> Flight:
-    """Open and validate a flight folder (observations mode, projected nav).
+def _bare_image_folder(folder: Path) -> FlightConfig:
+    """Defaults for a folder of images without ``flight.yaml`` (nav from the images)."""
+    for sub in (".", IMAGES_DIR):
+        candidate = folder / sub
+        if candidate.is_dir() and image_files(candidate):
+            return FlightConfig(images=sub, nav=NavConfig(source="images"))
+    raise InputDataError(f"{folder / FLIGHT_YAML}: no such file, and no JPEG images in "
+                         f"{folder} or {folder / IMAGES_DIR} (a flight folder needs "
+                         f"{FLIGHT_YAML} or images)")
 
-    Parameters
-    ----------
-    flight_dir : Path or str
-        Folder with ``flight.yaml`` (docs/formats.md).
+
+def camera_from_exif(meta: ImageMetadata) -> CameraConfig:
+    """An approximate pinhole camera from EXIF focal length and sensor size.
+
+    ``f_px = FocalLength [mm] · FocalPlaneXResolution [px/mm] · width / ExifImageWidth``
+    (the focal-plane resolution refers to the camera's original width, which resized files
+    keep in ``ExifImageWidth``), else ``f_px = FocalLengthIn35mmFilm / 43.27 mm · diagonal
+    [px]``. Principal point at the image centre, no distortion.
 
     Raises
     ------
     InputDataError
-        Missing folder or file, unknown or unsuitable CRS, bad ``nav.csv``.
+        Neither is in the file.
+    """
+    w, h = meta.width_px, meta.height_px
+    if meta.focal_mm and meta.focal_plane_px_per_mm:
+        scale = w / meta.exif_width_px if meta.exif_width_px else 1.0
+        f_px = meta.focal_mm * meta.focal_plane_px_per_mm * scale
+    elif meta.focal_35mm:
+        f_px = meta.focal_35mm / FULL_FRAME_DIAGONAL_MM * math.hypot(w, h)
+    else:
+        raise InputDataError(
+            f"{meta.path.name}: no camera in {FLIGHT_YAML} and EXIF has neither FocalLength "
+            f"with FocalPlaneXResolution nor FocalLengthIn35mmFilm (found: {found_tags(meta)}); "
+            f"give camera: in {FLIGHT_YAML}")
+    return CameraConfig(model="PINHOLE", width_px=w, height_px=h, fx_px=f_px, fy_px=f_px,
+                        cx_px=(w - 1) / 2.0, cy_px=(h - 1) / 2.0)
+
+
+def _geodetic_file_nav(path: Path, config: FlightConfig, source: str) -> tuple[pyproj.CRS,
+                                                                              NavTable]:
+    geo = read_nav_geodetic(path)
+    lat, lon, h = geo.lat_lon_h.T
+    crs = resolve_working_crs(config.crs, float(lon[0]), float(lat[0]), source=source)
+    n = len(geo.image_ids)
+    kind: HeightKind = "orthometric" if config.nav.height == "egm96" else "ellipsoidal"
+    eop = geodetic_to_eop(lon, lat, h, geo.roll_pitch_yaw_deg, ["body"] * n, [kind] * n, crs,
+                          config.nav.boresight, np.asarray(config.nav.lever_arm_m))
+    return crs, NavTable(image_ids=geo.image_ids, times_s=geo.times_s, eop=eop)
+
+
+def read_flight(flight_dir: Path | str) -> Flight:
+    """Open and validate a flight folder (docs/formats.md, *Flight folder*).
+
+    Three kinds: observations (``observations:`` given), images with a ``nav.csv``
+    (``images:`` given, ``nav.source: file``, projected or geodetic), images with the
+    navigation in their metadata (``nav.source: images``, or a bare folder of JPEGs without
+    ``flight.yaml``). For image flights, unusable images (truncated, no GPS, listed in
+    ``nav.csv`` but missing, of another aspect ratio, ...) are skipped and listed in
+    :attr:`Flight.skipped`; the run goes on with the others.
+
+    Raises
+    ------
+    InputDataError
+        Missing folder or file, unknown or unsuitable CRS, bad ``nav.csv``, too few usable
+        images.
     ConfigError
-        Bad ``flight.yaml``; geodetic nav or a flight without an observations file (these
-        need later pipeline stages).
+        Bad ``flight.yaml``.
     """
     folder = Path(flight_dir)
     yaml_path = folder / FLIGHT_YAML
     if not folder.is_dir():
         raise InputDataError(f"{folder}: no such flight folder")
-    if not yaml_path.is_file():
-        raise InputDataError(f"{yaml_path}: no such file (a flight folder needs {FLIGHT_YAML})")
-    config = load_flight_config(yaml_path)
-    if config.nav.frame == "geodetic":
-        raise ConfigError(f"{yaml_path}: nav.frame: geodetic nav needs the real-flight stage "
-                          "(not yet supported); give projected nav")
-    crs = resolve_projected_crs(config.crs, str(yaml_path))
-    if config.observations is None:
-        raise ConfigError(f"{yaml_path}: observations: no observations file given; flights "
-                          "from images need the tracking stage (not yet supported)")
-    obs_path = _in_folder(folder, config.observations)
-    if not obs_path.is_file():
-        raise InputDataError(f"{obs_path}: no such file (observations in {yaml_path})")
-    nav = read_nav_projected(_in_folder(folder, config.nav.file))
-    return Flight(path=folder, config=config, crs=crs, camera=pinhole_camera(config.camera),
-                  corrector=PixelCorrector(camera=config.camera), nav=nav,
-                  observations_path=obs_path)
+    warnings: list[str] = []
+    if yaml_path.is_file():
+        config = load_flight_config(yaml_path)
+    else:
+        config = _bare_image_folder(folder)
+    source = str(yaml_path)
+    if config.observations is None and config.images is None:
+        raise ConfigError(f"{source}: give observations: (image points) or images: (a folder "
+                          "of images to track)")
+    images_dir = _in_folder(folder, config.images) if config.images is not None else None
+    if images_dir is not None and not images_dir.is_dir():
+        raise InputDataError(f"{images_dir}: no such image folder (images in {source})")
+    skipped: list[SkippedImage] = []
+    metas: dict[str, ImageMetadata] = {}
+    if config.nav.source == "images":
+        if images_dir is None:
+            raise ConfigError(f"{source}: nav.source: 'images' needs images: (a folder)")
+        folder_nav = read_image_folder_nav(images_dir, config.crs, config.nav.boresight,
+                                           np.asarray(config.nav.lever_arm_m), skip_bad=True)
+        crs, nav = folder_nav.crs, folder_nav.to_nav_table()
+        skipped += [SkippedImage(image=i, reason=r) for i, r in folder_nav.skipped]
+        warnings += folder_nav.warnings
+        metas = {r.image: r.metadata for r in folder_nav.records}
+    else:
+        nav_path = _in_folder(folder, config.nav.file)
+        if config.nav.frame == "geodetic":
+            crs, nav = _geodetic_file_nav(nav_path, config, source)
+        else:
+            crs = resolve_projected_crs(config.crs, source)
+            nav = read_nav_projected(nav_path)
+    obs_path = None
+    if config.observations is not None:
+        obs_path = _in_folder(folder, config.observations)
+        if not obs_path.is_file():
+            raise InputDataError(f"{obs_path}: no such file (observations in {source})")
+    elif images_dir is not None and config.nav.source == "file":
+        metas = _image_metadata_for_nav(images_dir, nav, skipped)
+    camera_config, approximate = config.camera, False
+    if camera_config is None:
+        if not metas:
+            raise ConfigError(f"{source}: camera: required for an observations flight")
+        camera_config, approximate = camera_from_exif(next(iter(metas.values()))), True
+    if obs_path is None:
+        nav = _check_sizes(nav, metas, camera_config, skipped, warnings)
+    if len(nav) < MIN_IMAGES:
+        raise InputDataError(f"{folder}: {len(nav)} usable image(s); at least {MIN_IMAGES} are "
+                             f"needed (skipped: {'; '.join(s.reason for s in skipped)})")
+    paths = tuple(metas[i].path for i in nav.image_ids) if obs_path is None else ()
+    return Flight(path=folder, config=config, crs=crs, camera_config=camera_config,
+                  camera_approximate=approximate, camera=pinhole_camera(camera_config),
+                  corrector=PixelCorrector(camera=camera_config), nav=nav,
+                  nav_sigma=config.nav.sigma_eop, observations_path=obs_path,
+                  images_dir=images_dir, image_paths=paths, skipped=tuple(skipped),
+                  warnings=tuple(warnings))
+
+
+def _image_metadata_for_nav(images_dir: Path, nav: NavTable,
+                            skipped: list[SkippedImage]) -> dict[str, ImageMetadata]:
+    """Metadata of the image of each nav row; unreadable or missing ones go to ``skipped``."""
+    files = {p.stem: p for p in image_files(images_dir)}
+    metas: dict[str, ImageMetadata] = {}
+    for image in nav.image_ids:
+        path = files.pop(image, None)
+        if path is None:
+            skipped.append(SkippedImage(image=image, reason=f"{image}: listed in nav.csv but "
+                                        f"no {image}.jpg in {images_dir}"))
+            continue
+        try:
+            metas[image] = read_image_metadata(path)
+        except InputDataError as err:
+            skipped.append(SkippedImage(image=image, reason=str(err)))
+    for stem, path in files.items():
+        skipped.append(SkippedImage(image=stem, reason=f"{path.name}: no row in nav.csv"))
+    return metas
+
+
+def _check_sizes(nav: NavTable, metas: dict[str, ImageMetadata], camera: CameraConfig,
+                 skipped: list[SkippedImage], warnings: list[str]) -> NavTable:
+    """Keep the nav rows of images that can be read at the camera's size.
+
+    An image of another size with the same aspect ratio is resampled to the camera size
+    when read (warning); one of another aspect ratio is skipped.
+    """
+    keep = []
+    for row, image in enumerate(nav.image_ids):
+        meta = metas.get(image)
+        if meta is None:
+            continue
+        w, h = meta.width_px, meta.height_px
+        if (w, h) != (camera.width_px, camera.height_px):
+            if abs(w * camera.height_px - h * camera.width_px) <= ASPECT_TOLERANCE * w * h:
+                warnings.append(f"{meta.path.name}: size {w} x {h} px differs from the camera's "
+                                f"{camera.width_px} x {camera.height_px} px; resampled to it "
+                                "(same aspect ratio)")
+            else:
+                skipped.append(SkippedImage(
+                    image=image, reason=f"{meta.path.name}: size {w} x {h} px has another "
+                    f"aspect ratio than the camera's {camera.width_px} x {camera.height_px} px"))
+                continue
+        keep.append(row)
+    return NavTable(image_ids=tuple(nav.image_ids[i] for i in keep), times_s=nav.times_s[keep],
+                    eop=nav.eop[keep])
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -253,22 +446,28 @@ class FrameSource:
     def __init__(self, flight: Flight) -> None:
         self._flight = flight
         self._nav_index = flight.nav.index()
-        self._nav_sigma = flight.config.nav.sigma_eop
+        self._nav_sigma = flight.nav_sigma
 
     def __len__(self) -> int:
         return len(self._flight.nav)
 
     def __iter__(self) -> Iterator[Frame]:
+        for frame, _ in self.with_observed():
+            yield frame
+
+    def with_observed(self) -> Iterator[tuple[Frame, FloatArray]]:
+        """Frames together with their observed (distorted) pixels, ``(k, 2)``."""
         next_row = 0
+        empty = np.zeros((0, 2))
         for group in self._groups():
             while next_row < group.nav_row:
-                yield self._frame(next_row, (), np.zeros((0, 2)))
+                yield self._frame(next_row, (), empty), empty
                 next_row += 1
             uv = self._flight.corrector.ideal_pixels(group.uv_px)
-            yield self._frame(group.nav_row, group.point_ids, uv)
+            yield self._frame(group.nav_row, group.point_ids, uv), group.uv_px
             next_row = group.nav_row + 1
         while next_row < len(self._flight.nav):
-            yield self._frame(next_row, (), np.zeros((0, 2)))
+            yield self._frame(next_row, (), empty), empty
             next_row += 1
 
     def validate(self) -> ObservationStats:
@@ -295,7 +494,7 @@ class FrameSource:
 
     def _groups(self) -> Iterator[_Group]:
         """Contiguous per-image groups of ``observations.csv``, validated, in nav order."""
-        cam = self._flight.config.camera
+        cam = self._flight.camera_config
         u_max, v_max = cam.width_px - HALF_PIXEL, cam.height_px - HALF_PIXEL
         done: dict[str, int] = {}  # finished image -> last line of its rows
         current: str | None = None
@@ -304,6 +503,7 @@ class FrameSource:
         uvs: list[tuple[float, float]] = []
         last_line = 0
         nav_name = self._flight.config.nav.file
+        assert self._flight.observations_path is not None
         for row in read_csv(self._flight.observations_path, OBSERVATION_COLUMNS):
             image = row.ident("image")
             if image != current:

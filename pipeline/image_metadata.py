@@ -46,6 +46,11 @@ _TAG_SUBSEC_ORIGINAL = ExifTags.Base.SubsecTimeOriginal
 _TAG_OFFSET_ORIGINAL = ExifTags.Base.OffsetTimeOriginal
 _TAG_FOCAL = ExifTags.Base.FocalLength
 _TAG_FOCAL_35 = ExifTags.Base.FocalLengthIn35mmFilm
+_TAG_FP_XRES = ExifTags.Base.FocalPlaneXResolution
+_TAG_FP_UNIT = ExifTags.Base.FocalPlaneResolutionUnit
+_TAG_EXIF_WIDTH = ExifTags.Base.ExifImageWidth
+#: Millimetres per unit of EXIF ``FocalPlaneResolutionUnit`` (2 inch, 3 cm, 4 mm, 5 um).
+_FP_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
 _GPS_LAT_REF, _GPS_LAT = ExifTags.GPS.GPSLatitudeRef, ExifTags.GPS.GPSLatitude
 _GPS_LON_REF, _GPS_LON = ExifTags.GPS.GPSLongitudeRef, ExifTags.GPS.GPSLongitude
 _GPS_ALT_REF, _GPS_ALT = ExifTags.GPS.GPSAltitudeRef, ExifTags.GPS.GPSAltitude
@@ -91,6 +96,12 @@ class ImageMetadata:
         ``pix4d-camera``).
     focal_mm, focal_35mm : float or None
         EXIF ``FocalLength`` and ``FocalLengthIn35mmFilm``.
+    focal_plane_px_per_mm : float or None
+        EXIF ``FocalPlaneXResolution`` in pixels per millimetre (``FocalPlaneResolutionUnit``
+        applied), for an image ``exif_width_px`` wide.
+    exif_width_px : int or None
+        EXIF ``ExifImageWidth``: the width the focal-plane resolution refers to (resized
+        files keep the camera's original value).
     """
 
     path: Path
@@ -111,6 +122,8 @@ class ImageMetadata:
     attitude_source: str | None = None
     focal_mm: float | None = None
     focal_35mm: float | None = None
+    focal_plane_px_per_mm: float | None = None
+    exif_width_px: int | None = None
 
     @property
     def has_position(self) -> bool:
@@ -170,7 +183,23 @@ def read_image_metadata(path: Path | str) -> ImageMetadata:
         pitch_deg=pitch, yaw_deg=yaw, attitude_frame=frame, attitude_source=source,
         focal_mm=_number(exif_ifd.get(_TAG_FOCAL)),
         focal_35mm=_number(exif_ifd.get(_TAG_FOCAL_35)),
+        focal_plane_px_per_mm=_focal_plane_px_per_mm(exif_ifd),
+        exif_width_px=_positive_int(exif_ifd.get(_TAG_EXIF_WIDTH)),
     )
+
+
+def _positive_int(value: object) -> int | None:
+    number = _number(value)
+    return int(number) if number is not None and number >= 1 else None
+
+
+def _focal_plane_px_per_mm(exif_ifd: dict[int, object]) -> float | None:
+    res = _number(exif_ifd.get(_TAG_FP_XRES))
+    unit = _number(exif_ifd.get(_TAG_FP_UNIT))
+    unit_mm = _FP_UNIT_MM.get(int(unit) if unit is not None else 2)  # EXIF default: inch
+    if res is None or unit_mm is None or not res > 0:
+        return None
+    return res / unit_mm
 
 
 def found_tags(meta: ImageMetadata) -> str:

@@ -20,9 +20,8 @@ from typing import Literal
 
 import numpy as np
 import pyproj
-from pyproj.exceptions import ProjError
+from pyproj.exceptions import CRSError, ProjError
 
-from pipeline.flight import MIN_IMAGES, resolve_projected_crs
 from pipeline.image_metadata import (
     AttitudeFrame,
     HeightKind,
@@ -93,6 +92,45 @@ class BoresightConfig:
         return misalignment @ mount
 
 
+#: An adjustment needs at least this many images.
+MIN_IMAGES = 2
+#: Unit names pyproj gives for metre axes.
+METRE_UNITS = ("metre", "meter", "m")
+
+
+def resolve_projected_crs(crs: str, source: str) -> pyproj.CRS:
+    """Parse ``crs`` and check it is projected with metre axes.
+
+    Parameters
+    ----------
+    crs : str
+        Anything ``pyproj.CRS.from_user_input`` accepts (``EPSG:32652``, WKT, PROJ string).
+        A compound CRS (``EPSG:32652+5773``) fixes the vertical datum of the heights.
+    source : str
+        File the value came from (for messages).
+
+    Raises
+    ------
+    InputDataError
+        Unknown CRS (PROJ's message attached), geographic CRS, or axes not in metres.
+    """
+    if crs.strip().lower() == "auto":
+        raise InputDataError(f"{source}: crs: 'auto' (UTM zone of the first fix) needs geodetic "
+                             "nav; give an EPSG code for projected nav")
+    try:
+        parsed = pyproj.CRS.from_user_input(crs)
+    except CRSError as err:
+        raise InputDataError(f"{source}: crs: unknown CRS {crs!r}: {err}") from err
+    if not parsed.is_projected:
+        raise InputDataError(f"{source}: crs: {crs!r} ({parsed.name}) is not a projected CRS; "
+                             "seqat works in east/north/up metres")
+    units = {axis.unit_name for axis in parsed.axis_info}
+    if not units <= set(METRE_UNITS):
+        raise InputDataError(f"{source}: crs: {crs!r} ({parsed.name}) has axes in "
+                             f"{', '.join(sorted(units))}; a metre CRS is needed")
+    return parsed
+
+
 # --------------------------------------------------------------------------------------------
 # CRS and positions
 # --------------------------------------------------------------------------------------------
@@ -126,7 +164,7 @@ def resolve_working_crs(crs: str, first_lon_deg: float, first_lat_deg: float, *,
     ------
     InputDataError
         Unknown CRS (PROJ's message attached), not projected, or axes not in metres (the
-        checks of :func:`pipeline.flight.resolve_projected_crs`).
+        checks of :func:`resolve_projected_crs`).
     """
     if crs.strip().lower() == "auto":
         return pyproj.CRS.from_epsg(utm_epsg(first_lon_deg, first_lat_deg))
@@ -309,6 +347,54 @@ def mount_for(frame: AttitudeFrame, boresight: BoresightConfig) -> FloatArray:
     return R_BODY_FROM_CAM_NADIR
 
 
+def geodetic_to_eop(lon_deg: FloatArray, lat_deg: FloatArray, h_m: FloatArray,
+                    attitude_deg: FloatArray, frames: list[AttitudeFrame],
+                    height_kinds: list[HeightKind], crs: pyproj.CRS, boresight: BoresightConfig,
+                    lever_arm_m: FloatArray | None = None) -> FloatArray:
+    """GPS/INS records -> camera EOPs ``[X, Y, Z, omega, phi, kappa]`` in the working CRS.
+
+    Parameters
+    ----------
+    lon_deg, lat_deg, h_m : (n,) float
+        WGS 84 fixes of the GPS antenna.
+    attitude_deg : (n, 3) float
+        Roll, pitch, yaw (yaw from true north), degrees, in ``frames``.
+    frames : list of {"body", "gimbal", "camera"}
+        What each attitude describes (:func:`mount_for`).
+    height_kinds : list of {"ellipsoidal", "orthometric", "unknown"}
+        Per record; ``unknown`` is taken as ellipsoidal.
+    crs : pyproj.CRS
+        Working CRS.
+    boresight : BoresightConfig
+    lever_arm_m : (3,) float, optional
+        From the GPS antenna to the camera's projection centre in body axes (x forward,
+        y right wing, z down), metres; applied with the body attitude (``body`` records only).
+
+    Returns
+    -------
+    (n, 6) float
+        Metres and radians.
+    """
+    n = len(frames)
+    lon, lat, h = (np.asarray(a, dtype=np.float64).reshape(n) for a in (lon_deg, lat_deg, h_m))
+    att = np.radians(np.asarray(attitude_deg, dtype=np.float64).reshape(n, 3))
+    out = np.empty((n, 6))
+    for kind in sorted(set(height_kinds)):
+        rows = [i for i, k in enumerate(height_kinds) if k == kind]
+        convert = GeodeticToProjected(crs, "ellipsoidal" if kind == "unknown" else kind)
+        out[rows, :3] = convert(lon[rows], lat[rows], h[rows])
+    lever = np.zeros(3) if lever_arm_m is None else np.asarray(lever_arm_m, dtype=np.float64)
+    for i in range(n):
+        gamma = grid_convergence_rad(crs, float(lon[i]), float(lat[i]))
+        R = world_from_cam(*att[i], mount_for(frames[i], boresight), gamma)
+        out[i, 3:] = angles_from_rotation(R)
+        if frames[i] == "body" and np.any(lever != 0.0):
+            R_world_from_body = R_ENU_FROM_NED @ R_ned_from_body(att[i, 0], att[i, 1],
+                                                                 att[i, 2] - gamma)
+            out[i, :3] += R_world_from_body @ lever
+    return out
+
+
 # --------------------------------------------------------------------------------------------
 # Image folder
 # --------------------------------------------------------------------------------------------
@@ -355,11 +441,14 @@ class ImageFolderNav:
         In acquisition order.
     warnings : tuple[str, ...]
         One line each, naming the image.
+    skipped : tuple[tuple[str, str], ...]
+        ``(image id, reason)`` of images left out (``skip_bad``).
     """
 
     crs: pyproj.CRS
     records: tuple[NavRecord, ...]
     warnings: tuple[str, ...]
+    skipped: tuple[tuple[str, str], ...] = ()
 
     def to_nav_table(self) -> NavTable:
         """The records as a projected :class:`NavTable`.
@@ -380,8 +469,16 @@ class ImageFolderNav:
         return NavTable(image_ids=tuple(r.image for r in self.records), times_s=times, eop=eop)
 
 
+def image_files(folder: Path) -> list[Path]:
+    """The JPEGs of a folder (``*.jpg``, ``*.jpeg``, any case), sorted by name."""
+    return sorted(p for p in folder.iterdir()
+                  if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+
+
 def read_image_folder_nav(folder: Path | str, crs: str = "auto",
-                          boresight: BoresightConfig | None = None) -> ImageFolderNav:
+                          boresight: BoresightConfig | None = None,
+                          lever_arm_m: FloatArray | None = None, *,
+                          skip_bad: bool = False) -> ImageFolderNav:
     """Navigation of every JPEG of a folder in the working CRS.
 
     Parameters
@@ -391,6 +488,11 @@ def read_image_folder_nav(folder: Path | str, crs: str = "auto",
         Working CRS (:func:`resolve_working_crs`); ``auto`` = UTM zone of the first fix.
     boresight : BoresightConfig, optional
         Mount of a camera fixed to the airframe; default nadir, image top forward.
+    lever_arm_m : (3,) float, optional
+        GPS antenna -> camera, body axes (:func:`geodetic_to_eop`).
+    skip_bad : bool
+        Leave out (and list in ``skipped``) images that cannot be read, are truncated, or
+        lack a GPS position, attitude or time, instead of raising.
 
     Returns
     -------
@@ -402,41 +504,62 @@ def read_image_folder_nav(folder: Path | str, crs: str = "auto",
     Raises
     ------
     InputDataError
-        No such folder, fewer than :data:`~pipeline.flight.MIN_IMAGES` images, an unreadable
-        image, an image without GPS position.
-    InputDataError
-        Bad CRS (also).
+        No such folder, fewer than :data:`MIN_IMAGES` (usable) images, an unreadable image,
+        an image without GPS position (unless ``skip_bad``), bad CRS.
     ConfigError
         Missing geoid grid.
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise InputDataError(f"{folder}: no such image folder")
-    paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-    if len(paths) < MIN_IMAGES:
-        raise InputDataError(f"{folder}: {len(paths)} JPEG image(s); at least {MIN_IMAGES} "
-                             "are needed")
-    metas = [read_image_metadata(p) for p in paths]
-    for m in metas:
-        require_position(m)
+    paths = image_files(folder)
+    metas: list[ImageMetadata] = []
+    skipped: list[tuple[str, str]] = []
+    for p in paths:
+        try:
+            meta = read_image_metadata(p)
+            require_position(meta)
+            if skip_bad and (meta.time_s is None or not meta.has_attitude):
+                missing = "acquisition time" if meta.time_s is None else "attitude in XMP"
+                raise InputDataError(f"{p.name}: no {missing} (found: {found_tags(meta)})")
+        except InputDataError as err:
+            if not skip_bad:
+                raise
+            skipped.append((p.stem, str(err)))
+            continue
+        metas.append(meta)
+    if len(metas) < MIN_IMAGES:
+        raise InputDataError(f"{folder}: {len(metas)} usable JPEG image(s) of {len(paths)}; "
+                             f"at least {MIN_IMAGES} are needed")
     metas.sort(key=lambda m: (m.time_s is None, m.time_s or 0.0, m.path.name))
     boresight = boresight or BoresightConfig()
     first_lon, first_lat, _ = _fix(metas[0])
     working = resolve_working_crs(crs, first_lon, first_lat)
     warnings = _folder_warnings(metas)
-    xyz = np.empty((len(metas), 3))
-    for kind in sorted({m.height_kind for m in metas}):
-        rows = [i for i, m in enumerate(metas) if m.height_kind == kind]
-        convert = GeodeticToProjected(working, "ellipsoidal" if kind == "unknown" else kind)
-        fixes = np.array([_fix(metas[i]) for i in rows])
-        xyz[rows] = convert(fixes[:, 0], fixes[:, 1], fixes[:, 2])
+    fixes = np.array([_fix(m) for m in metas])
+    with_att = [i for i, m in enumerate(metas) if m.has_attitude and m.attitude_frame]
+    eop = np.full((len(metas), 6), np.nan)
+    xyz_only = geodetic_to_eop(fixes[:, 0], fixes[:, 1], fixes[:, 2], np.zeros((len(metas), 3)),
+                               ["camera"] * len(metas), [m.height_kind for m in metas], working,
+                               boresight)
+    eop[:, :3] = xyz_only[:, :3]
+    if with_att:
+        sub = [metas[i] for i in with_att]
+        eop[with_att] = geodetic_to_eop(
+            fixes[with_att, 0], fixes[with_att, 1], fixes[with_att, 2],
+            np.array([[m.roll_deg, m.pitch_deg, m.yaw_deg] for m in sub], dtype=np.float64),
+            [m.attitude_frame for m in sub],  # type: ignore[misc]
+            [m.height_kind for m in sub], working, boresight, lever_arm_m)
     records = []
-    for m, (x, y, z) in zip(metas, xyz, strict=True):
-        opk = _opk(m, working, boresight)
-        records.append(NavRecord(image=m.path.stem, path=m.path, time_s=m.time_s, x_m=float(x),
-                                 y_m=float(y), z_m=float(z), omega_rad=opk[0], phi_rad=opk[1],
-                                 kappa_rad=opk[2], metadata=m))
-    return ImageFolderNav(crs=working, records=tuple(records), warnings=tuple(warnings))
+    for m, e in zip(metas, eop, strict=True):
+        has_att = bool(np.isfinite(e[3]))
+        records.append(NavRecord(image=m.path.stem, path=m.path, time_s=m.time_s,
+                                 x_m=float(e[0]), y_m=float(e[1]), z_m=float(e[2]),
+                                 omega_rad=float(e[3]) if has_att else None,
+                                 phi_rad=float(e[4]) if has_att else None,
+                                 kappa_rad=float(e[5]) if has_att else None, metadata=m))
+    return ImageFolderNav(crs=working, records=tuple(records), warnings=tuple(warnings),
+                          skipped=tuple(skipped))
 
 
 def _fix(meta: ImageMetadata) -> tuple[float, float, float]:
@@ -445,20 +568,6 @@ def _fix(meta: ImageMetadata) -> tuple[float, float, float]:
         require_position(meta)
         raise AssertionError("unreachable")
     return meta.lon_deg, meta.lat_deg, meta.h_m
-
-
-def _opk(meta: ImageMetadata, crs: pyproj.CRS, boresight: BoresightConfig) -> (
-        tuple[float | None, float | None, float | None]):
-    """omega, phi, kappa (radians) of an image, or ``None``s without attitude."""
-    if meta.roll_deg is None or meta.pitch_deg is None or meta.yaw_deg is None \
-            or meta.attitude_frame is None:
-        return None, None, None
-    lon, lat, _ = _fix(meta)
-    angles = opk_from_attitude(math.radians(meta.roll_deg), math.radians(meta.pitch_deg),
-                               math.radians(meta.yaw_deg), mount_for(meta.attitude_frame,
-                                                                     boresight),
-                               grid_convergence_rad(crs, lon, lat))
-    return float(angles[0]), float(angles[1]), float(angles[2])
 
 
 def _folder_warnings(metas: list[ImageMetadata]) -> list[str]:

@@ -22,6 +22,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from pipeline.accuracy import Accuracy, compare_with_truth
 from pipeline.config import build_dataclass, load_yaml
 from pipeline.flight import read_flight, read_truth
+from pipeline.sources import ImageSource, ObservationSource
 from pipeline.store import (
     RunRecord,
     RunTotals,
@@ -210,21 +211,29 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     if out.exists() and not out.is_dir():
         raise InputDataError(f"{out}: exists and is not a folder")
     flight = read_flight(flight_dir)
-    frames = flight.frames()
-    stats = frames.validate()
     truth = read_truth(flight.path)
-
+    source: ObservationSource | ImageSource
+    if flight.kind == "observations":
+        source = ObservationSource(flight)
+    else:
+        source = ImageSource(flight, flight.config.tracking)
     estimator = make_estimator(method, flight.camera, options, final_only=final_only)
     updates: list[ImageUpdate] = []
     console = Console(stderr=True)
+    for warning in flight.warnings:
+        console.print(f"seqat: warning: {warning}", highlight=False, markup=False)
+    for skipped in flight.skipped:
+        console.print(f"seqat: skipped: {skipped.reason}", highlight=False, markup=False)
     with _progress(console, progress) as bar:
-        task = bar.add_task(method.value, total=len(frames), info="")
-        for frame in frames:
+        task = bar.add_task(method.value, total=len(flight.nav), info="")
+        for frame in source:
             update = estimator.add_frame(frame)
             updates.append(update)
+            source.feedback(update, estimator)
             bar.update(task, advance=1,
                        info=f"{update.update_ms:7.1f} ms  window {update.window_images}")
     solution = estimator.solution()
+    stats = source.stats()
 
     eops, points = eop_table(solution.eops), point_table(solution.points)
     accuracy = (compare_with_truth(eops, points, truth.eop, truth.points, flight.nav)
@@ -236,11 +245,14 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
                        sequential_update_ms=timing_seq,
                        wall_s=time.perf_counter() - t_start, sigma0=solution.sigma0,
                        redundancy=solution.redundancy, accuracy=accuracy)
-    record = RunRecord(method=method.value, flight=str(flight.path), options=options,
-                       final_only=final_only, images=tuple(updates), totals=totals)
-    files = write_run_outputs(out, solution, record)
+    record = RunRecord(method=method.value, flight=str(flight.path), inputs=flight.inputs(),
+                       options=options, final_only=final_only, images=tuple(updates),
+                       totals=totals, tracking_options=source.tracking_options,
+                       tracking=source.tracking_stats)
+    files = write_run_outputs(out, solution, record, source.observations_text())
     return RunSummary(method=method, flight_dir=flight.path, out_dir=out, files=files,
                       n_images=totals.images, n_points=totals.points,
                       n_observations=stats.n_observations, sigma0=solution.sigma0,
                       redundancy=solution.redundancy, update_ms=timing,
-                      sequential_update_ms=timing_seq, wall_s=time.perf_counter() - t_start, accuracy=accuracy)
+                      sequential_update_ms=timing_seq, wall_s=time.perf_counter() - t_start,
+                      accuracy=accuracy)

@@ -22,12 +22,11 @@ from pipeline.csvio import format_csv_line
 from pipeline.flight import (
     FLIGHT_YAML,
     GROUND_POINT_COLUMNS,
-    NAV_PROJECTED_COLUMNS,
     OBSERVATION_COLUMNS,
     TRUTH_DIR,
     resolve_projected_crs,
 )
-from pipeline.store import fmt, fsync_dir
+from pipeline.store import fmt, format_nav_csv, fsync_dir
 from seqat.errors import InputDataError
 from seqat.simulate import SimulatedFlight, simulate_strip
 from seqat.types import FloatArray
@@ -82,14 +81,6 @@ def _flight_yaml(flight: SimulatedFlight, crs: str) -> str:
     header = ("# Simulated flight written by `seqat simulate` (docs/formats.md).\n"
               "# Exact truth in truth/; never used by the adjustment.\n")
     return header + str(yaml.safe_dump(doc, sort_keys=False))
-
-
-def _eop_csv(ids: tuple[str, ...], times_s: FloatArray, eop: FloatArray) -> str:
-    lines = [format_csv_line(NAV_PROJECTED_COLUMNS)]
-    for iid, t, e in zip(ids, times_s, eop, strict=True):
-        lines.append(format_csv_line([iid, fmt(t), *(fmt(v) for v in e[:AXES]),
-                                      *(fmt(v) for v in np.degrees(e[AXES:]))]))
-    return "".join(lines)
 
 
 def _observations_csv(flight: SimulatedFlight) -> str:
@@ -168,10 +159,10 @@ def write_simulated_flight(flight: SimulatedFlight, crs: str, out_dir: Path | st
     try:
         os.chmod(tmp, 0o777 & ~_umask())
         _write(tmp / FLIGHT_YAML, _flight_yaml(flight, crs))
-        _write(tmp / NAV_FILE, _eop_csv(flight.image_ids, flight.times_s, flight.nav_eop))
+        _write(tmp / NAV_FILE, format_nav_csv(flight.image_ids, flight.times_s, flight.nav_eop))
         _write(tmp / OBSERVATIONS_FILE, _observations_csv(flight))
         (tmp / TRUTH_DIR).mkdir()
-        _write(tmp / TRUTH_DIR / "eop.csv", _eop_csv(flight.image_ids, flight.times_s,
+        _write(tmp / TRUTH_DIR / "eop.csv", format_nav_csv(flight.image_ids, flight.times_s,
                                                      flight.truth_eop))
         _write(tmp / TRUTH_DIR / "points.csv", _points_csv(flight.point_ids, flight.truth_xyz))
         fsync_dir(tmp / TRUTH_DIR)

@@ -1,4 +1,11 @@
-"""Result files of a run: ``eop.csv``, ``points.csv``, ``run.json`` (docs/formats.md).
+"""Result files of a run: ``eop.csv``, ``points.csv``, ``run.json``, ``nav.csv``,
+``observations.csv`` (docs/formats.md), and :func:`read_run` for the later stages.
+
+A run folder is self-contained: besides the estimates it holds the navigation input in the
+working CRS (``nav.csv``), the image observations the estimator received
+(``observations.csv``, observed pixels of the full-resolution images) and, in ``run.json``,
+the CRS, the camera and the a priori sigmas, so the reference, ortho and report stages need
+nothing else.
 
 Every file is written atomically: a temporary file in the same folder, ``fsync``, then
 ``os.replace`` (and an ``fsync`` of the folder), so a reader never sees a half-written file and
@@ -24,11 +31,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pyproj
+from pyproj.exceptions import CRSError
 
 from pipeline.accuracy import Accuracy
+from pipeline.config import CameraConfig, build_dataclass
 from pipeline.csvio import format_csv_line, read_csv
-from pipeline.tables import EopTable, PointTable
-from seqat.errors import InputDataError
+from pipeline.tables import EopTable, NavTable, PointTable
+from seqat.errors import ConfigError, InputDataError
 from seqat.types import EopEstimate, ImageUpdate, PointEstimate, Solution
 
 #: Columns of the output ``eop.csv``.
@@ -40,6 +50,12 @@ POINT_COLUMNS = ("point", "x_m", "y_m", "z_m", "sx_m", "sy_m", "sz_m", "n_obs")
 EOP_FILE = "eop.csv"
 POINTS_FILE = "points.csv"
 RUN_FILE = "run.json"
+NAV_FILE = "nav.csv"
+OBSERVATIONS_FILE = "observations.csv"
+#: Columns of a projected ``nav.csv`` (flight input and run output).
+NAV_COLUMNS = ("image", "time_s", "x_m", "y_m", "z_m", "omega_deg", "phi_deg", "kappa_deg")
+#: Columns of ``observations.csv`` (flight input and run output).
+OBS_COLUMNS = ("image", "point", "x_px", "y_px")
 #: Version of the ``run.json`` layout (bumped on incompatible changes).
 RUN_JSON_VERSION = 1
 #: Percentiles of the per-image update time reported in ``run.json``.
@@ -236,6 +252,22 @@ def read_points_csv(path: Path | str) -> PointTable:
                       n_obs=np.asarray(n_obs, dtype=np.int64))
 
 
+def format_nav_csv(ids: Sequence[str], times_s: np.ndarray, eop: np.ndarray) -> str:
+    """Text of a projected ``nav.csv`` (or ``truth/eop.csv``); angles in radians -> degrees."""
+    lines = [format_csv_line(NAV_COLUMNS)]
+    for iid, t, e in zip(ids, times_s, eop, strict=True):
+        lines.append(format_csv_line([iid, fmt(t), *(fmt(v) for v in e[:XYZ]),
+                                      *(fmt(v) for v in np.degrees(e[XYZ:]))]))
+    return "".join(lines)
+
+
+def format_observation_lines(image_id: str, point_ids: Sequence[str], uv_px: np.ndarray) -> str:
+    """Rows of one image for ``observations.csv`` (no header)."""
+    return "".join(format_csv_line([image_id, pid, fmt(u), fmt(v)])
+                   for pid, (u, v) in zip(point_ids, np.asarray(uv_px).reshape(-1, 2),
+                                          strict=True))
+
+
 def eop_table(eops: Sequence[EopEstimate]) -> EopTable:
     """Stack estimates into an :class:`EopTable`."""
     return EopTable(image_ids=tuple(e.image_id for e in eops),
@@ -294,6 +326,52 @@ class RunTotals:
     accuracy: Accuracy | None = None
 
 
+@dataclass(frozen=True, kw_only=True)
+class SkippedImage:
+    """An image left out of a run, and why (``run.json`` ``skipped``)."""
+
+    image: str
+    reason: str
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class RunInputs:
+    """What the estimator was given: the self-contained part of a run folder.
+
+    Attributes
+    ----------
+    crs : pyproj.CRS
+        Working CRS (projected, metres).
+    camera : CameraConfig
+        Camera of the observed (full-resolution) pixels.
+    camera_approximate : bool
+        ``True`` when the camera comes from EXIF (focal length and sensor size), not from a
+        calibration.
+    nav : NavTable
+        GPS/INS exterior orientations in the working CRS (direct georeferencing), in
+        acquisition order; only the images of the run.
+    nav_sigma : (6,) float
+        A priori σ of ``[X, Y, Z]`` (m) and ``[omega, phi, kappa]`` (rad).
+    sigma_image_px : float
+    images_dir : Path or None
+        Folder of the flight's images (image flights), else ``None``.
+    skipped : tuple[SkippedImage, ...]
+        Images of the flight left out of the run.
+    warnings : tuple[str, ...]
+        One line each (e.g. an image of another size, a height of unknown kind).
+    """
+
+    crs: pyproj.CRS
+    camera: CameraConfig
+    camera_approximate: bool
+    nav: NavTable
+    nav_sigma: np.ndarray
+    sigma_image_px: float
+    images_dir: Path | None = None
+    skipped: tuple[SkippedImage, ...] = ()
+    warnings: tuple[str, ...] = ()
+
+
 @dataclass(frozen=True, kw_only=True, eq=False)
 class RunRecord:
     """Everything ``run.json`` holds.
@@ -304,6 +382,8 @@ class RunRecord:
         ``seq-r``, ``seq-f`` or ``sim``.
     flight : str
         The flight folder.
+    inputs : RunInputs
+        CRS, camera, sigmas, skipped images and warnings (``nav`` goes to ``nav.csv``).
     options : object
         The estimator options (a dataclass such as ``SequentialOptions``), serialised field
         by field.
@@ -311,14 +391,22 @@ class RunRecord:
     images : tuple[ImageUpdate, ...]
         One record per image, in acquisition order.
     totals : RunTotals
+    tracking_options : object or None
+        Tie-point tracker options (image flights).
+    tracking : tuple[object, ...]
+        Per-image tracker statistics (image flights; empty otherwise), stored in
+        ``images[i].tracking``.
     """
 
     method: str
     flight: str
+    inputs: RunInputs
     options: object
     final_only: bool
     images: tuple[ImageUpdate, ...]
     totals: RunTotals
+    tracking_options: object | None = None
+    tracking: tuple[object, ...] = ()
 
 
 def eop_json(eop: EopEstimate) -> dict[str, object]:
@@ -359,9 +447,34 @@ def to_jsonable(value: object) -> object:
     raise TypeError(f"cannot serialise {type(value).__name__} to JSON")
 
 
+def _inputs_json(inputs: RunInputs) -> dict[str, object]:
+    sigma = np.asarray(inputs.nav_sigma, dtype=np.float64)
+    camera = to_jsonable(inputs.camera)
+    assert isinstance(camera, dict)
+    return {
+        "crs": inputs.crs.to_wkt(),
+        "crs_name": inputs.crs.name,
+        "camera": {**camera, "approximate": inputs.camera_approximate},
+        "nav_sigma": {"position_m": to_jsonable(sigma[:XYZ]),
+                      "attitude_deg": to_jsonable(np.degrees(sigma[XYZ:]))},
+        "sigma_image_px": inputs.sigma_image_px,
+        "images_dir": None if inputs.images_dir is None else str(inputs.images_dir),
+        "skipped": to_jsonable(inputs.skipped),
+        "warnings": list(inputs.warnings),
+    }
+
+
 def format_run_json(record: RunRecord) -> str:
     """Text of ``run.json`` (strict JSON: non-finite numbers become ``null``)."""
-    doc = {"version": RUN_JSON_VERSION, **to_jsonable(record)}  # type: ignore[dict-item]
+    images = to_jsonable(record.images)
+    assert isinstance(images, list)
+    for image, stats in zip(images, record.tracking, strict=False):
+        image["tracking"] = to_jsonable(stats)
+    doc = {"version": RUN_JSON_VERSION, "method": record.method, "flight": record.flight,
+           **_inputs_json(record.inputs),
+           "options": to_jsonable(record.options), "final_only": record.final_only,
+           "tracking_options": to_jsonable(record.tracking_options),
+           "images": images, "totals": to_jsonable(record.totals)}
     return json.dumps(doc, indent=JSON_INDENT, allow_nan=False) + "\n"
 
 
@@ -370,17 +483,158 @@ def write_run_json(path: Path | str, record: RunRecord) -> None:
     atomic_write_text(path, format_run_json(record))
 
 
-def write_run_outputs(out_dir: Path | str, solution: Solution, record: RunRecord) -> (
-        tuple[Path, ...]):
-    """Publish ``eop.csv``, ``points.csv`` and ``run.json`` of a run together.
+def write_run_outputs(out_dir: Path | str, solution: Solution, record: RunRecord,
+                      observations_text: str) -> tuple[Path, ...]:
+    """Publish the files of a run together (atomically, all or none).
+
+    Parameters
+    ----------
+    out_dir : Path or str
+    solution : Solution
+    record : RunRecord
+    observations_text : str
+        Rows of ``observations.csv`` without the header (:func:`format_observation_lines`).
 
     Returns
     -------
     tuple[Path, ...]
-        The three paths.
+        ``eop.csv``, ``points.csv``, ``run.json``, ``nav.csv``, ``observations.csv``.
     """
+    nav = record.inputs.nav
     return write_files_atomically(out_dir, {
         EOP_FILE: format_eop_csv(solution.eops),
         POINTS_FILE: format_points_csv(solution.points),
         RUN_FILE: format_run_json(record),
+        NAV_FILE: format_nav_csv(nav.image_ids, nav.times_s, nav.eop),
+        OBSERVATIONS_FILE: format_csv_line(OBS_COLUMNS) + observations_text,
     })
+
+
+# --------------------------------------------------------------------------------------------
+# Reading a run folder (later stages)
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class RunFolder:
+    """A finished run's output folder, read back (:func:`read_run`).
+
+    Attributes
+    ----------
+    path : Path
+    method : str
+    flight_dir : Path
+    inputs : RunInputs
+    eop : EopTable
+        The estimates of ``eop.csv``.
+    points : PointTable
+        The estimates of ``points.csv``.
+    observations_path : Path
+        ``observations.csv`` of the run (observed pixels, full resolution).
+    record : dict
+        ``run.json`` as parsed JSON.
+    """
+
+    path: Path
+    method: str
+    flight_dir: Path
+    inputs: RunInputs
+    eop: EopTable
+    points: PointTable
+    observations_path: Path
+    record: Mapping[str, object]
+
+    @property
+    def crs(self) -> pyproj.CRS:
+        return self.inputs.crs
+
+    @property
+    def camera(self) -> CameraConfig:
+        return self.inputs.camera
+
+    @property
+    def nav(self) -> NavTable:
+        return self.inputs.nav
+
+    @property
+    def nav_sigma(self) -> np.ndarray:
+        return self.inputs.nav_sigma
+
+    @property
+    def sigma_image_px(self) -> float:
+        return self.inputs.sigma_image_px
+
+    @property
+    def images_dir(self) -> Path | None:
+        return self.inputs.images_dir
+
+
+def _json_field(doc: Mapping[str, object], key: str, source: Path) -> object:
+    if key not in doc:
+        raise InputDataError(f"{source}: missing key {key!r} (written by an older seqat? run "
+                             "`seqat run` again)")
+    return doc[key]
+
+
+def _triple(value: object, key: str, source: Path) -> list[float]:
+    if not (isinstance(value, list) and len(value) == XYZ
+            and all(isinstance(v, int | float) for v in value)):
+        raise InputDataError(f"{source}: {key}: expected a list of 3 numbers, got {value!r}")
+    return [float(v) for v in value]
+
+
+def read_run(out_dir: Path | str) -> RunFolder:
+    """Read a run folder written by ``seqat run`` (docs/formats.md, *Output folder*).
+
+    Raises
+    ------
+    InputDataError
+        Missing folder or file, malformed ``run.json``, CSV or camera.
+    """
+    out = Path(out_dir)
+    if not out.is_dir():
+        raise InputDataError(f"{out}: no such run folder")
+    run_path = out / RUN_FILE
+    if not run_path.is_file():
+        raise InputDataError(f"{run_path}: no such file (is {out} the output of `seqat run`?)")
+    try:
+        doc = json.loads(run_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise InputDataError(f"{run_path}: cannot read run.json: {err}") from err
+    if not isinstance(doc, dict):
+        raise InputDataError(f"{run_path}: expected a JSON object")
+    try:
+        crs = pyproj.CRS.from_wkt(str(_json_field(doc, "crs", run_path)))
+    except CRSError as err:
+        raise InputDataError(f"{run_path}: crs: not a valid WKT CRS: {err}") from err
+    camera_doc = _json_field(doc, "camera", run_path)
+    if not isinstance(camera_doc, dict):
+        raise InputDataError(f"{run_path}: camera: expected an object")
+    camera_doc = dict(camera_doc)
+    approximate = bool(camera_doc.pop("approximate", False))
+    try:
+        camera = build_dataclass(CameraConfig, camera_doc, str(run_path), key="camera")
+    except ConfigError as err:
+        raise InputDataError(str(err)) from err
+    sig = _json_field(doc, "nav_sigma", run_path)
+    if not isinstance(sig, dict):
+        raise InputDataError(f"{run_path}: nav_sigma: expected an object")
+    nav_sigma = np.concatenate([
+        _triple(sig.get("position_m"), "nav_sigma.position_m", run_path),
+        np.radians(_triple(sig.get("attitude_deg"), "nav_sigma.attitude_deg", run_path))])
+    images_dir = doc.get("images_dir")
+    from pipeline.flight import read_nav_projected  # flight imports store: no cycle at load
+    inputs = RunInputs(
+        crs=crs, camera=camera, camera_approximate=approximate,
+        nav=read_nav_projected(out / NAV_FILE), nav_sigma=nav_sigma,
+        sigma_image_px=float(_json_field(doc, "sigma_image_px", run_path)),  # type: ignore[arg-type]
+        images_dir=None if images_dir is None else Path(str(images_dir)),
+        skipped=tuple(SkippedImage(**s) for s in doc.get("skipped", [])),
+        warnings=tuple(doc.get("warnings", [])))
+    obs_path = out / OBSERVATIONS_FILE
+    if not obs_path.is_file():
+        raise InputDataError(f"{obs_path}: no such file")
+    return RunFolder(path=out, method=str(_json_field(doc, "method", run_path)),
+                     flight_dir=Path(str(_json_field(doc, "flight", run_path))), inputs=inputs,
+                     eop=read_eop_csv(out / EOP_FILE), points=read_points_csv(out / POINTS_FILE),
+                     observations_path=obs_path, record=doc)

@@ -97,8 +97,8 @@ BAD_INPUTS = [
     ("flight.yaml", "EPSG:32652", "EPSG:4326", InputDataError,
      "flight.yaml: crs: 'EPSG:4326' (WGS 84) is not a projected CRS"),
     ("flight.yaml", "EPSG:32652", "EPSG:2992", InputDataError, "a metre CRS is needed"),
-    ("flight.yaml", "frame: projected", "frame: geodetic", ConfigError,
-     "flight.yaml: nav.frame: geodetic nav needs the real-flight stage (not yet supported)"),
+    ("flight.yaml", "frame: projected", "frame: geodetic", InputDataError,
+     "nav.csv:1: wrong columns"),
     ("flight.yaml", "sigma_image_px: 1.5", "sigma_image_px: 1.5\nsigma_image: 2", ConfigError,
      "flight.yaml: sigma_image: unknown key"),
     ("flight.yaml", "observations: observations.csv", "observations: obs.csv", InputDataError,
@@ -143,13 +143,13 @@ def test_bad_input_exits_2_and_writes_nothing(make_flight: FlightMaker, tmp_path
 def test_missing_flight_folder(tmp_path: Path) -> None:
     with pytest.raises(InputDataError, match="no such flight folder"):
         read_flight(tmp_path / "nowhere")
-    with pytest.raises(InputDataError, match=r"flight\.yaml: no such file"):
+    with pytest.raises(InputDataError, match=r"flight\.yaml: no such file, and no JPEG images"):
         read_flight(tmp_path)
 
 
-def test_flight_without_observations_file_needs_tracking(make_flight: FlightMaker) -> None:
+def test_flight_without_observations_or_images(make_flight: FlightMaker) -> None:
     text = FLIGHT_FILES["flight.yaml"].replace("observations: observations.csv\n", "")
-    with pytest.raises(ConfigError, match="need the tracking stage"):
+    with pytest.raises(ConfigError, match=r"give observations: \(image points\) or images:"):
         read_flight(make_flight(**{"flight.yaml": text}))
 
 

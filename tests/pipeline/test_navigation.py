@@ -287,12 +287,22 @@ def test_folder_warnings_and_table(tmp_path: Path) -> None:
 def test_folder_without_gps_or_images(tmp_path: Path) -> None:
     folder = tmp_path / "imgs"
     folder.mkdir()
-    with pytest.raises(InputDataError, match="0 JPEG image"):
+    with pytest.raises(InputDataError, match="0 usable JPEG image"):
         read_image_folder_nav(folder)
     write_jpeg(folder / "a.jpg")
     write_jpeg(folder / "IMG_0460.JPG", lat=None, xmp=None)
     with pytest.raises(InputDataError, match="IMG_0460.JPG: no GPS position"):
         read_image_folder_nav(folder)
+    # skip_bad leaves the image out and says why; one usable image is still too few
+    with pytest.raises(InputDataError, match="1 usable JPEG image.*of 2"):
+        read_image_folder_nav(folder, skip_bad=True)
+    later = SENSEFLY_XMP.replace("17:39:35", "17:39:39")
+    write_jpeg(folder / "c.jpg", lat=41.0354, xmp=later)
+    nav = read_image_folder_nav(folder, skip_bad=True)
+    assert [r.image for r in nav.records] == ["a", "c"]
+    assert len(nav.skipped) == 1
+    assert nav.skipped[0][0] == "IMG_0460"
+    assert nav.skipped[0][1].startswith("IMG_0460.JPG: no GPS position in EXIF")
 
 
 @pytest.mark.shared

@@ -20,7 +20,7 @@ def test_sample_flight_matches_its_recipe(tmp_path: Path) -> None:
         a = (SAMPLE / name).read_text().splitlines()
         b = (out / name).read_text().splitlines()
         assert a[0] == b[0] and len(a) == len(b), name
-        for la, lb in zip(a[1:], b[1:]):
+        for la, lb in zip(a[1:], b[1:], strict=True):
             fa, fb = la.split(","), lb.split(",")
             assert fa[:1] == fb[:1]
             na = [float(v) for v in fa if _is_number(v)]

@@ -7,22 +7,29 @@ import os
 from pathlib import Path
 
 import numpy as np
+import pyproj
 import pytest
 
 from pipeline import store
+from pipeline.config import CameraConfig
 from pipeline.store import (
+    RunInputs,
     RunRecord,
     RunTotals,
+    SkippedImage,
     TimingStats,
     atomic_write_text,
+    format_observation_lines,
     format_run_json,
     read_eop_csv,
     read_points_csv,
+    read_run,
     write_eop_csv,
     write_files_atomically,
     write_points_csv,
     write_run_outputs,
 )
+from pipeline.tables import NavTable
 from seqat.errors import InputDataError
 from seqat.types import EopEstimate, ImageUpdate, PointEstimate, Solution
 
@@ -110,9 +117,19 @@ def sample_record(eops: list[EopEstimate]) -> RunRecord:
                        sequential_update_ms=TimingStats.from_samples([2.5] * (len(eops) - 1)),
                        wall_s=0.1,
                        sigma0=1.02, redundancy=7)
-    return RunRecord(method="seq-r", flight="flight", options=TimingStats.from_samples([1.0]),
-                     final_only=False, images=tuple(update_for(e, i) for i, e in enumerate(eops)),
-                     totals=totals)
+    nav = NavTable(image_ids=tuple(e.image_id for e in eops),
+                   times_s=np.arange(len(eops), dtype=np.float64),
+                   eop=np.array([e.eop for e in eops]))
+    camera = CameraConfig(model="OPENCV", width_px=640, height_px=480, fx_px=800.0,
+                          fy_px=801.0, cx_px=319.5, cy_px=239.5, k1=-0.1)
+    inputs = RunInputs(crs=pyproj.CRS.from_epsg(32652), camera=camera, camera_approximate=True,
+                       nav=nav, nav_sigma=np.array([1.0, 2.0, 3.0, 0.01, 0.02, 0.03]),
+                       sigma_image_px=0.7, images_dir=Path("/data/images"),
+                       skipped=(SkippedImage(image="img_9", reason="img_9.jpg: truncated"),),
+                       warnings=("a warning",))
+    return RunRecord(method="seq-r", flight="flight", inputs=inputs,
+                     options=TimingStats.from_samples([1.0]), final_only=False,
+                     images=tuple(update_for(e, i) for i, e in enumerate(eops)), totals=totals)
 
 
 def test_run_json_is_strict_json_with_file_units(tmp_path: Path) -> None:
@@ -137,10 +154,37 @@ def test_run_outputs_are_published_together(tmp_path: Path) -> None:
     eops, points = random_eops(2), random_points(2)
     solution = Solution(eops=tuple(eops), points=tuple(points), sigma0=1.0, redundancy=3)
     out = tmp_path / "a" / "run"
-    files = write_run_outputs(out, solution, sample_record(eops))
-    assert [p.name for p in files] == ["eop.csv", "points.csv", "run.json"]
-    assert sorted(p.name for p in out.iterdir()) == ["eop.csv", "points.csv", "run.json"]
+    record = sample_record(eops)
+    obs = format_observation_lines("img_0000", ("p1", "p2"), np.array([[1.5, 2.25], [3.0, 4.0]]))
+    files = write_run_outputs(out, solution, record, obs)
+    names = ["eop.csv", "points.csv", "run.json", "nav.csv", "observations.csv"]
+    assert [p.name for p in files] == names
+    assert sorted(p.name for p in out.iterdir()) == sorted(names)
     assert read_eop_csv(out / "eop.csv").image_ids == ("img_0000", "img_0001")
+    # the run folder reads back as the inputs it was written from
+    run = read_run(out)
+    assert run.method == "seq-r" and run.flight_dir == Path("flight")
+    assert run.crs.to_epsg() == 32652
+    assert run.camera == record.inputs.camera and run.inputs.camera_approximate
+    np.testing.assert_allclose(run.nav_sigma, record.inputs.nav_sigma, rtol=1e-14)
+    np.testing.assert_allclose(run.nav.eop, record.inputs.nav.eop, rtol=1e-14, atol=1e-14)
+    assert run.nav.image_ids == record.inputs.nav.image_ids
+    assert run.sigma_image_px == 0.7 and run.images_dir == Path("/data/images")
+    assert run.inputs.skipped == record.inputs.skipped
+    assert run.inputs.warnings == ("a warning",)
+    assert run.observations_path.read_text().splitlines() == [
+        "image,point,x_px,y_px", "img_0000,p1,1.5,2.25", "img_0000,p2,3.0,4.0"]
+    np.testing.assert_array_equal(run.points.xyz_m, np.array([p.xyz_m for p in points]))
+
+
+def test_read_run_names_what_is_missing(tmp_path: Path) -> None:
+    with pytest.raises(InputDataError, match="no such run folder"):
+        read_run(tmp_path / "nowhere")
+    with pytest.raises(InputDataError, match=r"run\.json: no such file"):
+        read_run(tmp_path)
+    (tmp_path / "run.json").write_text('{"method": "seq-r"}')
+    with pytest.raises(InputDataError, match=r"run\.json: missing key 'crs'"):
+        read_run(tmp_path)
 
 
 def test_failed_publish_leaves_no_folder_and_no_temp_files(tmp_path: Path,
