@@ -369,6 +369,8 @@ def to_working_crs(cloud: LasCloud, crs: pyproj.CRS) -> tuple[np.ndarray, tuple[
             target = crs if crs.is_compound else crs.to_3d()
             tr = pyproj.Transformer.from_crs(cloud.crs, target, always_xy=True)
             ex, ny, up = tr.transform(x, y, z, errcheck=True)
+        elif cloud.crs.equals(crs, ignore_axis_order=True):
+            ex, ny, up = x, y, z
         else:
             tr = pyproj.Transformer.from_crs(cloud.crs, crs, always_xy=True)
             ex, ny = tr.transform(x, y, errcheck=True)
