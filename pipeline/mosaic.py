@@ -31,7 +31,7 @@ from rasterio.transform import from_origin
 from rasterio.windows import Window
 
 from pipeline.ortho import ALPHA_OPAQUE, OrthoResult
-from pipeline.raster import COG_BLOCK_PX, colorinterp_for, atomic_path, gtiff_to_cog
+from pipeline.raster import COG_BLOCK_PX, atomic_path, colorinterp_for, gtiff_to_cog
 from seqat.errors import ConfigError, InputDataError
 
 #: Mosaic tile size, cells (= the COG block size, so tiles map to whole blocks).

@@ -99,7 +99,8 @@ class OrthoOptions:
 
     def __post_init__(self) -> None:
         if self.pixel_m is not None and not (math.isfinite(self.pixel_m) and self.pixel_m > 0):
-            raise ConfigError(f"pixel_m: expected a positive number of metres, got {self.pixel_m!r}")
+            raise ConfigError(f"pixel_m: expected a positive number of metres, "
+                              f"got {self.pixel_m!r}")
         if self.resampling not in ("bilinear", "cubic"):
             raise ConfigError(f"resampling: expected bilinear or cubic, got {self.resampling!r}")
         if not self.max_range_factor > 0:

@@ -34,7 +34,7 @@ from pipeline.config import build_dataclass, load_flight_config, load_yaml
 from pipeline.dsm import Dsm, DsmOptions, DsmResult, build_dsm, flat_dsm, read_dsm
 from pipeline.gis_export import write_cameras_gpkg
 from pipeline.mosaic import FEATHER_PX, MosaicBuilder
-from pipeline.ortho import Orthorectifier, OrthoOptions
+from pipeline.ortho import OrthoOptions, Orthorectifier
 from pipeline.store import EOP_FILE, TimingStats, atomic_write_text, read_eop_csv, to_jsonable
 from pipeline.tables import EopTable
 from seqat.errors import ConfigError, InputDataError, SeqatError

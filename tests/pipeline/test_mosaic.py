@@ -9,7 +9,7 @@ import pytest
 import rasterio
 
 from pipeline.mosaic import TILE_PX, MosaicBuilder
-from pipeline.ortho import Orthorectifier, OrthoOptions, OrthoResult
+from pipeline.ortho import OrthoOptions, Orthorectifier, OrthoResult
 from pipeline.raster import cog_problems
 from seqat.errors import InputDataError
 

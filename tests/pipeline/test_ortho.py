@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import rasterio
 
-from pipeline.ortho import Orthorectifier, OrthoOptions, OrthoRaster
+from pipeline.ortho import OrthoOptions, OrthoRaster, Orthorectifier
 from pipeline.raster import cog_problems
 from seqat.errors import InputDataError
 
