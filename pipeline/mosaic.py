@@ -9,9 +9,10 @@ seamline the two images are blended linearly over ``feather_px`` cells. ``finish
 the tiles into a tiled GeoTIFF and converts it into the ``mosaic.tif`` COG with overviews
 (GDAL reads it block by block).
 
-Tile store: ``<work_dir>/<col>_<row>.npy`` (bands + alpha, the image type) and
-``<col>_<row>.off.npy`` (float32 off-nadir tangent, +inf where empty), written atomically;
-removed by ``finish()``.
+Tiles: the most recently used ``cache_tiles`` stay in memory (consecutive images share most
+of their tiles); older ones go to the tile store ``<work_dir>/<col>_<row>.npz`` (bands, alpha,
+float32 off-nadir tangent with +inf where empty), written atomically and removed by
+``finish()``. Memory is bounded by the cache, whatever the flight's length.
 """
 
 from __future__ import annotations
@@ -21,9 +22,11 @@ import os
 import shutil
 import tempfile
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pyproj
 import rasterio
@@ -38,6 +41,8 @@ from seqat.errors import ConfigError, InputDataError
 TILE_PX = COG_BLOCK_PX
 #: Default seamline feather width, cells.
 FEATHER_PX = 8
+#: Tiles kept in memory (about 2 MB each for RGB): more than one image's footprint.
+CACHE_TILES = 48
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -75,10 +80,12 @@ class MosaicBuilder:
         Width of the blend across seamlines, cells (0: hard seams).
     work_dir : Path, optional
         Tile store (default: ``.<name>.tiles`` beside ``path``); emptied first.
+    cache_tiles : int
+        Tiles held in memory.
     """
 
     def __init__(self, path: Path | str, crs: pyproj.CRS, *, feather_px: int = FEATHER_PX,
-                 work_dir: Path | None = None) -> None:
+                 work_dir: Path | None = None, cache_tiles: int = CACHE_TILES) -> None:
         if feather_px < 0:
             raise ConfigError(f"feather_px: expected >= 0, got {feather_px}")
         self.path = Path(path)
@@ -91,7 +98,11 @@ class MosaicBuilder:
         self.pixel_m: float | None = None
         self.bands: int | None = None
         self.dtype: np.dtype | None = None
-        self._tiles: set[tuple[int, int]] = set()
+        self._tiles: set[tuple[int, int]] = set()  # every tile holding data
+        self._stored: set[tuple[int, int]] = set()  # tiles in the tile store
+        self._cache: OrderedDict[tuple[int, int], _Tile] = OrderedDict()
+        self._dirty: set[tuple[int, int]] = set()
+        self._cache_tiles = max(1, cache_tiles)
         self._images = 0
 
     # ----------------------------------------------------------------------------------------
@@ -129,10 +140,11 @@ class MosaicBuilder:
                 if not seen.any():
                     continue
                 dst = (slice(g_r0 - tr * T, g_r1 - tr * T), slice(g_c0 - tc * T, g_c1 - tc * T))
-                pix, off = self._load(tc, tr)
-                _blend(pix[dst], off[dst], r.pixels[src], seen, r.off_nadir[src], feather,
-                       ALPHA_OPAQUE[self.dtype])
-                self._save(tc, tr, pix, off)
+                tile = self._tile(tc, tr)
+                _blend(tile.colour[dst], tile.alpha[dst], tile.off[dst], r.pixels[src], seen,
+                       r.off_nadir[src], feather, ALPHA_OPAQUE[self.dtype])
+                self._tiles.add((tc, tr))
+                self._dirty.add((tc, tr))
                 touched += 1
                 updated += int(seen.sum())
         self._images += 1
@@ -165,9 +177,9 @@ class MosaicBuilder:
             with rasterio.open(full, "w", **profile) as dst:
                 dst.colorinterp = colorinterp_for(count, alpha=True)
                 for tc, tr in sorted(self._tiles, key=lambda t: (t[1], t[0])):
-                    pix, _ = self._load(tc, tr)
-                    dst.write(np.moveaxis(pix, 2, 0),
-                              window=Window((tc - tc0) * T, (tr - tr0) * T, T, T))
+                    tile = self._tile(tc, tr)
+                    data = np.concatenate([np.moveaxis(tile.colour, 2, 0), tile.alpha[None]])
+                    dst.write(data, window=Window((tc - tc0) * T, (tr - tr0) * T, T, T))
             gtiff_to_cog(full, self.path)
         shutil.rmtree(self.work_dir, ignore_errors=True)
         bounds = (tc0 * T * p, -(tr0 * T + rows) * p, (tc0 * T + cols) * p, -tr0 * T * p)
@@ -177,51 +189,80 @@ class MosaicBuilder:
 
     # ----------------------------------------------------------------------------------------
 
-    def _tile_path(self, tc: int, tr: int, kind: str) -> Path:
-        return self.work_dir / f"{tc}_{tr}{kind}.npy"
+    def _tile_path(self, tc: int, tr: int) -> Path:
+        return self.work_dir / f"{tc}_{tr}.npz"
 
-    def _load(self, tc: int, tr: int) -> tuple[np.ndarray, np.ndarray]:
+    def _tile(self, tc: int, tr: int) -> _Tile:
+        """The tile from the cache, the tile store or new; evicts the least recently used."""
+        key = (tc, tr)
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
         assert self.dtype is not None and self.bands is not None
-        if (tc, tr) not in self._tiles:
-            return (np.zeros((TILE_PX, TILE_PX, self.bands + 1), self.dtype),
-                    np.full((TILE_PX, TILE_PX), np.inf, np.float32))
-        return np.load(self._tile_path(tc, tr, "")), np.load(self._tile_path(tc, tr, ".off"))
+        if key in self._stored:
+            with np.load(self._tile_path(tc, tr)) as npz:
+                tile = _Tile(colour=npz["colour"], alpha=npz["alpha"], off=npz["off"])
+        else:
+            tile = _Tile(colour=np.zeros((TILE_PX, TILE_PX, self.bands), self.dtype),
+                         alpha=np.zeros((TILE_PX, TILE_PX), self.dtype),
+                         off=np.full((TILE_PX, TILE_PX), np.inf, np.float32))
+        self._cache[key] = tile
+        while len(self._cache) > self._cache_tiles:
+            old_key, old = self._cache.popitem(last=False)
+            if old_key in self._dirty:
+                self._store(old_key, old)
+        return tile
 
-    def _save(self, tc: int, tr: int, pix: np.ndarray, off: np.ndarray) -> None:
-        for kind, array in (("", pix), (".off", off)):
-            target = self._tile_path(tc, tr, kind)
-            fd, tmp = tempfile.mkstemp(dir=self.work_dir, suffix=".npy.tmp")
-            try:
-                with os.fdopen(fd, "wb") as handle:
-                    np.save(handle, array)
-                os.replace(tmp, target)
-            except BaseException:
-                with contextlib.suppress(FileNotFoundError):
-                    os.unlink(tmp)
-                raise
-        self._tiles.add((tc, tr))
+    def _store(self, key: tuple[int, int], tile: _Tile) -> None:
+        target = self._tile_path(*key)
+        fd, tmp = tempfile.mkstemp(dir=self.work_dir, suffix=".npz.tmp")
+        try:
+            with os.fdopen(fd, "wb") as handle:
+                np.savez(handle, colour=tile.colour, alpha=tile.alpha, off=tile.off)
+            os.replace(tmp, target)
+        except BaseException:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            raise
+        self._stored.add(key)
+        self._dirty.discard(key)
 
 
-def _blend(pix: np.ndarray, off: np.ndarray, new: np.ndarray, seen: np.ndarray,
-           new_off: np.ndarray, feather: float, opaque: int) -> None:
+@dataclass(frozen=True, kw_only=True, eq=False)
+class _Tile:
+    """One mosaic tile: colour (T, T, bands), alpha (T, T), off-nadir tangent (T, T)."""
+
+    colour: np.ndarray
+    alpha: np.ndarray
+    off: np.ndarray
+
+
+def _blend(colour: np.ndarray, alpha: np.ndarray, off: np.ndarray, new: np.ndarray,
+           seen: np.ndarray, new_off: np.ndarray, feather: float, opaque: int) -> None:
     """Merge one ortho window into a tile window in place.
 
     Where only the new image sees a cell it is taken; where both do, the weight of the new
     image is ``clip(0.5 + (off_old - off_new) / feather, 0, 1)`` (a hard choice of the more
     nadir view when ``feather`` is 0), so the blend spans about ``feather_px`` cells across
-    the seamline where both are equally nadir. ``off`` keeps the better of the two.
+    the seamline where both are equally nadir (``cv2.blendLinear``). ``off`` keeps the better
+    of the two.
     """
-    old_seen = pix[:, :, -1] > 0
+    old_seen = alpha > 0
     if feather > 0:
         with np.errstate(invalid="ignore"):
-            w = np.clip(0.5 + (off - new_off) / np.float32(feather), 0.0, 1.0)
+            w = off - new_off
+            w *= np.float32(1.0 / feather)
+            w += np.float32(0.5)
+            np.clip(w, 0.0, 1.0, out=w)
     else:
         w = (new_off < off).astype(np.float32)
-    w = np.where(old_seen, w, 1.0).astype(np.float32)
+    w[~old_seen] = 1.0
     w[~seen] = 0.0
-    colour = pix[:, :, :-1].astype(np.float32)
-    mixed = colour + w[:, :, None] * (new.astype(np.float32) - colour)
-    pix[:, :, :-1] = np.rint(mixed).astype(pix.dtype)
-    pix[:, :, -1] = np.where(seen | old_seen, opaque, 0).astype(pix.dtype)
-    off[:] = np.where(seen, np.minimum(off, new_off), off)
-
+    if colour.dtype == np.uint8:  # cv2.blendLinear: 8-bit (and float) only
+        cv2.blendLinear(new, colour, w, 1.0 - w, dst=colour)
+    else:
+        old = colour.astype(np.float32)
+        old += w[:, :, None] * (new.astype(np.float32) - old)
+        colour[:] = np.rint(old).astype(colour.dtype)
+    alpha[seen] = opaque
+    np.minimum(off, new_off, out=off, where=seen)

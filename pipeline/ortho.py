@@ -53,13 +53,22 @@ FOOTPRINT_SAMPLES_PER_EDGE = 16
 #: A ray whose downward component is below this (sine of the depression angle) misses the
 #: ground: the viewing axis must look at least this far below the horizon.
 MIN_DEPRESSION_SIN = math.sin(math.radians(1.0))
-#: Cells whose undistorted radius exceeds the image corners' by this factor are not projected
-#: (the distortion polynomial folds back outside the field of view).
-FOV_RADIUS_MARGIN = 1.05
+#: Distortion lookup table: node spacing and margin around the image's ideal pixels (px),
+#: border samples per edge used to find that range. Outside it cells are not projected (the
+#: distortion polynomial may fold back far outside the field of view).
+LUT_STEP_PX = 4.0
+LUT_MARGIN_PX = 8.0
+LUT_BORDER_SAMPLES = 64
 #: Map value that makes ``cv2.remap`` sample nothing (far outside any image).
 OUTSIDE_PX = -1.0e5
 #: Rows per block of the projection (fits the work arrays in the cache).
 BLOCK_ROWS = 128
+#: The z-buffer is filled from every k-th cell in each direction (k^2 times less work).
+OCCLUSION_SUBSAMPLE = 2
+#: Scattered points are projected through the distortion table in rows of this many.
+POINTS_PER_ROW = 4096
+#: Longest facade segment sampled into the z-buffer, image pixels.
+MAX_FACADE_PX = 4000.0
 #: Significant digits of the automatic pixel size (GSD).
 PIXEL_SIGNIFICANT_DIGITS = 3
 #: Lowest valid 8/16-bit alpha value ("seen").
@@ -242,10 +251,7 @@ class Orthorectifier:
         self.pixel_m: float | None = self.options.pixel_m
         self._corrector = PixelCorrector(camera=camera)
         self._pinhole = pinhole_camera(camera)
-        corners = self._corrector.ideal_pixels(border_pixels(camera.width_px, camera.height_px, 1))
-        xn = (corners[:, 0] - camera.cx_px) / camera.fx_px
-        yn = (corners[:, 1] - camera.cy_px) / camera.fx_px
-        self._r2_max = float(np.max(xn * xn + yn * yn)) * FOV_RADIUS_MARGIN**2
+        self._lut = _DistortionLut.for_camera(camera)
         self._pool = ThreadPoolExecutor(max_workers=self.options.threads)
 
     def close(self) -> None:
@@ -314,32 +320,25 @@ class Orthorectifier:
             raise InputDataError(f"image {image_id!r}: footprint of {cols} x {rows} cells at "
                                  f"{p:g} m is too large (pixel_m too small for this image?)")
         Z = self.dsm.sample_grid(col0 * p, -row0 * p, p, rows, cols)
-        u, v, depth, off_nadir, inside = self._project(eop, R, col0, row0, Z)
-        on_dsm = np.isfinite(Z)
-        seen = inside & on_dsm
-        off_dsm = int(np.count_nonzero(inside & ~on_dsm))
+        proj = self._project(eop, R, col0, row0, Z, z_ground)
+        off_dsm = sum(proj.off_dsm)
         if off_dsm:
             warnings.append(f"image {image_id!r}: {off_dsm} cells of the footprint have no DSM "
                             f"height ({self.dsm.source}); they are left empty")
-        occluded = 0
-        if self.options.occlusion:
-            hidden = self._occlusion(u, v, depth, seen, eop, window)
-            if hidden is not None:
-                occluded = int(np.count_nonzero(hidden))
-                seen &= ~hidden
-        if not np.any(seen):
+        occluded = (self._hide_occluded(proj, eop, R, Z, col0, row0, window)
+                    if self.options.occlusion else 0)
+        if not np.any(proj.seen):
             raise InputDataError(f"image {image_id!r}: no ground cell is seen: the DSM "
                                  f"({self.dsm.source}) does not cover the image footprint "
                                  f"{tuple(round(b, 1) for b in window)}")
-        u[~seen] = OUTSIDE_PX
-        v[~seen] = OUTSIDE_PX
         interp = cv2.INTER_CUBIC if self.options.resampling == "cubic" else cv2.INTER_LINEAR
-        pixels = cv2.remap(image, u, v, interp, borderMode=cv2.BORDER_REPLICATE)
+        # Unseen cells map far outside the image: the constant border (0) fills them.
+        pixels = cv2.remap(image, proj.uv, None, interp, borderMode=cv2.BORDER_CONSTANT,
+                           borderValue=0)
         if pixels.ndim == 2:
             pixels = pixels[:, :, None]
-        pixels[~seen] = 0
         raster = _cropped(OrthoRaster(image_id=image_id, col0=col0, row0=row0, pixel_m=p,
-                                      pixels=pixels, seen=seen, off_nadir=off_nadir,
+                                      pixels=pixels, seen=proj.seen, off_nadir=proj.off_nadir,
                                       height_agl_m=float(height_agl)))
         compute_ms = (time.perf_counter() - t0) * 1e3
         path = None
@@ -418,75 +417,261 @@ class Orthorectifier:
                 f"footprint {tuple(round(float(b), 1) for b in box)}")
         return np.vstack([ring, ring[:1]]), window, partial
 
-    def _project(self, eop: FloatArray, R: FloatArray, col0: int, row0: int, Z: np.ndarray) -> (
-            tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]):
-        """Observed pixel, depth and off-nadir tangent of every cell (float32, row blocks)."""
+    def _project(self, eop: FloatArray, R: FloatArray, col0: int, row0: int, Z: np.ndarray,
+                 z_ground: float) -> _Projection:
+        """Observed pixel, depth and off-nadir tangent of every cell (float32, row blocks).
+
+        With ``d = -p_z`` (the depth) the ideal pixel is ``u = (cx d + f p_x) / d``,
+        ``v = (cy d - f p_y) / d``: numerators and depth are affine in the cell's offset from
+        the projection centre, so each is an outer sum over the grid's rows and columns plus
+        a multiple of the height. The distortion is added from the camera's lookup table
+        (:class:`_DistortionLut`, one ``cv2.remap``). Cells without DSM height are projected
+        at ``z_ground`` only to count those inside the image (``off_dsm``); they stay unseen.
+        """
         rows, cols = Z.shape
         p = self.pixel_m
         assert p is not None
-        cam = self.camera
+        lut = self._lut
         f32 = np.float32
-        # Cell centres relative to the projection centre (float32 keeps cm over km).
-        dx = ((col0 + np.arange(cols) + 0.5) * p - eop[0]).astype(f32)
-        dy = (-(row0 + np.arange(rows) + 0.5) * p - eop[1]).astype(f32)
-        Rt = R.T.astype(f32)  # rows: camera axes in world coordinates
-        u = np.empty((rows, cols), f32)
-        v = np.empty_like(u)
-        depth = np.empty_like(u)
-        off_nadir = np.empty_like(u)
-        inside = np.empty((rows, cols), bool)
-        z0 = f32(eop[2])
-        r2_max = f32(self._r2_max)
-        w_max, h_max = f32(cam.width_px - 0.5), f32(cam.height_px - 0.5)
+        f = self._pinhole.f_px
+        cx, cy = self._pinhole.cx_px, self._pinhole.cy_px
+        dx = (col0 + np.arange(cols) + 0.5) * p - eop[0]
+        dy = -(row0 + np.arange(rows) + 0.5) * p - eop[1]
+        k = self._lut_coefficients(R)
+        col_terms = (k[:, 0:1] * dx[None, :]).astype(f32)  # (3, cols)
+        row_terms = (k[:, 1:2] * dy[None, :]).astype(f32)  # (3, rows)
+        kz = k[:, 2].astype(f32)
+        neg_hdist = (-np.sqrt(dx[None, :] ** 2 + dy[:, None] ** 2)).astype(f32)
+        out = _Projection(uv=np.empty((rows, cols, 2), f32), depth=np.empty((rows, cols), f32),
+                          off_nadir=np.empty((rows, cols), f32),
+                          seen=np.empty((rows, cols), bool), off_dsm=[])
+        z0, z_fill = f32(eop[2]), f32(z_ground)
+        margin = 1.0 if self.options.resampling == "cubic" else 0.0  # kernel inside the image
+        lo = (margin, margin)
+        hi = (self.camera.width_px - 1 - margin, self.camera.height_px - 1 - margin)
+        has_holes = bool(np.isnan(Z).any())
 
         def block(r0: int) -> None:
-            r1 = min(r0 + BLOCK_ROWS, rows)
-            dz = Z[r0:r1] - z0
-            y = dy[r0:r1, None]
-            p0 = Rt[0, 0] * dx + Rt[0, 1] * y + Rt[0, 2] * dz
-            p1 = Rt[1, 0] * dx + Rt[1, 1] * y + Rt[1, 2] * dz
-            d = -(Rt[2, 0] * dx + Rt[2, 1] * y + Rt[2, 2] * dz)  # depth along the view axis
-            with np.errstate(divide="ignore", invalid="ignore"):
-                inv = f32(1) / d
-                xn = p0 * inv
-                yn = -p1 * inv  # OpenCV frame (x, -y, -z)
-                ok = (d > 0) & (xn * xn + yn * yn <= r2_max)
-                ub, vb = distort_normalized(xn, yn, cam)
-                ok &= (ub >= -0.5) & (ub <= w_max) & (vb >= -0.5) & (vb <= h_max)
-                off_nadir[r0:r1] = np.sqrt(dx * dx + y * y) / -dz
-            u[r0:r1] = np.where(ok, ub, f32(OUTSIDE_PX))
-            v[r0:r1] = np.where(ok, vb, f32(OUTSIDE_PX))
-            depth[r0:r1] = d
-            inside[r0:r1] = ok
+            rs = slice(r0, min(r0 + BLOCK_ROWS, rows))
+            dz = Z[rs] - z0
+            no_height = np.isnan(dz) if has_holes else None
+            if no_height is not None:
+                dz[no_height] = z_fill - z0
+            depth = out.depth[rs]
+            np.multiply(kz[2], dz, out=depth)
+            depth += row_terms[2, rs, None]
+            depth += col_terms[2]
+            behind = depth <= 0
+            any_behind = bool(behind.any())
+            uv = np.empty(depth.shape + (2,), f32)
+            for c in (0, 1):
+                num = kz[c] * dz
+                num += row_terms[c, rs, None]
+                num += col_terms[c]
+                np.divide(num, depth, out=uv[:, :, c])
+            if any_behind:
+                uv[behind] = OUTSIDE_PX
+                depth[behind] = np.nan
+            delta = cv2.remap(lut.table, uv, None, cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=(OUTSIDE_PX,) * 4)
+            cv2.scaleAdd(uv, lut.step_px, delta, dst=out.uv[rs])
+            seen = out.seen[rs]
+            np.greater(cv2.inRange(out.uv[rs], lo, hi), 0, out=seen)
+            if no_height is not None:
+                out.off_dsm.append(int(np.count_nonzero(seen & no_height)))
+                seen &= ~no_height
+                out.uv[rs][~seen] = OUTSIDE_PX
+            np.divide(neg_hdist[rs], dz, out=out.off_nadir[rs])
 
         list(self._pool.map(block, range(0, rows, BLOCK_ROWS)))
-        return u, v, depth, off_nadir, inside
+        return out
 
-    def _occlusion(self, u: np.ndarray, v: np.ndarray, depth: np.ndarray, seen: np.ndarray,
-                   eop: FloatArray, window: tuple[float, float, float, float]) -> (
-            np.ndarray | None):
-        """Cells hidden by nearer surfaces (z-buffer); None when the relief cannot hide any."""
+    def _lut_coefficients(self, R: FloatArray) -> FloatArray:
+        """(3, 3) map from ``(X - X0, Y - Y0, Z - Z0)`` to (numerator u, numerator v, depth).
+
+        ``depth = -p_z``; ``u = (cx d + f p_x) / d``, ``v = (cy d - f p_y) / d`` with the
+        distortion table's origin and step folded in: ``num_u / d = (u - u0) / step``.
+        """
+        lut = self._lut
+        f, cx, cy = self._pinhole.f_px, self._pinhole.cx_px, self._pinhole.cy_px
+        Rt = R.T  # rows: camera axes in world coordinates
+        k = np.vstack([f * Rt[0] - (cx - lut.u0) * Rt[2],
+                       -f * Rt[1] - (cy - lut.v0) * Rt[2],
+                       -Rt[2]])
+        k[:2] /= lut.step_px
+        return k
+
+    def _project_points(self, k: FloatArray, offsets_m: FloatArray) -> (
+            tuple[np.ndarray, np.ndarray]):
+        """Observed pixels (OUTSIDE_PX where not seeable) and depths of scattered points.
+
+        Parameters
+        ----------
+        k : (3, 3) float
+            :meth:`_lut_coefficients`.
+        offsets_m : (n, 3) float
+            Points minus the projection centre.
+        """
+        x, y, z = (np.ascontiguousarray(offsets_m[:, i], dtype=np.float32) for i in range(3))
+        kf = k.astype(np.float32)
+        num_u, num_v, depth = (kf[i, 0] * x + kf[i, 1] * y + kf[i, 2] * z for i in range(3))
+        uv = np.empty((len(x), 2), np.float32)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            np.divide(num_u, depth, out=uv[:, 0])
+            np.divide(num_v, depth, out=uv[:, 1])
+        uv[~(depth > 0)] = OUTSIDE_PX
+        n = len(uv)
+        # cv2.remap needs maps under 32767 x 32767: lay the points out in rows.
+        rows = -(-n // POINTS_PER_ROW)
+        grid = np.full((rows * POINTS_PER_ROW, 2), OUTSIDE_PX, np.float32)
+        grid[:n] = uv
+        delta = cv2.remap(self._lut.table, grid.reshape(rows, POINTS_PER_ROW, 2), None,
+                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                          borderValue=(OUTSIDE_PX,) * 4)
+        return uv * np.float32(self._lut.step_px) + delta.reshape(-1, 2)[:n], depth
+
+    def _facade_points(self, Z: np.ndarray, stride: int, col0: int, row0: int,
+                       eop: FloatArray, k: FloatArray, step_px: float, min_jump_m: float) -> (
+            tuple[np.ndarray, np.ndarray]):
+        """Samples of the vertical walls a 2.5D DSM implies, for the z-buffer.
+
+        ``Z`` holds every ``stride``-th cell of the grid in each direction (the grid's top-left
+        cell is ``(col0, row0)``). Where a cell stands more than ``min_jump_m`` above its
+        lowest 8-neighbour, a vertical
+        segment from that neighbour's height to the cell's is sampled at about ``step_px``
+        image pixels (from the projected length of the segment).
+
+        Returns
+        -------
+        uv : (m, 2) float32
+        depth : (m,) float32
+        """
+        p = self.pixel_m
+        assert p is not None
+        filled = np.where(np.isnan(Z), np.float32(np.inf), Z)
+        lowest = cv2.erode(filled, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+        with np.errstate(invalid="ignore"):
+            r, c = np.nonzero(Z - lowest > min_jump_m)
+        empty = (np.empty((0, 2), np.float32), np.empty(0, np.float32))
+        if r.size == 0:
+            return empty
+        x = (col0 + stride * c + 0.5) * p - eop[0]
+        y = -(row0 + stride * r + 0.5) * p - eop[1]
+        top, bottom = Z[r, c].astype(np.float64), lowest[r, c].astype(np.float64)
+        uv_top, _ = self._project_points(k, np.column_stack([x, y, top - eop[2]]))
+        uv_bot, _ = self._project_points(k, np.column_stack([x, y, bottom - eop[2]]))
+        length = np.linalg.norm(uv_top - uv_bot, axis=1)
+        length[~np.isfinite(length) | (length > MAX_FACADE_PX)] = MAX_FACADE_PX
+        n = np.ceil(length / step_px).astype(np.int64) + 1
+        seg = np.repeat(np.arange(r.size), n)
+        first = np.repeat(np.cumsum(n) - n, n)
+        t = (np.arange(seg.size) - first) / np.maximum(n[seg] - 1, 1)
+        z = bottom[seg] + t * (top[seg] - bottom[seg])
+        uv, depth = self._project_points(k, np.column_stack([x[seg], y[seg], z - eop[2]]))
+        return uv, depth
+
+    def _hide_occluded(self, proj: _Projection, eop: FloatArray, R: FloatArray,
+                       Z: np.ndarray, col0: int, row0: int,
+                       window: tuple[float, float, float, float]) -> int:
+        """Mark cells hidden by nearer surfaces as unseen (z-buffer); the number hidden.
+
+        Skipped (0) when the relief under the window is within the tolerance. The buffer is
+        filled from every ``OCCLUSION_SUBSAMPLE``-th cell in each direction (``np.minimum.at``)
+        with buckets of the image spacing of those cells on the highest surface, widened by a
+        3 x 3 minimum filter; each cell then reads its bucket (``cv2.remap``, nearest) and is
+        hidden when it lies farther than the tolerance behind it.
+        """
         z_lo, z_hi = self.dsm.height_range(window)
         p = self.pixel_m
         assert p is not None
         if not math.isfinite(z_lo) or z_hi - z_lo <= self.options.occlusion_tolerance_cells * p:
-            return None
+            return 0
         fx = self.camera.fx_px
-        # Bucket = image spacing of neighbouring cells on the highest surface (no gaps there).
-        bucket_px = max(1.0, p * fx / max(eop[2] - z_hi, 1e-6))
-        tol_m = self.options.occlusion_tolerance_cells * bucket_px * (eop[2] - z_lo) / fx
-        nbu = int(self.camera.width_px / bucket_px) + 2
-        nbv = int(self.camera.height_px / bucket_px) + 2
-        scale = np.float32(1.0 / bucket_px)
-        bu = ((u + np.float32(0.5)) * scale).astype(np.int32)
-        bv = ((v + np.float32(0.5)) * scale).astype(np.int32)
-        np.clip(bu, 0, nbu - 1, out=bu)
-        np.clip(bv, 0, nbv - 1, out=bv)
-        index = bv * nbu + bu
-        zbuf = np.full(nbu * nbv, np.inf, dtype=np.float32)
-        np.minimum.at(zbuf, index[seen], depth[seen])
-        zbuf = cv2.erode(zbuf.reshape(nbv, nbu), np.ones((3, 3), np.uint8)).reshape(-1)
-        return seen & (depth > zbuf[index] + np.float32(tol_m))
+        k = OCCLUSION_SUBSAMPLE
+        # Integer bucket: pixel (i, j) (nearest to an observed position) lies in bucket
+        # (i // b, j // b), so the buffer blown up by b reads back with one nearest remap.
+        b = max(1, math.ceil(k * p * fx / max(eop[2] - z_hi, 1e-6)))
+        tol = np.float32(self.options.occlusion_tolerance_cells * b * (eop[2] - z_lo) / fx)
+        width, height = self.camera.width_px, self.camera.height_px
+        nbu, nbv = -(-width // b), -(-height // b)
+        sub = (slice(None, None, k), slice(None, None, k))
+        pix = np.rint(proj.uv[sub]).astype(np.int32)
+        pix //= b
+        index = pix[:, :, 1] * nbu + pix[:, :, 0]
+        index[~proj.seen[sub]] = nbu * nbv  # unseen cells go to a spare slot
+        zbuf = np.full(nbu * nbv + 1, np.inf, dtype=np.float32)
+        np.minimum.at(zbuf, index.ravel(), proj.depth[sub].ravel())
+        # Walls between cells of very different height (facades) hide what lies behind them.
+        uv_f, depth_f = self._facade_points(np.ascontiguousarray(Z[sub]), k, col0, row0, eop,
+                                            self._lut_coefficients(R), b, float(tol))
+        if len(depth_f):
+            pf = np.rint(uv_f).astype(np.int64) // b
+            inside = (pf[:, 0] >= 0) & (pf[:, 0] < nbu) & (pf[:, 1] >= 0) & (pf[:, 1] < nbv)
+            np.minimum.at(zbuf, pf[inside, 1] * nbu + pf[inside, 0], depth_f[inside])
+        zbuf = zbuf[:-1]
+        zbuf = cv2.erode(zbuf.reshape(nbv, nbu), np.ones((3, 3), np.uint8))
+        zbuf[~np.isfinite(zbuf)] = np.float32(3.0e38)
+        zbuf_px = cv2.resize(zbuf, (nbu * b, nbv * b), interpolation=cv2.INTER_NEAREST)
+        hidden_counts: list[int] = []
+
+        def block(r0: int) -> None:
+            rs = slice(r0, min(r0 + BLOCK_ROWS, proj.seen.shape[0]))
+            nearest = cv2.remap(zbuf_px, proj.uv[rs], None, cv2.INTER_NEAREST,
+                                borderMode=cv2.BORDER_REPLICATE)
+            seen = proj.seen[rs]
+            nearest += tol
+            hidden = seen & (proj.depth[rs] > nearest)
+            seen &= ~hidden
+            proj.uv[rs][hidden] = OUTSIDE_PX
+            hidden_counts.append(int(np.count_nonzero(hidden)))
+
+        list(self._pool.map(block, range(0, proj.seen.shape[0], BLOCK_ROWS)))
+        return sum(hidden_counts)
+
+
+@dataclass(kw_only=True, eq=False)
+class _Projection:
+    """Per-cell work arrays of one image (float32 / bool, the ortho grid's shape)."""
+
+    uv: np.ndarray  # (rows, cols, 2) observed pixels, OUTSIDE_PX where unseen
+    depth: np.ndarray
+    off_nadir: np.ndarray
+    seen: np.ndarray
+    off_dsm: list[int]
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class _DistortionLut:
+    """Ideal -> observed pixels as a table, read with ``cv2.remap`` (bilinear).
+
+    ``table[j, i] = observed(u0 + i step, v0 + j step) - (i step, j step)``: for ideal pixels
+    ``(u, v)`` the observed ones are ``step * ((u - u0) / step, (v - v0) / step) + table``
+    interpolated there. Covers the ideal pixels of the image (plus ``LUT_MARGIN_PX``); cells
+    outside read ``OUTSIDE_PX`` and are unseen. The OpenCV polynomial is smooth: bilinear
+    interpolation over ``LUT_STEP_PX`` adds < 0.01 px (pinned by the ortho tests).
+    """
+
+    table: np.ndarray  # (nv, nu, 2) float32
+    u0: float
+    v0: float
+    step_px: float
+
+    @classmethod
+    def for_camera(cls, camera: CameraConfig) -> _DistortionLut:
+        corrector = PixelCorrector(camera=camera)
+        ideal = corrector.ideal_pixels(border_pixels(camera.width_px, camera.height_px,
+                                                     LUT_BORDER_SAMPLES))
+        u0 = math.floor(ideal[:, 0].min()) - LUT_MARGIN_PX
+        v0 = math.floor(ideal[:, 1].min()) - LUT_MARGIN_PX
+        nu = int(math.ceil((ideal[:, 0].max() + LUT_MARGIN_PX - u0) / LUT_STEP_PX)) + 2
+        nv = int(math.ceil((ideal[:, 1].max() + LUT_MARGIN_PX - v0) / LUT_STEP_PX)) + 2
+        gu = np.arange(nu) * LUT_STEP_PX
+        gv = np.arange(nv) * LUT_STEP_PX
+        U, V = np.meshgrid(u0 + gu, v0 + gv)
+        uo, vo = distort_normalized((U - camera.cx_px) / camera.fx_px,
+                                    (V - camera.cy_px) / camera.fx_px, camera)
+        table = np.stack([uo - gu[None, :], vo - gv[:, None]], axis=-1).astype(np.float32)
+        return cls(table=table, u0=float(u0), v0=float(v0), step_px=float(LUT_STEP_PX))
 
 
 def _cropped(raster: OrthoRaster) -> OrthoRaster:

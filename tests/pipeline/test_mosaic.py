@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -69,6 +70,31 @@ def test_mosaic_picks_the_most_nadir_image_with_a_short_feather(
     # Flat memory: an update touches only the tiles under its ortho.
     assert max(u.tiles_touched for u in updates) <= 4
     assert result.images == len(strip_orthos)
+
+
+def test_tiles_evicted_to_disk_give_the_same_mosaic(tmp_path: Path,
+                                                   strip_orthos: list[OrthoResult]) -> None:
+    paths = []
+    for cache in (1, 64):
+        builder = MosaicBuilder(tmp_path / f"m{cache}.tif", CRS, cache_tiles=cache)
+        for ortho in strip_orthos:
+            builder.add(ortho)
+        paths.append(builder.finish().path)
+    with rasterio.open(paths[0]) as a, rasterio.open(paths[1]) as b:
+        np.testing.assert_array_equal(a.read(), b.read())
+
+
+def test_8bit_orthos_blend_like_16bit(tmp_path: Path, strip_orthos: list[OrthoResult]) -> None:
+    results = {}
+    for dtype in (np.uint8, np.uint16):
+        builder = MosaicBuilder(tmp_path / f"{np.dtype(dtype).name}.tif", CRS)
+        for o in strip_orthos:
+            pixels = (o.raster.pixels // 256).astype(dtype)
+            builder.add(dataclasses.replace(o, raster=dataclasses.replace(o.raster,
+                                                                          pixels=pixels)))
+        with rasterio.open(builder.finish().path) as src:
+            results[dtype] = src.read(1).astype(np.int64)
+    assert np.abs(results[np.uint8] - results[np.uint16]).max() <= 1
 
 
 def test_mosaic_of_nothing_is_an_error(tmp_path: Path) -> None:
