@@ -433,8 +433,6 @@ class Orthorectifier:
         assert p is not None
         lut = self._lut
         f32 = np.float32
-        f = self._pinhole.f_px
-        cx, cy = self._pinhole.cx_px, self._pinhole.cy_px
         dx = (col0 + np.arange(cols) + 0.5) * p - eop[0]
         dy = -(row0 + np.arange(rows) + 0.5) * p - eop[1]
         k = self._lut_coefficients(R)

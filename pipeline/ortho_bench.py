@@ -25,7 +25,7 @@ from rasterio.transform import from_origin
 from pipeline.config import CameraConfig
 from pipeline.dsm import Dsm
 from pipeline.mosaic import MosaicBuilder
-from pipeline.ortho import Orthorectifier, OrthoOptions
+from pipeline.ortho import OrthoOptions, Orthorectifier
 from pipeline.store import TimingStats, to_jsonable
 
 #: The benchmark camera: 2456 x 2058 px (5 Mpx machine-vision sensor), f = 3000 px.
