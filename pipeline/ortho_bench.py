@@ -54,6 +54,7 @@ class OrthoBench:
     occlusion: bool
     cells_per_image: float
     compute_ms: TimingStats
+    occlusion_ms: TimingStats
     write_ms: TimingStats
     mosaic_ms: TimingStats
     mosaic_finish_s: float
@@ -96,7 +97,7 @@ def run_ortho_bench(n_images: int, out_dir: Path, *, occlusion: bool = True,
     ortho_dir = out_dir / "ortho" if write else None
     options = OrthoOptions(occlusion=occlusion, write_images=write)
     mosaic = MosaicBuilder(out_dir / "mosaic.tif", BENCH_CRS)
-    compute, writing, updates, cells = [], [], [], []
+    compute, occlusion_ms, writing, updates, cells = [], [], [], [], []
     with Orthorectifier(dsm, BENCH_CAMERA, BENCH_CRS, ortho_dir, options) as ortho:
         for i in range(n_images):
             eop = np.array([ORIGIN_E + i * SPACING_M, ORIGIN_N, BASE_M + HEIGHT_M,
@@ -104,6 +105,7 @@ def run_ortho_bench(n_images: int, out_dir: Path, *, occlusion: bool = True,
             result = ortho.add_image(f"img_{i:04d}", image, eop)
             update = mosaic.add(result)
             compute.append(result.compute_ms)
+            occlusion_ms.append(result.occlusion_ms)
             writing.append(result.write_ms)
             updates.append(update.update_ms)
             cells.append(result.raster.shape[0] * result.raster.shape[1])
@@ -114,7 +116,8 @@ def run_ortho_bench(n_images: int, out_dir: Path, *, occlusion: bool = True,
     return OrthoBench(
         images=n_images, image_px=(BENCH_CAMERA.width_px, BENCH_CAMERA.height_px),
         pixel_m=pixel_m, occlusion=occlusion, cells_per_image=float(np.mean(cells)),
-        compute_ms=TimingStats.from_samples(compute), write_ms=TimingStats.from_samples(writing),
+        compute_ms=TimingStats.from_samples(compute),
+        occlusion_ms=TimingStats.from_samples(occlusion_ms), write_ms=TimingStats.from_samples(writing),
         mosaic_ms=TimingStats.from_samples(updates), mosaic_finish_s=finish_s,
         mosaic_px=(final.cols, final.rows),
         peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
