@@ -37,13 +37,16 @@ COG_COMPRESS = "DEFLATE"
 COG_DEFLATE_LEVEL = 1
 #: Overview resampling (averaging; alpha-aware in GDAL).
 COG_OVERVIEW_RESAMPLING = "AVERAGE"
+#: GDAL compresses the tiles on this many threads.
+COG_THREADS = "ALL_CPUS"
 
 
 def cog_options(dtype: str) -> dict[str, str | int]:
     """Creation options of the COG driver for a band type.
 
     Floating-point bands get the floating-point predictor (``PREDICTOR=3``), integer bands
-    the horizontal one (``PREDICTOR=2``).
+    the horizontal one (``PREDICTOR=2``). DEFLATE is read by every GDAL build (ZSTD level 1
+    writes about twice as fast at the same size but is missing from some GIS builds).
     """
     return {
         "BLOCKSIZE": COG_BLOCK_PX,
@@ -53,6 +56,7 @@ def cog_options(dtype: str) -> dict[str, str | int]:
         "OVERVIEWS": "AUTO",
         "RESAMPLING": COG_OVERVIEW_RESAMPLING,
         "BIGTIFF": "IF_SAFER",
+        "NUM_THREADS": COG_THREADS,
     }
 
 
