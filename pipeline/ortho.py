@@ -61,7 +61,8 @@ LUT_MARGIN_PX = 8.0
 LUT_BORDER_SAMPLES = 64
 #: Map value that makes ``cv2.remap`` sample nothing (far outside any image).
 OUTSIDE_PX = -1.0e5
-#: Rows per block of the projection (fits the work arrays in the cache).
+#: Rows per block of the projection (fits the work arrays in the cache); a multiple of
+#: OCCLUSION_SUBSAMPLE.
 BLOCK_ROWS = 128
 #: The z-buffer is filled from every k-th cell in each direction (k^2 times less work).
 OCCLUSION_SUBSAMPLE = 2
@@ -329,7 +330,7 @@ class Orthorectifier:
             warnings.append(f"image {image_id!r}: {off_dsm} cells of the footprint have no DSM "
                             f"height ({self.dsm.source}); they are left empty")
         t_occ = time.perf_counter()
-        occluded = (self._hide_occluded(proj, eop, R, Z, col0, row0, window)
+        occluded = (self._hide_occluded(proj, eop, R, col0, row0, window)
                     if self.options.occlusion else 0)
         occlusion_ms = (time.perf_counter() - t_occ) * 1e3
         if not np.any(proj.seen):
@@ -446,9 +447,13 @@ class Orthorectifier:
         row_terms = (k[:, 1:2] * dy[None, :]).astype(f32)  # (3, rows)
         kz = k[:, 2].astype(f32)
         neg_hdist = (-np.sqrt(dx[None, :] ** 2 + dy[:, None] ** 2)).astype(f32)
+        ks = OCCLUSION_SUBSAMPLE
+        sub_shape = (-(-rows // ks), -(-cols // ks))
         out = _Projection(uv=np.empty((rows, cols, 2), f32), depth=np.empty((rows, cols), f32),
                           off_nadir=np.empty((rows, cols), f32),
-                          seen=np.empty((rows, cols), bool), off_dsm=[])
+                          seen=np.empty((rows, cols), bool), off_dsm=[],
+                          uv_s=np.empty(sub_shape + (2,), f32), depth_s=np.empty(sub_shape, f32),
+                          seen_s=np.empty(sub_shape, bool), z_s=np.empty(sub_shape, f32))
         z0, z_fill = f32(eop[2]), f32(z_ground)
         margin = 1.0 if self.options.resampling == "cubic" else 0.0  # kernel inside the image
         lo = (margin, margin)
@@ -486,6 +491,12 @@ class Orthorectifier:
                 seen &= ~no_height
                 out.uv[rs][~seen] = OUTSIDE_PX
             np.divide(neg_hdist[rs], dz, out=out.off_nadir[rs])
+            # Every ks-th cell for the z-buffer, copied while the block is in the cache.
+            ss = slice(rs.start // ks, -(-rs.stop // ks))
+            out.uv_s[ss] = out.uv[rs][::ks, ::ks]
+            out.depth_s[ss] = depth[::ks, ::ks]
+            out.seen_s[ss] = seen[::ks, ::ks]
+            out.z_s[ss] = Z[rs][::ks, ::ks]
 
         list(self._pool.map(block, range(0, rows, BLOCK_ROWS)))
         return out
@@ -587,15 +598,17 @@ class Orthorectifier:
         return uv, depth
 
     def _hide_occluded(self, proj: _Projection, eop: FloatArray, R: FloatArray,
-                       Z: np.ndarray, col0: int, row0: int,
+                       col0: int, row0: int,
                        window: tuple[float, float, float, float]) -> int:
         """Mark cells hidden by nearer surfaces as unseen (z-buffer); the number hidden.
 
         Skipped (0) when the relief under the window is within the tolerance. The buffer is
         filled from every ``OCCLUSION_SUBSAMPLE``-th cell in each direction (``np.minimum.at``)
-        with buckets of the image spacing of those cells on the highest surface, widened by a
-        3 x 3 minimum filter; each cell then reads its bucket (``cv2.remap``, nearest) and is
-        hidden when it lies farther than the tolerance behind it.
+        and from the camera-facing walls (:meth:`_facade_points`), with buckets of the image
+        spacing of those cells on the highest surface, widened by a 3 x 3 minimum filter. The
+        same sub-sampled cells then read their bucket (``cv2.remap``, nearest) and are hidden
+        when they lie farther than the tolerance behind it; every cell of a k x k block takes
+        its sampled cell's verdict (occlusion edges are exact to k cells).
         """
         z_lo, z_hi = self.dsm.height_range(window)
         p = self.pixel_m
@@ -610,34 +623,40 @@ class Orthorectifier:
         tol = np.float32(self.options.occlusion_tolerance_cells * b * (eop[2] - z_lo) / fx)
         width, height = self.camera.width_px, self.camera.height_px
         nbu, nbv = -(-width // b), -(-height // b)
-        sub = (slice(None, None, k), slice(None, None, k))
-        pix = np.rint(proj.uv[sub]).astype(np.int32)
-        pix //= b
+        uv_s, seen_s, depth_s = proj.uv_s, proj.seen_s, proj.depth_s
+        # Bucket of the nearest pixel: floor((u + 0.5) / b); as a map coordinate read with
+        # nearest-neighbour rounding: (u + 0.5) / b - 0.5.
+        uv_b = cv2.addWeighted(uv_s, 1.0 / b, uv_s, 0.0, 0.5 / b - 0.5)
+        pix = (uv_b + np.float32(0.5)).astype(np.int32)
         index = pix[:, :, 1] * nbu + pix[:, :, 0]
-        index[~proj.seen[sub]] = nbu * nbv  # unseen cells go to a spare slot
+        index[~seen_s] = nbu * nbv  # unseen cells go to a spare slot
         zbuf = np.full(nbu * nbv + 1, np.inf, dtype=np.float32)
-        np.minimum.at(zbuf, index.ravel(), proj.depth[sub].ravel())
+        np.minimum.at(zbuf, index.ravel(), depth_s.ravel())
         # Walls between cells of very different height (facades) hide what lies behind them.
         # Wall samples 2 buckets apart: the 3 x 3 minimum filter closes the gaps between them.
-        uv_f, depth_f = self._facade_points(np.ascontiguousarray(Z[sub]), k, col0, row0, eop,
+        uv_f, depth_f = self._facade_points(proj.z_s, k, col0, row0, eop,
                                             self._lut_coefficients(R), 2.0 * b, float(tol))
         if len(depth_f):
-            pf = np.rint(uv_f).astype(np.int64) // b
+            pf = np.floor((uv_f + 0.5) / b).astype(np.int64)
             inside = (pf[:, 0] >= 0) & (pf[:, 0] < nbu) & (pf[:, 1] >= 0) & (pf[:, 1] < nbv)
             np.minimum.at(zbuf, pf[inside, 1] * nbu + pf[inside, 0], depth_f[inside])
-        zbuf = zbuf[:-1]
-        zbuf = cv2.erode(zbuf.reshape(nbv, nbu), np.ones((3, 3), np.uint8))
+        zbuf = cv2.erode(zbuf[:-1].reshape(nbv, nbu), np.ones((3, 3), np.uint8))
         zbuf[~np.isfinite(zbuf)] = np.float32(3.0e38)
-        zbuf_px = cv2.resize(zbuf, (nbu * b, nbv * b), interpolation=cv2.INTER_NEAREST)
+        # The test runs on the same sub-sampled cells; each full cell takes its k x k block's.
+        nearest = cv2.remap(zbuf, uv_b, None, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+        nearest += tol
+        hidden_s = (seen_s & (depth_s > nearest)).view(np.uint8)
+        rows, cols = proj.seen.shape
+        if not hidden_s.any():
+            return 0
+        hidden_full = cv2.resize(hidden_s, (hidden_s.shape[1] * k, hidden_s.shape[0] * k),
+                                 interpolation=cv2.INTER_NEAREST)
         hidden_counts: list[int] = []
 
         def block(r0: int) -> None:
-            rs = slice(r0, min(r0 + BLOCK_ROWS, proj.seen.shape[0]))
-            nearest = cv2.remap(zbuf_px, proj.uv[rs], None, cv2.INTER_NEAREST,
-                                borderMode=cv2.BORDER_REPLICATE)
+            rs = slice(r0, min(r0 + BLOCK_ROWS, rows))
             seen = proj.seen[rs]
-            nearest += tol
-            hidden = seen & (proj.depth[rs] > nearest)
+            hidden = seen & hidden_full[rs, :cols].view(bool)
             seen &= ~hidden
             proj.uv[rs][hidden] = OUTSIDE_PX
             hidden_counts.append(int(np.count_nonzero(hidden)))
@@ -655,6 +674,11 @@ class _Projection:
     off_nadir: np.ndarray
     seen: np.ndarray
     off_dsm: list[int]
+    # Every OCCLUSION_SUBSAMPLE-th cell in each direction (z-buffer), and the DSM heights there.
+    uv_s: np.ndarray
+    depth_s: np.ndarray
+    seen_s: np.ndarray
+    z_s: np.ndarray
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
