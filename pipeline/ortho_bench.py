@@ -59,7 +59,8 @@ class OrthoBench:
     mosaic_ms: TimingStats
     mosaic_finish_s: float
     mosaic_px: tuple[int, int]
-    peak_rss_mb: float
+    peak_rss_strip_mb: float  # peak resident memory before the mosaic is written
+    peak_rss_mb: float  # peak resident memory of the whole run
 
 
 def bench_dsm(length_m: float, seed: int = 0) -> Dsm:
@@ -110,6 +111,7 @@ def run_ortho_bench(n_images: int, out_dir: Path, *, occlusion: bool = True,
             updates.append(update.update_ms)
             cells.append(result.raster.shape[0] * result.raster.shape[1])
         pixel_m = float(ortho.pixel_m or 0.0)
+    rss_strip = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     t0 = time.perf_counter()
     final = mosaic.finish()
     finish_s = time.perf_counter() - t0
@@ -120,7 +122,7 @@ def run_ortho_bench(n_images: int, out_dir: Path, *, occlusion: bool = True,
         occlusion_ms=TimingStats.from_samples(occlusion_ms),
         write_ms=TimingStats.from_samples(writing),
         mosaic_ms=TimingStats.from_samples(updates), mosaic_finish_s=finish_s,
-        mosaic_px=(final.cols, final.rows),
+        mosaic_px=(final.cols, final.rows), peak_rss_strip_mb=rss_strip,
         peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
 
 

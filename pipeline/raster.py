@@ -39,6 +39,9 @@ COG_DEFLATE_LEVEL = 1
 COG_OVERVIEW_RESAMPLING = "AVERAGE"
 #: GDAL compresses the tiles on this many threads.
 COG_THREADS = "ALL_CPUS"
+#: GDAL block cache while writing a COG, MB: bounds the memory of the mosaic's conversion
+#: (GDAL's default is 5 % of the RAM and grows with the mosaic).
+COG_CACHE_MB = 256
 
 
 def cog_options(dtype: str) -> dict[str, str | int]:
@@ -116,7 +119,8 @@ def write_cog(path: Path | str, data: np.ndarray, *, transform: Affine, crs: pyp
     profile = {"driver": "COG", "width": cols, "height": rows, "count": count,
                "dtype": data.dtype.name, "crs": rasterio.crs.CRS.from_wkt(crs.to_wkt()),
                "transform": transform, "nodata": nodata, **cog_options(data.dtype.name)}
-    with atomic_path(path) as tmp, rasterio.open(tmp, "w", **profile) as dst:
+    with atomic_path(path) as tmp, rasterio.Env(GDAL_CACHEMAX=COG_CACHE_MB), \
+            rasterio.open(tmp, "w", **profile) as dst:
         dst.colorinterp = colorinterp_for(count, alpha)
         dst.write(data)
     return path
@@ -129,7 +133,7 @@ def gtiff_to_cog(src_path: Path, dst_path: Path) -> Path:
     """
     with rasterio.open(src_path) as src:
         dtype = src.dtypes[0]
-    with atomic_path(dst_path) as tmp:
+    with atomic_path(dst_path) as tmp, rasterio.Env(GDAL_CACHEMAX=COG_CACHE_MB):
         rasterio.shutil.copy(src_path, tmp, driver="COG", **cog_options(dtype))
     return dst_path
 
