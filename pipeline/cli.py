@@ -272,6 +272,8 @@ def ortho(
     out: Annotated[Path, typer.Argument(help="Output folder of seqat run.")],
     dsm: Annotated[Path | None, typer.Option("--dsm", help="DSM GeoTIFF.")] = None,
     eop: Annotated[str, typer.Option("--eop", help="seq-r or reference.")] = "seq-r",
+    crs: Annotated[str | None, typer.Option(
+        "--crs", help="CRS of the rasters (EPSG:XXXX); default: the run's.")] = None,
     options: Annotated[Path | None, typer.Option(
         "--options", help="Options YAML (sections ortho:, mosaic:).")] = None,
     progress: Annotated[bool, typer.Option(
@@ -285,7 +287,8 @@ def ortho(
         raise ConfigError(f"--eop: expected seq-r or reference, got {eop!r}")
     _, ortho_options, feather_px = load_stage_options(options)
     s = orthorectify_run(out, dsm_path=dsm, eop_source=eop,  # type: ignore[arg-type]
-                         options=ortho_options, feather_px=feather_px, progress=progress)
+                         options=ortho_options, feather_px=feather_px, out_crs=crs,
+                         progress=progress)
     rows = [
         ("EOP / DSM", f"{s.eop_source} / {s.dsm_source}"),
         ("images / skipped", f"{len(s.images)} / {len(s.skipped)}"),

@@ -35,6 +35,7 @@ from pipeline.dsm import Dsm, DsmOptions, DsmResult, build_dsm, flat_dsm, read_d
 from pipeline.gis_export import write_cameras_gpkg
 from pipeline.mosaic import FEATHER_PX, MosaicBuilder
 from pipeline.ortho import OrthoOptions, Orthorectifier
+from pipeline.raster import reproject_cog
 from pipeline.store import EOP_FILE, TimingStats, atomic_write_text, read_eop_csv, to_jsonable
 from pipeline.tables import EopTable
 from seqat.errors import ConfigError, InputDataError, SeqatError
@@ -213,6 +214,18 @@ def choose_dsm(run_dir: Path, crs: pyproj.CRS, dsm_path: Path | None, flight_dir
         "(relief displaces the ortho; give --dsm or the flight's lidar)",)
 
 
+def _parse_out_crs(value: str | None) -> pyproj.CRS | None:
+    if value is None:
+        return None
+    try:
+        crs = pyproj.CRS.from_user_input(value)
+    except pyproj.exceptions.CRSError as err:
+        raise ConfigError(f"--crs: unknown CRS {value!r}: {err}") from err
+    if not (crs.is_projected or crs.is_geographic):
+        raise ConfigError(f"--crs: {value!r} ({crs.name}) is not a horizontal CRS")
+    return crs
+
+
 def _read_image(path: Path) -> np.ndarray:
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
@@ -222,7 +235,8 @@ def _read_image(path: Path) -> np.ndarray:
 
 def orthorectify_run(out_dir: Path | str, *, dsm_path: Path | str | None = None,
                      eop_source: EopSource = "seq-r", options: OrthoOptions | None = None,
-                     feather_px: int = FEATHER_PX, progress: bool = True) -> OrthoRunSummary:
+                     feather_px: int = FEATHER_PX, out_crs: str | None = None,
+                     progress: bool = True) -> OrthoRunSummary:
     """Orthorectify every image of a run and build the mosaic and ``cameras.gpkg``.
 
     Parameters
@@ -236,6 +250,10 @@ def orthorectify_run(out_dir: Path | str, *, dsm_path: Path | str | None = None,
     options : OrthoOptions, optional
     feather_px : int
         Seamline feather of the mosaic, cells.
+    out_crs : str, optional
+        Write the orthos and the mosaic in this CRS (``EPSG:XXXX``, anything pyproj reads):
+        they are computed in the working CRS and then warped (bilinear, a second resampling).
+        ``cameras.gpkg`` stays in the working CRS (GIS reproject vectors on the fly).
     progress : bool
         Transient progress bar on a terminal.
 
@@ -254,6 +272,7 @@ def orthorectify_run(out_dir: Path | str, *, dsm_path: Path | str | None = None,
 
     t0 = time.perf_counter()
     run_dir = Path(out_dir)
+    target_crs = _parse_out_crs(out_crs)
     run = read_run(run_dir)
     eops = _eops(run_dir, eop_source, run.eop)
     if run.images_dir is None:
@@ -300,9 +319,16 @@ def orthorectify_run(out_dir: Path | str, *, dsm_path: Path | str | None = None,
         raise InputDataError(f"{run_dir}: no image could be orthorectified"
                              + (f" ({last_error})" if last_error else ""))
     mosaic_result = mosaic.finish()
+    raster_crs = run.crs
+    if target_crs is not None and not target_crs.equals(run.crs, ignore_axis_order=True):
+        for record in records:
+            if record.path is not None:
+                reproject_cog(Path(record.path), target_crs)
+        reproject_cog(mosaic_result.path, target_crs)
+        raster_crs = target_crs
     gpkg = write_cameras_gpkg(run_dir / CAMERAS_GPKG, run.crs, eops, footprints, run.points)
     summary = OrthoRunSummary(
-        out_dir=run_dir, eop_source=eop_source, dsm_source=dsm.source, crs=run.crs.name,
+        out_dir=run_dir, eop_source=eop_source, dsm_source=dsm.source, crs=raster_crs.name,
         pixel_m=float(pixel_m if pixel_m is not None else math.nan), images=tuple(records),
         skipped=tuple(skipped),
         compute_ms=TimingStats.from_samples([r.compute_ms for r in records]),

@@ -23,6 +23,7 @@ import numpy as np
 import pyproj
 import rasterio
 import rasterio.shutil
+import rasterio.vrt
 from affine import Affine
 from rasterio.enums import ColorInterp
 
@@ -136,6 +137,22 @@ def gtiff_to_cog(src_path: Path, dst_path: Path) -> Path:
     with atomic_path(dst_path) as tmp, rasterio.Env(GDAL_CACHEMAX=COG_CACHE_MB):
         rasterio.shutil.copy(src_path, tmp, driver="COG", **cog_options(dtype))
     return dst_path
+
+
+def reproject_cog(path: Path, crs: pyproj.CRS) -> Path:
+    """Warp a COG into another CRS in place (bilinear, alpha and nodata respected), atomically.
+
+    GDAL's warper reads and writes in chunks through a ``WarpedVRT``, so memory stays bounded.
+    The pixel size is GDAL's suggestion for the target CRS (about the same ground size).
+    """
+    target = rasterio.crs.CRS.from_wkt(crs.to_wkt())
+    with rasterio.open(path) as src:
+        dtype = src.dtypes[0]
+        with rasterio.vrt.WarpedVRT(src, crs=target,
+                                    resampling=rasterio.enums.Resampling.bilinear) as vrt, \
+                atomic_path(path) as tmp, rasterio.Env(GDAL_CACHEMAX=COG_CACHE_MB):
+            rasterio.shutil.copy(vrt, tmp, driver="COG", **cog_options(dtype))
+    return path
 
 
 def cog_problems(path: Path | str) -> tuple[str, ...]:

@@ -27,7 +27,7 @@ from pipeline.store import (
     write_run_outputs,
 )
 from pipeline.tables import NavTable
-from seqat.errors import InputDataError
+from seqat.errors import ConfigError, InputDataError
 from seqat.types import EopEstimate, PointEstimate, Solution
 
 from .synthetic_ortho import CRS, E0_M, N0_M, TEXTURE_MAX, Scene, render, small_camera, texture
@@ -149,6 +149,24 @@ def test_ortho_run_errors(tmp_path: Path) -> None:
     with pytest.raises(InputDataError, match="no image could be orthorectified.*does not cover"):
         orthorectify_run(out, dsm_path=far, progress=False)
     assert not (out / "mosaic.tif").exists()
+
+
+def test_ortho_run_in_another_crs(tmp_path: Path) -> None:
+    out = write_run(tmp_path)
+    summary = orthorectify_run(out, dsm_path=write_scene_dsm(tmp_path / "d.tif"),
+                               options=OrthoOptions(pixel_m=0.2), out_crs="EPSG:4326",
+                               progress=False)
+    assert summary.crs == "WGS 84"
+    lon, lat = pyproj.Transformer.from_crs(CRS, "EPSG:4326", always_xy=True).transform(
+        E0_M, N0_M)
+    for path in (out / "mosaic.tif", Path(summary.images[0].path or "")):
+        assert cog_problems(path) == ()
+        with rasterio.open(path) as src:
+            assert src.crs.to_epsg() == 4326
+            west, south, east, north = src.bounds
+            assert west < lon < east and south < lat < north
+    with pytest.raises(ConfigError, match="--crs"):
+        orthorectify_run(out, out_crs="EPSG:0", progress=False)
 
 
 def test_cli_ortho(tmp_path: Path) -> None:
