@@ -2,7 +2,14 @@
 
 :class:`Orthorectifier` is the streaming stage: ``add_image(image_id, image, eop)`` turns one
 georeferenced image into an :class:`OrthoResult` (and ``ortho/<image>.tif``) as soon as its
-EOP is known; :class:`pipeline.mosaic.MosaicBuilder` then pastes it into the growing mosaic.
+EOP is known; :class:`pipeline.mosaic.MosaicBuilder` then pastes it into the growing mosaic::
+
+    dsm = read_dsm(out / "dsm.tif", crs)            # or flat_dsm(z_m, bounds, crs)
+    mosaic = MosaicBuilder(out / "mosaic.tif", crs)
+    with Orthorectifier(dsm, camera, crs, out / "ortho") as ortho:
+        for image_id, rgb, eop in frames:           # eop: (6,) metres, radians
+            mosaic.add(ortho.add_image(image_id, rgb, eop))
+    mosaic.finish()
 
 Per image (all vectorised, no Python loop over pixels):
 
