@@ -42,6 +42,8 @@ BASE_M = 50.0
 SLOPE = 0.02
 N_BUILDINGS_PER_100M = 4
 ORIGIN_E, ORIGIN_N = 500000.0, 4090000.0
+#: The DSM starts this far west of the first image.
+DSM_MARGIN_M = 60.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -74,7 +76,7 @@ def bench_dsm(length_m: float, seed: int = 0) -> Dsm:
         c0, r0 = rng.integers(0, cols - 60), rng.integers(0, rows - 60)
         w, h = rng.integers(16, 60, 2)
         heights[r0:r0 + h, c0:c0 + w] += rng.uniform(10.0, 20.0)
-    west, north = ORIGIN_E - 60.0, ORIGIN_N + width_m / 2
+    west, north = ORIGIN_E - DSM_MARGIN_M, ORIGIN_N + width_m / 2
     return Dsm(heights_m=heights, transform=from_origin(west, north, DSM_CELL_M, DSM_CELL_M),
                crs=BENCH_CRS, source="bench")
 
@@ -101,7 +103,8 @@ def run_ortho_bench(n_images: int, out_dir: Path, *, occlusion: bool = True,
     compute, occlusion_ms, writing, updates, cells = [], [], [], [], []
     with Orthorectifier(dsm, BENCH_CAMERA, BENCH_CRS, ortho_dir, options) as ortho:
         for i in range(n_images):
-            eop = np.array([ORIGIN_E + i * SPACING_M, ORIGIN_N, BASE_M + HEIGHT_M,
+            x = i * SPACING_M  # the strip follows the sloped ground at HEIGHT_M
+            eop = np.array([ORIGIN_E + x, ORIGIN_N, BASE_M + SLOPE * (x + DSM_MARGIN_M) + HEIGHT_M,
                             np.radians(1.0), np.radians(-1.5), np.radians(3.0)])
             result = ortho.add_image(f"img_{i:04d}", image, eop)
             update = mosaic.add(result)
