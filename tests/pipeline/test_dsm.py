@@ -37,6 +37,8 @@ Z0_M, SLOPE = 120.0, 0.1
 BUILDING = (20.0, 20.0, 30.0, 30.0, 15.0)
 #: Point spacing of the synthetic cloud, metres (4 points per 1 m cell).
 SPACING_M = 0.5
+#: Autzen Stadium, Eugene, Oregon (degrees).
+AUTZEN_LON, AUTZEN_LAT = -123.0686, 44.0584
 #: Horizontal jitter of the points around the regular grid, metres.
 JITTER_M = 0.2
 #: A highest-return cell lies at most slope x cell above the plane at the cell centre.
@@ -226,6 +228,12 @@ def test_autzen_las_gives_a_dsm_in_metres(shared_data: Path, tmp_path: Path) -> 
     # Autzen stadium, Eugene OR: ground ~ 125 m above sea level, trees and stands above.
     assert 115.0 < result.height_range_m[0] < 135.0 < result.height_range_m[1] < 200.0
     assert cog_problems(result.path) == ()
+    # Where it is: Autzen Stadium, Eugene, Oregon (44.058 N, 123.069 W), within 2 km.
+    west, south, east, north = result.bounds
+    to_geo = pyproj.Transformer.from_crs(UTM10, "EPSG:4326", always_xy=True)
+    lon, lat = to_geo.transform((west + east) / 2, (south + north) / 2)
+    stadium = pyproj.Geod(ellps="WGS84").inv(lon, lat, AUTZEN_LON, AUTZEN_LAT)[2]
+    assert stadium < 2000.0
     with pytest.raises(InputDataError, match="no CRS"):
         read_las(folder / "autzen-thin.las")
     thin = build_dsm([folder / "autzen-thin.las"], tmp_path / "thin.tif", crs=UTM10,
