@@ -317,11 +317,8 @@ class Orthorectifier:
         if self.pixel_m is None:
             self.pixel_m = _nice_pixel(height_agl / self.camera.fx_px)
         p = self.pixel_m
-        footprint, window, partial = self._footprint(image_id, eop, R, z_ground, height_agl)
-        if partial:
-            warnings.append(f"image {image_id!r}: part of the image looks beyond "
-                            f"{self.options.max_range_factor:g} x the height above ground (or "
-                            "above the horizon); that part is not orthorectified")
+        footprint, window, notes = self._footprint(image_id, eop, R, z_ground, height_agl)
+        warnings.extend(notes)
         west, south, east, north = window
         col0, col1 = int(math.floor(west / p)), int(math.ceil(east / p))
         row0, row1 = int(math.floor(-north / p)), int(math.ceil(-south / p))
@@ -403,8 +400,8 @@ class Orthorectifier:
 
     def _footprint(self, image_id: str, eop: FloatArray, R: FloatArray, z_ground: float,
                    height_agl: float) -> tuple[FloatArray, tuple[float, float, float, float],
-                                               bool]:
-        """Footprint ring on the nadir plane and the ground window over the DSM's heights."""
+                                               tuple[str, ...]]:
+        """Footprint ring on the nadir plane, ground window over the DSM's heights, warnings."""
         ideal = self._corrector.ideal_pixels(border_pixels(self.camera.width_px,
                                                            self.camera.height_px))
         rays = rays_world(np.tile(eop, (len(ideal), 1)), ideal, self._pinhole)
@@ -429,7 +426,16 @@ class Orthorectifier:
                 f"image {image_id!r}: the DSM ({self.dsm.source}, bounds "
                 f"{tuple(round(b, 1) for b in self.dsm.bounds)}) does not cover the image "
                 f"footprint {tuple(round(float(b), 1) for b in box)}")
-        return np.vstack([ring, ring[:1]]), window, partial
+        notes = []
+        if partial:
+            notes.append(f"image {image_id!r}: part of the image looks beyond "
+                         f"{self.options.max_range_factor:g} x the height above ground (or "
+                         "above the horizon); that part is not orthorectified")
+        if not np.all((ring[:, 0] >= dw) & (ring[:, 0] <= de) & (ring[:, 1] >= ds)
+                      & (ring[:, 1] <= dn)):
+            notes.append(f"image {image_id!r}: the footprint reaches beyond the DSM "
+                         f"({self.dsm.source}); the ortho stops at its edge")
+        return np.vstack([ring, ring[:1]]), window, tuple(notes)
 
     def _project(self, eop: FloatArray, R: FloatArray, col0: int, row0: int, Z: np.ndarray,
                  z_ground: float) -> _Projection:
