@@ -40,22 +40,57 @@ class Accuracy:
     nav_att_rmse_deg: Triple
 
 
-def _rmse(diff: FloatArray) -> Triple:
+def rmse(diff: FloatArray) -> Triple:
+    """Per-column root-mean-square of ``(k, 3)`` differences (NaN triple when ``k == 0``)."""
     if diff.shape[0] == 0:
         return _NAN3
     r = np.sqrt(np.mean(diff**2, axis=0))
     return (float(r[0]), float(r[1]), float(r[2]))
 
 
+def eop_differences(ids: tuple[str, ...], eop: FloatArray, ref_ids: tuple[str, ...],
+                    ref_eop: FloatArray) -> tuple[np.ndarray, FloatArray, FloatArray]:
+    """Differences ``estimate - reference`` of the EOPs of the images in both, by id.
+
+    Parameters
+    ----------
+    ids : tuple[str, ...]
+    eop : (n, 6) float
+        Metres and radians.
+    ref_ids : tuple[str, ...]
+    ref_eop : (r, 6) float
+
+    Returns
+    -------
+    rows : (k,) int
+        Rows of ``eop`` matched, in their order.
+    d_pos_m : (k, 3) float
+    d_att_deg : (k, 3) float
+        Wrapped to [-180, 180).
+    """
+    index = {iid: j for j, iid in enumerate(ref_ids)}
+    pairs = [(i, index[iid]) for i, iid in enumerate(ids) if iid in index]
+    rows = np.asarray([i for i, _ in pairs], dtype=np.int64)
+    ref_rows = np.asarray([j for _, j in pairs], dtype=np.int64)
+    d = np.asarray(eop, dtype=np.float64)[rows] - np.asarray(ref_eop, dtype=np.float64)[ref_rows]
+    d = d.reshape(-1, 6)
+    return rows, d[:, :3], np.degrees((d[:, 3:] + np.pi) % (2 * np.pi) - np.pi)
+
+
+def point_differences(ids: tuple[str, ...], xyz: FloatArray, ref_ids: tuple[str, ...],
+                      ref_xyz: FloatArray) -> FloatArray:
+    """``estimate - reference`` of the points in both, by id, in the order of ``ids``: (k, 3)."""
+    index = {pid: j for j, pid in enumerate(ref_ids)}
+    pairs = [(i, index[pid]) for i, pid in enumerate(ids) if pid in index]
+    a = np.asarray([i for i, _ in pairs], dtype=np.int64)
+    b = np.asarray([j for _, j in pairs], dtype=np.int64)
+    return (np.asarray(xyz, dtype=np.float64)[a] - np.asarray(ref_xyz)[b]).reshape(-1, 3)
+
+
 def _eop_errors(ids: tuple[str, ...], eop: FloatArray,
                 truth: NavTable) -> tuple[Triple, Triple, int]:
-    index = truth.index()
-    rows = [(i, index[iid]) for i, iid in enumerate(ids) if iid in index]
-    est = np.asarray([eop[i] for i, _ in rows]).reshape(-1, 6)
-    ref = np.asarray([truth.eop[j] for _, j in rows]).reshape(-1, 6)
-    d = est - ref
-    d_ang = np.degrees((d[:, 3:] + np.pi) % (2 * np.pi) - np.pi)
-    return _rmse(d[:, :3]), _rmse(d_ang), len(rows)
+    rows, d_pos, d_att = eop_differences(ids, eop, truth.image_ids, truth.eop)
+    return rmse(d_pos), rmse(d_att), int(rows.size)
 
 
 def compare_with_truth(eops: EopTable, points: PointTable, truth_eop: NavTable,
@@ -82,9 +117,7 @@ def compare_with_truth(eops: EopTable, points: PointTable, truth_eop: NavTable,
     """
     pos, att, n_img = _eop_errors(eops.image_ids, eops.eop, truth_eop)
     nav_pos, nav_att, _ = _eop_errors(nav.image_ids, nav.eop, truth_eop)
-    tindex = truth_points.index()
-    rows = [(j, tindex[pid]) for j, pid in enumerate(points.point_ids) if pid in tindex]
-    d = (np.asarray([points.xyz_m[j] for j, _ in rows]).reshape(-1, 3)
-         - np.asarray([truth_points.xyz_m[k] for _, k in rows]).reshape(-1, 3))
-    return Accuracy(n_images=n_img, n_points=len(rows), pos_rmse_m=pos, att_rmse_deg=att,
-                    gp_rmse_m=_rmse(d), nav_pos_rmse_m=nav_pos, nav_att_rmse_deg=nav_att)
+    d = point_differences(points.point_ids, points.xyz_m, truth_points.point_ids,
+                          truth_points.xyz_m)
+    return Accuracy(n_images=n_img, n_points=d.shape[0], pos_rmse_m=pos, att_rmse_deg=att,
+                    gp_rmse_m=rmse(d), nav_pos_rmse_m=nav_pos, nav_att_rmse_deg=nav_att)

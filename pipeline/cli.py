@@ -162,8 +162,12 @@ def run(
         "--options", help="Estimator options YAML (sections sequential:, sim:).")] = None,
     progress: Annotated[bool, typer.Option(
         "--progress/--no-progress", help="Progress bar on a terminal.")] = True,
+    observations: Annotated[Path | None, typer.Option(
+        "--observations", help="Image points to use instead of the flight's own or of "
+        "tracking (e.g. OUT/observations.csv of an earlier run).")] = None,
 ) -> None:
-    """Adjust a flight folder and write eop.csv, points.csv and run.json."""
+    """Adjust a flight folder and write eop.csv, points.csv, run.json, nav.csv and
+    observations.csv."""
     from pipeline.runner import Method, run_flight
     from seqat.errors import ConfigError
 
@@ -174,7 +178,8 @@ def run(
                           f"{', '.join(m.value for m in Method)}, got {method!r}") from err
     summary = run_flight(flight, out, method=chosen, final_only=final_only,
                          options_path=options, threshold=threshold,
-                         initial_images=initial_images, progress=progress)
+                         initial_images=initial_images, progress=progress,
+                         observations=observations)
     t = summary.update_ms
     rows = [
         ("method", summary.method.value + (" (final only)" if final_only else "")),
@@ -233,6 +238,73 @@ def bench(
                       "PASS" if c.passed else "FAIL")
     _console().print(table)
     _console().print(f"benchmark written to {out}")
+
+
+@app.command()
+@_guarded
+def reference(
+    out: Annotated[Path, typer.Argument(help="Run folder (seqat run ... --out OUT).")],
+    self_calibrate: Annotated[bool, typer.Option(
+        "--self-calibrate", help="Also estimate fx, fy, cx, cy, k1, k2, p1, p2.")] = False,
+    prior: Annotated[str, typer.Option(
+        "--prior", help="GPS/INS prior: pose (6-DoF, as Sim) or position.")] = "pose",
+    robust_loss: Annotated[str, typer.Option(
+        "--robust-loss", help="trivial (off), huber, cauchy or soft_l1.")] = "trivial",
+) -> None:
+    """COLMAP bundle adjustment of a run's observations with GPS/INS priors: OUT/reference/."""
+    from pipeline.colmap_ba import PriorKind, ReferenceOptions, RobustLoss
+    from pipeline.reference import run_reference
+    from seqat.errors import ConfigError
+
+    for flag, value, kind in (("--prior", prior, PriorKind),
+                              ("--robust-loss", robust_loss, RobustLoss)):
+        if value not in {k.value for k in kind}:
+            raise ConfigError(f"{flag}: expected one of {', '.join(k.value for k in kind)}, "
+                              f"got {value!r}")
+    options = ReferenceOptions(prior=PriorKind(prior), robust_loss=RobustLoss(robust_loss),
+                               self_calibrate=self_calibrate)
+    rec = run_reference(out, options).record
+    _console().print(_table(f"seqat reference {out}", [
+        ("images / points / observations",
+         f"{rec.n_images_adjusted} / {rec.n_points} / {rec.n_observations}"),
+        ("prior", f"{rec.options.prior.value} ({rec.n_prior_residuals} residuals of "
+                  f"{rec.n_residuals})"),
+        ("sigma0 (redundancy)", f"{_fmt(rec.sigma0, '.4f')} ({rec.redundancy})"),
+        ("rms image residual (px)", _fmt(rec.rms_px, '.3f')),
+        ("termination (iterations)", f"{rec.termination} ({rec.iterations})"),
+        ("bundle adjustment", f"{rec.ba_s:.2f} s"),
+        ("covariance", rec.covariance),
+        ("camera", f"{rec.camera_model} fx {rec.camera.fx_px:.2f} fy {rec.camera.fy_px:.2f} "
+                   f"cx {rec.camera.cx_px:.2f} cy {rec.camera.cy_px:.2f}"),
+        ("results", str(out / "reference")),
+    ]))
+
+
+@app.command()
+@_guarded
+def report(
+    out: Annotated[Path, typer.Argument(help="Run folder (seqat run ... --out OUT).")],
+    compare: Annotated[list[Path] | None, typer.Option(
+        "--compare", help="Another run folder of the same flight (repeat for several).")]
+    = None,
+) -> None:
+    """Flight report: OUT/report.html (figures embedded) and OUT/report.json."""
+    from pipeline.report import make_report
+
+    summary = make_report(out, compare or ())
+    rep = summary.report
+    rows = [("methods", ", ".join(rep.methods))]
+    for acc in rep.accuracy.values():
+        rows.append((f"{acc.method}: position H / 3D RMSE (m) vs {acc.against}",
+                     f"{_fmt(acc.pos_rmse_h_m, METRE_FORMAT)} / "
+                     f"{_fmt(acc.pos_rmse_3d_m, METRE_FORMAT)}"))
+    cp = rep.checkpoints
+    rows.append(("check points", "none" if cp is None else
+                 f"{cp['count']}: RMSE_H {_fmt(cp['rmse_h_m'], METRE_FORMAT)} m, "
+                 f"RMSE_V {_fmt(cp['rmse_v_m'], METRE_FORMAT)} m"))
+    rows += [(n, "") for n in rep.notes]
+    rows += [("written", "  ".join(str(f) for f in summary.files))]
+    _console().print(_table(f"seqat report {out}", rows))
 
 
 @app.command()

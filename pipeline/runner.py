@@ -171,7 +171,7 @@ def _progress(console: Console, enabled: bool) -> Progress:
 def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = Method.SEQ_R,
                final_only: bool = False, options_path: Path | str | None = None,
                threshold: float | None = None, initial_images: int | None = None,
-               progress: bool = True) -> RunSummary:
+               progress: bool = True, observations: Path | str | None = None) -> RunSummary:
     """Adjust a flight folder with one method and write the results to ``out_dir``.
 
     Parameters
@@ -190,6 +190,10 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
         Command-line overrides (:func:`estimator_options`).
     progress : bool
         Show a transient progress bar on a terminal (stderr).
+    observations : Path, str or None
+        Image points (``observations.csv`` format) replacing the flight's own or, for an
+        image flight, the tracker: replays the tie points of an earlier run
+        (``OUT/observations.csv``) with another method.
 
     Returns
     -------
@@ -211,6 +215,11 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     if out.exists() and not out.is_dir():
         raise InputDataError(f"{out}: exists and is not a folder")
     flight = read_flight(flight_dir)
+    if observations is not None:
+        obs_path = Path(observations)
+        if not obs_path.is_file():
+            raise InputDataError(f"{obs_path}: no such file (--observations)")
+        flight = dataclasses.replace(flight, observations_path=obs_path)
     truth = read_truth(flight.path)
     source: ObservationSource | ImageSource
     if flight.kind == "observations":

@@ -14,8 +14,9 @@ folder's ``observations.csv``.
 
 from __future__ import annotations
 
+import dataclasses
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,13 +24,14 @@ import cv2
 import numpy as np
 
 from pipeline.flight import Flight, ObservationStats
+from pipeline.resection import Resection, resect_attitude
 from pipeline.store import format_observation_lines
-from pipeline.tracking import Tracker, TrackerOptions, TrackStats
-from seqat.errors import InputDataError
-from seqat.types import FloatArray, Frame, ImageUpdate
+from pipeline.tracking import Tracker, TrackerOptions, read_gray_image
+from seqat.geometry import rays_world
+from seqat.types import FloatArray, Frame, ImageUpdate, PinholeCamera
 
-#: Update the tracker's terrain height from the estimator every this many images.
-GROUND_HEIGHT_EVERY = 5
+#: A ray must point down by at least this (z of the unit vector) to meet the terrain plane.
+MIN_RAY_DOWN = 0.2
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -39,6 +41,77 @@ class SourceStats:
     n_observations: int
     n_points: int
     n_images_observed: int
+
+
+class Initialiser:
+    """Initial attitude of each new image from the estimator's current state.
+
+    After every update (:meth:`feedback`) it keeps the estimator's current ground points and
+    EOPs (Seq-R/Seq-F: the window's, O(window); Sim: all) and the median ground height; for
+    each new frame (:meth:`resect`) it resects the attitude at the GPS position
+    (:func:`pipeline.resection.resect_attitude`) on the known ground points plus the tie
+    points seen once before, placed where that earlier image's ray meets the terrain plane
+    ``Z = ground_z``: along a strip with 50-60 % overlap most tracks have two rays, so
+    without them few images could be resected. Their relief errors (a degree or two) are
+    within the RANSAC threshold; the result is an initial value only.
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+        Ideal camera of the frames.
+    threshold_deg : float
+        RANSAC threshold of the resection.
+    """
+
+    def __init__(self, camera: PinholeCamera, threshold_deg: float) -> None:
+        self.camera = camera
+        self.threshold_deg = threshold_deg
+        self.ground_z: float | None = None
+        self._known: dict[str, FloatArray] = {}
+        self._eops: dict[str, FloatArray] = {}
+        self._last_obs: dict[str, tuple[str, FloatArray]] = {}  # point -> (image, ideal uv)
+
+    def resect(self, frame: Frame) -> tuple[Resection, int]:
+        """Resection of a new frame (ideal pixels); records its rays for later frames.
+
+        Returns
+        -------
+        resection : Resection
+        known : int
+            Known ground points among the observations.
+        """
+        point_ids, ideal = frame.point_ids, frame.uv_px
+        known = [k for k, p in enumerate(point_ids) if p in self._known]
+        xyz = [self._known[point_ids[k]] for k in known]
+        used = list(known)
+        if self.ground_z is not None:
+            plane = [k for k, p in enumerate(point_ids)
+                     if p not in self._known and p in self._last_obs]
+            if plane:
+                eops = np.array([self._eops[self._last_obs[point_ids[k]][0]] for k in plane])
+                uvs = np.array([self._last_obs[point_ids[k]][1] for k in plane])
+                rays = rays_world(eops, uvs, self.camera)
+                down = rays[:, 2] < -MIN_RAY_DOWN
+                t = (self.ground_z - eops[down, 2]) / rays[down, 2]
+                xyz += list(eops[down, :3] + t[:, None] * rays[down])
+                used += [k for k, d in zip(plane, down, strict=True) if d]
+        res = resect_attitude(np.array(xyz).reshape(-1, 3), ideal[used], self.camera,
+                              frame.nav_eop, self.threshold_deg)
+        for pid, uv in zip(point_ids, ideal, strict=True):
+            self._last_obs[pid] = (frame.image_id, uv)
+        return res, len(known)
+
+    def feedback(self, update: ImageUpdate, estimator: object) -> None:
+        """Take the estimator's current ground points and EOPs after an update."""
+        if update.n_points_total == 0:
+            return
+        window = getattr(estimator, "window_solution", None)
+        solution = window() if window is not None else estimator.solution()  # type: ignore[attr-defined]
+        self._known = {p.point_id: p.xyz_m for p in solution.points}
+        self._eops = {e.image_id: e.eop for e in solution.eops}
+        self._last_obs = {p: o for p, o in self._last_obs.items() if o[0] in self._eops}
+        if solution.points:
+            self.ground_z = float(np.median([p.xyz_m[2] for p in solution.points]))
 
 
 class ObservationSource:
@@ -51,16 +124,19 @@ class ObservationSource:
         self._frames = flight.frames()
         self._stats: ObservationStats = self._frames.validate()
         self._lines: list[str] = []
-        self.tracking_stats: tuple[TrackStats, ...] = ()
+        self._init = Initialiser(flight.camera, flight.config.tracking.resection_threshold_deg)
+        self.tracking_stats: tuple[Mapping[str, object], ...] = ()
 
     def __iter__(self) -> Iterator[Frame]:
         for frame, observed in self._frames.with_observed():
             self._lines.append(format_observation_lines(frame.image_id, frame.point_ids,
                                                         observed))
-            yield frame
+            res, _ = self._init.resect(frame)
+            yield dataclasses.replace(frame, initial_eop=res.eop)
 
     def feedback(self, update: ImageUpdate, estimator: object) -> None:
-        """Nothing to adapt for precomputed observations."""
+        """Take the estimator's state after an update (:meth:`Initialiser.feedback`)."""
+        self._init.feedback(update, estimator)
 
     def stats(self) -> SourceStats:
         return SourceStats(n_observations=self._stats.n_observations,
@@ -71,19 +147,18 @@ class ObservationSource:
         return "".join(self._lines)
 
 
-def read_gray(path: Path, width_px: int, height_px: int) -> np.ndarray:
-    """An image as 8-bit gray at the camera's size (resampled if it has another size).
+def read_tracker_image(path: Path, tracker: Tracker, width_px: int, height_px: int) -> np.ndarray:
+    """An image as 8-bit gray for the tracker: reduced JPEG decode, camera size / factor.
 
-    Raises
-    ------
-    InputDataError
-        OpenCV cannot decode the file.
+    An image of another size (same aspect ratio, checked by :func:`pipeline.flight.read_flight`)
+    is resampled to the size the tracker expects.
     """
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise InputDataError(f"{path}: OpenCV cannot decode the image")
-    if image.shape != (height_px, width_px):
-        image = cv2.resize(image, (width_px, height_px), interpolation=cv2.INTER_AREA)
+    factor = tracker.decode_factor
+    image = read_gray_image(path, factor)
+    want = (height_px // factor, width_px // factor)
+    if image.shape != want:
+        full = read_gray_image(path, 1)
+        image = cv2.resize(full, (want[1], want[0]), interpolation=cv2.INTER_AREA)
     return image
 
 
@@ -101,16 +176,16 @@ class ImageSource:
         self._flight = flight
         self.tracking_options = options
         self._tracker = Tracker(options, flight.camera_config)
-        self._ground_z: float | None = None
+        self._init = Initialiser(flight.camera, options.resection_threshold_deg)
         self._lines: list[str] = []
-        self._stats: list[TrackStats] = []
+        self._stats: list[Mapping[str, object]] = []
         self._read_ms: list[float] = []
         self._points: set[str] = set()
         self._n_obs = 0
-        self._count = 0
 
     @property
-    def tracking_stats(self) -> tuple[TrackStats, ...]:
+    def tracking_stats(self) -> tuple[Mapping[str, object], ...]:
+        """Per image: the tracker's :class:`TrackStats` fields and the resection's counts."""
         return tuple(self._stats)
 
     @property
@@ -124,38 +199,32 @@ class ImageSource:
         for row, (image_id, path) in enumerate(zip(flight.nav.image_ids, flight.image_paths,
                                                    strict=True)):
             t0 = time.perf_counter()
-            gray = read_gray(path, cam.width_px, cam.height_px)
+            gray = read_tracker_image(path, self._tracker, cam.width_px, cam.height_px)
             self._read_ms.append((time.perf_counter() - t0) * 1e3)
-            tracked = self._tracker.add_image(image_id, gray, flight.nav.eop[row],
-                                              self._ground_z)
-            self._stats.append(tracked.stats)
+            nav = flight.nav.eop[row]
+            tracked = self._tracker.add_image(image_id, gray, nav, self._init.ground_z)
             observed: FloatArray = np.asarray(tracked.uv_px, dtype=np.float64).reshape(-1, 2)
-            self._lines.append(format_observation_lines(image_id, tracked.point_ids, observed))
-            self._points.update(tracked.point_ids)
-            self._n_obs += len(tracked.point_ids)
-            yield Frame(image_id=image_id, nav_eop=flight.nav.eop[row],
-                        nav_sigma=flight.nav_sigma, point_ids=tracked.point_ids,
-                        uv_px=flight.corrector.ideal_pixels(observed),
-                        sigma_px=flight.config.sigma_image_px)
+            point_ids = tracked.point_ids
+            frame = Frame(image_id=image_id, nav_eop=nav, nav_sigma=flight.nav_sigma,
+                          point_ids=point_ids, uv_px=flight.corrector.ideal_pixels(observed),
+                          sigma_px=flight.config.sigma_image_px)
+            res, known = self._init.resect(frame)
+            self._stats.append({**dataclasses.asdict(tracked.stats),
+                                "resection_points": res.n_points,
+                                "resection_known_points": known,
+                                "resection_inliers": res.n_inliers,
+                                "resection_used": res.eop is not None})
+            self._lines.append(format_observation_lines(image_id, point_ids, observed))
+            self._points.update(point_ids)
+            self._n_obs += len(point_ids)
+            yield dataclasses.replace(frame, initial_eop=res.eop)
 
     def feedback(self, update: ImageUpdate, estimator: object) -> None:
-        """Refresh the terrain height the tracker predicts footprints with.
-
-        Every :data:`GROUND_HEIGHT_EVERY` images, the median height of the ground points in
-        the estimator's current window (or of all, for Sim).
-        """
-        self._count += 1
-        if self._count % GROUND_HEIGHT_EVERY and self._ground_z is not None:
-            return
-        if update.n_points_total == 0:
-            return
-        window = getattr(estimator, "window_solution", None)
-        solution = window() if window is not None else estimator.solution()  # type: ignore[attr-defined]
-        if solution.points:
-            self._ground_z = float(np.median([p.xyz_m[2] for p in solution.points]))
+        """Take the estimator's state after an update (:meth:`Initialiser.feedback`)."""
+        self._init.feedback(update, estimator)
 
     def stats(self) -> SourceStats:
-        observed = sum(1 for s in self._stats if s.features > 0)
+        observed = sum(1 for s in self._stats if s["emitted"])
         return SourceStats(n_observations=self._n_obs, n_points=len(self._points),
                            n_images_observed=observed)
 

@@ -264,3 +264,21 @@ def intersect_rays(
     if np.any(ok):
         X[ok] = np.linalg.solve(A[ok], b[ok][:, :, None])[:, :, 0]
     return X, max_angle
+
+
+def attitude_axes(eop: FloatArray) -> FloatArray:
+    """World axes of the three angle rotations, ``dR = [A dtheta]x R``.
+
+    Parameters
+    ----------
+    eop : (n, 6) float
+
+    Returns
+    -------
+    (n, 3, 3) float
+        ``A`` with columns ``a_omega = e_x``, ``a_phi = Rx e_y``, ``a_kappa = Rx Ry e_z``, so a
+        small change ``dtheta`` of ``[omega, phi, kappa]`` rotates the camera by the world
+        rotation vector ``A dtheta``.
+    """
+    _, axes = _rotation_axes(np.atleast_2d(np.asarray(eop, dtype=np.float64)))
+    return np.swapaxes(axes, 1, 2)

@@ -489,6 +489,11 @@ class SequentialAT:
 
         nav = frame.nav_eop.copy()
         nav[:3] -= self._origin
+        # linearisation point of the new EOP: the nav, or the caller's (resection) value
+        init = nav
+        if frame.initial_eop is not None:
+            init = frame.initial_eop.copy()
+            init[:3] -= self._origin
         # --- classify the new observations (seed 000 Eq. 7-8)
         y21_pts, y21_uv = [], []
         candidates: list[int] = []
@@ -506,12 +511,12 @@ class SequentialAT:
                     candidates.append(p)
         in_frame = set(candidates)
         candidates += [p for p in self._forced if p not in in_frame and p in self._pending]
-        born, born_xyz = self._birth(candidates, i, nav)
+        born, born_xyz = self._birth(candidates, i, init)
         self._forced.difference_update(born)
 
         # --- layout of the new parameters: [EOP of image i, born GPs]
         n2 = EOP_SIZE + GP_SIZE * len(born)
-        x2_0 = np.concatenate([nav, born_xyz.ravel()])
+        x2_0 = np.concatenate([init, born_xyz.ravel()])
         y12 = [
             (j, b, uv, s) for b, p in enumerate(born) for (j, uv, s) in self._pending[p] if j != i
         ]

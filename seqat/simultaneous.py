@@ -11,6 +11,7 @@ Coordinates here are *local* (the caller subtracts an origin for conditioning).
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from enum import Enum
@@ -20,7 +21,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from seqat.errors import EstimationError
-from seqat.geometry import intersect_rays, project, project_with_jacobians, wrap_angle
+from seqat.geometry import depth, intersect_rays, project, project_with_jacobians, wrap_angle
 from seqat.types import (
     EOP_SIZE,
     GP_SIZE,
@@ -35,6 +36,16 @@ from seqat.types import (
 
 #: Columns of the reduced inverse solved at once when extracting cofactor blocks.
 COVARIANCE_CHUNK_IMAGES = 200
+#: Levenberg-Marquardt: first damping, its growth factor on a rejected step, the largest.
+FIRST_DAMPING = 1e-4
+DAMPING_FACTOR = 10.0
+MAX_DAMPING = 1e8
+MIN_DAMPING = 1e-8  # below this an accepted damped step turns back to Gauss-Newton
+#: Step lengths tried along a Gauss-Newton (or damped) correction, longest first.
+LINE_SEARCH_STEPS = (1.0, 0.5, 0.25, 0.125)
+#: A step is accepted when it does not raise the weighted SSR by more than this (relative):
+#: round-off at the minimum must not count as a rise.
+COST_TOLERANCE = 1e-10
 
 
 class Covariance(Enum):
@@ -130,9 +141,13 @@ def _eop_residual(nav_eop: FloatArray, eop: FloatArray) -> FloatArray:
 
 
 def _linearise(
-    camera: PinholeCamera, data: BlockData, eop: FloatArray, gp: FloatArray
+    camera: PinholeCamera, data: BlockData, eop: FloatArray, gp: FloatArray,
+    damping: float = 0.0,
 ) -> tuple[_Normals, FloatArray, FloatArray]:
     """Build and factorise the reduced normal equations at ``(eop, gp)``.
+
+    ``damping`` > 0 adds Marquardt's ``damping * diag(N)`` to the normal matrix (a
+    Levenberg-Marquardt step); 0 is the Gauss-Newton system.
 
     Returns the factorisation and the reduced right-hand side, plus the right-hand side of
     the points.
@@ -154,6 +169,10 @@ def _linearise(
     np.add.at(Npp, pt, np.einsum("kri,krj->kij", wJp, Jp))
     b_p = np.zeros((m, GP_SIZE))
     np.add.at(b_p, pt, np.einsum("kri,kr->ki", wJp, ell))
+    if damping > 0.0:
+        diag3, diag6 = np.arange(GP_SIZE), np.arange(EOP_SIZE)
+        Npp[:, diag3, diag3] *= 1.0 + damping
+        Nee[:, diag6, diag6] *= 1.0 + damping
     Nep_blocks = np.einsum("kri,krj->kij", wJe, Jp)  # (k, 6, 3)
     try:
         Npp_inv = np.linalg.inv(Npp)
@@ -189,6 +208,18 @@ def _linearise(
         rhs,
         ell,
     )
+
+
+def _weighted_ssr(camera: PinholeCamera, data: BlockData, eop: FloatArray,
+                  gp: FloatArray) -> float:
+    """Weighted sum of squared residuals (image points and nav) at ``(eop, gp)``."""
+    img, pt = data.obs_image, data.obs_point
+    if np.any(depth(eop[img], gp[pt]) <= 0.0):
+        return math.inf  # a point behind a camera that sees it: not a solution
+    res = data.obs_uv - project(eop[img], gp[pt], camera)
+    ssr = float(np.sum(res**2 / data.obs_sigma_px[:, None] ** 2))
+    ssr += float(np.sum(_eop_residual(data.nav_eop, eop) ** 2 / data.nav_sigma**2))
+    return ssr if np.isfinite(ssr) else math.inf
 
 
 def _back_substitute(nrm: _Normals, delta_e: FloatArray) -> FloatArray:
@@ -303,23 +334,49 @@ def adjust_block(
     converged = False
     iterations = 0
     nrm: _Normals | None = None
+    damping = 0.0
+    was_damped = False
+    cost = _weighted_ssr(camera, data, eop, gp)
     for iterations in range(1, options.max_iterations + 1):
-        nrm, rhs, _ = _linearise(camera, data, eop, gp)
-        delta_e = nrm.lu.solve(rhs)
-        if not np.all(np.isfinite(delta_e)):
-            raise EstimationError(
-                f"non-finite correction in iteration {iterations} "
-                f"(reduced system of order {nrm.size})"
-            )
-        delta_p = _back_substitute(nrm, delta_e).reshape(m, GP_SIZE)
-        de = delta_e.reshape(n, EOP_SIZE)
+        # Gauss-Newton while it lowers the cost, shortened by a line search when the full
+        # step overshoots, Levenberg-Marquardt damping when no shortened step helps (bad
+        # initial values of real flights). Near the minimum the full Gauss-Newton step is
+        # taken, so the solution is Gauss-Newton's wherever Gauss-Newton converges.
+        while True:
+            nrm, rhs, _ = _linearise(camera, data, eop, gp, damping)
+            delta_e = nrm.lu.solve(rhs)
+            if not np.all(np.isfinite(delta_e)):
+                raise EstimationError(
+                    f"non-finite correction in iteration {iterations} "
+                    f"(reduced system of order {nrm.size})"
+                )
+            delta_p = _back_substitute(nrm, delta_e).reshape(m, GP_SIZE)
+            de = delta_e.reshape(n, EOP_SIZE)
+            new_cost, step = math.inf, 1.0
+            for step in LINE_SEARCH_STEPS:
+                new_cost = _weighted_ssr(camera, data, eop + step * de, gp + step * delta_p)
+                if new_cost <= cost * (1.0 + COST_TOLERANCE):
+                    break
+            if new_cost <= cost * (1.0 + COST_TOLERANCE) or damping >= MAX_DAMPING:
+                break
+            damping = FIRST_DAMPING if damping == 0.0 else damping * DAMPING_FACTOR
+        if new_cost > cost * (1.0 + COST_TOLERANCE):
+            raise EstimationError(f"adjustment diverges (cost {new_cost:.4g} > {cost:.4g} even "
+                                  f"with damping {damping:g}, iteration {iterations})")
+        de, delta_p = step * de, step * delta_p
         eop += de
         gp += delta_p
+        cost = new_cost
+        was_damped = damping > 0.0 or step < 1.0
+        damping = damping / DAMPING_FACTOR if damping > MIN_DAMPING else 0.0
         max_pos = max(np.max(np.abs(de[:, :3]), initial=0.0), np.max(np.abs(delta_p), initial=0.0))
         max_ang = np.max(np.abs(de[:, 3:]), initial=0.0)
-        if max_pos < options.position_tolerance_m and max_ang < options.angle_tolerance_rad:
+        if (not was_damped and max_pos < options.position_tolerance_m
+                and max_ang < options.angle_tolerance_rad):
             converged = True
             break
+    if was_damped:
+        nrm, _, _ = _linearise(camera, data, eop, gp)  # cofactors of the undamped system
     assert nrm is not None
     img, pt = data.obs_image, data.obs_point
     res_img = data.obs_uv - project(eop[img], gp[pt], camera)
@@ -473,7 +530,11 @@ class SimultaneousAT:
             cat.obs_point.append(j)
             cat.obs_uv.append(uv)
             cat.obs_sigma.append(frame.sigma_px)
-        self._eop_est = np.vstack([self._eop_est, nav[None]])
+        init = nav
+        if frame.initial_eop is not None:
+            init = frame.initial_eop.copy()
+            init[:3] -= self._origin
+        self._eop_est = np.vstack([self._eop_est, init[None]])
         self._dirty = True
         iterations = 0
         if self.refit_every_frame:
@@ -501,9 +562,16 @@ class SimultaneousAT:
             mask = need[op]
             X, _ = intersect_rays(self._eop_est[oi[mask]], uv[mask], op[mask], n_pts, self.camera)
             gp_init[need] = X[need]
-        sel = np.flatnonzero(
-            (counts >= self.options.min_rays) & np.all(np.isfinite(gp_init), axis=1)
-        )
+        usable = (counts >= self.options.min_rays) & np.all(np.isfinite(gp_init), axis=1)
+        # A new point must lie in front of every camera that sees it (a mismatch intersected
+        # behind the cameras would make the normal equations indefinite).
+        check = usable[op] & need[op]
+        if np.any(check):
+            front = np.ones(n_pts, dtype=bool)
+            d = depth(self._eop_est[oi[check]], gp_init[op[check]])
+            np.logical_and.at(front, op[check], d > 0)
+            usable &= front
+        sel = np.flatnonzero(usable)
         remap = np.full(n_pts, -1)
         remap[sel] = np.arange(sel.size)
         keep = remap[op] >= 0

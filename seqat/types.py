@@ -63,6 +63,10 @@ class Frame:
         Observed pixel coordinates of the ``k`` observations (ideal pinhole pixels).
     sigma_px : float
         Standard deviation of an image coordinate, pixels.
+    initial_eop : (6,) float or None
+        Initial value of the image's EOP for the estimator's linearisation (e.g. a space
+        resection on known ground points), world frame; not an observation. ``None``: the
+        nav is the initial value.
     """
 
     image_id: str
@@ -71,6 +75,7 @@ class Frame:
     point_ids: tuple[str, ...]
     uv_px: FloatArray
     sigma_px: float = 1.0
+    initial_eop: FloatArray | None = None
 
     def __post_init__(self) -> None:
         nav = np.asarray(self.nav_eop, dtype=np.float64).reshape(-1)
@@ -91,6 +96,12 @@ class Frame:
             raise InputDataError(f"{where}: a point id appears twice in one image")
         if not (np.isfinite(self.sigma_px) and self.sigma_px > 0):
             raise InputDataError(f"{where}: sigma_px must be positive, got {self.sigma_px!r}")
+        if self.initial_eop is not None:
+            init = np.asarray(self.initial_eop, dtype=np.float64).reshape(-1)
+            if init.shape != (EOP_SIZE,) or not np.all(np.isfinite(init)):
+                raise InputDataError(f"{where}: initial_eop must be 6 finite numbers, "
+                                     f"got {init!r}")
+            object.__setattr__(self, "initial_eop", init)
         object.__setattr__(self, "nav_eop", nav)
         object.__setattr__(self, "nav_sigma", sig)
         object.__setattr__(self, "uv_px", uv)
