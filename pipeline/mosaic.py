@@ -80,12 +80,14 @@ class MosaicBuilder:
         Width of the blend across seamlines, cells (0: hard seams).
     work_dir : Path, optional
         Tile store (default: ``.<name>.tiles`` beside ``path``); emptied first.
-    cache_tiles : int
-        Tiles held in memory.
+    cache_tiles : int, optional
+        Tiles held in memory. Default: ``CACHE_TILES``, raised to twice the tiles of the
+        largest ortho so far (bounded by the image size, not by the flight's length, and
+        consecutive images never thrash the tile store).
     """
 
     def __init__(self, path: Path | str, crs: pyproj.CRS, *, feather_px: int = FEATHER_PX,
-                 work_dir: Path | None = None, cache_tiles: int = CACHE_TILES) -> None:
+                 work_dir: Path | None = None, cache_tiles: int | None = None) -> None:
         if feather_px < 0:
             raise ConfigError(f"feather_px: expected >= 0, got {feather_px}")
         self.path = Path(path)
@@ -102,7 +104,8 @@ class MosaicBuilder:
         self._stored: set[tuple[int, int]] = set()  # tiles in the tile store
         self._cache: OrderedDict[tuple[int, int], _Tile] = OrderedDict()
         self._dirty: set[tuple[int, int]] = set()
-        self._cache_tiles = max(1, cache_tiles)
+        self._auto_cache = cache_tiles is None
+        self._cache_tiles = CACHE_TILES if cache_tiles is None else max(1, cache_tiles)
         self._images = 0
 
     # ----------------------------------------------------------------------------------------
@@ -129,6 +132,10 @@ class MosaicBuilder:
                    else 0.0)
         rows, cols = r.shape
         T = TILE_PX
+        if self._auto_cache:
+            span = ((r.row0 + rows - 1) // T - r.row0 // T + 1) * ((r.col0 + cols - 1) // T
+                                                                  - r.col0 // T + 1)
+            self._cache_tiles = max(self._cache_tiles, 2 * span)
         touched = updated = 0
         for tr in range(r.row0 // T, (r.row0 + rows - 1) // T + 1):
             for tc in range(r.col0 // T, (r.col0 + cols - 1) // T + 1):

@@ -75,7 +75,7 @@ def test_mosaic_picks_the_most_nadir_image_with_a_short_feather(
 def test_tiles_evicted_to_disk_give_the_same_mosaic(tmp_path: Path,
                                                    strip_orthos: list[OrthoResult]) -> None:
     paths = []
-    for cache in (1, 64):
+    for cache in (1, None):
         builder = MosaicBuilder(tmp_path / f"m{cache}.tif", CRS, cache_tiles=cache)
         for ortho in strip_orthos:
             builder.add(ortho)
