@@ -317,7 +317,8 @@ class Orthorectifier:
         if self.pixel_m is None:
             self.pixel_m = _nice_pixel(height_agl / self.camera.fx_px)
         p = self.pixel_m
-        footprint, window, notes = self._footprint(image_id, eop, R, z_ground, height_agl)
+        footprint, hull, window, notes = self._footprint(image_id, eop, R, z_ground,
+                                                         height_agl)
         warnings.extend(notes)
         west, south, east, north = window
         col0, col1 = int(math.floor(west / p)), int(math.ceil(east / p))
@@ -328,7 +329,7 @@ class Orthorectifier:
             raise InputDataError(f"image {image_id!r}: footprint of {cols} x {rows} cells at "
                                  f"{p:g} m is too large (pixel_m too small for this image?)")
         Z = self.dsm.sample_grid(col0 * p, -row0 * p, p, rows, cols)
-        proj = self._project(eop, R, col0, row0, Z, z_ground)
+        proj = self._project(eop, R, col0, row0, Z, z_ground, hull)
         off_dsm = sum(proj.off_dsm)
         if off_dsm:
             warnings.append(f"image {image_id!r}: {off_dsm} cells of the footprint have no DSM "
@@ -399,9 +400,11 @@ class Orthorectifier:
         return eop[:2] + t[:, None] * rays[:, :2], partial
 
     def _footprint(self, image_id: str, eop: FloatArray, R: FloatArray, z_ground: float,
-                   height_agl: float) -> tuple[FloatArray, tuple[float, float, float, float],
+                   height_agl: float) -> tuple[FloatArray, FloatArray,
+                                               tuple[float, float, float, float],
                                                tuple[str, ...]]:
-        """Footprint ring on the nadir plane, ground window over the DSM's heights, warnings."""
+        """Footprint ring on the nadir plane, its convex hull over the DSM's heights, the
+        ground window (clipped to the DSM) and warnings."""
         ideal = self._corrector.ideal_pixels(border_pixels(self.camera.width_px,
                                                            self.camera.height_px))
         rays = rays_world(np.tile(eop, (len(ideal), 1)), ideal, self._pinhole)
@@ -435,10 +438,11 @@ class Orthorectifier:
                       & (ring[:, 1] <= dn)):
             notes.append(f"image {image_id!r}: the footprint reaches beyond the DSM "
                          f"({self.dsm.source}); the ortho stops at its edge")
-        return np.vstack([ring, ring[:1]]), window, tuple(notes)
+        hull = cv2.convexHull(allp.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+        return np.vstack([ring, ring[:1]]), hull, window, tuple(notes)
 
     def _project(self, eop: FloatArray, R: FloatArray, col0: int, row0: int, Z: np.ndarray,
-                 z_ground: float) -> _Projection:
+                 z_ground: float, hull: FloatArray) -> _Projection:
         """Observed pixel, depth and off-nadir tangent of every cell (float32, row blocks).
 
         With ``d = -p_z`` (the depth) the ideal pixel is ``u = (cx d + f p_x) / d``,
@@ -447,19 +451,20 @@ class Orthorectifier:
         a multiple of the height. The distortion is added from the camera's lookup table
         (:class:`_DistortionLut`, one ``cv2.remap``). Cells without DSM height are projected
         at ``z_ground`` only to count those inside the image (``off_dsm``); they stay unseen.
+        In each row block only the columns inside ``hull`` (the footprint's convex hull over
+        the DSM's heights, east/north metres) are projected.
         """
         rows, cols = Z.shape
         p = self.pixel_m
         assert p is not None
-        lut = self._lut
         f32 = np.float32
         dx = (col0 + np.arange(cols) + 0.5) * p - eop[0]
         dy = -(row0 + np.arange(rows) + 0.5) * p - eop[1]
         k = self._lut_coefficients(R)
         col_terms = (k[:, 0:1] * dx[None, :]).astype(f32)  # (3, cols)
         row_terms = (k[:, 1:2] * dy[None, :]).astype(f32)  # (3, rows)
-        kz = k[:, 2].astype(f32)
-        neg_hdist = (-np.sqrt(dx[None, :] ** 2 + dy[:, None] ** 2)).astype(f32)
+        k_f32 = k[:, 2].astype(f32)
+        dxy2 = ((dx**2).astype(f32), (dy**2).astype(f32))  # squared horizontal offsets
         ks = OCCLUSION_SUBSAMPLE
         sub_shape = (-(-rows // ks), -(-cols // ks))
         out = _Projection(uv=np.empty((rows, cols, 2), f32), depth=np.empty((rows, cols), f32),
@@ -475,44 +480,67 @@ class Orthorectifier:
 
         def block(r0: int) -> None:
             rs = slice(r0, min(r0 + BLOCK_ROWS, rows))
-            dz = Z[rs] - z0
-            no_height = np.isnan(dz) if has_holes else None
-            if no_height is not None:
-                dz[no_height] = z_fill - z0
-            depth = out.depth[rs]
-            np.multiply(kz[2], dz, out=depth)
-            depth += row_terms[2, rs, None]
-            depth += col_terms[2]
-            behind = depth <= 0
-            any_behind = bool(behind.any())
-            uv = np.empty(depth.shape + (2,), f32)
-            for c in (0, 1):
-                num = kz[c] * dz
-                num += row_terms[c, rs, None]
-                num += col_terms[c]
-                np.divide(num, depth, out=uv[:, :, c])
-            if any_behind:
-                uv[behind] = OUTSIDE_PX
-                depth[behind] = np.nan
-            delta = cv2.remap(lut.table, uv, None, cv2.INTER_LINEAR,
-                              borderMode=cv2.BORDER_CONSTANT, borderValue=(OUTSIDE_PX,) * 4)
-            cv2.scaleAdd(uv, lut.step_px, delta, dst=out.uv[rs])
-            seen = out.seen[rs]
-            np.greater(cv2.inRange(out.uv[rs], lo, hi), 0, out=seen)
-            if no_height is not None:
-                out.off_dsm.append(int(np.count_nonzero(seen & no_height)))
-                seen &= ~no_height
-                out.uv[rs][~seen] = OUTSIDE_PX
-            np.divide(neg_hdist[rs], dz, out=out.off_nadir[rs])
+            # Only the columns the footprint can reach in these rows are projected.
+            c_lo, c_hi = _hull_columns(hull, col0, row0 + rs.start, row0 + rs.stop, p, cols)
+            for part in (slice(0, c_lo), slice(c_hi, cols)):
+                out.seen[rs, part] = False
+                out.uv[rs, part] = OUTSIDE_PX
+                out.depth[rs, part] = np.inf
+                out.off_nadir[rs, part] = np.inf
+            cs = slice(c_lo, c_hi)
+            if c_lo < c_hi:
+                self._project_block(out, rs, cs, Z, k_f32, row_terms, col_terms, dxy2,
+                                    z0, z_fill, has_holes, lo, hi)
             # Every ks-th cell for the z-buffer, copied while the block is in the cache.
             ss = slice(rs.start // ks, -(-rs.stop // ks))
             out.uv_s[ss] = out.uv[rs][::ks, ::ks]
-            out.depth_s[ss] = depth[::ks, ::ks]
-            out.seen_s[ss] = seen[::ks, ::ks]
+            out.depth_s[ss] = out.depth[rs][::ks, ::ks]
+            out.seen_s[ss] = out.seen[rs][::ks, ::ks]
             out.z_s[ss] = Z[rs][::ks, ::ks]
 
         list(self._pool.map(block, range(0, rows, BLOCK_ROWS)))
         return out
+
+    def _project_block(self, out: _Projection, rs: slice, cs: slice, Z: np.ndarray,
+                       kz: np.ndarray, row_terms: np.ndarray, col_terms: np.ndarray,
+                       dxy2: tuple[np.ndarray, np.ndarray], z0: np.float32, z_fill: np.float32,
+                       has_holes: bool, lo: tuple[float, float],
+                       hi: tuple[float, float]) -> None:
+        """Project the cells ``[rs, cs]`` into ``out`` (see :meth:`_project`)."""
+        f32 = np.float32
+        lut = self._lut
+        dz = Z[rs, cs] - z0
+        no_height = np.isnan(dz) if has_holes else None
+        if no_height is not None:
+            dz[no_height] = z_fill - z0
+        depth = kz[2] * dz
+        depth += row_terms[2, rs, None]
+        depth += col_terms[2, cs]
+        behind = depth <= 0
+        any_behind = bool(behind.any())
+        uv = np.empty(depth.shape + (2,), f32)
+        for c in (0, 1):
+            num = kz[c] * dz
+            num += row_terms[c, rs, None]
+            num += col_terms[c, cs]
+            np.divide(num, depth, out=uv[:, :, c])
+        if any_behind:
+            uv[behind] = OUTSIDE_PX
+            depth[behind] = np.nan
+        delta = cv2.remap(lut.table, uv, None, cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=(OUTSIDE_PX,) * 4)
+        uv_obs = cv2.scaleAdd(uv, lut.step_px, delta)
+        seen = cv2.inRange(uv_obs, lo, hi) > 0
+        if no_height is not None:
+            out.off_dsm.append(int(np.count_nonzero(seen & no_height)))
+            seen &= ~no_height
+            uv_obs[~seen] = OUTSIDE_PX
+        out.uv[rs, cs] = uv_obs
+        out.seen[rs, cs] = seen
+        out.depth[rs, cs] = depth
+        hdist = np.sqrt(dxy2[0][cs] + dxy2[1][rs, None])
+        np.divide(hdist, dz, out=hdist)
+        np.negative(hdist, out=out.off_nadir[rs, cs])
 
     def _lut_coefficients(self, R: FloatArray) -> FloatArray:
         """(3, 3) map from ``(X - X0, Y - Y0, Z - Z0)`` to (numerator u, numerator v, depth).
@@ -644,7 +672,8 @@ class Orthorectifier:
         index = pix[:, :, 1] * nbu + pix[:, :, 0]
         index[~seen_s] = nbu * nbv  # unseen cells go to a spare slot
         zbuf = np.full(nbu * nbv + 1, np.inf, dtype=np.float32)
-        np.minimum.at(zbuf, index.ravel(), depth_s.ravel())
+        with np.errstate(invalid="ignore"):  # unseen cells (spare slot) may have NaN depth
+            np.minimum.at(zbuf, index.ravel(), depth_s.ravel())
         # Walls between cells of very different height (facades) hide what lies behind them.
         # Wall samples 2 buckets apart: the 3 x 3 minimum filter closes the gaps between them.
         uv_f, depth_f = self._facade_points(proj.z_s, k, col0, row0, eop,
@@ -726,6 +755,29 @@ class _DistortionLut:
                                     (V - camera.cy_px) / camera.fx_px, camera)
         table = np.stack([uo - gu[None, :], vo - gv[:, None]], axis=-1).astype(np.float32)
         return cls(table=table, u0=float(u0), v0=float(v0), step_px=float(LUT_STEP_PX))
+
+
+def _hull_columns(hull: FloatArray, col0: int, grow0: int, grow1: int, pixel_m: float,
+                  cols: int) -> tuple[int, int]:
+    """Columns ``[c_lo, c_hi)`` of the grid that the convex polygon ``hull`` reaches in the
+    global rows ``[grow0, grow1)`` (one cell of margin); ``(0, 0)`` when none.
+
+    The x range of a convex polygon within a horizontal band: its vertices inside the band
+    and its edges' crossings of the band's two lines.
+    """
+    y_hi, y_lo = -grow0 * pixel_m, -grow1 * pixel_m
+    a, b = hull, np.roll(hull, -1, axis=0)
+    xs = [a[(a[:, 1] >= y_lo) & (a[:, 1] <= y_hi), 0]]
+    for y in (y_lo, y_hi):
+        crosses = (a[:, 1] - y) * (b[:, 1] - y) < 0
+        t = (y - a[crosses, 1]) / (b[crosses, 1] - a[crosses, 1])
+        xs.append(a[crosses, 0] + t * (b[crosses, 0] - a[crosses, 0]))
+    x = np.concatenate(xs)
+    if x.size == 0:
+        return 0, 0
+    c_lo = int(math.floor(x.min() / pixel_m)) - col0 - 1
+    c_hi = int(math.ceil(x.max() / pixel_m)) - col0 + 1
+    return max(c_lo, 0), min(max(c_hi, 0), cols)
 
 
 def _cropped(raster: OrthoRaster) -> OrthoRaster:
