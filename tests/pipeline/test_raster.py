@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +38,9 @@ def test_write_cog_passes_the_layout_check_with_known_georeferencing(tmp_path: P
         assert src.xy(0, 0) == (500000.25, 4089999.75)
         assert src.bounds == (500000.0, 4090000.0 - 600.0, 500000.0 + 550.0, 4090000.0)
     assert not list(tmp_path.glob(".*"))  # no temporary file left
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask  # readable like any other output
 
 
 def test_plain_and_badly_ordered_geotiffs_fail_the_check(tmp_path: Path) -> None:
