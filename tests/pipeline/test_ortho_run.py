@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import cv2
+import laspy
 import numpy as np
 import pyogrio
 import pyproj
@@ -123,6 +124,36 @@ def test_ortho_run_without_dsm_uses_the_tie_point_plane(tmp_path: Path) -> None:
     out = write_run(tmp_path)
     summary = orthorectify_run(out, options=OrthoOptions(pixel_m=0.1), progress=False)
     assert any("flat plane" in w and f"{Z_PLANE_M:.2f}" in w for w in summary.warnings)
+    mosaic_matches_texture(out / "mosaic.tif")
+
+
+@pytest.mark.parametrize("lidar", ["dsm", "las"])
+def test_ortho_run_uses_the_flights_lidar(tmp_path: Path, lidar: str) -> None:
+    out = write_run(tmp_path)
+    flight = tmp_path / "flight"  # the run's flight folder (run.json "flight")
+    flight.mkdir()
+    if lidar == "dsm":
+        write_scene_dsm(flight / "scene_dsm.tif")
+        name = "scene_dsm.tif"
+    else:  # a LiDAR cloud of the textured plane, gridded into OUT/dsm.tif
+        g = np.arange(-40.0, 40.0, 0.5)
+        x, y = np.meshgrid(E0_M + g, N0_M + g)
+        header = laspy.LasHeader(point_format=3, version="1.4")
+        header.scales, header.offsets = np.full(3, 0.001), np.array([E0_M, N0_M, 0.0])
+        header.add_crs(CRS)
+        las = laspy.LasData(header)
+        las.x, las.y, las.z = x.ravel(), y.ravel(), np.full(x.size, Z_PLANE_M)
+        las.write(flight / "cloud.las")
+        name = "cloud.las"
+    (flight / "flight.yaml").write_text(
+        "crs: EPSG:32652\n"
+        "camera: {model: PINHOLE, width_px: 400, height_px: 300, fx_px: 400, fy_px: 400,"
+        " cx_px: 199.5, cy_px: 149.5}\n"
+        "nav: {sigma_position_m: 1, sigma_attitude_deg: 1}\n"
+        f"lidar: {name}\n")
+    summary = orthorectify_run(out, options=OrthoOptions(pixel_m=0.1), progress=False)
+    assert summary.warnings == ()
+    assert summary.dsm_source == str(flight / name if lidar == "dsm" else out / "dsm.tif")
     mosaic_matches_texture(out / "mosaic.tif")
 
 
