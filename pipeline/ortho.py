@@ -47,7 +47,7 @@ import pyproj
 from affine import Affine
 from rasterio.transform import from_origin
 
-from pipeline.camera import PixelCorrector, distort_normalized, pinhole_camera
+from pipeline.camera import DistortionTable, PixelCorrector, border_pixels, pinhole_camera
 from pipeline.config import CameraConfig
 from pipeline.dsm import Dsm
 from pipeline.raster import write_cog
@@ -55,17 +55,9 @@ from seqat.errors import ConfigError, InputDataError
 from seqat.geometry import rays_world, rotation_matrix
 from seqat.types import FloatArray
 
-#: Border pixels sampled per image edge for the footprint.
-FOOTPRINT_SAMPLES_PER_EDGE = 16
 #: A ray whose downward component is below this (sine of the depression angle) misses the
 #: ground: the viewing axis must look at least this far below the horizon.
 MIN_DEPRESSION_SIN = math.sin(math.radians(1.0))
-#: Distortion lookup table: node spacing and margin around the image's ideal pixels (px),
-#: border samples per edge used to find that range. Outside it cells are not projected (the
-#: distortion polynomial may fold back far outside the field of view).
-LUT_STEP_PX = 4.0
-LUT_MARGIN_PX = 8.0
-LUT_BORDER_SAMPLES = 64
 #: Map value that makes ``cv2.remap`` sample nothing (far outside any image).
 OUTSIDE_PX = -1.0e5
 #: Rows per block of the projection (fits the work arrays in the cache); a multiple of
@@ -216,24 +208,6 @@ def _nice_pixel(gsd_m: float) -> float:
     return round(gsd_m, digits)
 
 
-def border_pixels(width_px: int, height_px: int, n: int = FOOTPRINT_SAMPLES_PER_EDGE) -> (
-        FloatArray):
-    """Observed pixels along the image border, clockwise from the top-left corner.
-
-    Returns
-    -------
-    (4 n, 2) float
-        On the outer pixel edges (``-0.5`` and ``size - 0.5``).
-    """
-    w, h = width_px - 0.5, height_px - 0.5
-    t = np.linspace(0.0, 1.0, n, endpoint=False)
-    top = np.column_stack([-0.5 + t * (w + 0.5), np.full(n, -0.5)])
-    right = np.column_stack([np.full(n, w), -0.5 + t * (h + 0.5)])
-    bottom = np.column_stack([w - t * (w + 0.5), np.full(n, h)])
-    left = np.column_stack([np.full(n, -0.5), h - t * (h + 0.5)])
-    return np.vstack([top, right, bottom, left])
-
-
 class Orthorectifier:
     """Streaming orthorectification: one image in, one ortho COG out.
 
@@ -262,7 +236,7 @@ class Orthorectifier:
         self.pixel_m: float | None = self.options.pixel_m
         self._corrector = PixelCorrector(camera=camera)
         self._pinhole = pinhole_camera(camera)
-        self._lut = _DistortionLut.for_camera(camera)
+        self._lut = DistortionTable.for_camera(camera)
         self._pool = ThreadPoolExecutor(max_workers=self.options.threads)
 
     def close(self) -> None:
@@ -449,8 +423,9 @@ class Orthorectifier:
         ``v = (cy d - f p_y) / d``: numerators and depth are affine in the cell's offset from
         the projection centre, so each is an outer sum over the grid's rows and columns plus
         a multiple of the height. The distortion is added from the camera's lookup table
-        (:class:`_DistortionLut`, one ``cv2.remap``). Cells without DSM height are projected
-        at ``z_ground`` only to count those inside the image (``off_dsm``); they stay unseen.
+        (:class:`pipeline.camera.DistortionTable`, one ``cv2.remap``). Cells without DSM
+        height are projected at ``z_ground`` only to count those inside the image
+        (``off_dsm``); they stay unseen.
         In each row block only the columns inside ``hull`` (the footprint's convex hull over
         the DSM's heights, east/north metres) are projected.
         """
@@ -721,40 +696,6 @@ class _Projection:
     depth_s: np.ndarray
     seen_s: np.ndarray
     z_s: np.ndarray
-
-
-@dataclass(frozen=True, kw_only=True, eq=False)
-class _DistortionLut:
-    """Ideal -> observed pixels as a table, read with ``cv2.remap`` (bilinear).
-
-    ``table[j, i] = observed(u0 + i step, v0 + j step) - (i step, j step)``: for ideal pixels
-    ``(u, v)`` the observed ones are ``step * ((u - u0) / step, (v - v0) / step) + table``
-    interpolated there. Covers the ideal pixels of the image (plus ``LUT_MARGIN_PX``); cells
-    outside read ``OUTSIDE_PX`` and are unseen. The OpenCV polynomial is smooth: bilinear
-    interpolation over ``LUT_STEP_PX`` adds < 0.01 px (pinned by the ortho tests).
-    """
-
-    table: np.ndarray  # (nv, nu, 2) float32
-    u0: float
-    v0: float
-    step_px: float
-
-    @classmethod
-    def for_camera(cls, camera: CameraConfig) -> _DistortionLut:
-        corrector = PixelCorrector(camera=camera)
-        ideal = corrector.ideal_pixels(border_pixels(camera.width_px, camera.height_px,
-                                                     LUT_BORDER_SAMPLES))
-        u0 = math.floor(ideal[:, 0].min()) - LUT_MARGIN_PX
-        v0 = math.floor(ideal[:, 1].min()) - LUT_MARGIN_PX
-        nu = int(math.ceil((ideal[:, 0].max() + LUT_MARGIN_PX - u0) / LUT_STEP_PX)) + 2
-        nv = int(math.ceil((ideal[:, 1].max() + LUT_MARGIN_PX - v0) / LUT_STEP_PX)) + 2
-        gu = np.arange(nu) * LUT_STEP_PX
-        gv = np.arange(nv) * LUT_STEP_PX
-        U, V = np.meshgrid(u0 + gu, v0 + gv)
-        uo, vo = distort_normalized((U - camera.cx_px) / camera.fx_px,
-                                    (V - camera.cy_px) / camera.fx_px, camera)
-        table = np.stack([uo - gu[None, :], vo - gv[:, None]], axis=-1).astype(np.float32)
-        return cls(table=table, u0=float(u0), v0=float(v0), step_px=float(LUT_STEP_PX))
 
 
 def _hull_columns(hull: FloatArray, col0: int, grow0: int, grow1: int, pixel_m: float,
