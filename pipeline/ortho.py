@@ -20,11 +20,14 @@ Per image (all vectorised, no Python loop over pixels):
    ``pixel_m``) so every ortho and the mosaic share it; ``pixel_m`` is the GSD of the first
    image unless given. Heights come from the DSM (bilinear, ``cv2.warpAffine``).
 3. **Collinearity** ``p = R^T (X - X0)`` (docs/conventions.md) and the OpenCV distortion
-   (:func:`pipeline.camera.distort_normalized`) give the observed pixel of every cell; float32
-   with the projection centre subtracted, in row blocks on a small thread pool.
-4. **Occlusion** (z-buffer): the nearest depth per image bucket (``np.minimum.at``), widened by a
-   3 x 3 minimum filter; a cell farther than that depth plus a tolerance is hidden from this
-   image and left empty, so facades and roofs do not smear over the ground they hide.
+   (closed form :func:`pipeline.camera.distort_normalized`, read from a per-camera
+   :class:`pipeline.camera.DistortionTable`) give the observed pixel of every cell; float32
+   with the projection centre subtracted, in row blocks on a small thread pool, only over the
+   columns the footprint reaches.
+4. **Occlusion** (z-buffer): the nearest depth per image bucket from every second cell and
+   from the camera-facing walls the DSM implies (``np.minimum.at``), widened by a 3 x 3
+   minimum filter; a cell farther than that depth plus a tolerance is hidden from this image
+   and left empty, so facades and roofs do not smear over the ground they hide.
 5. **Resampling** with ``cv2.remap`` (bilinear, or cubic), alpha = seen and inside the image.
 
 Errors: an EOP looking at or above the horizon, a camera below the surface, a DSM that does
