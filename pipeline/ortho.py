@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -99,6 +99,10 @@ class OrthoOptions:
         Worker threads of the projection.
     write_images : bool
         Write ``ortho/<image>.tif`` (else only return the raster, e.g. for the mosaic).
+    background_writes : bool
+        Write each COG on a background thread while the next image is orthorectified (at most
+        one write pending); the file is complete after the next ``add_image``, ``flush()`` or
+        ``close()``.
     """
 
     pixel_m: float | None = None
@@ -108,6 +112,7 @@ class OrthoOptions:
     max_range_factor: float = 3.0
     threads: int = 2
     write_images: bool = True
+    background_writes: bool = True
 
     def __post_init__(self) -> None:
         if self.pixel_m is not None and not (math.isfinite(self.pixel_m) and self.pixel_m > 0):
@@ -178,7 +183,8 @@ class OrthoResult:
     ----------
     image_id : str
     path : Path or None
-        The written ``ortho/<image>.tif`` (None with ``write_images=False``).
+        ``ortho/<image>.tif`` (None with ``write_images=False``); with ``background_writes``
+        complete after the next ``add_image``, ``flush()`` or ``close()``.
     raster : OrthoRaster
         Cropped to the cells seen.
     footprint_m : (k, 2) float
@@ -187,7 +193,9 @@ class OrthoResult:
     seen_cells, occluded_cells, off_dsm_cells : int
         Cells filled; hidden by higher surfaces; without DSM height.
     compute_ms, write_ms : float
-        Orthorectification time (projection, occlusion, resampling) and COG writing time.
+        Orthorectification time (projection, occlusion, resampling) and the time
+        ``add_image`` spent writing COGs (with ``background_writes``: waiting for the
+        previous image's write).
     occlusion_ms : float
         The part of ``compute_ms`` spent on the z-buffer.
     warnings : tuple[str, ...]
@@ -241,10 +249,22 @@ class Orthorectifier:
         self._pinhole = pinhole_camera(camera)
         self._lut = DistortionTable.for_camera(camera)
         self._pool = ThreadPoolExecutor(max_workers=self.options.threads)
+        self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ortho-cog")
+        self._pending: Future[Path] | None = None
+
+    def flush(self) -> None:
+        """Wait for the pending COG write; re-raise its error."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            pending.result()
 
     def close(self) -> None:
-        """Stop the worker threads."""
-        self._pool.shutdown(wait=True)
+        """Finish the pending write and stop the worker threads."""
+        try:
+            self.flush()
+        finally:
+            self._writer.shutdown(wait=True)
+            self._pool.shutdown(wait=True)
 
     def __enter__(self) -> Orthorectifier:
         return self
@@ -332,7 +352,12 @@ class Orthorectifier:
         path = None
         t1 = time.perf_counter()
         if self.out_dir is not None and self.options.write_images:
-            path = write_ortho(self.out_dir / f"{image_id}.tif", raster, self.crs)
+            path = self.out_dir / f"{image_id}.tif"
+            self.flush()  # at most one write pending: memory stays bounded
+            if self.options.background_writes:
+                self._pending = self._writer.submit(write_ortho, path, raster, self.crs)
+            else:
+                write_ortho(path, raster, self.crs)
         return OrthoResult(image_id=image_id, path=path, raster=raster, footprint_m=footprint,
                            seen_cells=int(np.count_nonzero(raster.seen)),
                            occluded_cells=occluded, off_dsm_cells=off_dsm,

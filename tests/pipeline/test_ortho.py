@@ -161,6 +161,22 @@ def test_ortho_cog_has_crs_geotransform_and_alpha(tmp_path: Path) -> None:
         assert src.profile["tiled"] and src.block_shapes[0] == (512, 512)
 
 
+def test_background_writes_give_the_same_files(tmp_path: Path) -> None:
+    cam, scene = small_camera(), Scene(a=12.0)
+    eops = [eop_deg(de, 0.0, 52.0, 0.0, 0.0, 0.0) for de in (0.0, 10.0, 20.0)]
+    images = [render(scene, cam, e) for e in eops]
+    for background in (True, False):
+        options = OrthoOptions(pixel_m=PIXEL_M, background_writes=background)
+        with Orthorectifier(scene.dsm(), cam, CRS, tmp_path / str(background), options) as o:
+            for i, (image, eop) in enumerate(zip(images, eops, strict=True)):
+                o.add_image(f"img_{i}", image, eop)
+    for i in range(3):
+        with rasterio.open(tmp_path / "True" / f"img_{i}.tif") as a, \
+                rasterio.open(tmp_path / "False" / f"img_{i}.tif") as b:
+            np.testing.assert_array_equal(a.read(), b.read())
+            assert a.transform == b.transform
+
+
 def test_pixel_size_defaults_to_the_gsd_of_the_first_image() -> None:
     cam, scene = small_camera(), Scene(a=12.0)
     eop = eop_deg(0.0, 0.0, 52.0, 0.0, 0.0, 0.0)  # 40 m above ground, fx 400 px: GSD 0.1 m
