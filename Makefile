@@ -1,4 +1,4 @@
-# seqat: `make demo` (simulate a small strip and adjust it), `make test`, `make bench`.
+# seqat: `make demo` (a real 18-image flight and a simulated strip), `make test`, `make bench`.
 # The virtual environment lives in .venv; the install is redone only when pyproject.toml changes.
 
 PYTHON ?= python3
@@ -29,11 +29,17 @@ sysdeps:
 	fi
 
 demo: $(STAMP) sysdeps
+	$(BIN)/seqat run sample_data/seneca_mini --out $(DEMO)/seneca --method seq-r
+	$(BIN)/seqat reference $(DEMO)/seneca
+	$(BIN)/seqat report $(DEMO)/seneca
 	$(BIN)/seqat simulate configs/demo_sim.yaml --out $(DEMO)/flight --seed 1
 	$(BIN)/seqat run $(DEMO)/flight --out $(DEMO)/run --method seq-r
 	@echo
-	@echo "Simulated flight: $(DEMO)/flight (flight.yaml, nav.csv, observations.csv, truth/)"
-	@echo "Seq-R results:    $(DEMO)/run (eop.csv, points.csv, run.json)"
+	@echo "Real flight (18 Seneca images, nav and camera from EXIF/XMP):"
+	@echo "  Seq-R results:      $(DEMO)/seneca (eop.csv, points.csv, observations.csv, run.json)"
+	@echo "  COLMAP reference:   $(DEMO)/seneca/reference"
+	@echo "  report:             $(DEMO)/seneca/report.html"
+	@echo "Simulated strip:      $(DEMO)/flight, Seq-R results against truth in $(DEMO)/run"
 
 test: $(STAMP) sysdeps
 	$(BIN)/python -m pytest -q

@@ -212,7 +212,8 @@ def run(
 @app.command()
 @_guarded
 def bench(
-    config: Annotated[Path, typer.Argument(help="Simulation config (configs/*_sim.yaml).")],
+    config: Annotated[Path, typer.Argument(
+        help="Simulation config (configs/*_sim.yaml), or an image flight folder.")],
     out: Annotated[Path, typer.Option("--out", help="Benchmark output folder.")] = Path(
         "out/bench"),
     seed: Annotated[list[int] | None, typer.Option(
@@ -220,8 +221,13 @@ def bench(
     threshold: Annotated[list[float] | None, typer.Option(
         "--threshold", help="Seq-R correlation threshold (repeat for several).")] = None,
 ) -> None:
-    """Compare direct georeferencing, Seq-R, Seq-F and Sim on simulated flights."""
+    """Compare direct georeferencing, Seq-R, Seq-F and Sim on simulated flights, or, for an
+    image flight folder, Seq-R (tracking) with Sim and Seq-F on the same tie points."""
     from pipeline.bench import run_bench
+
+    if config.is_dir():
+        _flight_bench(config, out)
+        return
 
     kwargs: dict[str, tuple[int, ...] | tuple[float, ...]] = {}
     if seed:
@@ -238,6 +244,39 @@ def bench(
                       "PASS" if c.passed else "FAIL")
     _console().print(table)
     _console().print(f"benchmark written to {out}")
+
+
+def _flight_bench(flight: Path, out: Path) -> None:
+    from pipeline.bench_flight import run_flight_bench
+
+    b = run_flight_bench(flight, out)
+
+    def stats(s: object) -> str:
+        return f"{s.median:.0f} / {s.p95:.0f} / {s.max:.0f}"  # type: ignore[attr-defined]
+
+    def diff(d: object) -> str:
+        return (f"{_fmt(d.pos_rms_m, METRE_FORMAT)} m, "  # type: ignore[attr-defined]
+                f"{_fmt(d.att_rms_deg, DEGREE_FORMAT)} deg")  # type: ignore[attr-defined]
+
+    rows = [
+        ("images (with a verified pair) / skipped",
+         f"{b.images} ({b.images_with_verified_pair}) / {b.skipped}"),
+        ("tracks >= 2 rays, length median / mean",
+         f"{b.tracks}, {b.track_length_median:g} / {b.track_length_mean:.2f}"),
+        ("residual px rms, median (seq-r / sim / seq-f)",
+         " / ".join(f"{b.rms_residual_px[m]:.2f}, {b.median_residual_px[m]:.2f}"
+                    for m in ("seq-r", "sim", "seq-f"))),
+        ("sigma0 (seq-r / sim / seq-f)",
+         " / ".join(f"{b.sigma0[m]:.3f}" for m in ("seq-r", "sim", "seq-f"))),
+        ("read / detect / match ms (median, p95, max)",
+         f"{stats(b.read_ms)}; {stats(b.detect_ms)}; {stats(b.match_ms)}"),
+        ("AT ms, latency ms (median, p95, max)", f"{stats(b.at_ms)}; {stats(b.latency_ms)}"),
+        ("Seq-R - Sim rms", diff(b.seq_r_minus_sim)),
+        ("Seq-F - Sim rms", diff(b.seq_f_minus_sim)),
+        ("nav - Sim rms", diff(b.nav_minus_sim)),
+        ("written", str(out)),
+    ]
+    _console().print(_table(f"seqat bench {flight}", rows))
 
 
 @app.command()

@@ -440,8 +440,11 @@ class CameraConfig:
 
 #: Default a priori σ of GPS positions (x, y, z), metres: a consumer GNSS receiver.
 DEFAULT_SIGMA_POSITION_M = (3.0, 3.0, 5.0)
-#: Default a priori σ of INS attitudes (omega, phi, kappa), degrees: a low-grade IMU.
-DEFAULT_SIGMA_ATTITUDE_DEG = (2.0, 2.0, 5.0)
+#: Default a priori σ of INS attitudes (omega, phi, kappa), degrees: a low-grade autopilot
+#: IMU whose "heading" may be the GPS course (on Seneca the adjusted kappa differs from it by
+#: +12 deg on one heading and -20 deg on the reverse one: the wind's crab angle; roll and
+#: pitch differ by 4-5 deg rms).
+DEFAULT_SIGMA_ATTITUDE_DEG = (5.0, 5.0, 15.0)
 
 
 @dataclass(frozen=True, kw_only=True)

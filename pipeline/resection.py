@@ -10,7 +10,10 @@ tilt (22 m against 22° at 70 m height, seen on Seneca), so the camera position 
 the GPS, which is good to metres, and only the rotation is solved: the rotation that best
 turns the image rays into the directions from the GPS position to the points (Wahba's
 problem, solved by SVD), inside RANSAC on 2-point samples. The result is only an
-initial value (:attr:`seqat.types.Frame.initial_eop`), never an observation.
+initial value (:attr:`seqat.types.Frame.initial_eop`), never an observation. Its outliers
+are tie-point observations that disagree with every consistent rotation by more than the
+threshold (degrees: far beyond image noise and terrain relief): wrong matches, which the
+caller leaves out of the frame.
 """
 
 from __future__ import annotations
@@ -41,10 +44,13 @@ class Resection:
     eop : (6,) float or None
         ``[X, Y, Z]`` of the nav and the resected ``[omega, phi, kappa]``; ``None`` when no
         reliable rotation exists (too few points or too few agree).
+    inliers : (k,) bool
+        Points whose ray agrees with the resected rotation (all ``True`` without one).
     n_points, n_inliers : int
     """
 
     eop: FloatArray | None
+    inliers: np.ndarray
     n_points: int
     n_inliers: int
 
@@ -80,7 +86,7 @@ def resect_attitude(xyz_m: FloatArray, uv_px: FloatArray, camera: PinholeCamera,
     uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
     k = len(xyz)
     if k < MIN_POINTS:
-        return Resection(eop=None, n_points=k, n_inliers=0)
+        return Resection(eop=None, inliers=np.ones(k, dtype=bool), n_points=k, n_inliers=0)
     cam = np.column_stack([uv[:, 0] - camera.cx_px, camera.cy_px - uv[:, 1],
                            np.full(k, -camera.f_px)])
     cam /= np.linalg.norm(cam, axis=1, keepdims=True)
@@ -97,7 +103,8 @@ def resect_attitude(xyz_m: FloatArray, uv_px: FloatArray, camera: PinholeCamera,
             best = agree
     n_in = int(best.sum())
     if n_in < max(MIN_INLIERS, MIN_INLIER_FRACTION * k):
-        return Resection(eop=None, n_points=k, n_inliers=n_in)
+        return Resection(eop=None, inliers=np.ones(k, dtype=bool), n_points=k, n_inliers=n_in)
     R = _wahba(cam[best], world[best])
+    agree = np.einsum("ij,ij->i", world, cam @ R.T) >= cos_thr  # of the refitted rotation
     eop = np.concatenate([np.asarray(nav_eop[:3], dtype=np.float64), angles_from_rotation(R)])
-    return Resection(eop=eop, n_points=k, n_inliers=n_in)
+    return Resection(eop=eop, inliers=agree, n_points=k, n_inliers=int(agree.sum()))

@@ -241,6 +241,9 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
             source.feedback(update, estimator)
             bar.update(task, advance=1,
                        info=f"{update.update_ms:7.1f} ms  window {update.window_images}")
+    finish = getattr(estimator, "finish", None)
+    if finish is not None:
+        finish()  # sequential: re-linearise the window at the final estimate
     solution = estimator.solution()
     stats = source.stats()
 

@@ -70,15 +70,26 @@ class Initialiser:
         self._known: dict[str, FloatArray] = {}
         self._eops: dict[str, FloatArray] = {}
         self._last_obs: dict[str, tuple[str, FloatArray]] = {}  # point -> (image, ideal uv)
+        #: Observations of the last frame kept by :meth:`resect` (bool per observation).
+        self.kept = np.zeros(0, dtype=bool)
 
-    def resect(self, frame: Frame) -> tuple[Resection, int]:
-        """Resection of a new frame (ideal pixels); records its rays for later frames.
+    def resect(self, frame: Frame, *, reject: bool = True) -> tuple[Frame, Resection, int, int]:
+        """Resect a new frame (ideal pixels) and leave out the observations it rejects.
+
+        ``reject=False`` keeps every observation (precomputed or replayed image points,
+        already cleaned by the run that wrote them).
+
+        :meth:`record` the frame once it goes to the estimator.
 
         Returns
         -------
+        frame : Frame
+            With ``initial_eop`` (or ``None``) and without the rejected observations.
         resection : Resection
         known : int
             Known ground points among the observations.
+        rejected : int
+            Observations left out.
         """
         point_ids, ideal = frame.point_ids, frame.uv_px
         known = [k for k, p in enumerate(point_ids) if p in self._known]
@@ -97,9 +108,18 @@ class Initialiser:
                 used += [k for k, d in zip(plane, down, strict=True) if d]
         res = resect_attitude(np.array(xyz).reshape(-1, 3), ideal[used], self.camera,
                               frame.nav_eop, self.threshold_deg)
-        for pid, uv in zip(point_ids, ideal, strict=True):
+        keep = np.ones(len(point_ids), dtype=bool)
+        if res.eop is not None and reject:
+            keep[np.asarray(used, dtype=np.int64)[~res.inliers]] = False
+        frame = dataclasses.replace(frame, point_ids=tuple(np.asarray(point_ids)[keep]),
+                                    uv_px=ideal[keep], initial_eop=res.eop)
+        self.kept = keep
+        return frame, res, len(known), int((~keep).sum())
+
+    def record(self, frame: Frame) -> None:
+        """Keep the rays of a frame sent to the estimator (plane points of later frames)."""
+        for pid, uv in zip(frame.point_ids, frame.uv_px, strict=True):
             self._last_obs[pid] = (frame.image_id, uv)
-        return res, len(known)
 
     def feedback(self, update: ImageUpdate, estimator: object) -> None:
         """Take the estimator's current ground points and EOPs after an update."""
@@ -129,10 +149,11 @@ class ObservationSource:
 
     def __iter__(self) -> Iterator[Frame]:
         for frame, observed in self._frames.with_observed():
+            frame, _, _, _ = self._init.resect(frame, reject=False)
+            self._init.record(frame)
             self._lines.append(format_observation_lines(frame.image_id, frame.point_ids,
                                                         observed))
-            res, _ = self._init.resect(frame)
-            yield dataclasses.replace(frame, initial_eop=res.eop)
+            yield frame
 
     def feedback(self, update: ImageUpdate, estimator: object) -> None:
         """Take the estimator's state after an update (:meth:`Initialiser.feedback`)."""
@@ -208,16 +229,23 @@ class ImageSource:
             frame = Frame(image_id=image_id, nav_eop=nav, nav_sigma=flight.nav_sigma,
                           point_ids=point_ids, uv_px=flight.corrector.ideal_pixels(observed),
                           sigma_px=flight.config.sigma_image_px)
-            res, known = self._init.resect(frame)
+            cleaned, first, known, rejected = self._init.resect(frame)
+            observed = observed[self._init.kept]
+            # the initial value from the kept observations only, as a replay of them
+            # (--observations) computes it: the sequential result depends on it
+            frame, res, _, _ = self._init.resect(cleaned, reject=False)
+            self._init.record(frame)
             self._stats.append({**dataclasses.asdict(tracked.stats),
-                                "resection_points": res.n_points,
+                                "read_ms": self._read_ms[-1],
+                                "resection_points": first.n_points,
                                 "resection_known_points": known,
-                                "resection_inliers": res.n_inliers,
-                                "resection_used": res.eop is not None})
-            self._lines.append(format_observation_lines(image_id, point_ids, observed))
-            self._points.update(point_ids)
-            self._n_obs += len(point_ids)
-            yield dataclasses.replace(frame, initial_eop=res.eop)
+                                "resection_inliers": first.n_inliers,
+                                "resection_used": res.eop is not None,
+                                "observations_rejected": rejected})
+            self._lines.append(format_observation_lines(image_id, frame.point_ids, observed))
+            self._points.update(frame.point_ids)
+            self._n_obs += len(frame.point_ids)
+            yield frame
 
     def feedback(self, update: ImageUpdate, estimator: object) -> None:
         """Take the estimator's state after an update (:meth:`Initialiser.feedback`)."""

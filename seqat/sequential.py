@@ -85,9 +85,11 @@ class SequentialOptions:
     initial_images: int = 10  # images adjusted simultaneously before the sequential stage
     min_rays: int = 2  # a tie point is born once seen in this many window images
     min_ray_angle_deg: float = 8.0  # ... and its rays spread at least this much (docs/algorithm.md)
-    max_update_iterations: int = 3  # 1 = the paper's single linearisation
+    max_update_iterations: int = 10  # 1 = the paper's single linearisation
     iteration_tolerance_px: float = 0.01  # stop when the rows predict the new estimate this well
     smoothing: bool = True  # Seq-R: keep RTS gains so solution() can smooth departed parameters
+    relinearise_px: float | None = 0.5  # re-linearise the window when its rows are this far off
+    relinearise_iterations: int = 5  # Gauss-Newton iterations of a window re-linearisation
     sim: SimOptions = SimOptions()
 
     def __post_init__(self) -> None:
@@ -105,6 +107,14 @@ class SequentialOptions:
         if self.max_update_iterations < 1:
             raise ConfigError(
                 f"max_update_iterations: expected >= 1, got {self.max_update_iterations}"
+            )
+        if self.relinearise_px is not None and not self.relinearise_px > 0:
+            raise ConfigError(
+                f"relinearise_px: expected a positive number or null, got {self.relinearise_px!r}"
+            )
+        if self.relinearise_iterations < 1:
+            raise ConfigError(
+                f"relinearise_iterations: expected >= 1, got {self.relinearise_iterations}"
             )
 
 
@@ -214,6 +224,8 @@ class SequentialAT:
         self._forced: set[int] = set()  # pending points already held back once (never twice)
         self._ssr = 0.0
         self._redundancy = 0
+        self._factors = _Factors()
+        self.relinearisations = 0  # window re-linearisations so far
         self.recorded: list[RecordedRows] | None = [] if record else None
         self.initial_state: tuple[list[Key], FloatArray, FloatArray] | None = None
 
@@ -231,6 +243,15 @@ class SequentialAT:
             if self._initial is not None:
                 return self._add_initial(frame)
             return self._add_sequential(frame)
+
+    def finish(self) -> None:
+        """After the last image: re-linearise the window at its estimate (to
+        :data:`FINAL_RELINEARISE_PX`), so the final window values are those of the
+        collinearity equations, not of rows linearised on the way (Seq-F then equals Sim).
+        No-op without ``relinearise_px``; :meth:`solution` itself never changes the state."""
+        if self._initial is None and self.options.relinearise_px is not None:
+            with _BLAS.limit(limits=UPDATE_BLAS_THREADS, user_api="blas"):
+                self._relinearise_if_needed(FINAL_RELINEARISE_PX)
 
     def solution(self, *, smoothed: bool | None = None) -> Solution:
         """Estimates of every image and point so far (window and departed), with sigmas.
@@ -374,6 +395,15 @@ class SequentialAT:
                     (i, np.asarray(uv, dtype=np.float64), float(s))
                 )
         self._ssr, self._redundancy = res.weighted_ssr, res.redundancy
+        if self.options.relinearise_px is not None:
+            sel_of = {int(j): k for k, j in enumerate(st.selected)}
+            use = [k for k, j in enumerate(st.obs_point) if int(j) in sel_of]
+            img = np.asarray(st.obs_image, dtype=np.int64)[use]
+            pt = np.asarray(st.obs_point, dtype=np.int64)[use]
+            gp_row = np.array([sel_of[int(j)] for j in pt], dtype=np.int64)
+            self._factors.add(img, pt, np.asarray(st.obs_uv)[use],
+                              np.asarray(st.obs_sigma_px)[use], res.eop[img], res.gp[gp_row],
+                              self.camera)
         self.initial_state = (keys, self._w.x.copy(), self._w.Q.copy())
         self._initial = None
 
@@ -532,14 +562,16 @@ class SequentialAT:
 
         # One entry per image row: (EOP column, GP column, uv, sigma, in y2) in z = [x1t, x2].
         t = touched.size
-        obs: list[tuple[int, int, FloatArray, float, bool]] = [
-            (t, col_of[("p", p)], uv, frame.sigma_px, True)
+        obs: list[tuple[int, int, FloatArray, float, bool, tuple[int, int]]] = [
+            (t, col_of[("p", p)], uv, frame.sigma_px, True, (i, p))
             for p, uv in zip(y21_pts, y21_uv, strict=True)
         ]
         obs += [
-            (col_of[("e", j)], t + EOP_SIZE + GP_SIZE * b, uv, s, True) for (j, b, uv, s) in y12
+            (col_of[("e", j)], t + EOP_SIZE + GP_SIZE * b, uv, s, True, (j, born[b]))
+            for (j, b, uv, s) in y12
         ]
-        obs += [(t, t + EOP_SIZE + GP_SIZE * b, uv, s, False) for (b, uv, s) in y22]
+        obs += [(t, t + EOP_SIZE + GP_SIZE * b, uv, s, False, (i, born[b]))
+                for (b, uv, s) in y22]
         builder = _RowBuilder(cam, t, n2, obs, nav, frame.nav_sigma)
         x1t = w.x[touched]
         d1t = np.zeros(touched.size)
@@ -565,6 +597,8 @@ class SequentialAT:
         w.relayout(w.keys + [("e", i)] + [("p", p) for p in born])
         self._ssr += sol.ssr_increment
         self._redundancy += rows.l2.size + rows.l3.size - n2
+        if opts.relinearise_px is not None:
+            builder.store_factors(self._factors)
 
         # --- bookkeeping (all O(new observations))
         self._window_images.append(i)
@@ -576,10 +610,66 @@ class SequentialAT:
             obs = self._pending.pop(p)
             self._gp_count[p] = self._gp_nobs[p] = len(obs)
             self._gp_order.append(p)
+        if opts.relinearise_px is not None:
+            self._relinearise_if_needed()
         ms = (time.perf_counter() - t0) * 1e3
         return self._report(
             frame, i, ms, rows, n2, len(born), len(pts) - skipped, skipped, iterations, dropped
         )
+
+    def _relinearise_if_needed(self, threshold_px: float | None = None) -> None:
+        """Re-linearise the window when its rows no longer describe the image points.
+
+        Old rows were linearised where the estimate stood when they arrived; when later data
+        move the estimate (a light UAV's INS is degrees off), the linear model drifts from
+        the collinearity equations (seed 003 §3.2). The check costs O(window observations):
+        the largest difference between the projected image points and the rows' linear
+        prediction at the current estimate. Above ``relinearise_px`` the window is
+        re-adjusted by Gauss-Newton: its information is split into the rows of its own
+        observations (taken out at their old linearisation) and the rest (the marginalised
+        prior of the departed parameters and the linear GPS/INS rows, kept), and the own
+        rows are linearised anew at each iterate. ``Q``, ``L`` and σ0 follow.
+        """
+        w, opts = self._w, self.options
+        assert opts.relinearise_px is not None
+        f = self._factors.in_window(w)
+        if f is None:
+            return
+        e_idx, p_idx = f.columns(w)
+        x = w.x
+        limit = opts.relinearise_px if threshold_px is None else threshold_px
+        if f.linearisation_error(x[e_idx], x[p_idx], self.camera) <= limit:
+            return
+        self.relinearisations += 1
+        L = w.L if w.L is not None else np.linalg.inv(w.Q)
+        cols = np.concatenate([e_idx, p_idx], axis=1)  # (k, 9) window columns per factor
+        H_old, eta_old = f.information(cols, x.size)
+        H_p = L - H_old
+        eta_p = L @ x - eta_old
+        xk = x.copy()
+        ssr_old_factors = f.linearised_ssr(x[e_idx], x[p_idx])
+        prior_old = 0.5 * x @ H_p @ x - eta_p @ x
+        for _ in range(opts.relinearise_iterations):
+            Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self.camera)
+            H, g = _normal_from_factors(Je, Jp, r, f.w, cols, x.size)
+            H += H_p
+            g += eta_p - H_p @ xk
+            delta = np.linalg.solve(H, g)
+            xk += delta
+            if np.max(np.abs(delta)) < RELINEARISE_TOLERANCE:
+                break
+        Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self.camera)
+        H, _ = _normal_from_factors(Je, Jp, r, f.w, cols, x.size)
+        H += H_p
+        prior_new = 0.5 * xk @ H_p @ xk - eta_p @ xk
+        ssr_new_factors = float(np.sum(f.w[:, None] * r**2))
+        self._ssr += ssr_new_factors - ssr_old_factors + 2.0 * (prior_new - prior_old)
+        w.x = xk
+        w.L = H if w.L is not None else None
+        Q = np.linalg.inv(H)
+        w.Q = 0.5 * (Q + Q.T)
+        f.relinearised_at(xk[e_idx], xk[p_idx], Je, Jp, r)
+        self._factors.replace(f)
 
     def _birth(
         self, candidates: list[int], i: int, nav: FloatArray
@@ -713,10 +803,10 @@ class _RowBuilder:
     cam : PinholeCamera
     t, n2 : int
         Numbers of touched existing and of new parameters.
-    obs : list of (eop_col, point_col, uv, sigma_px, in_y2)
+    obs : list of (eop_col, point_col, uv, sigma_px, in_y2, (image, point))
         One entry per image observation: columns in ``z`` of its EOP and GP blocks, the
-        observed pixel, its sigma, and whether it belongs to y2 (touches an existing
-        parameter) rather than y3.
+        observed pixel, its sigma, whether it belongs to y2 (touches an existing
+        parameter) rather than y3, and its image and point indices.
     nav, nav_sigma : (6,) float
         GPS/INS constraint of the new image (local), its sigma.
     """
@@ -726,7 +816,7 @@ class _RowBuilder:
         cam: PinholeCamera,
         t: int,
         n2: int,
-        obs: list[tuple[int, int, FloatArray, float, bool]],
+        obs: list[tuple[int, int, FloatArray, float, bool, tuple[int, int]]],
         nav: FloatArray,
         nav_sigma: FloatArray,
     ) -> None:
@@ -748,6 +838,8 @@ class _RowBuilder:
         self.flat_e = (rows[:, :, None] * ncol + self.eidx[:, None, :]).ravel()
         self.flat_p = (rows[:, :, None] * ncol + self.pidx[:, None, :]).ravel()
         self.obs = np.asarray([o[2] for o in ordered], dtype=np.float64).reshape(2 * k)
+        self.ids = np.asarray([o[5] for o in ordered], dtype=np.int64).reshape(k, 2)
+        self.sigmas = np.asarray([o[3] for o in ordered], dtype=np.float64).reshape(k)
         w_img = np.repeat(1.0 / np.asarray([o[3] for o in ordered], dtype=np.float64) ** 2, 2)
         self.w = np.concatenate([w_img, 1.0 / nav_sigma**2])
         self.k = k
@@ -767,6 +859,7 @@ class _RowBuilder:
             A.flat[self.flat_e] = Je.ravel()
             A.flat[self.flat_p] = Jp.ravel()
             ell[: 2 * k] = self.obs - uv.ravel()
+            self._lin = (z[self.eidx], z[self.pidx], Je, Jp, (self.obs - uv.ravel()).reshape(k, 2))
         # GPS/INS constraint of the new EOP (linear, A = I): nav - e_new, angles wrapped.
         A[2 * k + np.arange(EOP_SIZE), t + np.arange(EOP_SIZE)] = 1.0
         dz = self.nav - z[t : t + EOP_SIZE]
@@ -785,6 +878,14 @@ class _RowBuilder:
             l3=ell[m2:],
         )
 
+    def store_factors(self, factors: _Factors) -> None:
+        """Keep the image rows as finally linearised (for window re-linearisation)."""
+        if self.k == 0:
+            return
+        e, p, Je, Jp, r = self._lin
+        factors.add_linearised(self.ids[:, 0], self.ids[:, 1],
+                               self.obs.reshape(self.k, 2), self.sigmas, e, p, Je, Jp, r)
+
     def linearisation_error(
         self, x1t: FloatArray, x2_0: FloatArray, d1t: FloatArray, d2: FloatArray
     ) -> float:
@@ -797,3 +898,120 @@ class _RowBuilder:
         true_resid = self.obs - project(z[self.eidx], z[self.pidx], self.cam).ravel()
         lin_resid = self._ell[: 2 * k] - self._A[: 2 * k] @ np.concatenate([d1t, d2])
         return float(np.max(np.abs(true_resid - lin_resid)))
+
+
+#: A window re-linearisation stops when no parameter moves more than this (m or rad).
+RELINEARISE_TOLERANCE = 1e-7
+#: finish() re-linearises the window when its rows are this far off (pixels).
+FINAL_RELINEARISE_PX = 1e-3
+
+
+def _normal_from_factors(Je: FloatArray, Jp: FloatArray, r: FloatArray, w: FloatArray,
+                         cols: np.ndarray, n: int) -> tuple[FloatArray, FloatArray]:
+    """``J^T W J`` and ``J^T W r`` of image-point factors scattered into ``n`` window columns."""
+    J = np.concatenate([Je, Jp], axis=2)  # (k, 2, 9)
+    wJ = J * w[:, None, None]
+    blocks = np.einsum("kri,krj->kij", wJ, J)  # (k, 9, 9)
+    H = np.zeros((n, n))
+    np.add.at(H, (cols[:, :, None], cols[:, None, :]), blocks)
+    g = np.zeros(n)
+    np.add.at(g, cols, np.einsum("kri,kr->ki", wJ, r))
+    return H, g
+
+
+@dataclass(eq=False)
+class _FactorSet:
+    """Image-point factors (one observation each) with their linearisation, as arrays."""
+
+    img: np.ndarray  # (k,) image index
+    pt: np.ndarray  # (k,) point index
+    uv: FloatArray  # (k, 2) ideal pixels
+    w: FloatArray  # (k,) weight 1/sigma^2
+    e_lin: FloatArray  # (k, 6) EOP where the factor was linearised (local)
+    p_lin: FloatArray  # (k, 3)
+    Je: FloatArray  # (k, 2, 6) Jacobians there
+    Jp: FloatArray  # (k, 2, 3)
+    r_lin: FloatArray  # (k, 2) residual there
+
+    def columns(self, w: _Window) -> tuple[np.ndarray, np.ndarray]:
+        e = np.array([w.offset[("e", int(j))] for j in self.img], dtype=np.int64)
+        p = np.array([w.offset[("p", int(q))] for q in self.pt], dtype=np.int64)
+        return e[:, None] + np.arange(EOP_SIZE), p[:, None] + np.arange(GP_SIZE)
+
+    def predicted(self, e: FloatArray, p: FloatArray) -> FloatArray:
+        """Residuals the linearised factors predict at ``(e, p)``."""
+        return (self.r_lin - np.einsum("kri,ki->kr", self.Je, e - self.e_lin)
+                - np.einsum("kri,ki->kr", self.Jp, p - self.p_lin))
+
+    def evaluate(self, e: FloatArray, p: FloatArray,
+                 cam: PinholeCamera) -> tuple[FloatArray, FloatArray, FloatArray]:
+        uv, Je, Jp = project_with_jacobians(e, p, cam)
+        return Je, Jp, self.uv - uv
+
+    def linearisation_error(self, e: FloatArray, p: FloatArray, cam: PinholeCamera) -> float:
+        true = self.uv - project(e, p, cam)
+        return float(np.max(np.abs(true - self.predicted(e, p))))
+
+    def linearised_ssr(self, e: FloatArray, p: FloatArray) -> float:
+        return float(np.sum(self.w[:, None] * self.predicted(e, p) ** 2))
+
+    def information(self, cols: np.ndarray, n: int) -> tuple[FloatArray, FloatArray]:
+        """``J^T W J`` and ``J^T W (r_lin + J x_lin)`` at the stored linearisation."""
+        x_lin = np.concatenate([self.e_lin, self.p_lin], axis=1)
+        J = np.concatenate([self.Je, self.Jp], axis=2)
+        rhs = self.r_lin + np.einsum("kri,ki->kr", J, x_lin)
+        return _normal_from_factors(self.Je, self.Jp, rhs, self.w, cols, n)
+
+    def relinearised_at(self, e: FloatArray, p: FloatArray, Je: FloatArray, Jp: FloatArray,
+                        r: FloatArray) -> None:
+        self.e_lin, self.p_lin, self.Je, self.Jp, self.r_lin = e.copy(), p.copy(), Je, Jp, r
+
+
+class _Factors:
+    """The image-point factors of the window, keyed by (image, point)."""
+
+    def __init__(self) -> None:
+        self._d: dict[tuple[int, int], tuple[FloatArray, float, FloatArray, FloatArray,
+                                             FloatArray, FloatArray, FloatArray]] = {}
+
+    def __len__(self) -> int:
+        return len(self._d)
+
+    def add(self, img: np.ndarray, pt: np.ndarray, uv: FloatArray, sigma: FloatArray,
+            e_lin: FloatArray, p_lin: FloatArray, cam: PinholeCamera) -> None:
+        if len(img) == 0:
+            return
+        proj, Je, Jp = project_with_jacobians(e_lin, p_lin, cam)
+        r = np.asarray(uv, dtype=np.float64).reshape(-1, 2) - proj
+        self.add_linearised(img, pt, uv, sigma, e_lin, p_lin, Je, Jp, r)
+
+    def add_linearised(self, img: np.ndarray, pt: np.ndarray, uv: FloatArray,
+                       sigma: FloatArray, e_lin: FloatArray, p_lin: FloatArray, Je: FloatArray,
+                       Jp: FloatArray, r: FloatArray) -> None:
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        for k in range(len(img)):
+            self._d[(int(img[k]), int(pt[k]))] = (
+                uv[k], 1.0 / float(sigma[k]) ** 2, e_lin[k].copy(), p_lin[k].copy(),
+                Je[k], Jp[k], r[k])
+
+    def in_window(self, w: _Window) -> _FactorSet | None:
+        """The factors whose image and point are both in the window (others are dropped)."""
+        keep = {k: v for k, v in self._d.items()
+                if ("e", k[0]) in w.offset and ("p", k[1]) in w.offset}
+        self._d = keep
+        if not keep:
+            return None
+        keys = list(keep)
+        vals = list(keep.values())
+        return _FactorSet(
+            img=np.array([k[0] for k in keys], dtype=np.int64),
+            pt=np.array([k[1] for k in keys], dtype=np.int64),
+            uv=np.array([v[0] for v in vals]), w=np.array([v[1] for v in vals]),
+            e_lin=np.array([v[2] for v in vals]), p_lin=np.array([v[3] for v in vals]),
+            Je=np.array([v[4] for v in vals]), Jp=np.array([v[5] for v in vals]),
+            r_lin=np.array([v[6] for v in vals]))
+
+    def replace(self, f: _FactorSet) -> None:
+        self._d = {}
+        self.add_linearised(f.img, f.pt, f.uv, 1.0 / np.sqrt(f.w), f.e_lin, f.p_lin, f.Je,
+                            f.Jp, f.r_lin)
