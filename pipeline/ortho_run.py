@@ -1,0 +1,340 @@
+"""Stage functions of ``seqat dsm`` and ``seqat ortho``: files in, files out.
+
+:func:`orthorectify_run` reads a run folder (:func:`pipeline.store.read_run`), picks the EOPs
+(Seq-R ``eop.csv`` or ``reference/eop.csv``) and the surface, streams every image through
+:class:`pipeline.ortho.Orthorectifier` and :class:`pipeline.mosaic.MosaicBuilder` and writes
+
+* ``OUT/ortho/<image>.tif`` — one COG per image,
+* ``OUT/mosaic.tif`` — the mosaic COG,
+* ``OUT/cameras.gpkg`` — camera positions with σ and OPK, footprints, tie points,
+* ``OUT/ortho.json`` — the per-image timings and warnings (:class:`OrthoRunSummary`).
+
+Surface, first found: ``--dsm``; ``OUT/dsm.tif``; the flight's ``lidar:`` (a DSM GeoTIFF is
+used as is, LAS/LAZ files are gridded into ``OUT/dsm.tif``); else a flat plane at the mean
+height of the tie points, with a warning.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+import pyproj
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from pipeline.config import build_dataclass, load_flight_config, load_yaml
+from pipeline.dsm import Dsm, DsmOptions, DsmResult, build_dsm, flat_dsm, read_dsm
+from pipeline.gis_export import write_cameras_gpkg
+from pipeline.mosaic import FEATHER_PX, MosaicBuilder
+from pipeline.ortho import OrthoOptions, Orthorectifier
+from pipeline.raster import reproject_cog
+from pipeline.store import EOP_FILE, TimingStats, atomic_write_text, read_eop_csv, to_jsonable
+from pipeline.tables import EopTable
+from seqat.errors import ConfigError, InputDataError, SeqatError
+
+#: Outputs inside a run folder.
+DSM_FILE = "dsm.tif"
+ORTHO_DIR = "ortho"
+MOSAIC_FILE = "mosaic.tif"
+CAMERAS_GPKG = "cameras.gpkg"
+ORTHO_JSON = "ortho.json"
+REFERENCE_DIR = "reference"
+#: Image file suffixes looked for in the images folder (any case).
+IMAGE_SUFFIXES = (".jpg", ".jpeg")
+#: Suffixes of a DSM GeoTIFF given as the flight's ``lidar:``.
+GEOTIFF_SUFFIXES = (".tif", ".tiff")
+#: Cell of the flat fallback plane, metres (a plane needs no resolution).
+FLAT_CELL_M = 10.0
+#: Margin of the flat plane around the cameras, in flying heights.
+FLAT_MARGIN_HEIGHTS = 4.0
+
+EopSource = Literal["seq-r", "reference"]
+
+
+# --------------------------------------------------------------------------------------------
+# seqat dsm
+# --------------------------------------------------------------------------------------------
+
+
+def load_stage_options(path: Path | str | None) -> tuple[DsmOptions, OrthoOptions, int]:
+    """``--options FILE``: sections ``dsm:`` (DsmOptions), ``ortho:`` (OrthoOptions) and
+    ``mosaic: {feather_px: N}``; absent sections keep their defaults."""
+    if path is None:
+        return DsmOptions(), OrthoOptions(), FEATHER_PX
+    doc = load_yaml(path)
+    source = str(path)
+    unknown = set(doc) - {"dsm", "ortho", "mosaic"}
+    if unknown:
+        raise ConfigError(f"{source}: {sorted(unknown)[0]}: unknown key (expected one of: "
+                          "dsm, mosaic, ortho)")
+    dsm = build_dataclass(DsmOptions, doc.get("dsm"), source, key="dsm")
+    ortho = build_dataclass(OrthoOptions, doc.get("ortho"), source, key="ortho")
+    mosaic = build_dataclass(_MosaicOptions, doc.get("mosaic"), source, key="mosaic")
+    return dsm, ortho, mosaic.feather_px
+
+
+@dataclass(frozen=True, kw_only=True)
+class _MosaicOptions:
+    feather_px: int = FEATHER_PX
+
+
+def working_crs_for_las(crs: str | None, las_paths: Sequence[Path | str],
+                        las_crs: pyproj.CRS | None) -> pyproj.CRS:
+    """``--crs`` of ``seqat dsm``: as given (projected, metres), or ``auto`` / None = the WGS 84
+    UTM zone of the first file's centre."""
+    from pipeline.dsm import read_las
+    from pipeline.navigation import resolve_projected_crs, utm_epsg
+
+    if crs is not None and crs.strip().lower() != "auto":
+        return resolve_projected_crs(crs, "--crs")
+    cloud = read_las(las_paths[0], las_crs)
+    centre = cloud.xyz[:, :2].mean(axis=0)
+    to_geo = pyproj.Transformer.from_crs(cloud.crs, "EPSG:4326", always_xy=True)
+    lon, lat = to_geo.transform(centre[0], centre[1])
+    return pyproj.CRS.from_epsg(utm_epsg(lon, lat))
+
+
+def make_dsm(las_paths: Sequence[Path | str], out_path: Path | str, *, crs: str | None = None,
+             las_crs: str | None = None, cell_m: float | None = None,
+             options_path: Path | str | None = None) -> DsmResult:
+    """``seqat dsm``: parse the CRS options and build the DSM COG."""
+    from pipeline.dsm import parse_las_crs
+
+    options, _, _ = load_stage_options(options_path)
+    if cell_m is not None:
+        options = DsmOptions(cell_m=cell_m, outlier_neighbors=options.outlier_neighbors,
+                             outlier_std_ratio=options.outlier_std_ratio,
+                             fill_max_hole_m2=options.fill_max_hole_m2)
+    source_crs = parse_las_crs(las_crs) if las_crs is not None else None
+    if not las_paths:
+        raise InputDataError("dsm: no LAS/LAZ file given")
+    working = working_crs_for_las(crs, las_paths, source_crs)
+    return build_dsm(las_paths, out_path, crs=working, las_crs=source_crs, options=options)
+
+
+# --------------------------------------------------------------------------------------------
+# seqat ortho
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class ImageOrtho:
+    """One image's line in ``ortho.json``."""
+
+    image: str
+    path: str | None
+    seen_cells: int
+    occluded_cells: int
+    compute_ms: float
+    write_ms: float
+    mosaic_ms: float
+    warnings: tuple[str, ...]
+
+
+@dataclass(frozen=True, kw_only=True)
+class OrthoRunSummary:
+    """What :func:`orthorectify_run` did (also written as ``ortho.json``)."""
+
+    out_dir: Path
+    eop_source: str
+    dsm_source: str
+    crs: str
+    pixel_m: float
+    images: tuple[ImageOrtho, ...]
+    skipped: tuple[str, ...]
+    compute_ms: TimingStats
+    mosaic_ms: TimingStats
+    mosaic: Path
+    cameras_gpkg: Path
+    wall_s: float
+    warnings: tuple[str, ...]
+
+
+def _eops(run_dir: Path, source: EopSource, default: EopTable) -> EopTable:
+    if source == "seq-r":
+        return default
+    if source == "reference":
+        path = run_dir / REFERENCE_DIR / EOP_FILE
+        if not path.is_file():
+            raise InputDataError(f"{path}: no such file (run `seqat reference {run_dir}` first)")
+        return read_eop_csv(path)
+    raise ConfigError(f"--eop: expected seq-r or reference, got {source!r}")
+
+
+def _image_files(images_dir: Path) -> dict[str, Path]:
+    if not images_dir.is_dir():
+        raise InputDataError(f"{images_dir}: no such image folder")
+    return {p.stem: p for p in sorted(images_dir.iterdir())
+            if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES}
+
+
+def _flight_lidar(flight_dir: Path) -> tuple[Path, ...]:
+    """The flight's ``lidar:`` files (none when the flight folder is gone or has none)."""
+    yaml_path = flight_dir / "flight.yaml"
+    if not yaml_path.is_file():
+        return ()
+    lidar = load_flight_config(yaml_path).lidar
+    if lidar is None:
+        return ()
+    names = (lidar,) if isinstance(lidar, str) else lidar
+    return tuple(p if p.is_absolute() else flight_dir / p for p in map(Path, names))
+
+
+def choose_dsm(run_dir: Path, crs: pyproj.CRS, dsm_path: Path | None, flight_dir: Path,
+               eops: EopTable, points_z_m: np.ndarray) -> tuple[Dsm, tuple[str, ...]]:
+    """The surface of ``seqat ortho`` (module docstring) and warnings."""
+    if dsm_path is not None:
+        return read_dsm(dsm_path, crs), ()
+    if (run_dir / DSM_FILE).is_file():
+        return read_dsm(run_dir / DSM_FILE, crs), ()
+    lidar = _flight_lidar(flight_dir)
+    if lidar and all(p.suffix.lower() in GEOTIFF_SUFFIXES for p in lidar):
+        return read_dsm(lidar[0], crs), ()
+    if lidar:
+        result = build_dsm(lidar, run_dir / DSM_FILE, crs=crs)
+        return read_dsm(result.path, crs), result.warnings
+    if len(points_z_m) == 0:
+        raise InputDataError(f"{run_dir}: no DSM (--dsm, {DSM_FILE}, flight lidar:) and no tie "
+                             "points to place a flat plane")
+    z = float(np.mean(points_z_m))
+    xy = eops.eop[:, :2]
+    margin = FLAT_MARGIN_HEIGHTS * float(np.max(eops.eop[:, 2]) - z)
+    bounds = (xy[:, 0].min() - margin, xy[:, 1].min() - margin, xy[:, 0].max() + margin,
+              xy[:, 1].max() + margin)
+    return flat_dsm(z, bounds, crs, FLAT_CELL_M), (
+        f"no DSM: orthorectified on a flat plane at the mean tie point height {z:.2f} m "
+        "(relief displaces the ortho; give --dsm or the flight's lidar)",)
+
+
+def _parse_out_crs(value: str | None) -> pyproj.CRS | None:
+    if value is None:
+        return None
+    try:
+        crs = pyproj.CRS.from_user_input(value)
+    except pyproj.exceptions.CRSError as err:
+        raise ConfigError(f"--crs: unknown CRS {value!r}: {err}") from err
+    if not (crs.is_projected or crs.is_geographic):
+        raise ConfigError(f"--crs: {value!r} ({crs.name}) is not a horizontal CRS")
+    return crs
+
+
+def _read_image(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise InputDataError(f"{path}: cannot read the image")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def orthorectify_run(out_dir: Path | str, *, dsm_path: Path | str | None = None,
+                     eop_source: EopSource = "seq-r", options: OrthoOptions | None = None,
+                     feather_px: int = FEATHER_PX, out_crs: str | None = None,
+                     progress: bool = True) -> OrthoRunSummary:
+    """Orthorectify every image of a run and build the mosaic and ``cameras.gpkg``.
+
+    Parameters
+    ----------
+    out_dir : Path or str
+        Output folder of ``seqat run``.
+    dsm_path : Path or str, optional
+        DSM GeoTIFF (any CRS; reprojected).
+    eop_source : {"seq-r", "reference"}
+        ``OUT/eop.csv`` (the run's estimates) or ``OUT/reference/eop.csv``.
+    options : OrthoOptions, optional
+    feather_px : int
+        Seamline feather of the mosaic, cells.
+    out_crs : str, optional
+        Write the orthos and the mosaic in this CRS (``EPSG:XXXX``, anything pyproj reads):
+        they are computed in the working CRS and then warped (bilinear, a second resampling).
+        ``cameras.gpkg`` stays in the working CRS (GIS reproject vectors on the fly).
+    progress : bool
+        Transient progress bar on a terminal.
+
+    Returns
+    -------
+    OrthoRunSummary
+
+    Raises
+    ------
+    InputDataError
+        No images (an observations-only flight), no EOP file, a DSM that covers no image.
+        An image that cannot be orthorectified (missing file, EOP above the horizon, outside
+        the DSM) is skipped with a warning; when none can be, the error is raised.
+    """
+    from pipeline.store import read_run
+
+    t0 = time.perf_counter()
+    run_dir = Path(out_dir)
+    target_crs = _parse_out_crs(out_crs)
+    run = read_run(run_dir)
+    eops = _eops(run_dir, eop_source, run.eop)
+    if run.images_dir is None:
+        raise InputDataError(f"{run_dir}: the flight has no images (observations only); "
+                             "nothing to orthorectify")
+    files = _image_files(run.images_dir)
+    dsm, warnings_dsm = choose_dsm(run_dir, run.crs, Path(dsm_path) if dsm_path else None,
+                                   run.flight_dir, eops, run.points.xyz_m[:, 2])
+    warnings = list(warnings_dsm)
+    if run.inputs.camera_approximate:
+        warnings.append("camera from EXIF (approximate): the ortho is only as good as it")
+    records: list[ImageOrtho] = []
+    skipped: list[str] = []
+    footprints: dict[str, np.ndarray] = {}
+    mosaic = MosaicBuilder(run_dir / MOSAIC_FILE, run.crs, feather_px=feather_px)
+    console = Console(stderr=True)
+    last_error: SeqatError | None = None
+    with Orthorectifier(dsm, run.camera, run.crs, run_dir / ORTHO_DIR, options) as ortho, \
+            Progress(TextColumn("[bold]ortho"), BarColumn(), MofNCompleteColumn(),
+                     TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=console,
+                     transient=True, disable=not (progress and console.is_terminal)) as bar:
+        task = bar.add_task("ortho", total=len(eops.image_ids), info="")
+        for image_id, eop in zip(eops.image_ids, eops.eop, strict=True):
+            bar.update(task, advance=1, info=image_id)
+            try:
+                if image_id not in files:
+                    raise InputDataError(f"{run.images_dir}: no image {image_id}.jpg")
+                result = ortho.add_image(image_id, _read_image(files[image_id]), eop)
+            except InputDataError as err:
+                skipped.append(image_id)
+                warnings.append(f"skipped: {err}")
+                last_error = err
+                continue
+            update = mosaic.add(result)
+            footprints[image_id] = result.footprint_m
+            warnings.extend(result.warnings)
+            records.append(ImageOrtho(
+                image=image_id, path=str(result.path) if result.path else None,
+                seen_cells=result.seen_cells, occluded_cells=result.occluded_cells,
+                compute_ms=result.compute_ms, write_ms=result.write_ms,
+                mosaic_ms=update.update_ms, warnings=result.warnings))
+        pixel_m = ortho.pixel_m
+    if not records:
+        raise InputDataError(f"{run_dir}: no image could be orthorectified"
+                             + (f" ({last_error})" if last_error else ""))
+    mosaic_result = mosaic.finish()
+    raster_crs = run.crs
+    if target_crs is not None and not target_crs.equals(run.crs, ignore_axis_order=True):
+        for record in records:
+            if record.path is not None:
+                reproject_cog(Path(record.path), target_crs)
+        reproject_cog(mosaic_result.path, target_crs)
+        raster_crs = target_crs
+    gpkg = write_cameras_gpkg(run_dir / CAMERAS_GPKG, run.crs, eops, footprints, run.points)
+    summary = OrthoRunSummary(
+        out_dir=run_dir, eop_source=eop_source, dsm_source=dsm.source, crs=raster_crs.name,
+        pixel_m=float(pixel_m if pixel_m is not None else math.nan), images=tuple(records),
+        skipped=tuple(skipped),
+        compute_ms=TimingStats.from_samples([r.compute_ms for r in records]),
+        mosaic_ms=TimingStats.from_samples([r.mosaic_ms for r in records]),
+        mosaic=mosaic_result.path, cameras_gpkg=gpkg, wall_s=time.perf_counter() - t0,
+        warnings=tuple(warnings))
+    atomic_write_text(run_dir / ORTHO_JSON,
+                      json.dumps(to_jsonable(summary), indent=1, allow_nan=False) + "\n")
+    return summary
