@@ -165,6 +165,12 @@ def run(
     observations: Annotated[Path | None, typer.Option(
         "--observations", help="Image points to use instead of the flight's own or of "
         "tracking (e.g. OUT/observations.csv of an earlier run).")] = None,
+    ortho: Annotated[bool, typer.Option(
+        "--ortho", help="Then orthorectify the images with the final EOPs (as seqat ortho).")]
+    = False,
+    report: Annotated[bool, typer.Option(
+        "--report", help="Then write OUT/report.html and report.json (as seqat report).")]
+    = False,
 ) -> None:
     """Adjust a flight folder and write eop.csv, points.csv, run.json, nav.csv and
     observations.csv."""
@@ -207,6 +213,17 @@ def run(
         ]
     rows.append(("results", str(summary.out_dir)))
     _console().print(_table(f"seqat run {summary.flight_dir}", rows))
+    if ortho:
+        from pipeline.ortho_run import orthorectify_run
+
+        o = orthorectify_run(summary.out_dir, progress=progress)
+        _console().print(f"orthos and mosaic: {o.mosaic} ({len(o.images)} images, "
+                         f"surface: {o.dsm_source})")
+    if report:
+        from pipeline.report import make_report
+
+        r = make_report(summary.out_dir)
+        _console().print("report: " + ", ".join(str(f) for f in r.files))
 
 
 @app.command()

@@ -209,3 +209,17 @@ def test_flight_bench_compares_methods_on_the_same_tie_points(tmp_path: Path) ->
     assert b.track_length_median >= 2
     assert 0.5 < b.sigma0["sim"] < 2.0 and b.rms_residual_px["sim"] < 2.0
     assert b.latency_ms.median >= b.at_ms.median > 0
+
+
+def test_run_with_ortho_and_report_writes_the_whole_chain(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["run", str(MINI), "--out", str(out), "--no-progress",
+                                      "--ortho", "--report"])
+    assert result.exit_code == 0, result.output
+    for name in ("eop.csv", "mosaic.tif", "cameras.gpkg", "report.html", "report.json"):
+        assert (out / name).stat().st_size > 0, name
+    assert len(list((out / "ortho").glob("*.tif"))) == 18
+    report = json.loads((out / "report.json").read_text())
+    assert report["methods"] == ["direct", "seq-r"]
+    run = read_run(out)
+    assert report["tie_points"]["count"] == len(run.points)
