@@ -26,10 +26,10 @@ import numpy as np  # noqa: E402
 from pipeline.bench import _load_average, _machine  # noqa: E402
 from pipeline.bench_report import Machine  # noqa: E402
 from pipeline.csvio import read_csv  # noqa: E402
+from pipeline.report import image_residuals_px  # noqa: E402
 from pipeline.runner import Method, run_flight  # noqa: E402
 from pipeline.store import OBS_COLUMNS, atomic_write_text, read_run, to_jsonable  # noqa: E402
-from seqat.geometry import project  # noqa: E402
-from seqat.types import FloatArray, PinholeCamera  # noqa: E402
+from seqat.types import FloatArray  # noqa: E402
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -109,35 +109,12 @@ def _tracks(obs_path: Path) -> tuple[Counter[str], int]:
     return counts, n
 
 
-def _rms_residual(out: Path) -> float:
-    """RMS image residual (observed pixels minus projection, full resolution) of a run."""
-    return _residuals(out)[0]
-
-
 def _residuals(out: Path) -> tuple[float, float]:
-    """RMS and median image residual (px, full resolution) of every observation of
-    ``observations.csv`` whose image and point the run estimated (Seq-R leaves some out:
-    rays of images that left its window before a second ray came, and observations of
-    points that had left it)."""
-    run = read_run(out)
-    cam = run.camera
-    pin = PinholeCamera(f_px=cam.fx_px, cx_px=cam.cx_px, cy_px=cam.cy_px, width_px=cam.width_px,
-                        height_px=cam.height_px)
-    eop = {iid: run.eop.eop[k] for k, iid in enumerate(run.eop.image_ids)}
-    pts = {pid: run.points.xyz_m[k] for k, pid in enumerate(run.points.point_ids)}
-    E, X, UV = [], [], []
-    for row in read_csv(run.observations_path, OBS_COLUMNS):
-        p = pts.get(row.ident("point"))
-        if p is not None:
-            E.append(eop[row.ident("image")])
-            X.append(p)
-            UV.append((row.number("x_px"), row.number("y_px")))
-    if not E:
+    """RMS and median image residual (px, full resolution) of a run
+    (:func:`pipeline.report.image_residuals_px`)."""
+    res = image_residuals_px(read_run(out))
+    if res.size == 0:
         return math.nan, math.nan
-    from pipeline.camera import PixelCorrector
-
-    ideal = PixelCorrector(camera=cam).ideal_pixels(np.asarray(UV))
-    res = ideal - project(np.asarray(E), np.asarray(X), pin)
     return float(np.sqrt(np.mean(res**2))), float(np.median(np.hypot(res[:, 0], res[:, 1])))
 
 

@@ -276,21 +276,36 @@ def _same_flight(main: RunFolder, other: RunFolder) -> None:
                              f"{main.path} (different images)")
 
 
-def _tie_points(run: RunFolder, obs: tuple[np.ndarray, tuple[str, ...], np.ndarray,
-                                           FloatArray]) -> TiePointSummary:
+def image_residuals_px(run: RunFolder, obs: tuple[np.ndarray, tuple[str, ...], np.ndarray,
+                                                   FloatArray] | None = None) -> FloatArray:
+    """Image residuals (ideal pixels, ``(k, 2)``) of the observations of ``observations.csv``
+    whose image and point the run estimated, at the run's estimates.
+
+    A sequential run may leave some observations out (rays of images that left its window
+    before a second ray came, observations of points that had left it); they are counted
+    here all the same.
+    """
+    if obs is None:
+        obs = read_observations(run.observations_path, run.nav.index())
     obs_image, point_ids, obs_point, uv = obs
-    n_obs = run.points.n_obs
     est = run.points.index()
     sel = np.array([point_ids[j] in est for j in obs_point], dtype=bool)
-    rms_px = float("nan")
     eop_index = run.eop.index()
     img_rows = np.array([eop_index.get(run.nav.image_ids[i], -1) for i in obs_image])
     sel &= img_rows >= 0
-    if np.any(sel):
-        ideal = PixelCorrector(camera=run.camera).ideal_pixels(uv[sel])
-        xyz = run.points.xyz_m[[est[point_ids[j]] for j in obs_point[sel]]]
-        uv_hat = project(run.eop.eop[img_rows[sel]], xyz, pinhole_camera(run.camera))
-        rms_px = float(np.sqrt(np.mean((ideal - uv_hat) ** 2)))
+    if not np.any(sel):
+        return np.zeros((0, 2))
+    ideal = PixelCorrector(camera=run.camera).ideal_pixels(uv[sel])
+    xyz = run.points.xyz_m[[est[point_ids[j]] for j in obs_point[sel]]]
+    return ideal - project(run.eop.eop[img_rows[sel]], xyz, pinhole_camera(run.camera))
+
+
+def _tie_points(run: RunFolder, obs: tuple[np.ndarray, tuple[str, ...], np.ndarray,
+                                           FloatArray]) -> TiePointSummary:
+    obs_image = obs[0]
+    n_obs = run.points.n_obs
+    res = image_residuals_px(run, obs)
+    rms_px = float(np.sqrt(np.mean(res**2))) if res.size else float("nan")
     return TiePointSummary(count=len(run.points), observations=int(obs_image.size),
                            track_length_mean=float(np.mean(n_obs)) if n_obs.size else 0.0,
                            track_length_median=float(np.median(n_obs)) if n_obs.size else 0.0,

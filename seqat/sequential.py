@@ -934,8 +934,16 @@ class _FactorSet:
     r_lin: FloatArray  # (k, 2) residual there
 
     def columns(self, w: _Window) -> tuple[np.ndarray, np.ndarray]:
-        e = np.array([w.offset[("e", int(j))] for j in self.img], dtype=np.int64)
-        p = np.array([w.offset[("p", int(q))] for q in self.pt], dtype=np.int64)
+        """Window columns of every factor's EOP (k, 6) and GP (k, 3)."""
+        e_keys = {k[1]: off for k, off in w.offset.items() if k[0] == "e"}
+        p_keys = {k[1]: off for k, off in w.offset.items() if k[0] == "p"}
+        e_ids, e_offs = (np.fromiter(d, dtype=np.int64, count=len(d)) for d in
+                         (e_keys, e_keys.values()))
+        p_ids, p_offs = (np.fromiter(d, dtype=np.int64, count=len(d)) for d in
+                         (p_keys, p_keys.values()))
+        e_order, p_order = np.argsort(e_ids), np.argsort(p_ids)
+        e = e_offs[e_order][np.searchsorted(e_ids[e_order], self.img)]
+        p = p_offs[p_order][np.searchsorted(p_ids[p_order], self.pt)]
         return e[:, None] + np.arange(EOP_SIZE), p[:, None] + np.arange(GP_SIZE)
 
     def predicted(self, e: FloatArray, p: FloatArray) -> FloatArray:
@@ -968,14 +976,13 @@ class _FactorSet:
 
 
 class _Factors:
-    """The image-point factors of the window, keyed by (image, point)."""
+    """The image-point factors of the window, as appended array chunks (no per-factor Python
+    objects: the check after every update must stay well below the update itself)."""
+
+    _FIELDS = ("img", "pt", "uv", "w", "e_lin", "p_lin", "Je", "Jp", "r_lin")
 
     def __init__(self) -> None:
-        self._d: dict[tuple[int, int], tuple[FloatArray, float, FloatArray, FloatArray,
-                                             FloatArray, FloatArray, FloatArray]] = {}
-
-    def __len__(self) -> int:
-        return len(self._d)
+        self._chunks: list[tuple[np.ndarray, ...]] = []
 
     def add(self, img: np.ndarray, pt: np.ndarray, uv: FloatArray, sigma: FloatArray,
             e_lin: FloatArray, p_lin: FloatArray, cam: PinholeCamera) -> None:
@@ -988,30 +995,30 @@ class _Factors:
     def add_linearised(self, img: np.ndarray, pt: np.ndarray, uv: FloatArray,
                        sigma: FloatArray, e_lin: FloatArray, p_lin: FloatArray, Je: FloatArray,
                        Jp: FloatArray, r: FloatArray) -> None:
-        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-        for k in range(len(img)):
-            self._d[(int(img[k]), int(pt[k]))] = (
-                uv[k], 1.0 / float(sigma[k]) ** 2, e_lin[k].copy(), p_lin[k].copy(),
-                Je[k], Jp[k], r[k])
+        if len(img) == 0:
+            return
+        w = 1.0 / np.asarray(sigma, dtype=np.float64).reshape(-1) ** 2
+        self._chunks.append((np.asarray(img, dtype=np.int64).copy(),
+                             np.asarray(pt, dtype=np.int64).copy(),
+                             np.asarray(uv, dtype=np.float64).reshape(-1, 2).copy(), w,
+                             np.array(e_lin, dtype=np.float64), np.array(p_lin, dtype=np.float64),
+                             np.array(Je, dtype=np.float64), np.array(Jp, dtype=np.float64),
+                             np.array(r, dtype=np.float64)))
 
     def in_window(self, w: _Window) -> _FactorSet | None:
         """The factors whose image and point are both in the window (others are dropped)."""
-        keep = {k: v for k, v in self._d.items()
-                if ("e", k[0]) in w.offset and ("p", k[1]) in w.offset}
-        self._d = keep
-        if not keep:
+        if not self._chunks:
             return None
-        keys = list(keep)
-        vals = list(keep.values())
-        return _FactorSet(
-            img=np.array([k[0] for k in keys], dtype=np.int64),
-            pt=np.array([k[1] for k in keys], dtype=np.int64),
-            uv=np.array([v[0] for v in vals]), w=np.array([v[1] for v in vals]),
-            e_lin=np.array([v[2] for v in vals]), p_lin=np.array([v[3] for v in vals]),
-            Je=np.array([v[4] for v in vals]), Jp=np.array([v[5] for v in vals]),
-            r_lin=np.array([v[6] for v in vals]))
+        parts = [np.concatenate(col) for col in zip(*self._chunks, strict=True)]
+        img, pt = parts[0], parts[1]
+        imgs = np.fromiter((k[1] for k in w.keys if k[0] == "e"), dtype=np.int64)
+        pts = np.fromiter((k[1] for k in w.keys if k[0] == "p"), dtype=np.int64)
+        keep = np.isin(img, imgs) & np.isin(pt, pts)
+        parts = [a[keep] for a in parts]
+        self._chunks = [tuple(parts)] if keep.any() else []
+        if not keep.any():
+            return None
+        return _FactorSet(**dict(zip(self._FIELDS, parts, strict=True)))
 
     def replace(self, f: _FactorSet) -> None:
-        self._d = {}
-        self.add_linearised(f.img, f.pt, f.uv, 1.0 / np.sqrt(f.w), f.e_lin, f.p_lin, f.Je,
-                            f.Jp, f.r_lin)
+        self._chunks = [tuple(getattr(f, name) for name in self._FIELDS)]
