@@ -4,9 +4,11 @@
   :class:`pipeline.flight.FrameSource`, checked in a full pass first).
 * :class:`ImageSource`: an image flight. Each image is read when its turn comes, handed to
   the streaming tracker (:class:`pipeline.tracking.Tracker`) with its nav EOP, and the
-  tracker's observations of *that image only* become the frame (no look-ahead). The
-  estimator's current terrain height is fed back to the tracker after each update
-  (:meth:`ImageSource.feedback`) for the footprint prediction of the next images.
+  tracker's observations of *that image only* become the frame (no look-ahead). After each
+  update the estimator's state is fed back (:meth:`ImageSource.feedback`): its terrain
+  height for the tracker's footprint prediction, its window points and EOPs for the
+  :class:`Initialiser`, which resects the next image's initial attitude and leaves out the
+  matches that contradict it.
 
 Both keep the observed (distorted, full-resolution) pixels of every frame for the run
 folder's ``observations.csv``.
@@ -70,10 +72,9 @@ class Initialiser:
         self._known: dict[str, FloatArray] = {}
         self._eops: dict[str, FloatArray] = {}
         self._last_obs: dict[str, tuple[str, FloatArray]] = {}  # point -> (image, ideal uv)
-        #: Observations of the last frame kept by :meth:`resect` (bool per observation).
-        self.kept = np.zeros(0, dtype=bool)
 
-    def resect(self, frame: Frame, *, reject: bool = True) -> tuple[Frame, Resection, int, int]:
+    def resect(self, frame: Frame, *, reject: bool = True) -> tuple[Frame, Resection, int,
+                                                                    np.ndarray]:
         """Resect a new frame (ideal pixels) and leave out the observations it rejects.
 
         ``reject=False`` keeps every observation (precomputed or replayed image points,
@@ -88,8 +89,8 @@ class Initialiser:
         resection : Resection
         known : int
             Known ground points among the observations.
-        rejected : int
-            Observations left out.
+        keep : (k,) bool
+            The observations kept (``False``: left out).
         """
         point_ids, ideal = frame.point_ids, frame.uv_px
         known = [k for k, p in enumerate(point_ids) if p in self._known]
@@ -113,8 +114,7 @@ class Initialiser:
             keep[np.asarray(used, dtype=np.int64)[~res.inliers]] = False
         frame = dataclasses.replace(frame, point_ids=tuple(np.asarray(point_ids)[keep]),
                                     uv_px=ideal[keep], initial_eop=res.eop)
-        self.kept = keep
-        return frame, res, len(known), int((~keep).sum())
+        return frame, res, len(known), keep
 
     def record(self, frame: Frame) -> None:
         """Keep the rays of a frame sent to the estimator (plane points of later frames)."""
@@ -200,7 +200,6 @@ class ImageSource:
         self._init = Initialiser(flight.camera, options.resection_threshold_deg)
         self._lines: list[str] = []
         self._stats: list[Mapping[str, object]] = []
-        self._read_ms: list[float] = []
         self._points: set[str] = set()
         self._n_obs = 0
 
@@ -209,11 +208,6 @@ class ImageSource:
         """Per image: the tracker's :class:`TrackStats` fields and the resection's counts."""
         return tuple(self._stats)
 
-    @property
-    def read_ms(self) -> tuple[float, ...]:
-        """Image decoding time per image, milliseconds."""
-        return tuple(self._read_ms)
-
     def __iter__(self) -> Iterator[Frame]:
         flight = self._flight
         cam = flight.camera_config
@@ -221,7 +215,7 @@ class ImageSource:
                                                    strict=True)):
             t0 = time.perf_counter()
             gray = read_tracker_image(path, self._tracker, cam.width_px, cam.height_px)
-            self._read_ms.append((time.perf_counter() - t0) * 1e3)
+            read_ms = (time.perf_counter() - t0) * 1e3
             nav = flight.nav.eop[row]
             tracked = self._tracker.add_image(image_id, gray, nav, self._init.ground_z)
             observed: FloatArray = np.asarray(tracked.uv_px, dtype=np.float64).reshape(-1, 2)
@@ -229,19 +223,19 @@ class ImageSource:
             frame = Frame(image_id=image_id, nav_eop=nav, nav_sigma=flight.nav_sigma,
                           point_ids=point_ids, uv_px=flight.corrector.ideal_pixels(observed),
                           sigma_px=flight.config.sigma_image_px)
-            cleaned, first, known, rejected = self._init.resect(frame)
-            observed = observed[self._init.kept]
+            cleaned, first, known, keep = self._init.resect(frame)
+            observed = observed[keep]
             # the initial value from the kept observations only, as a replay of them
             # (--observations) computes it: the sequential result depends on it
             frame, res, _, _ = self._init.resect(cleaned, reject=False)
             self._init.record(frame)
             self._stats.append({**dataclasses.asdict(tracked.stats),
-                                "read_ms": self._read_ms[-1],
+                                "read_ms": read_ms,
                                 "resection_points": first.n_points,
                                 "resection_known_points": known,
                                 "resection_inliers": first.n_inliers,
                                 "resection_used": res.eop is not None,
-                                "observations_rejected": rejected})
+                                "observations_rejected": int((~keep).sum())})
             self._lines.append(format_observation_lines(image_id, frame.point_ids, observed))
             self._points.update(frame.point_ids)
             self._n_obs += len(frame.point_ids)
