@@ -69,7 +69,8 @@ def _centroid(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
 def test_rendered_dots_land_on_projected_truth() -> None:
     rng = np.random.default_rng(6)
     eop = np.array([100.0, 100.0, 130.0, *np.radians([4.0, -3.0, 25.0])])
-    dots = np.array([[100 + dx, 100 + dy] for dx in (-12, -4, 4, 12) for dy in (-9, 0, 9)], dtype=float)
+    dots = np.array([[100 + dx, 100 + dy] for dx in (-12, -4, 4, 12) for dy in (-9, 0, 9)],
+                    dtype=float)
     dots += rng.uniform(-1.0, 1.0, dots.shape)
     scene = synthetic_scene(dots)
     truth = np.column_stack([dots, scene.surface.sample(dots[:, 0], dots[:, 1])])
