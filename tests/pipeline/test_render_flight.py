@@ -199,3 +199,17 @@ def test_autzen_wkt_is_epsg_2994(shared_data: Path) -> None:
     wkt = pyproj.CRS((shared_data / "autzen" / "autzen-srs.wkt").read_text())
     assert wkt.equals(pyproj.CRS("EPSG:2994"), ignore_axis_order=True)
     assert wkt.axis_info[0].unit_name == "foot"
+
+
+@pytest.mark.parametrize(("name", "n_images"), [("autzen_sample.yaml", 12),
+                                                ("autzen_block.yaml", 100)])
+def test_autzen_configs_plan_the_documented_block(name: str, n_images: int) -> None:
+    config = load_simulate_config(Path(__file__).resolve().parents[2] / "configs" / name)
+    assert isinstance(config, RenderSimulateConfig)
+    plan, cam = config.plan, config.camera
+    flight = plan_poses(config, (0.0, 0.0), 0.0, np.random.default_rng(0))
+    assert len(flight.image_ids) == n_images
+    assert plan.height_m / cam.fx_px == pytest.approx(0.3)  # GSD of the texture
+    base_m = plan.speed_m_s / plan.frame_rate_hz
+    assert 1 - base_m / (cam.height_px * 0.3) == pytest.approx(0.8)
+    assert 1 - plan.strip_spacing_m / (cam.width_px * 0.3) == pytest.approx(0.6)
