@@ -24,7 +24,7 @@ from pyproj.exceptions import CRSError
 from scipy import ndimage
 from scipy.interpolate import LinearNDInterpolator
 
-from pipeline.dsm import grid_highest, read_las, remove_outliers, to_working_crs
+from pipeline.dsm import fill_small_holes, grid_highest, read_las, remove_outliers, to_working_crs
 from pipeline.render import HeightField, Scene, Texture, TextureMap
 from seqat.errors import ConfigError, InputDataError
 
@@ -33,6 +33,8 @@ WORLD_FILE_SUFFIXES = (".wld", ".jgw", ".jpgw", ".tfw", ".pgw")
 #: Outlier removal of the LiDAR before gridding (open3d statistical filter).
 OUTLIER_NEIGHBORS = 8
 OUTLIER_STD_RATIO = 3.0
+#: Gaps up to this many cells are filled by inverse distance before the linear fill.
+SMALL_HOLE_CELLS = 16
 
 
 def parse_crs(value: str, key: str, base: Path) -> pyproj.CRS:
@@ -124,8 +126,13 @@ def read_texture(path: Path, working_crs: pyproj.CRS, texture_crs: pyproj.CRS) -
 
 
 def fill_all(heights_m: np.ndarray) -> np.ndarray:
-    """Fill every NaN cell: linear between filled cell centres, nearest outside their hull."""
-    out = np.asarray(heights_m, dtype=np.float64).copy()
+    """Fill every NaN cell: small holes by inverse distance, larger gaps linearly between the
+    filled cells on their rims, nearest filled cell outside those."""
+    # small holes first (GDAL's inverse-distance fill, as seqat dsm): the many one-cell gaps
+    # of a LiDAR gridded near its point spacing would otherwise all be Delaunay rims
+    small_filled, _ = fill_small_holes(np.asarray(heights_m, dtype=np.float32),
+                                       SMALL_HOLE_CELLS)
+    out = np.asarray(small_filled, dtype=np.float64)
     empty = ~np.isfinite(out)
     if not empty.any():
         return out

@@ -213,3 +213,37 @@ def test_autzen_configs_plan_the_documented_block(name: str, n_images: int) -> N
     base_m = plan.speed_m_s / plan.frame_rate_hz
     assert 1 - base_m / (cam.height_px * 0.3) == pytest.approx(0.8)
     assert 1 - plan.strip_spacing_m / (cam.width_px * 0.3) == pytest.approx(0.6)
+
+
+def test_cli_simulate_rendered(sources: Path, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+
+    config = write_config(sources)
+    out = tmp_path / "flight"
+    result = CliRunner().invoke(app, ["simulate", str(config), "--out", str(out), "--seed", "3"])
+    assert result.exit_code == 0, result.output
+    assert (out / "images" / "img_0001.jpg").is_file()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(config.read_text().replace("strips: 2", "strips: 0"))
+    result = CliRunner().invoke(app, ["simulate", str(bad), "--out", str(tmp_path / "x")])
+    assert result.exit_code == 2 and "plan" in result.output and "strips" in result.output
+
+
+@pytest.mark.shared
+def test_autzen_scene_renders_texture_everywhere(shared_data: Path) -> None:
+    from pipeline.render import Renderer
+    from pipeline.render_scene import load_scene
+
+    autzen = shared_data / "autzen"
+    wkt = pyproj.CRS((autzen / "autzen-srs.wkt").read_text())
+    crs = pyproj.CRS(CRS)
+    cx, cy = 494300.0, 4877580.0
+    scene = load_scene(autzen / "autzen.jpg", wkt, [autzen / "autzen_trim.las"], wkt, crs, 1.0,
+                       (cx - 60, cy - 60, cx + 60, cy + 60))
+    z0, z1 = scene.surface.z_range_m
+    assert 120.0 < z0 < z1 < 165.0  # 406-520 ft of the LAS header, in metres
+    image = Renderer(scene, _camera()).render(np.array([cx, cy, z1 + 60.0, 0.0, 0.0, 0.0]))
+    assert image.shape == (120, 160, 3)
+    assert np.mean(np.all(image == 0, axis=2)) < 0.001 and image.std() > 10
