@@ -65,7 +65,7 @@ from pipeline.bench_report import (
     rms_of,
     write_figures,
 )
-from pipeline.config import load_simulate_config
+from pipeline.config import SimulateConfig, load_simulate_config
 from seqat.errors import ConfigError
 from seqat.geometry import intersect_rays, wrap_angle
 from seqat.sequential import SequentialAT, SequentialOptions
@@ -90,7 +90,11 @@ RMSE_COMPONENTS = ("X", "Y", "Z", "ω", "φ", "κ", "GP X", "GP Y", "GP Z")
 def _load_sim_config(path: Path) -> StripSimConfig:
     """``simulation:`` section of a ``kind: observations`` config (strict: unknown keys are
     :class:`~seqat.errors.ConfigError` naming the file and the key)."""
-    return load_simulate_config(path).simulation
+    config = load_simulate_config(path)
+    if not isinstance(config, SimulateConfig):
+        raise ConfigError(f"{path}: kind: the benchmark needs kind: observations, got "
+                          f"{config.kind!r}")
+    return config.simulation
 
 
 # ---------------------------------------------------------------------------- metrics

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from pipeline.config import load_simulate_config
+from pipeline.config import RenderSimulateConfig, load_simulate_config
 from pipeline.csvio import format_csv_line
 from pipeline.flight import (
     FLIGHT_YAML,
@@ -208,6 +208,14 @@ def simulate_to_folder(config_path: Path | str, out_dir: Path | str, seed: int) 
         Unusable CRS or an output folder that cannot be replaced (checked before simulating).
     """
     config = load_simulate_config(config_path)
+    if isinstance(config, RenderSimulateConfig):
+        from pipeline.render_flight import render_to_folder  # imports this module
+
+        rendered = render_to_folder(config, Path(config_path).parent, out_dir, seed)
+        return SimulateSummary(out_dir=rendered.out_dir, crs=rendered.crs, seed=seed,
+                               n_images=rendered.n_images, n_points=rendered.n_points,
+                               n_observations=rendered.n_observations,
+                               duration_s=rendered.duration_s)
     resolve_projected_crs(config.crs, f"{config_path}")
     out = Path(out_dir)
     check_replaceable(out)

@@ -41,3 +41,17 @@ def test_sample_flight_reads_and_has_truth() -> None:
     frames = list(flight.frames())
     assert len(frames) == 60
     assert read_truth(SAMPLE) is not None
+
+
+RENDERED = ROOT / "sample_data" / "autzen_rendered"
+
+
+def test_rendered_sample_reads_with_nav_near_truth() -> None:
+    flight = read_flight(RENDERED)
+    truth = read_truth(RENDERED)
+    assert flight.kind == "images" and not flight.skipped and len(flight.nav) == 12
+    assert truth is not None and truth.eop.image_ids == flight.nav.image_ids
+    d = np.linalg.norm(flight.nav.eop[:, :3] - truth.eop.eop[:, :3], axis=1)
+    assert 0.0 < d.max() < 0.5  # configured noise: 0.05 m white + 0.01 m/sqrt(s) drift
+    assert len(truth.points.point_ids) >= 30
+    assert sum(p.stat().st_size for p in RENDERED.rglob("*") if p.is_file()) < 3_000_000
