@@ -88,7 +88,7 @@ class SequentialOptions:
     max_update_iterations: int = 10  # 1 = the paper's single linearisation
     iteration_tolerance_px: float = 0.01  # stop when the rows predict the new estimate this well
     smoothing: bool = True  # Seq-R: keep RTS gains so solution() can smooth departed parameters
-    relinearise_px: float | None = 0.5  # re-linearise the window when its rows are this far off
+    relinearise_px: float | None = 1.0  # re-linearise the window when its rows are this far off
     relinearise_iterations: int = 5  # Gauss-Newton iterations of a window re-linearisation
     sim: SimOptions = SimOptions()
 
