@@ -240,3 +240,16 @@ def test_autzen_las_gives_a_dsm_in_metres(shared_data: Path, tmp_path: Path) -> 
                      las_crs=parse_las_crs(str(folder / "autzen-srs.wkt")),
                      options=DsmOptions(cell_m=5.0))
     assert thin.points_read == 10653
+
+
+def test_sparse_cloud_gets_a_larger_cell() -> None:
+    """2 points per cell on average: 10 000 points over 200 m x 100 m -> cell 2 m."""
+    from pipeline.dsm import DsmOptions, density_cell_m
+
+    rng = np.random.default_rng(2)
+    xyz = np.column_stack([rng.uniform(0, 200, 10_000), rng.uniform(0, 100, 10_000),
+                           np.zeros(10_000)])
+    xyz[0, :2], xyz[1, :2] = (0.0, 0.0), (200.0, 100.0)  # exact extent
+    assert density_cell_m(xyz, DsmOptions()) == pytest.approx(2.0)
+    assert density_cell_m(xyz, DsmOptions(cell_m=3.0)) == 3.0  # never finer than asked
+    assert density_cell_m(xyz, DsmOptions(min_points_per_cell=0)) == 1.0
