@@ -266,25 +266,30 @@ def _reproject(heights: np.ndarray, transform: Affine, src_crs: pyproj.CRS,
 # --------------------------------------------------------------------------------------------
 
 
-def parse_las_crs(value: str) -> pyproj.CRS:
-    """The CRS of ``--las-crs``: anything pyproj accepts, or the path of a WKT file.
+def parse_crs(value: str, key: str, base: Path) -> pyproj.CRS:
+    """A CRS from anything pyproj accepts, or from a WKT file (relative to ``base``).
 
     Raises
     ------
     ConfigError
-        Unknown CRS or unreadable WKT file (PROJ's message attached).
+        Unknown CRS or unreadable WKT file (PROJ's message attached), naming ``key``.
     """
     text = value
-    candidate = Path(value)
+    candidate = Path(value) if Path(value).is_absolute() else base / value
     if candidate.suffix.lower() in (".wkt", ".prj", ".txt") or candidate.is_file():
         try:
             text = candidate.read_text(encoding="utf-8")
         except OSError as err:
-            raise ConfigError(f"--las-crs: cannot read WKT file {value}: {err}") from err
+            raise ConfigError(f"{key}: cannot read WKT file {candidate}: {err}") from err
     try:
         return pyproj.CRS.from_user_input(text)
     except CRSError as err:
-        raise ConfigError(f"--las-crs: unknown CRS {value!r}: {err}") from err
+        raise ConfigError(f"{key}: unknown CRS {value!r}: {err}") from err
+
+
+def parse_las_crs(value: str) -> pyproj.CRS:
+    """The CRS of ``--las-crs``: anything pyproj accepts, or the path of a WKT file."""
+    return parse_crs(value, "--las-crs", Path.cwd())
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

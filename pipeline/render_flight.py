@@ -17,9 +17,6 @@ Folder (docs/formats.md, *Rendered flights*): ``flight.yaml``, ``nav.csv``, ``im
 from __future__ import annotations
 
 import math
-import os
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,7 +30,7 @@ import yaml
 from pipeline.camera import PixelCorrector, pinhole_camera
 from pipeline.config import CameraConfig, RenderSimulateConfig
 from pipeline.csvio import format_csv_line
-from pipeline.dsm import _linear_unit_factor
+from pipeline.dsm import _linear_unit_factor, parse_crs
 from pipeline.flight import FLIGHT_YAML, GROUND_POINT_COLUMNS, NAV_GEODETIC_COLUMNS, TRUTH_DIR
 from pipeline.navigation import (
     R_ENU_FROM_NED,
@@ -44,9 +41,9 @@ from pipeline.navigation import (
     resolve_projected_crs,
 )
 from pipeline.render import HeightField, Renderer, Scene, cast_rays, finish_image
-from pipeline.render_scene import las_center_m, load_scene, parse_crs
-from pipeline.simulate_io import _umask, _write, check_replaceable
-from pipeline.store import fmt, format_nav_csv, format_observation_lines, fsync_dir
+from pipeline.render_scene import las_center_m, load_scene
+from pipeline.simulate_io import _write, building_folder, check_replaceable
+from pipeline.store import fmt, format_nav_csv, format_observation_lines
 from seqat.errors import ConfigError, InputDataError
 from seqat.geometry import angles_from_rotation, project
 from seqat.types import FloatArray
@@ -341,13 +338,9 @@ def render_to_folder(config: RenderSimulateConfig, config_dir: Path, out_dir: Pa
     keep = np.flatnonzero(rays >= MIN_CHECKPOINT_RAYS)
     cp_ids = {int(j): f"c{k + 1:03d}" for k, j in enumerate(keep)}
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
-    old: Path | None = None
     renderer = Renderer(scene, config.camera)
     render_s = 0.0
-    try:
-        os.chmod(tmp, 0o777 & ~_umask())
+    with building_folder(out) as tmp:
         (tmp / IMAGES_DIR).mkdir()
         for image_id, eop in zip(flight.image_ids, flight.eop, strict=True):
             start = time.perf_counter()
@@ -388,22 +381,6 @@ def render_to_folder(config: RenderSimulateConfig, config_dir: Path, out_dir: Pa
         _write(tmp / TRUTH_DIR / "eop.csv", format_nav_csv(flight.image_ids, flight.times_s,
                                                            flight.eop))
         _write(tmp / TRUTH_DIR / "points.csv", points_csv)
-        for sub in (IMAGES_DIR, LIDAR_DIR, TRUTH_DIR):
-            fsync_dir(tmp / sub)
-        fsync_dir(tmp)
-        if out.exists():
-            old = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.old-"))
-            os.replace(out, old / out.name)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if old is not None and (old / out.name).exists() and not out.exists():
-            os.replace(old / out.name, out)
-        raise
-    finally:
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    fsync_dir(out.parent)
     base = config.plan.speed_m_s / config.plan.frame_rate_hz
     return RenderSummary(
         out_dir=out, crs=config.crs, seed=seed, n_images=n, n_points=len(keep),

@@ -20,13 +20,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pyproj
-from pyproj.exceptions import CRSError
 from scipy import ndimage
 from scipy.interpolate import LinearNDInterpolator
 
-from pipeline.dsm import fill_small_holes, grid_highest, read_las, remove_outliers, to_working_crs
+from pipeline.dsm import (
+    fill_small_holes,
+    grid_highest,
+    read_las,
+    remove_outliers,
+    to_working_crs,
+)
 from pipeline.render import HeightField, Scene, Texture, TextureMap
-from seqat.errors import ConfigError, InputDataError
+from seqat.errors import InputDataError
 
 #: World file suffixes tried beside a texture image, in order.
 WORLD_FILE_SUFFIXES = (".wld", ".jgw", ".jpgw", ".tfw", ".pgw")
@@ -35,27 +40,6 @@ OUTLIER_NEIGHBORS = 8
 OUTLIER_STD_RATIO = 3.0
 #: Gaps up to this many cells are filled by inverse distance before the linear fill.
 SMALL_HOLE_CELLS = 16
-
-
-def parse_crs(value: str, key: str, base: Path) -> pyproj.CRS:
-    """A CRS from anything pyproj accepts or a WKT file (relative to ``base``).
-
-    Raises
-    ------
-    ConfigError
-        Unknown CRS or unreadable file, naming ``key``.
-    """
-    text = value
-    candidate = Path(value) if Path(value).is_absolute() else base / value
-    if candidate.suffix.lower() in (".wkt", ".prj") or candidate.is_file():
-        try:
-            text = candidate.read_text(encoding="utf-8")
-        except OSError as err:
-            raise ConfigError(f"{key}: cannot read WKT file {candidate}: {err}") from err
-    try:
-        return pyproj.CRS.from_user_input(text)
-    except CRSError as err:
-        raise ConfigError(f"{key}: unknown CRS {value!r}: {err}") from err
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -7,10 +7,12 @@ itself a flight folder (has ``flight.yaml``); anything else is refused.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -153,11 +155,7 @@ def write_simulated_flight(flight: SimulatedFlight, crs: str, out_dir: Path | st
     out = Path(out_dir)
     resolve_projected_crs(crs, "crs")
     check_replaceable(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
-    old: Path | None = None
-    try:
-        os.chmod(tmp, 0o777 & ~_umask())
+    with building_folder(out) as tmp:
         _write(tmp / FLIGHT_YAML, _flight_yaml(flight, crs))
         _write(tmp / NAV_FILE, format_nav_csv(flight.image_ids, flight.times_s, flight.nav_eop))
         _write(tmp / OBSERVATIONS_FILE, _observations_csv(flight))
@@ -165,7 +163,27 @@ def write_simulated_flight(flight: SimulatedFlight, crs: str, out_dir: Path | st
         _write(tmp / TRUTH_DIR / "eop.csv", format_nav_csv(flight.image_ids, flight.times_s,
                                                      flight.truth_eop))
         _write(tmp / TRUTH_DIR / "points.csv", _points_csv(flight.point_ids, flight.truth_xyz))
-        fsync_dir(tmp / TRUTH_DIR)
+    return out
+
+
+@contextlib.contextmanager
+def building_folder(out: Path) -> Iterator[Path]:
+    """Build a folder in a temporary sibling and publish it as ``out`` atomically.
+
+    Yields the temporary folder (mode as a new folder gets under the umask). When the block
+    succeeds, every sub-folder and the folder are fsynced and it replaces ``out`` (a
+    previous ``out`` is moved aside first and removed after); when it fails, the temporary
+    folder is removed and a previous ``out`` is put back.
+    """
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
+    old: Path | None = None
+    try:
+        os.chmod(tmp, 0o777 & ~_umask())
+        yield tmp
+        for sub in tmp.iterdir():
+            if sub.is_dir():
+                fsync_dir(sub)
         fsync_dir(tmp)
         if out.exists():
             old = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.old-"))
@@ -174,13 +192,12 @@ def write_simulated_flight(flight: SimulatedFlight, crs: str, out_dir: Path | st
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         if old is not None and (old / out.name).exists() and not out.exists():
-            os.replace(old / out.name, out)  # put the previous flight back
+            os.replace(old / out.name, out)  # put the previous folder back
         raise
     finally:
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
     fsync_dir(out.parent)
-    return out
 
 
 def _umask() -> int:
