@@ -13,6 +13,7 @@ import dataclasses
 import enum
 import time
 from dataclasses import dataclass
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Protocol
 
@@ -106,6 +107,19 @@ def estimator_options(method: Method, config: EstimatorConfig, *, threshold: flo
     return opts
 
 
+class ImageListener(Protocol):
+    """Something that follows a run image by image (live ortho, journal, watch display).
+
+    ``on_image`` is called after each update with the frame, its update record and the
+    estimator (query ``window_solution()`` there: O(window)); ``on_finish`` once after the
+    final solution, before the run folder is published.
+    """
+
+    def on_image(self, frame: Frame, update: ImageUpdate, estimator: Estimator) -> None: ...
+
+    def on_finish(self, solution: Solution) -> None: ...
+
+
 class Estimator(Protocol):
     """What the runner needs from an estimator (SequentialAT, SimultaneousAT)."""
 
@@ -171,7 +185,8 @@ def _progress(console: Console, enabled: bool) -> Progress:
 def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = Method.SEQ_R,
                final_only: bool = False, options_path: Path | str | None = None,
                threshold: float | None = None, initial_images: int | None = None,
-               progress: bool = True, observations: Path | str | None = None) -> RunSummary:
+               progress: bool = True, observations: Path | str | None = None,
+               listeners: Sequence[ImageListener] = ()) -> RunSummary:
     """Adjust a flight folder with one method and write the results to ``out_dir``.
 
     Parameters
@@ -194,6 +209,8 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
         Image points (``observations.csv`` format) replacing the flight's own or, for an
         image flight, the tracker: replays the tie points of an earlier run
         (``OUT/observations.csv``) with another method.
+    listeners : sequence of ImageListener
+        Called after every image and once at the end (:class:`ImageListener`).
 
     Returns
     -------
@@ -239,12 +256,16 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
             update = estimator.add_frame(frame)
             updates.append(update)
             source.feedback(update, estimator)
+            for listener in listeners:
+                listener.on_image(frame, update, estimator)
             bar.update(task, advance=1,
                        info=f"{update.update_ms:7.1f} ms  window {update.window_images}")
     finish = getattr(estimator, "finish", None)
     if finish is not None:
         finish()  # sequential: re-linearise the window at the final estimate
     solution = estimator.solution()
+    for listener in listeners:
+        listener.on_finish(solution)
     stats = source.stats()
 
     eops, points = eop_table(solution.eops), point_table(solution.points)
