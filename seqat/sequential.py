@@ -38,6 +38,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
 from threadpoolctl import ThreadpoolController
 
 from seqat.geometry import depth, intersect_rays, project, project_with_jacobians, wrap_angle
@@ -90,6 +91,9 @@ class SequentialOptions:
     smoothing: bool = True  # Seq-R: keep RTS gains so solution() can smooth departed parameters
     relinearise_px: float | None = 1.0  # re-linearise the window when its rows are this far off
     relinearise_iterations: int = 5  # Gauss-Newton iterations of a window re-linearisation
+    # Seq-R: a departed GP seen again, or a departed image holding a pending ray of a point
+    # being born, re-enters the window if it left at most this many images ago (0: never).
+    reopen_max_age: int = 1000
     sim: SimOptions = SimOptions()
 
     def __post_init__(self) -> None:
@@ -112,6 +116,8 @@ class SequentialOptions:
             raise ConfigError(
                 f"relinearise_px: expected a positive number or null, got {self.relinearise_px!r}"
             )
+        if self.reopen_max_age < 0:
+            raise ConfigError(f"reopen_max_age: expected >= 0, got {self.reopen_max_age}")
         if self.relinearise_iterations < 1:
             raise ConfigError(
                 f"relinearise_iterations: expected >= 1, got {self.relinearise_iterations}"
@@ -145,6 +151,7 @@ class _Departure:
     x_leaving: FloatArray
     x_staying: FloatArray
     gain: FloatArray  # (|F|, |W|)
+    conditional: FloatArray  # (|F|, |F|) Q_F|W = L_FF^-1
 
 
 @dataclass(eq=False)
@@ -221,6 +228,12 @@ class SequentialAT:
         self._frozen_eop: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._frozen_gp: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._departures: list[_Departure] = []
+        # Re-opening (docs/algorithm.md): where and when each departed key left, its cofactor
+        # block then, and the departed images whose pending rays are kept (oldest first).
+        self._departed: dict[Key, tuple[int, int, int]] = {}  # key -> (image, record, offset)
+        self._frozen_cof: dict[Key, FloatArray] = {}
+        self._departed_rays: deque[tuple[int, list[int]]] = deque()
+        self.reopened = 0  # departed parameters re-opened so far
         self._forced: set[int] = set()  # pending points already held back once (never twice)
         self._ssr = 0.0
         self._redundancy = 0
@@ -345,7 +358,9 @@ class SequentialAT:
             off = 0
             for k in dep.leaving:
                 size = EOP_SIZE if k[0] == "e" else GP_SIZE
-                value[k] = x_f[off : off + size]
+                # a key that re-entered the window left again later (or is in it): the
+                # newer departure, processed first, already holds its final value
+                value.setdefault(k, x_f[off : off + size])
                 off += size
         return value
 
@@ -425,6 +440,8 @@ class SequentialAT:
             return 0
         scale = sigma_scale(self.sigma0, self._redundancy)
         sd = np.sqrt(np.diagonal(w.Q)) * scale
+        now = len(self._image_ids) - 1
+        keep_rays = self.options.reopen_max_age > 0
         leaving: set[Key] = set()
         changed: set[int] = set()
         for _ in range(start):
@@ -432,31 +449,50 @@ class SequentialAT:
             leaving.add(("e", j))
             idx = w.index(("e", j))
             self._frozen_eop[j] = (w.x[idx].copy(), sd[idx])
+            with_rays = []
             for p in self._img_points.pop(j):
                 if p in self._gp_count:
                     self._gp_count[p] -= 1
                     changed.add(p)
                 elif p in self._pending:
+                    if keep_rays:
+                        with_rays.append(p)  # kept: image j re-enters if p is born
+                        continue
                     rest = [o for o in self._pending[p] if o[0] != j]
                     if rest:
                         self._pending[p] = rest
                     else:
                         del self._pending[p]
                         self._forced.discard(p)
+            if with_rays:
+                self._departed_rays.append((j, with_rays))
         for p in changed:
             if self._gp_count[p] + (p in frame_points) < MIN_WINDOW_RAYS:
                 leaving.add(("p", p))
                 idx = w.index(("p", p))
                 self._frozen_gp[p] = (w.x[idx].copy(), sd[idx])
                 del self._gp_count[p]
+        self._depart(leaving, now)
+        return start
+
+    def _depart(self, leaving: set[Key], now: int) -> None:
+        """Marginalise ``leaving`` out of the window, keeping its RTS record (smoothing)."""
+        w = self._w
         keep_keys = [k for k in w.keys if k not in leaving]
         leave_keys = [k for k in w.keys if k in leaving]
         keep, leave = w.indices(keep_keys), w.indices(leave_keys)
+        off = 0
+        for k in leave_keys:
+            idx = w.index(k)
+            self._frozen_cof[k] = w.Q[np.ix_(idx, idx)].copy()
+            self._departed[k] = (now, len(self._departures), off)
+            off += idx.size
         if w.L is not None:
             # E[x_F | x_W] = x_F - L_FF^-1 L_FW (x_W - x_W0): the RTS gain from the information
             # matrix; marginalising F out of L is its Schur complement.
             L_fw = w.L[np.ix_(leave, keep)]
-            gain = -np.linalg.solve(w.L[np.ix_(leave, leave)], L_fw)
+            cond = np.linalg.inv(w.L[np.ix_(leave, leave)])
+            gain = -cond @ L_fw
             w.L = w.L[np.ix_(keep, keep)] + L_fw.T @ gain
             self._departures.append(
                 _Departure(
@@ -465,12 +501,12 @@ class SequentialAT:
                     x_leaving=w.x[leave],
                     x_staying=w.x[keep],
                     gain=gain,
+                    conditional=0.5 * (cond + cond.T),
                 )
             )
         w.Q = w.Q[np.ix_(keep, keep)]
         w.x = w.x[keep]
         w.relayout(keep_keys)
-        return start
 
     def _hold_pending_rays(self, start: int, frame_points: set[int]) -> int:
         """Never lose tie rays by waiting: shorten the cut before the first leaving image that
@@ -516,6 +552,7 @@ class SequentialAT:
                 self._point_ids.append(pid)
             pts.append(p)
         dropped = self._select_window(set(pts))
+        self._forget_old_rays(i)
 
         nav = frame.nav_eop.copy()
         nav[:3] -= self._origin
@@ -528,12 +565,18 @@ class SequentialAT:
         y21_pts, y21_uv = [], []
         candidates: list[int] = []
         skipped = 0
+        reopen: list[Key] = []
         for p, uv in zip(pts, frame.uv_px, strict=True):
             if ("p", p) in w.offset:
                 y21_pts.append(p)
                 y21_uv.append(uv)
             elif p in self._frozen_gp:
-                skipped += 1  # a GP that left the window is not re-opened (docs/algorithm.md)
+                if self._reopenable(("p", p), i):
+                    reopen.append(("p", p))
+                    y21_pts.append(p)
+                    y21_uv.append(uv)
+                else:
+                    skipped += 1  # left the window too long ago (reopen_max_age)
             else:
                 lst = self._pending.setdefault(p, [])
                 lst.append((i, uv, frame.sigma_px))
@@ -543,6 +586,11 @@ class SequentialAT:
         candidates += [p for p in self._forced if p not in in_frame and p in self._pending]
         born, born_xyz = self._birth(candidates, i, init)
         self._forced.difference_update(born)
+        reopen += list(dict.fromkeys(
+            ("e", j) for p in born for (j, _, _) in self._pending[p]
+            if j != i and ("e", j) not in w.offset))
+        if reopen:
+            self._reopen(reopen)
 
         # --- layout of the new parameters: [EOP of image i, born GPs]
         n2 = EOP_SIZE + GP_SIZE * len(born)
@@ -610,12 +658,209 @@ class SequentialAT:
             obs = self._pending.pop(p)
             self._gp_count[p] = self._gp_nobs[p] = len(obs)
             self._gp_order.append(p)
+            for j, _, _ in obs:
+                if ("e", j) in reopen:
+                    self._img_points[j].append(p)
         if opts.relinearise_px is not None:
             self._relinearise_if_needed()
         ms = (time.perf_counter() - t0) * 1e3
         return self._report(
             frame, i, ms, rows, n2, len(born), len(pts) - skipped, skipped, iterations, dropped
         )
+
+    def _reopenable(self, key: Key, i: int) -> bool:
+        left = self._departed.get(key)
+        return left is not None and i - left[0] <= self.options.reopen_max_age
+
+    def _forget_old_rays(self, i: int) -> None:
+        """Drop the kept pending rays of images that left more than ``reopen_max_age`` ago."""
+        limit = i - self.options.reopen_max_age
+        rays = self._departed_rays
+        while rays and (rays[0][0] not in self._frozen_eop
+                        or self._departed.get(("e", rays[0][0]), (limit, 0, 0))[0] < limit):
+            j, points = rays.popleft()
+            if ("e", j) in self._w.offset:
+                continue  # re-opened since: its rays left the pending lists then
+            for p in points:
+                if p not in self._pending:
+                    continue
+                rest = [o for o in self._pending[p] if o[0] != j]
+                if rest:
+                    self._pending[p] = rest
+                else:
+                    del self._pending[p]
+                    self._forced.discard(p)
+
+    def _reopen(self, keys: list[Key]) -> None:
+        """Bring departed parameters back into the window (docs/algorithm.md, re-opening).
+
+        With smoothing, a key F that left with the window W_dep is distributed, given W_dep,
+        as ``x_F0 + J (x_W - x_W0) + e``, ``e ~ (0, L_FF^-1)`` (its departure record): exact
+        while nothing else touched F. The part of W_dep still in the window enters with its
+        joint cofactor; the part that has left since enters with its frozen value and
+        cofactor, its correlation with the window neglected (the Seq-R approximation: it left
+        because that correlation was small). Without smoothing the key enters with its frozen
+        value and cofactor, uncorrelated. The prior adds as many pseudo-observations as
+        parameters: redundancy and sum of squares do not change.
+        """
+        w = self._w
+        n = w.x.size
+        sizes = [EOP_SIZE if k[0] == "e" else GP_SIZE for k in keys]
+        m = sum(sizes)
+        if w.L is None:
+            J = np.zeros((m, n))
+            mean = np.concatenate([self._frozen_value(k) for k in keys])
+            C = scipy.linalg.block_diag(*(self._frozen_cof[k] for k in keys))
+        else:
+            mean, J, C = self._conditional_prior(keys, sizes)
+            self._split_records(keys)
+        for key in keys:
+            if key[0] == "e":
+                j = key[1]
+                self._img_points[j] = []
+                pos = sum(1 for jj in self._window_images if jj < j)
+                self._window_images.insert(pos, j)
+            else:
+                self._gp_count[key[1]] = 0
+        C = 0.5 * (C + C.T)
+        QJt = w.Q @ J.T
+        Q = np.empty((n + m, n + m))
+        Q[:n, :n] = w.Q
+        Q[:n, n:] = QJt
+        Q[n:, :n] = QJt.T
+        Q[n:, n:] = J @ QJt + C
+        w.Q = Q
+        if w.L is not None:
+            Ci = np.linalg.inv(C)
+            CiJ = Ci @ J
+            L = np.empty((n + m, n + m))
+            L[:n, :n] = w.L + J.T @ CiJ
+            L[:n, n:] = -CiJ.T
+            L[n:, :n] = -CiJ
+            L[n:, n:] = Ci
+            w.L = L
+        w.x = np.concatenate([w.x, mean])
+        w.relayout(w.keys + keys)
+        self.reopened += len(keys)
+
+    def _conditional_prior(self, keys: list[Key],
+                           sizes: list[int]) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Departed ``keys`` given the current window: ``y = mean + J (x_W - x_W,now) + e``.
+
+        Each departure record says ``x_F = x_F0 + G (x_W - x_W0) + e``, ``e ~ (0, L_FF^-1)``
+        independent of everything after. Starting from the keys themselves, every departed key
+        the form refers to is replaced by its record's relation, oldest record first (a record
+        refers only to keys that left later or are still in the window), until the form refers
+        to window keys only. The result is the exact conditional of the keys given the window
+        as long as no departed key was touched in between; a key re-opened since is taken at
+        its last departure.
+        """
+        w = self._w
+        m = sum(sizes)
+        col_of: dict[Key, int] = {}
+        buf = np.zeros((m, 8 * m + 64))
+        ncol = 0
+
+        def column(key: Key) -> int:
+            nonlocal buf, ncol
+            c = col_of.get(key)
+            if c is None:
+                size = EOP_SIZE if key[0] == "e" else GP_SIZE
+                if ncol + size > buf.shape[1]:
+                    buf = np.concatenate([buf, np.zeros_like(buf)], axis=1)
+                c = col_of[key] = ncol
+                ncol += size
+            return c
+
+        pending: dict[int, list[Key]] = {}
+        row = 0
+        for key, size in zip(keys, sizes, strict=True):
+            c = column(key)
+            buf[row : row + size, c : c + size] = np.eye(size)
+            pending.setdefault(self._departed[key][1], []).append(key)
+            row += size
+        const = np.zeros(m)
+        C = np.zeros((m, m))
+        queued = set(keys)
+        while pending:
+            rec = min(pending)
+            members = pending.pop(rec)
+            dep = self._departures[rec]
+            src = np.concatenate([self._departed[k][2] + np.arange(EOP_SIZE if k[0] == "e"
+                                                                   else GP_SIZE)
+                                  for k in members])
+            cols = np.concatenate([col_of[k] + np.arange(EOP_SIZE if k[0] == "e" else GP_SIZE)
+                                   for k in members])
+            JK = buf[:, cols].copy()
+            buf[:, cols] = 0.0
+            G = dep.gain[src]
+            const += JK @ (dep.x_leaving[src] - G @ dep.x_staying)
+            C += JK @ dep.conditional[np.ix_(src, src)] @ JK.T
+            JG = JK @ G
+            ucols = np.empty(JG.shape[1], dtype=np.int64)
+            off = 0
+            for sk in dep.staying:
+                size = EOP_SIZE if sk[0] == "e" else GP_SIZE
+                c = column(sk)
+                ucols[off : off + size] = c + np.arange(size)
+                off += size
+                if sk not in w.offset and sk not in queued:
+                    queued.add(sk)
+                    later = self._departed[sk][1]
+                    assert later > rec, "a departure record refers to an older one"
+                    pending.setdefault(later, []).append(sk)
+            buf[:, ucols] += JG
+        n = w.x.size
+        J = np.zeros((m, n))
+        for key, c in col_of.items():
+            if key in w.offset:
+                idx = w.index(key)
+                J[:, idx] = buf[:, c : c + idx.size]
+        mean = const + J @ w.x
+        return mean, J, C
+
+    def _split_records(self, keys: list[Key]) -> None:
+        """Re-opened keys become conditioning keys of the departure records they left with.
+
+        Record ``x_F = x_F0 + G (x_W - x_W0) + e`` with F = R (re-opened) + M (not): given
+        ``x_R`` as well, ``x_M = x_M0 + (G_M - K G_R)(x_W - x_W0) + K (x_R - x_R0) + e'`` with
+        ``K = C_MR C_RR^-1`` and ``Cov(e') = C_MM - K C_RM``. The record then says how M
+        follows everything R learns from now on (for later re-opening and for smoothing).
+        """
+        by_record: dict[int, list[Key]] = {}
+        for key in keys:
+            by_record.setdefault(self._departed.pop(key)[1], []).append(key)
+        for rec, reopened in by_record.items():
+            dep = self._departures[rec]
+            sizes = {k: EOP_SIZE if k[0] == "e" else GP_SIZE for k in dep.leaving}
+            starts = dict(zip(dep.leaving, np.cumsum([0] + list(sizes.values()))[:-1],
+                              strict=True))
+            chosen = set(reopened)
+            rest = [k for k in dep.leaving if k not in chosen]
+            r_idx = np.concatenate([starts[k] + np.arange(sizes[k]) for k in reopened])
+            m_idx = (np.concatenate([starts[k] + np.arange(sizes[k]) for k in rest])
+                     if rest else np.zeros(0, dtype=np.int64))
+            C = dep.conditional
+            K = np.linalg.solve(C[np.ix_(r_idx, r_idx)], C[np.ix_(r_idx, m_idx)]).T
+            cond = C[np.ix_(m_idx, m_idx)] - K @ C[np.ix_(r_idx, m_idx)]
+            self._departures[rec] = _Departure(
+                leaving=tuple(rest),
+                staying=dep.staying + tuple(reopened),
+                x_leaving=dep.x_leaving[m_idx],
+                x_staying=np.concatenate([dep.x_staying, dep.x_leaving[r_idx]]),
+                gain=np.hstack([dep.gain[m_idx] - K @ dep.gain[r_idx], K]),
+                conditional=0.5 * (cond + cond.T),
+            )
+            off = 0
+            for k in rest:
+                self._departed[k] = (self._departed[k][0], rec, off)
+                off += sizes[k]
+
+    def _frozen_value(self, key: Key) -> FloatArray:
+        """Last estimate of a departed key (local frame)."""
+        if key in self._w.offset:
+            return self._w.x[self._w.index(key)]
+        return (self._frozen_eop if key[0] == "e" else self._frozen_gp)[key[1]][0]
 
     def _relinearise_if_needed(self, threshold_px: float | None = None) -> None:
         """Re-linearise the window when its rows no longer describe the image points.
@@ -681,7 +926,12 @@ class SequentialAT:
         eops, uvs, idx = [], [], []
         for c, p in enumerate(candidates):
             for j, uv, _ in self._pending[p]:
-                eops.append(nav if j == i else w.x[w.index(("e", j))])
+                if j == i:
+                    eops.append(nav)
+                elif ("e", j) in w.offset:
+                    eops.append(w.x[w.index(("e", j))])
+                else:  # a kept ray of a departed image (re-opened if the point is born)
+                    eops.append(self._frozen_eop[j][0])
                 uvs.append(uv)
                 idx.append(c)
         E, UV, I = np.asarray(eops), np.asarray(uvs), np.asarray(idx)

@@ -1,7 +1,8 @@
-"""Simulated image strips with exact truth (seed 000 §3.1, Tables 2-3).
+"""Simulated image strips and blocks with exact truth (seed 000 §3.1, Tables 2-3).
 
-A straight strip flown at constant height and speed over gently undulating terrain, with
-smooth position and attitude wander; tie points scattered over the strip's ground coverage,
+Straight strips (one by default; several parallel ones flown back and forth make a block)
+flown at constant height and speed over gently undulating terrain, with smooth position and
+attitude wander; tie points scattered over the ground coverage,
 projected into every image that sees them, plus white image noise; GPS/INS EOPs = truth +
 white noise. Numpy only; writing files is the pipeline's job.
 """
@@ -28,9 +29,19 @@ ACROSS_TRACK_FILL = 0.9
 
 @dataclass(frozen=True, kw_only=True)
 class StripSimConfig:
-    """Parameters of a simulated strip; the defaults reproduce seed 000 Table 2."""
+    """Parameters of a simulated strip or block; the defaults reproduce seed 000 Table 2.
+
+    ``n_images`` is per strip; ``n_points`` over the whole block. With ``strips`` > 1 the
+    strips are flown alternately forward and back (serpentine), ``strip_spacing_m`` apart
+    (default: from ``side_overlap``), with ``turn_s`` seconds between strips; the block is
+    centred on the origin.
+    """
 
     n_images: int = 384
+    strips: int = 1
+    side_overlap: float = 0.6  # used when strip_spacing_m is not given
+    strip_spacing_m: float | None = None
+    turn_s: float = 20.0
     frame_rate_hz: float = 2.0
     speed_m_s: float = 10.0
     height_m: float = 200.0  # above the mean terrain height
@@ -74,6 +85,32 @@ class StripSimConfig:
             raise ConfigError(f"simulation.n_images: expected at least 2, got {self.n_images}")
         if self.n_points < 1:
             raise ConfigError(f"simulation.n_points: expected at least 1, got {self.n_points}")
+        if self.strips < 1:
+            raise ConfigError(f"simulation.strips: expected at least 1, got {self.strips}")
+        if not 0 <= self.side_overlap < 1:
+            raise ConfigError(
+                f"simulation.side_overlap: expected a value in [0, 1), got {self.side_overlap!r}"
+            )
+        if self.strip_spacing_m is not None and not self.strip_spacing_m > 0:
+            raise ConfigError(f"simulation.strip_spacing_m: expected a positive number or "
+                              f"null, got {self.strip_spacing_m!r}")
+        if not self.turn_s >= 0:
+            raise ConfigError(f"simulation.turn_s: expected >= 0, got {self.turn_s!r}")
+
+    @property
+    def across_half_m(self) -> float:
+        """Half the across-track ground extent of a nadir image at the mean terrain."""
+        gsd = self.height_m / self.camera.f_px
+        hx, hy = self.width_px / 2 * gsd, self.height_px / 2 * gsd
+        m = np.radians(self.mount_kappa_deg)
+        return float(abs(np.sin(m)) * hy + abs(np.cos(m)) * hx)
+
+    @property
+    def spacing_m(self) -> float:
+        """Distance between strip axes."""
+        if self.strip_spacing_m is not None:
+            return self.strip_spacing_m
+        return 2.0 * self.across_half_m * (1.0 - self.side_overlap)
 
     @property
     def camera(self) -> PinholeCamera:
@@ -144,7 +181,8 @@ def _terrain(rng: np.random.Generator, relief_m: float, mean_m: float):  # type:
 
 
 def simulate_strip(config: StripSimConfig, seed: int) -> SimulatedFlight:
-    """Simulate one strip of images with tie points and GPS/INS (seed 000 §3.1).
+    """Simulate a strip (or a block of strips) of images with tie points and GPS/INS
+    (seed 000 §3.1).
 
     Parameters
     ----------
@@ -159,30 +197,38 @@ def simulate_strip(config: StripSimConfig, seed: int) -> SimulatedFlight:
     """
     rng = np.random.default_rng(seed)
     cam = config.camera
-    n = config.n_images
-    t = np.arange(n) / config.frame_rate_hz
+    per = config.n_images
+    n = per * config.strips
+    strip = np.repeat(np.arange(config.strips), per)
+    step = np.tile(np.arange(per), config.strips)
+    t = (np.arange(n) + strip * config.turn_s * config.frame_rate_hz) / config.frame_rate_hz
     heading = np.radians(config.heading_deg)
     fwd = np.array([np.sin(heading), np.cos(heading)])
     right = np.array([np.cos(heading), -np.sin(heading)])
-    s = config.speed_m_s * t
-    s -= s[-1] / 2.0  # strip centred on the origin
+    s_axis = config.speed_m_s * np.arange(per) / config.frame_rate_hz
+    s_axis -= s_axis[-1] / 2.0  # strips centred on the origin
+    back = strip % 2 == 1  # serpentine: odd strips flown backwards
+    s = np.where(back, s_axis[::-1][step], s_axis[step])
+    offset = (strip - (config.strips - 1) / 2.0) * config.spacing_m
     z_of = _terrain(rng, config.terrain_relief_m, config.terrain_mean_z_m)
     cross = _wander(rng, t, config.position_wander_m)
-    en = s[:, None] * fwd + cross[:, None] * right
+    en = s[:, None] * fwd + (offset + cross)[:, None] * right
     up = config.terrain_mean_z_m + config.height_m + _wander(rng, t, config.position_wander_m)
     att_amp = np.radians(config.attitude_wander_deg)
     omega = _wander(rng, t, att_amp)
     phi = _wander(rng, t, att_amp)
-    kappa = -heading + np.radians(config.mount_kappa_deg) + _wander(rng, t, att_amp)
+    kappa = (-heading + np.radians(config.mount_kappa_deg) + np.where(back, np.pi, 0.0)
+             + _wander(rng, t, att_amp))
     truth_local = np.column_stack([en, up, omega, phi, kappa])
 
     # Ground coverage of a nadir image, split into along- and across-track half extents.
     gsd = config.height_m / cam.f_px
     hx, hy = config.width_px / 2 * gsd, config.height_px / 2 * gsd
-    m = np.radians(config.mount_kappa_deg)
-    across_half = abs(np.sin(m)) * hy + abs(np.cos(m)) * hx
-    ps = rng.uniform(s[0], s[-1], config.n_points)
-    pc = rng.uniform(-1, 1, config.n_points) * across_half * ACROSS_TRACK_FILL
+    across_half = config.across_half_m
+    # Across the block: the strips' axes plus the fill of one footprint on either side.
+    widen = 1.0 + (config.strips - 1) / 2.0 * config.spacing_m / (across_half * ACROSS_TRACK_FILL)
+    ps = rng.uniform(s_axis[0], s_axis[-1], config.n_points)
+    pc = rng.uniform(-1, 1, config.n_points) * across_half * ACROSS_TRACK_FILL * widen
     order = np.argsort(ps)
     ps, pc = ps[order], pc[order]
     pen = ps[:, None] * fwd + pc[:, None] * right

@@ -174,22 +174,27 @@ def test_seq_r_real_time_estimates_equal_seq_f(strip_120: SimulatedFlight) -> No
     assert np.max(np.abs(frozen[:, :3] - np.array([e.eop for e in sf.eops])[:, :3])) > 1e-3
 
 
-@pytest.mark.parametrize("hold", [True, False])
+@pytest.mark.parametrize(("hold", "reopen_max_age", "healthy"),
+                         [(True, 0, True), (False, 0, False), (False, 1000, True)])
 def test_waiting_for_ray_spread_never_starves_the_window(
-    hold: bool, monkeypatch: pytest.MonkeyPatch
+    hold: bool, reopen_max_age: int, healthy: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A birth rule stricter than the window is long must not drop every tie (seed 5: without
-    holding pending rays back, only 29 of 119 points were born and the window fell to 2)."""
+    holding pending rays back and without re-opening, only 29 of 119 points were born and the
+    window fell to 2). Either safeguard keeps it healthy: holding the cut, or keeping the
+    departed images' pending rays and re-opening those images when the point is born."""
     if not hold:
         monkeypatch.setattr(SequentialAT, "_hold_pending_rays", lambda self, start, fp: start)
     f = simulate_strip(StripSimConfig(n_images=150, n_points=119), seed=5)
-    est = SequentialAT(f.camera, SequentialOptions(min_ray_angle_deg=15.0))
+    est = SequentialAT(f.camera, SequentialOptions(min_ray_angle_deg=15.0,
+                                                   reopen_max_age=reopen_max_age))
     ups = [est.add_frame(fr) for fr in f.frames()]
-    healthy = (
+    ok = (
         ups[-1].n_points_total >= 0.95 * len(f.point_ids)
         and min(u.window_images for u in ups[60:]) >= 8
     )
-    assert healthy == hold  # the safeguard is what keeps it healthy
+    assert ok == healthy
+    assert (est.reopened > 0) == (not hold and reopen_max_age > 0)
 
 
 def test_initial_eop_is_the_linearisation_point_not_an_observation(
