@@ -19,6 +19,11 @@ and keep their last estimate and sigma. With ``smoothing`` (default) each depart
 Rauch-Tung-Striebel gain of the leaving parameters on the staying ones, and :meth:`solution`
 smooths the departed values with everything that came later. See docs/algorithm.md.
 
+Re-opening (``reopen_max_age``): a departed GP observed again, or a departed image holding a
+pending ray of a point being born, re-enters the window with its exact distribution given the
+current window, derived from the departure records (no observation skipped; blocks need it
+for cross-strip ties).
+
 New observation classes (seed 000 Eq. 7-8): y21 = new image x existing GP; y12 = existing
 window image x newly born GP (its earlier, pending observations); y22 = new image x new GP;
 z2 = GPS/INS EOP of the new image. A tie point is born once it has ``min_rays`` observations
@@ -676,11 +681,14 @@ class SequentialAT:
         """Drop the kept pending rays of images that left more than ``reopen_max_age`` ago."""
         limit = i - self.options.reopen_max_age
         rays = self._departed_rays
-        while rays and (rays[0][0] not in self._frozen_eop
-                        or self._departed.get(("e", rays[0][0]), (limit, 0, 0))[0] < limit):
-            j, points = rays.popleft()
+        while rays:
+            j, points = rays[0]
+            left = self._departed.get(("e", j))
+            if left is not None and left[0] >= limit:
+                break
+            rays.popleft()
             if ("e", j) in self._w.offset:
-                continue  # re-opened since: its rays left the pending lists then
+                continue  # re-opened: its rays were used then
             for p in points:
                 if p not in self._pending:
                     continue
@@ -694,14 +702,12 @@ class SequentialAT:
     def _reopen(self, keys: list[Key]) -> None:
         """Bring departed parameters back into the window (docs/algorithm.md, re-opening).
 
-        With smoothing, a key F that left with the window W_dep is distributed, given W_dep,
-        as ``x_F0 + J (x_W - x_W0) + e``, ``e ~ (0, L_FF^-1)`` (its departure record): exact
-        while nothing else touched F. The part of W_dep still in the window enters with its
-        joint cofactor; the part that has left since enters with its frozen value and
-        cofactor, its correlation with the window neglected (the Seq-R approximation: it left
-        because that correlation was small). Without smoothing the key enters with its frozen
-        value and cofactor, uncorrelated. The prior adds as many pseudo-observations as
-        parameters: redundancy and sum of squares do not change.
+        With smoothing (departure records kept) each key enters with its exact distribution
+        given the current window (:meth:`_conditional_prior`), jointly with the others, and
+        the records it left with are rewritten to condition on it (:meth:`_split_records`).
+        Without, it enters with its frozen value and cofactor, uncorrelated with the window.
+        The prior adds as many pseudo-observations as parameters: redundancy and sum of
+        squares do not change.
         """
         w = self._w
         n = w.x.size
