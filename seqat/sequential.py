@@ -46,11 +46,13 @@ import numpy as np
 import scipy.linalg
 from threadpoolctl import ThreadpoolController
 
+from seqat import snooping
 from seqat.geometry import depth, intersect_rays, project, project_with_jacobians, wrap_angle
 from seqat.simultaneous import (
     Covariance,
     SimOptions,
     SimultaneousAT,
+    free_nav_sigma,
     rms_point_sigma,
     sigma_scale,
 )
@@ -65,7 +67,7 @@ from seqat.types import (
     PointEstimate,
     Solution,
 )
-from seqat.update import LinearRows, solve_update, update_cofactor
+from seqat.update import LinearRows, UpdateSolution, solve_update, update_cofactor
 from seqat.window import eop_correlations, first_over_threshold
 
 #: BLAS threads used by an update: the matrices are small (a few hundred), where OpenBLAS's
@@ -78,6 +80,13 @@ MIN_FORCED_RAY_ANGLE_DEG = 1.0
 
 #: A GP stays in the Seq-R window only while this many window images (new one included) see it.
 MIN_WINDOW_RAYS = 2
+
+#: Data snooping at birth: a ray farther than this many critical sigmas from the others'
+#: intersection is screened out (SequentialAT._screen_rays), in at most this many rounds.
+SCREEN_SIGMAS = 2.0
+MAX_SCREEN_ROUNDS = 5
+#: Data snooping: at most this many reject-and-resolve rounds per image.
+MAX_SNOOPING_ROUNDS = 40
 
 #: Parameter key: (kind, index) with kind "e" (EOP of image index) or "p" (GP index).
 Key = tuple[str, int]
@@ -99,6 +108,9 @@ class SequentialOptions:
     # Seq-R: a departed GP seen again, or a departed image holding a pending ray of a point
     # being born, re-enters the window if it left at most this many images ago (0: never).
     reopen_max_age: int = 1000
+    # Baarda's data snooping of each update's rows (w-test, critical value; 3.29 is
+    # alpha0 = 0.001 two-sided); None: off (the paper). docs/algorithm.md, "Blunders".
+    snooping_critical: float | None = None
     sim: SimOptions = SimOptions()
 
     def __post_init__(self) -> None:
@@ -121,6 +133,12 @@ class SequentialOptions:
             raise ConfigError(
                 f"relinearise_px: expected a positive number or null, got {self.relinearise_px!r}"
             )
+        if self.snooping_critical is not None and not self.snooping_critical > 0:
+            raise ConfigError(f"snooping_critical: expected a positive number or null, "
+                              f"got {self.snooping_critical!r}")
+        if self.snooping_critical is not None and self.min_rays < 3:
+            raise ConfigError(f"min_rays: data snooping (snooping_critical) needs >= 3 so that "
+                              f"a blunder in a new point is detectable, got {self.min_rays}")
         if self.reopen_max_age < 0:
             raise ConfigError(f"reopen_max_age: expected >= 0, got {self.reopen_max_age}")
         if self.relinearise_iterations < 1:
@@ -217,8 +235,13 @@ class SequentialAT:
     ) -> None:
         self.camera = camera
         self.options = options
-        sim_opts = dataclasses.replace(options.sim, min_rays=options.min_rays)
-        self._initial: SimultaneousAT | None = SimultaneousAT(camera, sim_opts)
+        sim_opts = dataclasses.replace(options.sim, min_rays=options.min_rays,
+                                       snooping_critical=options.snooping_critical)
+        # With data snooping the initial block is adjusted once, when complete: refits of its
+        # first few images have too little redundancy to tell blunders from good rays, and a
+        # wrong early solution would seed the later ones.
+        self._initial: SimultaneousAT | None = SimultaneousAT(
+            camera, sim_opts, refit_every_frame=options.snooping_critical is None)
         self._origin: FloatArray | None = None
         self._w = _Window()
         self._window_images: deque[int] = deque()
@@ -239,6 +262,11 @@ class SequentialAT:
         self._frozen_cof: dict[Key, FloatArray] = {}
         self._departed_rays: deque[tuple[int, list[int]]] = deque()
         self.reopened = 0  # departed parameters re-opened so far
+        self._orphans: set[int] = set()  # window GPs no window image sees (ray rejected)
+        #: Observations removed by data snooping: (image id, point id, w-test value).
+        self.rejections: list[tuple[str, str, float]] = []
+        #: GPS/INS groups down-weighted by data snooping: (image id, "position"/"attitude").
+        self.nav_downweighted: list[tuple[str, str]] = []
         self._forced: set[int] = set()  # pending points already held back once (never twice)
         self._ssr = 0.0
         self._redundancy = 0
@@ -425,6 +453,8 @@ class SequentialAT:
                               np.asarray(st.obs_sigma_px)[use], res.eop[img], res.gp[gp_row],
                               self.camera)
         self.initial_state = (keys, self._w.x.copy(), self._w.Q.copy())
+        self.rejections.extend(sim.rejections)
+        self.nav_downweighted.extend(sim.nav_downweighted)
         self._initial = None
 
     # ------------------------------------------------------------------ sequential stage
@@ -448,7 +478,8 @@ class SequentialAT:
         now = len(self._image_ids) - 1
         keep_rays = self.options.reopen_max_age > 0
         leaving: set[Key] = set()
-        changed: set[int] = set()
+        changed: set[int] = {p for p in self._orphans if p in self._gp_count}
+        self._orphans.clear()
         for _ in range(start):
             j = self._window_images.popleft()
             leaving.add(("e", j))
@@ -566,22 +597,19 @@ class SequentialAT:
         if frame.initial_eop is not None:
             init = frame.initial_eop.copy()
             init[:3] -= self._origin
+        # A GNSS dropout without a resected start value: the new image's rays do not help to
+        # place new points (they would be cast from the last fix).
+        init_known = frame.initial_eop is not None or bool(np.all(np.isfinite(frame.nav_sigma[:3])))
         # --- classify the new observations (seed 000 Eq. 7-8)
-        y21_pts, y21_uv = [], []
+        seen: list[tuple[int, FloatArray]] = []  # y21: window GPs and re-openable departed ones
         candidates: list[int] = []
         skipped = 0
-        reopen: list[Key] = []
         for p, uv in zip(pts, frame.uv_px, strict=True):
-            if ("p", p) in w.offset:
-                y21_pts.append(p)
-                y21_uv.append(uv)
+            if ("p", p) in w.offset or (p in self._frozen_gp
+                                        and self._reopenable(("p", p), i)):
+                seen.append((p, uv))
             elif p in self._frozen_gp:
-                if self._reopenable(("p", p), i):
-                    reopen.append(("p", p))
-                    y21_pts.append(p)
-                    y21_uv.append(uv)
-                else:
-                    skipped += 1  # left the window too long ago (reopen_max_age)
+                skipped += 1  # left the window too long ago (reopen_max_age)
             else:
                 lst = self._pending.setdefault(p, [])
                 lst.append((i, uv, frame.sigma_px))
@@ -589,58 +617,97 @@ class SequentialAT:
                     candidates.append(p)
         in_frame = set(candidates)
         candidates += [p for p in self._forced if p not in in_frame and p in self._pending]
-        born, born_xyz = self._birth(candidates, i, init)
-        self._forced.difference_update(born)
-        reopen += list(dict.fromkeys(
-            ("e", j) for p in born for (j, _, _) in self._pending[p]
-            if j != i and ("e", j) not in w.offset))
-        if reopen:
-            self._reopen(reopen)
 
-        # --- layout of the new parameters: [EOP of image i, born GPs]
-        n2 = EOP_SIZE + GP_SIZE * len(born)
-        x2_0 = np.concatenate([init, born_xyz.ravel()])
-        y12 = [
-            (j, b, uv, s) for b, p in enumerate(born) for (j, uv, s) in self._pending[p] if j != i
-        ]
-        y22 = [(b, uv, s) for b, p in enumerate(born) for (j, uv, s) in self._pending[p] if j == i]
-        touched_keys: list[Key] = [("p", p) for p in y21_pts]
-        touched_keys += list(dict.fromkeys(("e", j) for (j, _, _, _) in y12))
-        touched = w.indices(touched_keys)
-        col_of = {}
-        c = 0
-        for k in touched_keys:
-            col_of[k] = c
-            c += EOP_SIZE if k[0] == "e" else GP_SIZE
-
-        # One entry per image row: (EOP column, GP column, uv, sigma, in y2) in z = [x1t, x2].
-        t = touched.size
-        obs: list[tuple[int, int, FloatArray, float, bool, tuple[int, int]]] = [
-            (t, col_of[("p", p)], uv, frame.sigma_px, True, (i, p))
-            for p, uv in zip(y21_pts, y21_uv, strict=True)
-        ]
-        obs += [
-            (col_of[("e", j)], t + EOP_SIZE + GP_SIZE * b, uv, s, True, (j, born[b]))
-            for (j, b, uv, s) in y12
-        ]
-        obs += [(t, t + EOP_SIZE + GP_SIZE * b, uv, s, False, (i, born[b]))
-                for (b, uv, s) in y22]
-        builder = _RowBuilder(cam, t, n2, obs, nav, frame.nav_sigma)
-        x1t = w.x[touched]
-        d1t = np.zeros(touched.size)
-        d2 = np.zeros(n2)
-        iterations = 0
+        nav_sigma = free_nav_sigma(frame.nav_sigma)
+        rejected: list[tuple[int, int, float]] = []  # (image, point, w) removed by snooping
+        rejected_new: set[int] = set()  # points whose ray in the new image was removed
+        downweighted: list[str] = []
+        reopened: list[Key] = []
+        rounds = 0
         while True:
-            iterations += 1
-            rows = builder.rows(x1t, x2_0, d1t, d2)
-            sol = solve_update(w.Q, touched, rows)
-            d1t, d2 = sol.delta1_touched, sol.delta2
-            # Converged when the rows, linearised where they were, still describe the image
-            # points at the new estimate: re-linearising would move it by less than that.
-            if iterations >= opts.max_update_iterations or (
-                builder.linearisation_error(x1t, x2_0, d1t, d2) < opts.iteration_tolerance_px
-            ):
+            y21_pts = [p for p, _ in seen if p not in rejected_new]
+            y21_uv = [uv for p, uv in seen if p not in rejected_new]
+            reopen: list[Key] = [("p", p) for p in y21_pts if ("p", p) not in w.offset]
+            ready = [p for p in candidates
+                     if p in self._pending and len(self._pending[p]) >= opts.min_rays]
+            born, born_xyz = self._birth(ready, i, init, use_new=init_known)
+            reopen += list(dict.fromkeys(
+                ("e", j) for p in born for (j, _, _) in self._pending[p]
+                if j != i and ("e", j) not in w.offset))
+            if reopen:
+                self._reopen(reopen)
+                reopened += reopen
+
+            # --- layout of the new parameters: [EOP of image i, born GPs]
+            n2 = EOP_SIZE + GP_SIZE * len(born)
+            x2_0 = np.concatenate([init, born_xyz.ravel()])
+            y12 = [(j, b, uv, s) for b, p in enumerate(born)
+                   for (j, uv, s) in self._pending[p] if j != i]
+            y22 = [(b, uv, s) for b, p in enumerate(born)
+                   for (j, uv, s) in self._pending[p] if j == i]
+            touched_keys: list[Key] = [("p", p) for p in y21_pts]
+            touched_keys += list(dict.fromkeys(("e", j) for (j, _, _, _) in y12))
+            touched = w.indices(touched_keys)
+            col_of = {}
+            c = 0
+            for k in touched_keys:
+                col_of[k] = c
+                c += EOP_SIZE if k[0] == "e" else GP_SIZE
+
+            # One entry per image row: (EOP column, GP column, uv, sigma, in y2, (image,
+            # point)) in z = [x1t, x2].
+            t = touched.size
+            obs: list[tuple[int, int, FloatArray, float, bool, tuple[int, int]]] = [
+                (t, col_of[("p", p)], uv, frame.sigma_px, True, (i, p))
+                for p, uv in zip(y21_pts, y21_uv, strict=True)
+            ]
+            obs += [
+                (col_of[("e", j)], t + EOP_SIZE + GP_SIZE * b, uv, s, True, (j, born[b]))
+                for (j, b, uv, s) in y12
+            ]
+            obs += [(t, t + EOP_SIZE + GP_SIZE * b, uv, s, False, (i, born[b]))
+                    for (b, uv, s) in y22]
+            builder = _RowBuilder(cam, t, n2, obs, nav, nav_sigma)
+            x1t = w.x[touched]
+            d1t = np.zeros(touched.size)
+            d2 = np.zeros(n2)
+            iterations = 0
+            while True:
+                iterations += 1
+                rows = builder.rows(x1t, x2_0, d1t, d2)
+                sol = solve_update(w.Q, touched, rows)
+                d1t, d2 = sol.delta1_touched, sol.delta2
+                # Converged when the rows, linearised where they were, still describe the
+                # image points at the new estimate: re-linearising would move it by less.
+                if iterations >= opts.max_update_iterations or (
+                    builder.linearisation_error(x1t, x2_0, d1t, d2)
+                    < opts.iteration_tolerance_px
+                ):
+                    break
+            if opts.snooping_critical is None or rounds >= MAX_SNOOPING_ROUNDS:
                 break
+            rounds += 1
+            verdict = _snoop(w.Q, touched, rows, sol, builder, d1t, d2, opts.snooping_critical)
+            if not verdict.observations and not set(verdict.nav_groups) - set(downweighted):
+                break
+            for q, wq in zip(verdict.observations, verdict.w, strict=True):
+                j, p = (int(v) for v in builder.ids[q])
+                rejected.append((j, p, wq))
+                if j == i:
+                    rejected_new.add(p)
+                if p in self._pending:  # a ray of a point being born: it stays out
+                    self._pending[p] = [o for o in self._pending[p] if o[0] != j]
+                    if j != i and p in self._img_points.get(j, ()):
+                        self._img_points[j].remove(p)
+                    if not self._pending[p]:
+                        del self._pending[p]
+            for group in verdict.nav_groups:
+                if group in downweighted:
+                    continue  # once per image and group
+                sl = slice(0, 3) if group == "position" else slice(3, 6)
+                nav_sigma[sl] *= snooping.NAV_DOWNWEIGHT
+                downweighted.append(group)
+        self._forced.difference_update(born)
         if self.recorded is not None:
             self._record(touched_keys, touched, born, i, rows, x1t, x2_0)
         w.x = np.concatenate([w.x + sol.delta1(), x2_0 + sol.delta2])
@@ -649,13 +716,19 @@ class SequentialAT:
             w.L = _add_information(w.L, touched, rows)
         w.relayout(w.keys + [("e", i)] + [("p", p) for p in born])
         self._ssr += sol.ssr_increment
-        self._redundancy += rows.l2.size + rows.l3.size - n2
+        self._redundancy += int(np.count_nonzero(rows.w2) + np.count_nonzero(rows.w3)) - n2
         if opts.relinearise_px is not None:
             builder.store_factors(self._factors)
 
         # --- bookkeeping (all O(new observations))
         self._window_images.append(i)
-        self._img_points[i] = pts
+        self._img_points[i] = [p for p in pts if p not in rejected_new]
+        for key in reopened:
+            if key[0] == "p" and key[1] in rejected_new:
+                self._orphans.add(key[1])  # re-opened for a ray that was then rejected
+        self.rejections.extend(
+            (self._image_ids[j], self._point_ids[p], wq) for j, p, wq in rejected)
+        self.nav_downweighted.extend((frame.image_id, g) for g in downweighted)
         for p in y21_pts:
             self._gp_count[p] += 1
             self._gp_nobs[p] += 1
@@ -664,13 +737,20 @@ class SequentialAT:
             self._gp_count[p] = self._gp_nobs[p] = len(obs)
             self._gp_order.append(p)
             for j, _, _ in obs:
-                if ("e", j) in reopen:
+                if ("e", j) in reopened:
                     self._img_points[j].append(p)
         if opts.relinearise_px is not None:
             self._relinearise_if_needed()
         ms = (time.perf_counter() - t0) * 1e3
-        return self._report(
-            frame, i, ms, rows, n2, len(born), len(pts) - skipped, skipped, iterations, dropped
+        update = self._report(
+            frame, i, ms, rows, n2, len(born), len(pts) - skipped - len(rejected_new), skipped,
+            iterations, dropped
+        )
+        return dataclasses.replace(
+            update,
+            rejected=tuple((self._image_ids[j], self._point_ids[p], round(wq, 2))
+                           for j, p, wq in rejected),
+            nav_downweighted=tuple(downweighted),
         )
 
     def _reopenable(self, key: Key, i: int) -> bool:
@@ -923,23 +1003,31 @@ class SequentialAT:
         self._factors.replace(f)
 
     def _birth(
-        self, candidates: list[int], i: int, nav: FloatArray
+        self, candidates: list[int], i: int, nav: FloatArray, *, use_new: bool = True
     ) -> tuple[list[int], FloatArray]:
-        """Intersect candidate tie points; return those with a usable geometry and their XYZ."""
+        """Intersect candidate tie points; return those with a usable geometry and their XYZ.
+
+        ``use_new=False`` leaves the new image's rays out of the intersection (its EOP start
+        value is unknown: a GNSS dropout); the point then needs two other rays.
+        """
         if not candidates:
             return [], np.zeros((0, GP_SIZE))
-        w = self._w
+        if self.options.snooping_critical is not None:
+            self._screen_rays(candidates, i)
+            ok = [p for p in candidates if p in self._pending
+                  and len(self._pending[p]) >= self.options.min_rays]
+            if len(ok) < len(candidates):
+                return self._birth(ok, i, nav, use_new=use_new)
         eops, uvs, idx = [], [], []
         for c, p in enumerate(candidates):
             for j, uv, _ in self._pending[p]:
-                if j == i:
-                    eops.append(nav)
-                elif ("e", j) in w.offset:
-                    eops.append(w.x[w.index(("e", j))])
-                else:  # a kept ray of a departed image (re-opened if the point is born)
-                    eops.append(self._frozen_eop[j][0])
+                if j == i and not use_new:
+                    continue
+                eops.append(nav if j == i else self._eop_value(j))
                 uvs.append(uv)
                 idx.append(c)
+        if not idx:
+            return [], np.zeros((0, GP_SIZE))
         E, UV, I = np.asarray(eops), np.asarray(uvs), np.asarray(idx)
         X, spread = intersect_rays(E, UV, I, len(candidates), self.camera)
         min_angle = np.radians(
@@ -956,6 +1044,62 @@ class SequentialAT:
         ok &= front
         sel = np.flatnonzero(ok)
         return [candidates[c] for c in sel], X[sel]
+
+    def _eop_value(self, j: int) -> FloatArray:
+        w = self._w
+        return w.x[w.index(("e", j))] if ("e", j) in w.offset else self._frozen_eop[j][0]
+
+    def _screen_rays(self, candidates: list[int], i: int) -> None:
+        """Data snooping at birth: the rays of estimated images (not the new one, whose EOP is
+        still the nav) must meet in one point. The worst ray of a point whose rays miss it by
+        more than ``SCREEN_SIGMAS * critical * sigma`` pixels is rejected while at least two
+        remain; a blunder in a point's first rays would otherwise be intersected into a wrong
+        point the update cannot leave (a local minimum that fits all its rays)."""
+        crit = self.options.snooping_critical
+        assert crit is not None
+        rays = [(c, j, uv) for c, p in enumerate(candidates) for (j, uv, _) in self._pending[p]]
+        I = np.asarray([r[0] for r in rays], dtype=np.int64)
+        UV = np.asarray([r[2] for r in rays], dtype=np.float64).reshape(-1, 2)
+        # the new image's rays take any EOP: they are not used here
+        E = np.asarray([self._eop_value(j) if j != i else np.zeros(EOP_SIZE)
+                        for (_, j, _) in rays]).reshape(-1, EOP_SIZE)
+        old = np.asarray([j != i for (_, j, _) in rays], dtype=bool)
+        sig = np.asarray([s for p in candidates for (_, _, s) in self._pending[p]])
+        limit = SCREEN_SIGMAS * crit * sig
+        alive = old.copy()
+        for _ in range(MAX_SCREEN_ROUNDS):
+            n_old = np.bincount(I[alive], minlength=len(candidates))
+            if not np.any(n_old >= 3):
+                break
+            X, _ = intersect_rays(E[alive], UV[alive], I[alive], len(candidates), self.camera)
+            res = np.full(I.size, -np.inf)
+            sel = alive & (n_old[I] >= 3) & np.all(np.isfinite(X[I]), axis=1)
+            if not np.any(sel):
+                break
+            res[sel] = (np.linalg.norm(UV[sel] - project(E[sel], X[I[sel]], self.camera),
+                                       axis=1) - limit[sel])
+            order = np.lexsort((-res, I))
+            first = order[np.r_[True, I[order][1:] != I[order][:-1]]]
+            worst = first[res[first] > 0]
+            if worst.size == 0:
+                break
+            alive[worst] = False
+            for r in worst:
+                p = candidates[int(I[r])]
+                rays = self._pending[p]
+                k = int(r - np.flatnonzero(I == I[r])[0])
+                j, _, s = rays[k]
+                self.rejections.append((self._image_ids[j], self._point_ids[p],
+                                        float(res[r] / s / crit + SCREEN_SIGMAS)))
+        if not np.all(alive | ~old):
+            for c, p in enumerate(candidates):
+                rays = self._pending[p]
+                gone = ~alive[I == c] & old[I == c]
+                if gone.any():
+                    for (j, _, _), g in zip(rays, gone, strict=True):
+                        if g and j in self._img_points and p in self._img_points[j]:
+                            self._img_points[j].remove(p)
+                    self._pending[p] = [o for o, g in zip(rays, gone, strict=True) if not g]
 
     def _record(
         self,
@@ -1029,6 +1173,57 @@ class SequentialAT:
             ),
             images_left_window=dropped,
         )
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class _Verdict:
+    """What one round of data snooping rejects: image observations (indices in the row
+    builder's order) with their w, and GPS/INS groups to down-weight."""
+
+    observations: list[int]
+    w: list[float]
+    nav_groups: list[str]
+
+
+def _snoop(Q: FloatArray, touched: np.ndarray, rows: LinearRows, sol: UpdateSolution,
+           builder: _RowBuilder, d1t: FloatArray, d2: FloatArray, critical: float) -> _Verdict:
+    """Baarda's w-test on the rows of one update (seed 003 §3.1; docs/algorithm.md).
+
+    ``w_i = v_i / (sigma_i sqrt(r_i))`` with the residual ``v = l - A d`` of the converged
+    update and the redundancy number ``r_i = 1 - (A Q_post A^T)_ii / sigma_i^2``, where
+    ``Q_post`` is the cofactor after the update of the parameters the rows touch (Eq. 11-12
+    restricted to them: O((t + n2)^2)). An image point fails when either coordinate does;
+    observations with ``r < MIN_REDUNDANCY`` cannot be tested (a blunder there is absorbed).
+    """
+    T = np.linalg.solve(sol.S, sol.P2bar)
+    T = 0.5 * (T + T.T)
+    Gt = sol.G[touched]
+    Qtt = Q[np.ix_(touched, touched)] - Gt @ T @ Gt.T
+    W1t = (rows.A21.T @ (rows.w2[:, None] * rows.A22)) @ sol.D_inv
+    Q12 = -Qtt @ W1t
+    Q22 = sol.D_inv + W1t.T @ Qtt @ W1t
+    Z = np.block([[Qtt, Q12], [Q12.T, Q22]])
+    v = builder.residuals(d1t, d2)
+    k = builder.k
+    observations: list[int] = []
+    wq: list[float] = []
+    if k:
+        _, _, Je, Jp, _ = builder._lin
+        cols = np.concatenate([builder.eidx, builder.pidx], axis=1)  # (k, 9)
+        worst = snooping.point_w(np.concatenate([Je, Jp], axis=2),
+                                 Z[cols[:, :, None], cols[:, None, :]],
+                                 v[: 2 * k].reshape(k, 2), builder.sigmas)
+        sel = snooping.select(worst, critical, builder.ids[:, 0], builder.ids[:, 1])[:1]
+        observations = [int(q) for q in sel]
+        wq = [float(worst[q]) for q in sel]
+    if observations:
+        return _Verdict(observations=observations, w=wq, nav_groups=[])  # image blunders first
+    t = touched.size
+    with np.errstate(divide="ignore"):
+        nav_sigma = 1.0 / np.sqrt(builder.w[2 * k:])
+    groups = snooping.nav_groups(v[2 * k:], nav_sigma, np.diagonal(Z)[t : t + EOP_SIZE],
+                                 critical)
+    return _Verdict(observations=observations, w=wq, nav_groups=groups)
 
 
 def _add_information(L: FloatArray, touched: np.ndarray, rows: LinearRows) -> FloatArray:
@@ -1141,6 +1336,11 @@ class _RowBuilder:
         e, p, Je, Jp, r = self._lin
         factors.add_linearised(self.ids[:, 0], self.ids[:, 1],
                                self.obs.reshape(self.k, 2), self.sigmas, e, p, Je, Jp, r)
+
+    def residuals(self, d1t: FloatArray, d2: FloatArray) -> FloatArray:
+        """Residuals of the last linearised rows at the corrections ``(d1t, d2)``: image rows
+        in builder order (2 per observation), then the 6 GPS/INS rows."""
+        return self._ell - self._A @ np.concatenate([d1t, d2])
 
     def linearisation_error(
         self, x1t: FloatArray, x2_0: FloatArray, d1t: FloatArray, d2: FloatArray

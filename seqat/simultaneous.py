@@ -20,6 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from seqat import snooping
 from seqat.errors import EstimationError
 from seqat.geometry import depth, intersect_rays, project, project_with_jacobians, wrap_angle
 from seqat.types import (
@@ -48,6 +49,12 @@ LINE_SEARCH_STEPS = (1.0, 0.5, 0.25, 0.125)
 COST_TOLERANCE = 1e-10
 
 
+#: Sigma given to free GPS/INS components (Frame.nav_sigma inf): metres and radians.
+FREE_NAV_SIGMA = np.array([1e3, 1e3, 1e3, 1.0, 1.0, 1.0])
+#: Data snooping: at most this many reject-and-adjust rounds per solve.
+MAX_SNOOPING_ROUNDS = 30
+
+
 class Covariance(Enum):
     """Which cofactors an adjustment returns."""
 
@@ -65,6 +72,9 @@ class SimOptions:
     angle_tolerance_rad: float = 1e-9  # convergence: max |correction| of angles
     min_rays: int = 2  # a tie point enters the adjustment once seen in this many images
     covariance_every_frame: bool = True  # per-frame refits also compute the cofactor blocks
+    # Baarda's data snooping after each adjustment (w-test critical value; None: off). Needs
+    # the full cofactor: meant for the initial stage and blocks of a few hundred images.
+    snooping_critical: float | None = None
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -422,6 +432,13 @@ def adjust_block(
     )
 
 
+def free_nav_sigma(sigma: FloatArray) -> FloatArray:
+    """GPS/INS sigmas with the free components (inf, a dropout) replaced by a weak constraint
+    (:data:`FREE_NAV_SIGMA`): an image the tie points do not determine keeps its starting
+    value with a sigma that says so, instead of a singular system."""
+    return np.where(np.isinf(sigma), FREE_NAV_SIGMA, sigma)
+
+
 def sigma_scale(sigma0: float, redundancy: int) -> float:
     """Factor applied to cofactors' square roots: the a posteriori sigma0 (1 without redundancy)."""
     return sigma0 if redundancy > 0 and np.isfinite(sigma0) else 1.0
@@ -508,6 +525,11 @@ class SimultaneousAT:
         self._eop_est: FloatArray = np.zeros((0, EOP_SIZE))
         self._gp_est: FloatArray = np.zeros((0, GP_SIZE))
         self._dirty = False
+        self._rejected: set[int] = set()  # catalogue indices of observations rejected
+        #: Observations removed by data snooping: (image id, point id, w-test value).
+        self.rejections: list[tuple[str, str, float]] = []
+        #: GPS/INS groups down-weighted by data snooping: (image id, "position"/"attitude").
+        self.nav_downweighted: list[tuple[str, str]] = []
 
     def add_frame(self, frame: Frame) -> ImageUpdate:
         """Add one image; refit everything when ``refit_every_frame``."""
@@ -520,7 +542,7 @@ class SimultaneousAT:
         nav = frame.nav_eop.copy()
         nav[:3] -= self._origin
         cat.nav_eop.append(nav)
-        cat.nav_sigma.append(frame.nav_sigma)
+        cat.nav_sigma.append(free_nav_sigma(frame.nav_sigma))
         for pid, uv in zip(frame.point_ids, frame.uv_px, strict=True):
             j = cat.point_index.get(pid)
             if j is None:
@@ -542,13 +564,23 @@ class SimultaneousAT:
             iterations = self._solve(cov).iterations
         return self._update_record(frame, i, (time.perf_counter() - t0) * 1e3, iterations)
 
-    def _block(self) -> tuple[BlockData, np.ndarray, FloatArray, FloatArray]:
-        """Block of all points with at least ``min_rays`` observations and initial values."""
+    def _observations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, FloatArray, FloatArray]:
+        """Catalogue index, image, point, pixels and sigma of every observation not rejected."""
         cat = self._cat
-        oi = np.asarray(cat.obs_image, dtype=np.int64)
-        op = np.asarray(cat.obs_point, dtype=np.int64)
-        uv = np.asarray(cat.obs_uv, dtype=np.float64).reshape(-1, 2)
-        sg = np.asarray(cat.obs_sigma, dtype=np.float64)
+        idx = np.arange(len(cat.obs_image))
+        if self._rejected:
+            idx = np.setdiff1d(idx, np.fromiter(self._rejected, dtype=np.int64))
+        oi = np.asarray(cat.obs_image, dtype=np.int64)[idx]
+        op = np.asarray(cat.obs_point, dtype=np.int64)[idx]
+        uv = np.asarray(cat.obs_uv, dtype=np.float64).reshape(-1, 2)[idx]
+        sg = np.asarray(cat.obs_sigma, dtype=np.float64)[idx]
+        return idx, oi, op, uv, sg
+
+    def _block(self) -> tuple[BlockData, np.ndarray, FloatArray, FloatArray, np.ndarray]:
+        """Block of all points with at least ``min_rays`` observations and initial values;
+        last, the catalogue index of each of its observations."""
+        cat = self._cat
+        cat_idx, oi, op, uv, sg = self._observations()
         n_pts = len(cat.point_ids)
         counts = np.bincount(op, minlength=n_pts)
         # Initial GP values: previous estimate where known, else intersection at current EOPs.
@@ -556,7 +588,7 @@ class SimultaneousAT:
         gp_init = np.full((n_pts, 3), np.nan)
         if self._point_sel.size:
             gp_init[self._point_sel] = self._gp_est
-            known[self._point_sel] = True
+            known[self._point_sel] = np.all(np.isfinite(self._gp_est), axis=1)
         need = (~known) & (counts >= self.options.min_rays)
         if np.any(need):
             mask = need[op]
@@ -584,7 +616,7 @@ class SimultaneousAT:
             obs_sigma_px=sg[keep],
             n_points=int(sel.size),
         )
-        return data, sel, self._eop_est, gp_init[sel]
+        return data, sel, self._eop_est, gp_init[sel], cat_idx[keep]
 
     def export_state(self, covariance: Covariance = Covariance.FULL) -> SimState:
         """Adjust the frames so far and return the solution with its observations."""
@@ -592,26 +624,113 @@ class SimultaneousAT:
             raise EstimationError("no frames were added")
         res = self._solve(covariance)
         cat = self._cat
+        _, oi, op, uv, sg = self._observations()
         return SimState(
             origin=self._origin,
             image_ids=tuple(cat.image_ids),
             point_ids=tuple(cat.point_ids),
             selected=self._point_sel.copy(),
-            obs_image=np.asarray(cat.obs_image, dtype=np.int64),
-            obs_point=np.asarray(cat.obs_point, dtype=np.int64),
-            obs_uv=np.asarray(cat.obs_uv, dtype=np.float64).reshape(-1, 2),
-            obs_sigma_px=np.asarray(cat.obs_sigma, dtype=np.float64),
+            obs_image=oi,
+            obs_point=op,
+            obs_uv=uv,
+            obs_sigma_px=sg,
             result=res,
         )
 
     def _solve(self, covariance: Covariance) -> SimResult:
-        data, sel, eop0, gp0 = self._block()
-        res = adjust_block(self.camera, data, eop0, gp0, self.options, covariance)
-        self._result, self._point_sel = res, sel
-        self._eop_est, self._gp_est = res.eop.copy(), res.gp.copy()
+        critical = self.options.snooping_critical
+        for rounds in range(MAX_SNOOPING_ROUNDS + 1):
+            data, sel, eop0, gp0, cat_idx = self._block()
+            res = adjust_block(self.camera, data, eop0, gp0, self.options,
+                               Covariance.FULL if critical is not None else covariance)
+            self._result, self._point_sel = res, sel
+            self._eop_est, self._gp_est = res.eop.copy(), res.gp.copy()
+            if (critical is None or rounds == MAX_SNOOPING_ROUNDS
+                    or not self._snoop(res, data, sel, cat_idx, critical)):
+                break
         self._n_obs = np.bincount(data.obs_point, minlength=data.n_points)
         self._dirty = False
         return res
+
+    def _snoop(self, res: SimResult, data: BlockData, sel: np.ndarray, cat_idx: np.ndarray,
+               critical: float) -> bool:
+        """One round of data snooping (seqat.snooping); True when something was rejected or
+        down-weighted (the block is then adjusted again)."""
+        full = res.full_cofactor
+        assert full is not None
+        n = data.n_images
+        img, pt = data.obs_image, data.obs_point
+        uv, Je, Jp = project_with_jacobians(res.eop[img], res.gp[pt], self.camera)
+        cols = np.concatenate([EOP_SIZE * img[:, None] + np.arange(EOP_SIZE),
+                               EOP_SIZE * n + GP_SIZE * pt[:, None] + np.arange(GP_SIZE)],
+                              axis=1)
+        worst = snooping.point_w(np.concatenate([Je, Jp], axis=2),
+                                 full[cols[:, :, None], cols[:, None, :]],
+                                 data.obs_uv - uv, data.obs_sigma_px)
+        cat = self._cat
+        changed = False
+        for q in snooping.select(worst, critical, img, pt):
+            self._rejected.add(int(cat_idx[q]))
+            self._gp_est[int(pt[q])] = np.nan  # intersect again from the remaining rays
+            self.rejections.append((cat.image_ids[int(img[q])],
+                                    cat.point_ids[int(sel[int(pt[q])])], float(worst[q])))
+            changed = True
+        if changed:
+            return True  # image blunders first: they distort the GPS/INS residuals
+        if self._readmit(res, sel, full, critical):
+            return True
+        q_diag = np.diagonal(full)
+        res_nav = _eop_residual(data.nav_eop, res.eop)
+        done = set(self.nav_downweighted)
+        for i in range(n):
+            groups = snooping.nav_groups(res_nav[i], data.nav_sigma[i],
+                                         q_diag[EOP_SIZE * i : EOP_SIZE * (i + 1)], critical)
+            for group in groups:
+                if (cat.image_ids[i], group) in done:
+                    continue  # once per image and group
+                sl = slice(0, 3) if group == "position" else slice(3, 6)
+                sigma = cat.nav_sigma[i].copy()
+                sigma[sl] *= snooping.NAV_DOWNWEIGHT
+                cat.nav_sigma[i] = sigma
+                self.nav_downweighted.append((cat.image_ids[i], group))
+                changed = True
+        return changed
+
+    def _readmit(self, res: SimResult, sel: np.ndarray, full: FloatArray,
+                 critical: float) -> bool:
+        """Take back rejected observations that the clean solution predicts within
+        ``critical`` (w of the prediction, variance ``sigma^2 + a Q a^T``): in a young
+        block a blunder spreads to good observations, which then fail too. True when any
+        came back (the block is then adjusted again)."""
+        if not self._rejected:
+            return False
+        cat = self._cat
+        idx = np.fromiter(self._rejected, dtype=np.int64)
+        img = np.asarray(cat.obs_image, dtype=np.int64)[idx]
+        remap = np.full(len(cat.point_ids), -1)
+        remap[sel] = np.arange(sel.size)
+        pt = remap[np.asarray(cat.obs_point, dtype=np.int64)[idx]]
+        ok = pt >= 0
+        if not np.any(ok):
+            return False
+        idx, img, pt = idx[ok], img[ok], pt[ok]
+        n = res.eop.shape[0]
+        uv = np.asarray(cat.obs_uv, dtype=np.float64).reshape(-1, 2)[idx]
+        sigma = np.asarray(cat.obs_sigma, dtype=np.float64)[idx]
+        proj, Je, Jp = project_with_jacobians(res.eop[img], res.gp[pt], self.camera)
+        cols = np.concatenate([EOP_SIZE * img[:, None] + np.arange(EOP_SIZE),
+                               EOP_SIZE * n + GP_SIZE * pt[:, None] + np.arange(GP_SIZE)],
+                              axis=1)
+        w = snooping.predicted_w(np.concatenate([Je, Jp], axis=2),
+                                 full[cols[:, :, None], cols[:, None, :]], uv - proj, sigma)
+        back = idx[w < critical]
+        if back.size == 0:
+            return False
+        self._rejected.difference_update(int(q) for q in back)
+        gone = {(cat.image_ids[int(i)], cat.point_ids[int(sel[int(p)])])
+                for i, p in zip(img[w < critical], pt[w < critical], strict=True)}
+        self.rejections = [r for r in self.rejections if (r[0], r[1]) not in gone]
+        return True
 
     def _update_record(self, frame: Frame, i: int, ms: float, iterations: int) -> ImageUpdate:
         res = self._result if not self._dirty else None

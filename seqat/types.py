@@ -56,7 +56,9 @@ class Frame:
         GPS/INS exterior orientation in the world frame, ``[X, Y, Z]`` metres and
         ``[omega, phi, kappa]`` radians.
     nav_sigma : (6,) float
-        Standard deviation of each ``nav_eop`` component (metres, radians), all > 0.
+        Standard deviation of each ``nav_eop`` component (metres, radians), all > 0; ``inf``
+        leaves that component unconstrained (a GNSS dropout: ``nav_eop`` is then only the
+        starting value, the image is resected on the window's GPs).
     point_ids : tuple[str, ...]
         Ground point (track) id of each observation, unique within the frame.
     uv_px : (k, 2) float
@@ -84,8 +86,9 @@ class Frame:
         where = f"image {self.image_id!r}"
         if nav.shape != (EOP_SIZE,) or not np.all(np.isfinite(nav)):
             raise InputDataError(f"{where}: nav_eop must be 6 finite numbers, got {nav!r}")
-        if sig.shape != (EOP_SIZE,) or not np.all(np.isfinite(sig)) or np.any(sig <= 0):
-            raise InputDataError(f"{where}: nav_sigma must be 6 positive numbers, got {sig!r}")
+        if sig.shape != (EOP_SIZE,) or np.any(np.isnan(sig)) or np.any(sig <= 0):
+            raise InputDataError(f"{where}: nav_sigma must be 6 positive numbers (inf: no "
+                                 f"constraint), got {sig!r}")
         if uv.shape[0] != len(self.point_ids):
             raise InputDataError(
                 f"{where}: {len(self.point_ids)} point ids but {uv.shape[0]} image points"
@@ -167,3 +170,7 @@ class ImageUpdate:
     iterations: int
     eop: EopEstimate
     images_left_window: int = 0  # Seq-R: images that left the window before this update
+    #: Data snooping: observations removed in this update, (image id, point id, w).
+    rejected: tuple[tuple[str, str, float], ...] = ()
+    #: Data snooping: GPS/INS groups ("position", "attitude") down-weighted in this update.
+    nav_downweighted: tuple[str, ...] = ()
