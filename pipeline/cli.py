@@ -230,7 +230,8 @@ def run(
 @_guarded
 def bench(
     config: Annotated[Path, typer.Argument(
-        help="Simulation config (configs/*_sim.yaml), or an image flight folder.")],
+        help="Simulation config (configs/*_sim.yaml), an image flight folder, or 'long' "
+             "(memory and time along a 10,000-image strip).")],
     out: Annotated[Path, typer.Option("--out", help="Benchmark output folder.")] = Path(
         "out/bench"),
     seed: Annotated[list[int] | None, typer.Option(
@@ -242,6 +243,9 @@ def bench(
     image flight folder, Seq-R (tracking) with Sim and Seq-F on the same tie points."""
     from pipeline.bench import run_bench
 
+    if str(config) == "long":
+        _long_bench(out)
+        return
     if config.is_dir():
         _flight_bench(config, out)
         return
@@ -261,6 +265,21 @@ def bench(
                       "PASS" if c.passed else "FAIL")
     _console().print(table)
     _console().print(f"benchmark written to {out}")
+
+
+def _long_bench(out: Path) -> None:
+    from pipeline.bench_long import run_long_bench
+
+    b = run_long_bench(out)
+    rows = []
+    for v in b.variants:
+        first, last = v.samples[0], v.samples[-1]
+        rows.append((v.name, f"RSS {first.rss_mb:.0f} -> {last.rss_mb:.0f} MB "
+                             f"({v.rss_growth_kb_per_image:.1f} KB/image), update ms "
+                             f"{first.median_update_ms:.2f} -> {last.median_update_ms:.2f}, "
+                             f"{v.wall_s:.0f} s"))
+    rows.append(("written", str(out)))
+    _console().print(_table(f"seqat bench long ({b.images} images)", rows))
 
 
 def _flight_bench(flight: Path, out: Path) -> None:

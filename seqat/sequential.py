@@ -40,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -108,6 +109,10 @@ class SequentialOptions:
     # Seq-R: a departed GP seen again, or a departed image holding a pending ray of a point
     # being born, re-enters the window if it left at most this many images ago (0: never).
     reopen_max_age: int = 1000
+    # Seq-R: departed parameters older than this many images are final: smoothed once more,
+    # then moved to a compact store or handed to the caller's sink, their records dropped.
+    # Memory stays flat with flight length. None: keep everything (exact RTS smoothing).
+    smoothing_lag: int | None = None
     # Baarda's data snooping of each update's rows (w-test, critical value; 3.29 is
     # alpha0 = 0.001 two-sided); None: off (the paper). docs/algorithm.md, "Blunders".
     snooping_critical: float | None = None
@@ -139,6 +144,9 @@ class SequentialOptions:
         if self.snooping_critical is not None and self.min_rays < 3:
             raise ConfigError(f"min_rays: data snooping (snooping_critical) needs >= 3 so that "
                               f"a blunder in a new point is detectable, got {self.min_rays}")
+        if self.smoothing_lag is not None and self.smoothing_lag < 10:
+            raise ConfigError(f"smoothing_lag: expected >= 10 images or null, "
+                              f"got {self.smoothing_lag}")
         if self.reopen_max_age < 0:
             raise ConfigError(f"reopen_max_age: expected >= 0, got {self.reopen_max_age}")
         if self.relinearise_iterations < 1:
@@ -175,6 +183,7 @@ class _Departure:
     x_staying: FloatArray
     gain: FloatArray  # (|F|, |W|)
     conditional: FloatArray  # (|F|, |F|) Q_F|W = L_FF^-1
+    at: int  # index of the image before which F left
 
 
 @dataclass(eq=False)
@@ -224,6 +233,10 @@ class SequentialAT:
     options : SequentialOptions
     record : bool
         Keep every image's linearised rows (:attr:`recorded`) to verify against batch.
+    sink : callable, optional
+        With ``options.smoothing_lag``: receives each parameter once it is final (world
+        frame), which is then forgotten (:meth:`solution` returns the others only). Without a
+        sink final parameters stay in a compact store.
     """
 
     def __init__(
@@ -232,6 +245,7 @@ class SequentialAT:
         options: SequentialOptions = SequentialOptions(),
         *,
         record: bool = False,
+        sink: Callable[[EopEstimate | PointEstimate], None] | None = None,
     ) -> None:
         self.camera = camera
         self.options = options
@@ -255,7 +269,15 @@ class SequentialAT:
         self._pending: dict[int, list[tuple[int, FloatArray, float]]] = {}
         self._frozen_eop: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._frozen_gp: dict[int, tuple[FloatArray, FloatArray]] = {}
-        self._departures: list[_Departure] = []
+        self._departures: list[_Departure | None] = []  # None: finalised (smoothing_lag)
+        self._first_record = 0  # records before this one are finalised
+        self._last_finalised = 0
+        # Final parameters (smoothing_lag): local value and sigma (and GP observations).
+        self._final_eop: dict[int, tuple[FloatArray, FloatArray]] = {}
+        self._final_gp: dict[int, tuple[FloatArray, FloatArray, int]] = {}
+        self._sunk: set[int] = set()  # GPs handed to the sink (not re-opened, not re-born)
+        self._sink = sink
+        self._n_points = 0
         # Re-opening (docs/algorithm.md): where and when each departed key left, its cofactor
         # block then, and the departed images whose pending rays are kept (oldest first).
         self._departed: dict[Key, tuple[int, int, int]] = {}  # key -> (image, record, offset)
@@ -327,9 +349,14 @@ class SequentialAT:
             if ("e", i) in w.offset:
                 idx = w.index(("e", i))
                 val, sig = w.x[idx].copy(), sd[idx]
-            else:
+            elif i in self._frozen_eop:
                 val, sig = self._frozen_eop[i]
                 val = final.get(("e", i), val).copy()
+            elif i in self._final_eop:
+                val, sig = self._final_eop[i]
+                val = val.copy()
+            else:
+                continue  # handed to the sink
             val[:3] += origin
             val[3:] = wrap_angle(val[3:])
             eops.append(EopEstimate(image_id=iid, eop=val, sigma=sig))
@@ -337,14 +364,15 @@ class SequentialAT:
         for p in self._gp_order:
             if ("p", p) in w.offset:
                 idx = w.index(("p", p))
-                xyz, sig = w.x[idx] + origin, sd[idx]
-            else:
+                xyz, sig, nobs = w.x[idx] + origin, sd[idx], self._gp_nobs[p]
+            elif p in self._frozen_gp:
                 xyz, sig = self._frozen_gp[p]
-                xyz = final.get(("p", p), xyz) + origin
+                xyz, nobs = final.get(("p", p), xyz) + origin, self._gp_nobs[p]
+            else:
+                xyz, sig, nobs = self._final_gp[p]
+                xyz = xyz + origin
             pts.append(
-                PointEstimate(
-                    point_id=self._point_ids[p], xyz_m=xyz, sigma_m=sig, n_obs=self._gp_nobs[p]
-                )
+                PointEstimate(point_id=self._point_ids[p], xyz_m=xyz, sigma_m=sig, n_obs=nobs)
             )
         return Solution(
             eops=tuple(eops), points=tuple(pts), sigma0=self.sigma0, redundancy=self._redundancy
@@ -385,7 +413,9 @@ class SequentialAT:
         """RTS backward pass over the departures, newest first: O(sum |F| |W|)."""
         w = self._w
         value: dict[Key, FloatArray] = {k: w.x[w.index(k)] for k in w.keys}
-        for dep in reversed(self._departures):
+        for dep in reversed(self._departures[self._first_record:]):
+            if dep is None:
+                continue
             x_w = np.concatenate([value[k] for k in dep.staying])
             x_f = dep.x_leaving + dep.gain @ (x_w - dep.x_staying)
             off = 0
@@ -430,6 +460,7 @@ class SequentialAT:
         self._window_images.extend(range(n))
         selected = set(int(j) for j in st.selected)
         self._gp_order = [int(j) for j in st.selected]
+        self._n_points = len(self._gp_order)
         for i in range(n):
             self._img_points[i] = []
         for i, j, uv, s in zip(st.obs_image, st.obs_point, st.obs_uv, st.obs_sigma_px, strict=True):
@@ -476,7 +507,7 @@ class SequentialAT:
         scale = sigma_scale(self.sigma0, self._redundancy)
         sd = np.sqrt(np.diagonal(w.Q)) * scale
         now = len(self._image_ids) - 1
-        keep_rays = self.options.reopen_max_age > 0
+        keep_rays = self._reopen_age > 0
         leaving: set[Key] = set()
         changed: set[int] = {p for p in self._orphans if p in self._gp_count}
         self._orphans.clear()
@@ -538,6 +569,7 @@ class SequentialAT:
                     x_staying=w.x[keep],
                     gain=gain,
                     conditional=0.5 * (cond + cond.T),
+                    at=now,
                 )
             )
         w.Q = w.Q[np.ix_(keep, keep)]
@@ -608,8 +640,8 @@ class SequentialAT:
             if ("p", p) in w.offset or (p in self._frozen_gp
                                         and self._reopenable(("p", p), i)):
                 seen.append((p, uv))
-            elif p in self._frozen_gp:
-                skipped += 1  # left the window too long ago (reopen_max_age)
+            elif p in self._frozen_gp or p in self._final_gp or p in self._sunk:
+                skipped += 1  # left the window too long ago (reopen_max_age, smoothing_lag)
             else:
                 lst = self._pending.setdefault(p, [])
                 lst.append((i, uv, frame.sigma_px))
@@ -736,11 +768,14 @@ class SequentialAT:
             obs = self._pending.pop(p)
             self._gp_count[p] = self._gp_nobs[p] = len(obs)
             self._gp_order.append(p)
+            self._n_points += 1
             for j, _, _ in obs:
                 if ("e", j) in reopened:
                     self._img_points[j].append(p)
         if opts.relinearise_px is not None:
             self._relinearise_if_needed()
+        if opts.smoothing_lag is not None:
+            self._finalise_old(i)
         ms = (time.perf_counter() - t0) * 1e3
         update = self._report(
             frame, i, ms, rows, n2, len(born), len(pts) - skipped - len(rejected_new), skipped,
@@ -755,11 +790,67 @@ class SequentialAT:
 
     def _reopenable(self, key: Key, i: int) -> bool:
         left = self._departed.get(key)
-        return left is not None and i - left[0] <= self.options.reopen_max_age
+        return left is not None and i - left[0] <= self._reopen_age
+
+    @property
+    def _reopen_age(self) -> int:
+        lag = self.options.smoothing_lag
+        age = self.options.reopen_max_age
+        return age if lag is None else min(age, lag)
+
+    def _finalise_old(self, i: int) -> None:
+        """``smoothing_lag``: every ``lag / 2`` images, parameters that left more than ``lag``
+        images ago take their smoothed value (the RTS pass over the records kept) and are
+        stored compactly or handed to the sink; their departure records are dropped."""
+        lag = self.options.smoothing_lag
+        assert lag is not None
+        if i - self._last_finalised < max(1, lag // 2):
+            return
+        self._last_finalised = i
+        cutoff = i - lag
+        old = [k for k, (t, _, _) in self._departed.items() if t < cutoff]
+        if not old:
+            return
+        value = self._smoothed_departed() if self._w.L is not None else {}
+        origin = self._origin
+        assert origin is not None
+        for k in old:
+            del self._departed[k]
+            self._frozen_cof.pop(k, None)
+            if k[0] == "e":
+                frozen, sig = self._frozen_eop.pop(k[1])
+                val = value.get(k, frozen).copy()
+                if self._sink is None:
+                    self._final_eop[k[1]] = (val, sig)
+                else:
+                    val[:3] += origin
+                    val[3:] = wrap_angle(val[3:])
+                    self._sink(EopEstimate(image_id=self._image_ids[k[1]], eop=val, sigma=sig))
+            else:
+                frozen, sig = self._frozen_gp.pop(k[1])
+                val = value.get(k, frozen).copy()
+                nobs = self._gp_nobs.pop(k[1])
+                if self._sink is None:
+                    self._final_gp[k[1]] = (val, sig, nobs)
+                else:
+                    self._sunk.add(k[1])
+                    self._sink(PointEstimate(point_id=self._point_ids[k[1]], xyz_m=val + origin,
+                                             sigma_m=sig, n_obs=nobs))
+        r = self._first_record
+        while r < len(self._departures):
+            dep = self._departures[r]
+            if dep is not None and dep.at >= cutoff:
+                break
+            self._departures[r] = None
+            r += 1
+        self._first_record = r
+        if self._sink is not None:
+            gone = {k[1] for k in old if k[0] == "p"}
+            self._gp_order = [p for p in self._gp_order if p not in gone]
 
     def _forget_old_rays(self, i: int) -> None:
         """Drop the kept pending rays of images that left more than ``reopen_max_age`` ago."""
-        limit = i - self.options.reopen_max_age
+        limit = i - self._reopen_age
         rays = self._departed_rays
         while rays:
             j, points = rays[0]
@@ -936,6 +1027,7 @@ class SequentialAT:
                 x_staying=np.concatenate([dep.x_staying, dep.x_leaving[r_idx]]),
                 gain=np.hstack([dep.gain[m_idx] - K @ dep.gain[r_idx], K]),
                 conditional=0.5 * (cond + cond.T),
+                at=dep.at,
             )
             off = 0
             for k in rest:
@@ -1163,7 +1255,7 @@ class SequentialAT:
             sigma0=self.sigma0,
             redundancy=self._redundancy,
             rms_gp_sigma_m=rms,  # type: ignore[arg-type]
-            n_points_total=len(self._gp_order),
+            n_points_total=self._n_points,
             new_points=n_born,
             observations_used=used,
             observations_skipped=skipped,
