@@ -106,6 +106,10 @@ class SequentialOptions:
     smoothing: bool = True  # Seq-R: keep RTS gains so solution() can smooth departed parameters
     relinearise_px: float | None = 1.0  # re-linearise the window when its rows are this far off
     relinearise_iterations: int = 5  # Gauss-Newton iterations of a window re-linearisation
+    # Drift check (seed 003 §3.2): every this many images the window is re-adjusted from its
+    # observations whatever its linearisation error, and the change is reported (drift_m,
+    # drift_deg of ImageUpdate). None: only when the error exceeds relinearise_px.
+    drift_check_every: int | None = None
     # Seq-R: a departed GP seen again, or a departed image holding a pending ray of a point
     # being born, re-enters the window if it left at most this many images ago (0: never).
     reopen_max_age: int = 1000
@@ -149,6 +153,10 @@ class SequentialOptions:
                               f"got {self.smoothing_lag}")
         if self.reopen_max_age < 0:
             raise ConfigError(f"reopen_max_age: expected >= 0, got {self.reopen_max_age}")
+        if self.drift_check_every is not None and (self.drift_check_every < 1
+                                                   or self.relinearise_px is None):
+            raise ConfigError("drift_check_every: expected >= 1 (and relinearise_px set), "
+                              f"got {self.drift_check_every}")
         if self.relinearise_iterations < 1:
             raise ConfigError(
                 f"relinearise_iterations: expected >= 1, got {self.relinearise_iterations}"
@@ -294,6 +302,7 @@ class SequentialAT:
         self._redundancy = 0
         self._factors = _Factors()
         self.relinearisations = 0  # window re-linearisations so far
+        self._drift_px = self._drift_m = self._drift_deg = float("nan")
         self.recorded: list[RecordedRows] | None = [] if record else None
         self.initial_state: tuple[list[Key], FloatArray, FloatArray] | None = None
 
@@ -772,8 +781,10 @@ class SequentialAT:
             for j, _, _ in obs:
                 if ("e", j) in reopened:
                     self._img_points[j].append(p)
+        self._drift_m = self._drift_deg = float("nan")
         if opts.relinearise_px is not None:
-            self._relinearise_if_needed()
+            check = opts.drift_check_every is not None and i % opts.drift_check_every == 0
+            self._relinearise_if_needed(force=check)
         if opts.smoothing_lag is not None:
             self._finalise_old(i)
         ms = (time.perf_counter() - t0) * 1e3
@@ -783,6 +794,9 @@ class SequentialAT:
         )
         return dataclasses.replace(
             update,
+            drift_px=self._drift_px,
+            drift_m=self._drift_m,
+            drift_deg=self._drift_deg,
             rejected=tuple((self._image_ids[j], self._point_ids[p], round(wq, 2))
                            for j, p, wq in rejected),
             nav_downweighted=tuple(downweighted),
@@ -1040,7 +1054,8 @@ class SequentialAT:
             return self._w.x[self._w.index(key)]
         return (self._frozen_eop if key[0] == "e" else self._frozen_gp)[key[1]][0]
 
-    def _relinearise_if_needed(self, threshold_px: float | None = None) -> None:
+    def _relinearise_if_needed(self, threshold_px: float | None = None,
+                               force: bool = False) -> None:
         """Re-linearise the window when its rows no longer describe the image points.
 
         Old rows were linearised where the estimate stood when they arrived; when later data
@@ -1061,7 +1076,8 @@ class SequentialAT:
         e_idx, p_idx = f.columns(w)
         x = w.x
         limit = opts.relinearise_px if threshold_px is None else threshold_px
-        if f.linearisation_error(x[e_idx], x[p_idx], self.camera) <= limit:
+        self._drift_px = f.linearisation_error(x[e_idx], x[p_idx], self.camera)
+        if self._drift_px <= limit and not force:
             return
         self.relinearisations += 1
         L = w.L if w.L is not None else np.linalg.inv(w.Q)
@@ -1087,6 +1103,11 @@ class SequentialAT:
         prior_new = 0.5 * xk @ H_p @ xk - eta_p @ xk
         ssr_new_factors = float(np.sum(f.w[:, None] * r**2))
         self._ssr += ssr_new_factors - ssr_old_factors + 2.0 * (prior_new - prior_old)
+        dx = xk - x
+        eop_keys = [k for k in w.keys if k[0] == "e"]
+        ie = w.indices(eop_keys).reshape(-1, EOP_SIZE)
+        self._drift_m = float(np.max(np.abs(dx[ie[:, :3]]), initial=0.0))
+        self._drift_deg = float(np.degrees(np.max(np.abs(dx[ie[:, 3:]]), initial=0.0)))
         w.x = xk
         w.L = H if w.L is not None else None
         Q = np.linalg.inv(H)

@@ -170,6 +170,13 @@ class ImageUpdate:
     iterations: int
     eop: EopEstimate
     images_left_window: int = 0  # Seq-R: images that left the window before this update
+    #: Largest gap (px) between the window's linearised rows and the collinearity equations
+    #: after this update (nan: not checked); above relinearise_px the window is re-adjusted.
+    drift_px: float = float("nan")
+    #: When the window was re-adjusted after this update (drift check or re-linearisation):
+    #: the largest change of a window camera's position (m) and attitude (deg); else nan.
+    drift_m: float = float("nan")
+    drift_deg: float = float("nan")
     #: Data snooping: observations removed in this update, (image id, point id, w).
     rejected: tuple[tuple[str, str, float], ...] = ()
     #: Data snooping: GPS/INS groups ("position", "attitude") down-weighted in this update.
