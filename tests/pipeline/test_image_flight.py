@@ -207,7 +207,8 @@ def test_flight_bench_compares_methods_on_the_same_tie_points(tmp_path: Path) ->
     assert len(texts) == 1
     assert sum(b.track_length_histogram.values()) == b.tracks > 100
     assert b.track_length_median >= 2
-    assert 0.5 < b.sigma0["sim"] < 2.0 and b.rms_residual_px["sim"] < 2.0
+    # sigma_image_px is 1 px; the matches fit to ~0.5 px (0.48-0.86 over FLANN seeds)
+    assert 0.4 < b.sigma0["sim"] < 2.0 and b.rms_residual_px["sim"] < 2.0
     assert b.latency_ms.median >= b.at_ms.median > 0
 
 
