@@ -16,13 +16,16 @@ import os
 import traceback
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, ParamSpec, TypeVar
+from typing import TYPE_CHECKING, Annotated, ParamSpec, TypeVar
 
 import typer
 from rich.console import Console
 from rich.table import Table
 
 from seqat.errors import SeqatError
+
+if TYPE_CHECKING:
+    from pipeline.runner import RunSummary
 
 #: Exit code for bad input or configuration (also click's usage errors).
 EXIT_BAD_INPUT = 2
@@ -124,6 +127,50 @@ def _table(title: str, rows: list[tuple[str, str]]) -> Table:
     return table
 
 
+def _stats_ms(t: object) -> str:
+    return (f"{t.median_ms:.1f} / {t.p95_ms:.1f} / {t.max_ms:.1f}")  # type: ignore[attr-defined]
+
+
+def _run_rows(summary: RunSummary, final_only: bool = False) -> list[tuple[str, str]]:
+    """The table ``seqat run`` and ``seqat watch`` print."""
+    t = summary.update_ms
+    rows = [
+        ("method", summary.method.value + (" (final only)" if final_only else "")),
+        ("images / points / observations",
+         f"{summary.n_images} / {summary.n_points} / {summary.n_observations}"),
+        ("sigma0 (redundancy)", f"{_fmt(summary.sigma0, '.4f')} ({summary.redundancy})"),
+        ("update ms median / p95 / max", _stats_ms(t)),
+    ]
+    ts = summary.sequential_update_ms
+    if math.isfinite(ts.median_ms):
+        rows.append(("  sequential stage only", _stats_ms(ts)))
+    if summary.latency_ms is not None:
+        rows.append(("latency ms median / p95 / max", _stats_ms(summary.latency_ms)))
+    b = summary.budget
+    if b is not None:
+        rows.append(("budget / over / threshold changes",
+                     f"{b.budget_ms:g} ms / {b.images_over_budget} images / "
+                     f"{len(b.events)} (final threshold {b.final_threshold:g})"))
+    if summary.replayed:
+        rows.append(("replayed from the journal", f"{summary.replayed} images"))
+    if summary.skipped:
+        rows.append(("skipped", f"{len(summary.skipped)} images (run.json skipped)"))
+    rows += [
+        ("total update / wall", f"{t.total_ms / 1e3:.2f} s / {summary.wall_s:.2f} s"),
+    ]
+    acc = summary.accuracy
+    if acc is not None:
+        rows += [
+            ("EOP position RMSE x y z (m)", _fmt(acc.pos_rmse_m, METRE_FORMAT)),
+            ("  GPS/INS input (m)", _fmt(acc.nav_pos_rmse_m, METRE_FORMAT)),
+            ("EOP attitude RMSE ω φ κ (deg)", _fmt(acc.att_rmse_deg, DEGREE_FORMAT)),
+            ("  GPS/INS input (deg)", _fmt(acc.nav_att_rmse_deg, DEGREE_FORMAT)),
+            ("ground point RMSE x y z (m)", _fmt(acc.gp_rmse_m, METRE_FORMAT)),
+        ]
+    rows.append(("results", str(summary.out_dir)))
+    return rows
+
+
 @app.command()
 @_guarded
 def simulate(
@@ -171,6 +218,12 @@ def run(
     report: Annotated[bool, typer.Option(
         "--report", help="Then write OUT/report.html and report.json (as seqat report).")]
     = False,
+    resume: Annotated[bool, typer.Option(
+        "--resume", help="Continue an interrupted run from OUT/journal/ (same results as an "
+        "uninterrupted run).")] = False,
+    budget_ms: Annotated[float | None, typer.Option(
+        "--budget-ms", help="seq-r: processing budget per image (tracking + update), ms; "
+        "over it the window threshold tightens.")] = None,
 ) -> None:
     """Adjust a flight folder and write eop.csv, points.csv, run.json, nav.csv and
     observations.csv."""
@@ -185,34 +238,8 @@ def run(
     summary = run_flight(flight, out, method=chosen, final_only=final_only,
                          options_path=options, threshold=threshold,
                          initial_images=initial_images, progress=progress,
-                         observations=observations)
-    t = summary.update_ms
-    rows = [
-        ("method", summary.method.value + (" (final only)" if final_only else "")),
-        ("images / points / observations",
-         f"{summary.n_images} / {summary.n_points} / {summary.n_observations}"),
-        ("sigma0 (redundancy)", f"{_fmt(summary.sigma0, '.4f')} ({summary.redundancy})"),
-        ("update ms median / p95 / max", f"{t.median_ms:.1f} / {t.p95_ms:.1f} / "
-                                         f"{t.max_ms:.1f}"),
-    ]
-    ts = summary.sequential_update_ms
-    if math.isfinite(ts.median_ms):
-        rows.append(("  sequential stage only", f"{ts.median_ms:.1f} / {ts.p95_ms:.1f} / "
-                                                f"{ts.max_ms:.1f}"))
-    rows += [
-        ("total update / wall", f"{t.total_ms / 1e3:.2f} s / {summary.wall_s:.2f} s"),
-    ]
-    acc = summary.accuracy
-    if acc is not None:
-        rows += [
-            ("EOP position RMSE x y z (m)", _fmt(acc.pos_rmse_m, METRE_FORMAT)),
-            ("  GPS/INS input (m)", _fmt(acc.nav_pos_rmse_m, METRE_FORMAT)),
-            ("EOP attitude RMSE ω φ κ (deg)", _fmt(acc.att_rmse_deg, DEGREE_FORMAT)),
-            ("  GPS/INS input (deg)", _fmt(acc.nav_att_rmse_deg, DEGREE_FORMAT)),
-            ("ground point RMSE x y z (m)", _fmt(acc.gp_rmse_m, METRE_FORMAT)),
-        ]
-    rows.append(("results", str(summary.out_dir)))
-    _console().print(_table(f"seqat run {summary.flight_dir}", rows))
+                         observations=observations, resume=resume, budget_ms=budget_ms)
+    _console().print(_table(f"seqat run {summary.flight_dir}", _run_rows(summary, final_only)))
     if ortho:
         from pipeline.ortho_run import orthorectify_run
 
