@@ -25,7 +25,7 @@ from rich.table import Table
 from seqat.errors import SeqatError
 
 if TYPE_CHECKING:
-    from pipeline.runner import RunSummary
+    from pipeline.runner import Method, RunSummary
 
 #: Exit code for bad input or configuration (also click's usage errors).
 EXIT_BAD_INPUT = 2
@@ -227,15 +227,9 @@ def run(
 ) -> None:
     """Adjust a flight folder and write eop.csv, points.csv, run.json, nav.csv and
     observations.csv."""
-    from pipeline.runner import Method, run_flight
-    from seqat.errors import ConfigError
+    from pipeline.runner import run_flight
 
-    try:
-        chosen = Method(method)
-    except ValueError as err:
-        raise ConfigError(f"--method: expected one of "
-                          f"{', '.join(m.value for m in Method)}, got {method!r}") from err
-    summary = run_flight(flight, out, method=chosen, final_only=final_only,
+    summary = run_flight(flight, out, method=_method(method), final_only=final_only,
                          options_path=options, threshold=threshold,
                          initial_images=initial_images, progress=progress,
                          observations=observations, resume=resume, budget_ms=budget_ms)
@@ -251,6 +245,77 @@ def run(
 
         r = make_report(summary.out_dir)
         _console().print("report: " + ", ".join(str(f) for f in r.files))
+
+
+def _method(method: str) -> Method:
+    from pipeline.runner import Method
+    from seqat.errors import ConfigError
+
+    try:
+        return Method(method)
+    except ValueError as err:
+        raise ConfigError(f"--method: expected one of "
+                          f"{', '.join(m.value for m in Method)}, got {method!r}") from err
+
+
+@app.command()
+@_guarded
+def watch(
+    flight: Annotated[Path, typer.Argument(help="Flight folder being written (flight.yaml "
+                                           "present).")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")],
+    method: Annotated[str, typer.Option("--method", help="seq-r, seq-f or sim.")] = "seq-r",
+    threshold: Annotated[float | None, typer.Option(
+        "--threshold", help="seq-r: EOP correlation threshold in [0, 1].")] = None,
+    initial_images: Annotated[int | None, typer.Option(
+        "--initial-images", help="Images of the initial simultaneous stage.")] = None,
+    options: Annotated[Path | None, typer.Option(
+        "--options", help="Estimator options YAML (sections sequential:, sim:).")] = None,
+    budget_ms: Annotated[float | None, typer.Option(
+        "--budget-ms", help="seq-r: processing budget per image (tracking + update), ms; "
+        "over it the window threshold tightens.")] = None,
+    idle_timeout_s: Annotated[float | None, typer.Option(
+        "--idle-timeout-s", "--idle-timeout", help="Stop after this many seconds without new "
+        "input (default: until Ctrl-C).")] = None,
+    wait_timeout_s: Annotated[float, typer.Option(
+        "--wait-timeout-s", help="Seconds an image waits for its nav row (or a nav row for "
+        "its image) before it is skipped.")] = 10.0,
+    poll_s: Annotated[float, typer.Option("--poll-s", help="Seconds between polls.")] = 0.05,
+    resume: Annotated[bool, typer.Option(
+        "--resume", help="Continue from OUT/journal/ (after a crash or an earlier stop).")]
+    = False,
+) -> None:
+    """Georeference images as they appear in a growing flight folder; one line per image.
+    Ctrl-C or --idle-timeout-s stops and publishes the results (as seqat run)."""
+    from pipeline.watch import WatchOptions, watch_flight
+
+    summary = watch_flight(flight, out, method=_method(method), options_path=options,
+                           threshold=threshold, initial_images=initial_images,
+                           budget_ms=budget_ms, resume=resume,
+                           watch=WatchOptions(idle_timeout_s=idle_timeout_s,
+                                              wait_timeout_s=wait_timeout_s, poll_s=poll_s))
+    rows = [("stopped", summary.stopped), *_run_rows(summary)]
+    _console().print(_table(f"seqat watch {summary.flight_dir}", rows))
+
+
+@app.command()
+@_guarded
+def feed(
+    src: Annotated[Path, typer.Argument(help="Flight folder to replay.")],
+    dst: Annotated[Path, typer.Argument(help="Folder to write (absent or empty).")],
+    rate: Annotated[float, typer.Option("--rate", help="Images per second.")] = 2.0,
+    limit: Annotated[int | None, typer.Option("--limit", help="Only the first N images.")]
+    = None,
+    delay_s: Annotated[float, typer.Option(
+        "--delay-s", help="Seconds between writing flight.yaml and the first image.")] = 0.0,
+) -> None:
+    """Copy a flight into a folder image by image at the camera's rate (for seqat watch),
+    with the partial-file convention (name.jpg.part, then renamed)."""
+    from pipeline.feed import feed_flight
+
+    s = feed_flight(src, dst, rate_hz=rate, limit=limit, delay_s=delay_s)
+    _console().print(f"fed {s.images} images in {s.duration_s:.1f} s (at most "
+                     f"{s.late_s * 1e3:.0f} ms late)")
 
 
 @app.command()

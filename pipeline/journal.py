@@ -13,8 +13,9 @@ tracker is restored from the last state, and the run goes on with the next image
     SQJ1 <payload bytes> <crc32 of the payload, 8 hex digits> <payload: one JSON object>\\n
 
 The first record is the header (``kind: header``: version and the fingerprint of the flight
-and options); then one ``kind: image`` record per image adjusted and one ``kind: skip``
-record per image left out (watch mode). A torn or corrupt *last* record (a kill during the
+and options); then one ``kind: image`` record per image adjusted and, in watch mode, one
+``kind: skip`` record per image left out and one ``kind: setup`` record (the working CRS and
+the camera, fixed by the first image). A torn or corrupt *last* record (a kill during the
 write) is dropped and cut off before appending; a bad record followed by good ones means the
 file was damaged otherwise, and is an error. Floats are JSON numbers written with Python's
 shortest round-trip representation, so a replayed frame is bit-identical to the original.
@@ -32,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.store import fsync_dir, to_jsonable
+from pipeline.store import SkippedImage, fsync_dir, to_jsonable
 from pipeline.tracking import HeldImage, TrackerState
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import FloatArray, Frame
@@ -93,14 +94,6 @@ class ImageRecord:
     tracker_state: bool = False
 
 
-@dataclass(frozen=True, kw_only=True)
-class SkipRecord:
-    """An image left out of a watched flight, and why."""
-
-    image: str
-    reason: str
-
-
 @dataclass(frozen=True, kw_only=True, eq=False)
 class JournalContents:
     """What :func:`read_journal` found.
@@ -110,18 +103,21 @@ class JournalContents:
     fingerprint : Mapping
         The header's fingerprint of flight and options.
     images : tuple[ImageRecord, ...]
-    skips : tuple[SkipRecord, ...]
+    skips : tuple[SkippedImage, ...]
     valid_bytes : int
         Length of the good prefix of ``journal.log``.
     dropped : str or None
         Why the last record was dropped (torn or corrupt), or None.
+    setup : Mapping or None
+        Watch mode: the working CRS and camera, fixed by the first image (``kind: setup``).
     """
 
     fingerprint: Mapping[str, object]
     images: tuple[ImageRecord, ...]
-    skips: tuple[SkipRecord, ...]
+    skips: tuple[SkippedImage, ...]
     valid_bytes: int
     dropped: str | None = None
+    setup: Mapping[str, object] | None = None
 
 
 def _floats(values: np.ndarray) -> list[object]:
@@ -229,15 +225,18 @@ def read_journal(out_dir: Path | str) -> JournalContents | None:
         raise InputDataError(f"{path}: journal version {header.get('version')!r}, this seqat "
                              f"writes {JOURNAL_VERSION}; rerun without --resume")
     images: list[ImageRecord] = []
-    skips: list[SkipRecord] = []
+    skips: list[SkippedImage] = []
+    setup: dict[str, object] | None = None
     for number, doc in enumerate(docs[1:], start=2):
         try:
-            if doc.get("kind") == "image":
+            if doc.get("kind") == "setup":
+                setup = doc
+            elif doc.get("kind") == "image":
                 images.append(_image_record(doc))
                 if images[-1].seq != len(images) - 1:
                     raise ValueError(f"image number {images[-1].seq}, expected {len(images) - 1}")
             elif doc.get("kind") == "skip":
-                skips.append(SkipRecord(image=str(doc["image"]), reason=str(doc["reason"])))
+                skips.append(SkippedImage(image=str(doc["image"]), reason=str(doc["reason"])))
             else:
                 raise ValueError(f"unknown kind {doc.get('kind')!r}")
         except (KeyError, TypeError, ValueError, InputDataError) as err:
@@ -246,7 +245,7 @@ def read_journal(out_dir: Path | str) -> JournalContents | None:
     if not isinstance(fingerprint, dict):
         raise InputDataError(f"{path}: header without fingerprint")
     return JournalContents(fingerprint=fingerprint, images=tuple(images), skips=tuple(skips),
-                           valid_bytes=pos, dropped=dropped)
+                           valid_bytes=pos, dropped=dropped, setup=setup)
 
 
 def check_fingerprint(contents: JournalContents, fingerprint: Mapping[str, object],
@@ -400,8 +399,12 @@ class Journal:
                     state_path(self.out_dir, seq).unlink()
                 self._states.discard(seq)
 
-    def append_skip(self, skip: SkipRecord) -> None:
+    def append_skip(self, skip: SkippedImage) -> None:
         self._append({"kind": "skip", "image": skip.image, "reason": skip.reason})
+
+    def append_setup(self, setup: Mapping[str, object]) -> None:
+        """Watch mode: the CRS and camera fixed by the first image (``kind: setup``)."""
+        self._append({**setup, "kind": "setup"})
 
     def _append(self, payload: Mapping[str, object]) -> None:
         self._handle.write(encode_record(payload))
