@@ -75,6 +75,7 @@ def _append(path: Path, lines: list[str]) -> None:
 
 def feed_flight(src_dir: Path | str, dst_dir: Path | str, *, rate_hz: float = DEFAULT_RATE_HZ,
                 limit: int | None = None, delay_s: float = 0.0,
+                on_start: Callable[[], None] | None = None,
                 on_image: Callable[[str], None] | None = None) -> FeedSummary:
     """Copy a flight into ``dst_dir`` image by image at ``rate_hz`` (module docstring).
 
@@ -90,6 +91,8 @@ def feed_flight(src_dir: Path | str, dst_dir: Path | str, *, rate_hz: float = DE
         Feed only the first ``limit`` images.
     delay_s : float
         Seconds between writing ``flight.yaml`` and the first image (time to start a watch).
+    on_start : callable or None
+        Called once ``flight.yaml`` is written (before the first image).
     on_image : callable or None
         Called with each image id once it is written.
 
@@ -135,6 +138,8 @@ def feed_flight(src_dir: Path | str, dst_dir: Path | str, *, rate_hz: float = DE
         if (src / name).is_file():
             shutil.copy2(src / name, dst / name)
     (dst / FLIGHT_YAML).write_text(yaml_text, encoding="utf-8")
+    if on_start is not None:
+        on_start()
 
     ids = flight.nav.image_ids[:limit]
     paths = flight.image_paths[:limit] if flight.kind == "images" else (None,) * len(ids)

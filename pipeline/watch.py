@@ -593,6 +593,8 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
                 if activity:
                     last_activity = now
                 for item in items:
+                    if stop.is_set():
+                        break  # not adjusted, not skipped: a resumed watch takes them
                     if isinstance(item, SkippedImage):
                         journal.append_skip(item)
                         skipped.append(item)
@@ -609,8 +611,7 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
                     stopped = "idle"
                     break
                 stop.wait(watch.poll_s)
-        for item in grow.pending():
-            journal.append_skip(item)
+        for item in grow.pending():  # not journaled: a resumed watch waits for them again
             skipped.append(item)
             console.print(f"seqat: skipped: {item.reason}", highlight=False, markup=False)
         n = 0 if session is None else session.images
