@@ -193,20 +193,30 @@ def simulate(
     ]))
 
 
+# Options shared by `run` and `watch`.
+MethodOption = Annotated[str, typer.Option("--method", help="seq-r, seq-f or sim.")]
+ThresholdOption = Annotated[float | None, typer.Option(
+    "--threshold", help="seq-r: EOP correlation threshold in [0, 1].")]
+InitialImagesOption = Annotated[int | None, typer.Option(
+    "--initial-images", help="Images of the initial simultaneous stage.")]
+EstimatorOptionsFile = Annotated[Path | None, typer.Option(
+    "--options", help="Estimator options YAML (sections sequential:, sim:).")]
+BudgetOption = Annotated[float | None, typer.Option(
+    "--budget-ms", help="seq-r: processing budget per image (tracking + update), ms; over it "
+    "the window threshold tightens.")]
+
+
 @app.command()
 @_guarded
 def run(
     flight: Annotated[Path, typer.Argument(help="Flight folder.")],
     out: Annotated[Path, typer.Option("--out", help="Output folder.")],
-    method: Annotated[str, typer.Option("--method", help="seq-r, seq-f or sim.")] = "seq-r",
+    method: MethodOption = "seq-r",
     final_only: Annotated[bool, typer.Option(
         "--final-only", help="sim: adjust once after the last image.")] = False,
-    threshold: Annotated[float | None, typer.Option(
-        "--threshold", help="seq-r: EOP correlation threshold in [0, 1].")] = None,
-    initial_images: Annotated[int | None, typer.Option(
-        "--initial-images", help="Images of the initial simultaneous stage.")] = None,
-    options: Annotated[Path | None, typer.Option(
-        "--options", help="Estimator options YAML (sections sequential:, sim:).")] = None,
+    threshold: ThresholdOption = None,
+    initial_images: InitialImagesOption = None,
+    options: EstimatorOptionsFile = None,
     progress: Annotated[bool, typer.Option(
         "--progress/--no-progress", help="Progress bar on a terminal.")] = True,
     observations: Annotated[Path | None, typer.Option(
@@ -221,9 +231,7 @@ def run(
     resume: Annotated[bool, typer.Option(
         "--resume", help="Continue an interrupted run from OUT/journal/ (same results as an "
         "uninterrupted run).")] = False,
-    budget_ms: Annotated[float | None, typer.Option(
-        "--budget-ms", help="seq-r: processing budget per image (tracking + update), ms; "
-        "over it the window threshold tightens.")] = None,
+    budget_ms: BudgetOption = None,
 ) -> None:
     """Adjust a flight folder and write eop.csv, points.csv, run.json, nav.csv and
     observations.csv."""
@@ -264,16 +272,11 @@ def watch(
     flight: Annotated[Path, typer.Argument(help="Flight folder being written (flight.yaml "
                                            "present).")],
     out: Annotated[Path, typer.Option("--out", help="Output folder.")],
-    method: Annotated[str, typer.Option("--method", help="seq-r, seq-f or sim.")] = "seq-r",
-    threshold: Annotated[float | None, typer.Option(
-        "--threshold", help="seq-r: EOP correlation threshold in [0, 1].")] = None,
-    initial_images: Annotated[int | None, typer.Option(
-        "--initial-images", help="Images of the initial simultaneous stage.")] = None,
-    options: Annotated[Path | None, typer.Option(
-        "--options", help="Estimator options YAML (sections sequential:, sim:).")] = None,
-    budget_ms: Annotated[float | None, typer.Option(
-        "--budget-ms", help="seq-r: processing budget per image (tracking + update), ms; "
-        "over it the window threshold tightens.")] = None,
+    method: MethodOption = "seq-r",
+    threshold: ThresholdOption = None,
+    initial_images: InitialImagesOption = None,
+    options: EstimatorOptionsFile = None,
+    budget_ms: BudgetOption = None,
     idle_timeout_s: Annotated[float | None, typer.Option(
         "--idle-timeout-s", "--idle-timeout", help="Stop after this many seconds without new "
         "input (default: until Ctrl-C).")] = None,
