@@ -185,12 +185,13 @@ class RunSession:
             observations_skipped=update.observations_skipped)
         if self.journal is not None:
             t_journal = time.perf_counter()
+            state = self.source.tracker_state()
             record = ImageRecord(seq=len(self.updates), frame=frame, time_s=prepared.time_s,
                                  observed_px=prepared.observed_px, threshold=threshold,
                                  live=dataclasses.asdict(live), tracking=prepared.tracking,
                                  budget_event=None if event is None else dataclasses.asdict(event),
-                                 tracker_state=self.source.tracker_state() is not None)
-            self.journal.append_image(record, self.source.tracker_state())
+                                 tracker_state=state is not None)
+            self.journal.append_image(record, state)
             self.journal_ms.append((time.perf_counter() - t_journal) * 1e3)
         self._keep(update, live, prepared.tracking, prepared.time_s, prepared.observed_px, frame)
         if self.on_image is not None:
