@@ -189,7 +189,7 @@ def _decode_line(line: bytes) -> dict[str, object] | str:
 
 
 def read_journal(out_dir: Path | str) -> JournalContents | None:
-    """Read ``OUT/journal/journal.log``; None when there is no journal.
+    """Read ``OUT/journal/journal.log``; None when there is none (or only a torn header).
 
     Raises
     ------
@@ -218,7 +218,9 @@ def read_journal(out_dir: Path | str) -> JournalContents | None:
             break
         docs.append(doc)
         pos += len(line)
-    if not docs or docs[0].get("kind") != "header":
+    if not docs:
+        return None  # killed while the header was written: nothing to resume
+    if docs[0].get("kind") != "header":
         raise InputDataError(f"{path}: no valid header record; rerun without --resume")
     header = docs[0]
     if header.get("version") != JOURNAL_VERSION:

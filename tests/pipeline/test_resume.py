@@ -175,6 +175,14 @@ def test_a_bad_last_record_is_dropped(damage: str, strip_run: Path, tmp_path: Pa
     assert_same_results(strip_run, out)
 
 
+def test_a_torn_header_is_no_journal(strip_run: Path, tmp_path: Path) -> None:
+    out, lines = _journal_copy(strip_run, tmp_path)
+    (out / JOURNAL_DIR / JOURNAL_FILE).write_bytes(lines[0][:10])
+    assert read_journal(out) is None
+    assert run_flight(STRIP, out, progress=False, resume=True).replayed == 0
+    assert_same_results(strip_run, out)
+
+
 def test_a_bad_record_followed_by_good_ones_is_an_error(strip_run: Path, tmp_path: Path) -> None:
     out, lines = _journal_copy(strip_run, tmp_path)
     lines[5] = lines[5].replace(b'"kind":"image"', b'"kind":"imagf"')
