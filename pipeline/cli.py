@@ -16,13 +16,16 @@ import os
 import traceback
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, ParamSpec, TypeVar
+from typing import TYPE_CHECKING, Annotated, ParamSpec, TypeVar
 
 import typer
 from rich.console import Console
 from rich.table import Table
 
 from seqat.errors import SeqatError
+
+if TYPE_CHECKING:
+    from pipeline.runner import Method, RunSummary
 
 #: Exit code for bad input or configuration (also click's usage errors).
 EXIT_BAD_INPUT = 2
@@ -124,6 +127,50 @@ def _table(title: str, rows: list[tuple[str, str]]) -> Table:
     return table
 
 
+def _stats_ms(t: object) -> str:
+    return (f"{t.median_ms:.1f} / {t.p95_ms:.1f} / {t.max_ms:.1f}")  # type: ignore[attr-defined]
+
+
+def _run_rows(summary: RunSummary, final_only: bool = False) -> list[tuple[str, str]]:
+    """The table ``seqat run`` and ``seqat watch`` print."""
+    t = summary.update_ms
+    rows = [
+        ("method", summary.method.value + (" (final only)" if final_only else "")),
+        ("images / points / observations",
+         f"{summary.n_images} / {summary.n_points} / {summary.n_observations}"),
+        ("sigma0 (redundancy)", f"{_fmt(summary.sigma0, '.4f')} ({summary.redundancy})"),
+        ("update ms median / p95 / max", _stats_ms(t)),
+    ]
+    ts = summary.sequential_update_ms
+    if math.isfinite(ts.median_ms):
+        rows.append(("  sequential stage only", _stats_ms(ts)))
+    if summary.latency_ms is not None:
+        rows.append(("latency ms median / p95 / max", _stats_ms(summary.latency_ms)))
+    b = summary.budget
+    if b is not None:
+        rows.append(("budget / over / threshold changes",
+                     f"{b.budget_ms:g} ms / {b.images_over_budget} images / "
+                     f"{len(b.events)} (final threshold {b.final_threshold:g})"))
+    if summary.replayed:
+        rows.append(("replayed from the journal", f"{summary.replayed} images"))
+    if summary.skipped:
+        rows.append(("skipped", f"{len(summary.skipped)} images (run.json skipped)"))
+    rows += [
+        ("total update / wall", f"{t.total_ms / 1e3:.2f} s / {summary.wall_s:.2f} s"),
+    ]
+    acc = summary.accuracy
+    if acc is not None:
+        rows += [
+            ("EOP position RMSE x y z (m)", _fmt(acc.pos_rmse_m, METRE_FORMAT)),
+            ("  GPS/INS input (m)", _fmt(acc.nav_pos_rmse_m, METRE_FORMAT)),
+            ("EOP attitude RMSE ω φ κ (deg)", _fmt(acc.att_rmse_deg, DEGREE_FORMAT)),
+            ("  GPS/INS input (deg)", _fmt(acc.nav_att_rmse_deg, DEGREE_FORMAT)),
+            ("ground point RMSE x y z (m)", _fmt(acc.gp_rmse_m, METRE_FORMAT)),
+        ]
+    rows.append(("results", str(summary.out_dir)))
+    return rows
+
+
 @app.command()
 @_guarded
 def simulate(
@@ -146,20 +193,30 @@ def simulate(
     ]))
 
 
+# Options shared by `run` and `watch`.
+MethodOption = Annotated[str, typer.Option("--method", help="seq-r, seq-f or sim.")]
+ThresholdOption = Annotated[float | None, typer.Option(
+    "--threshold", help="seq-r: EOP correlation threshold in [0, 1].")]
+InitialImagesOption = Annotated[int | None, typer.Option(
+    "--initial-images", help="Images of the initial simultaneous stage.")]
+EstimatorOptionsFile = Annotated[Path | None, typer.Option(
+    "--options", help="Estimator options YAML (sections sequential:, sim:).")]
+BudgetOption = Annotated[float | None, typer.Option(
+    "--budget-ms", help="seq-r: processing budget per image (tracking + update), ms; over it "
+    "the window threshold tightens.")]
+
+
 @app.command()
 @_guarded
 def run(
     flight: Annotated[Path, typer.Argument(help="Flight folder.")],
     out: Annotated[Path, typer.Option("--out", help="Output folder.")],
-    method: Annotated[str, typer.Option("--method", help="seq-r, seq-f or sim.")] = "seq-r",
+    method: MethodOption = "seq-r",
     final_only: Annotated[bool, typer.Option(
         "--final-only", help="sim: adjust once after the last image.")] = False,
-    threshold: Annotated[float | None, typer.Option(
-        "--threshold", help="seq-r: EOP correlation threshold in [0, 1].")] = None,
-    initial_images: Annotated[int | None, typer.Option(
-        "--initial-images", help="Images of the initial simultaneous stage.")] = None,
-    options: Annotated[Path | None, typer.Option(
-        "--options", help="Estimator options YAML (sections sequential:, sim:).")] = None,
+    threshold: ThresholdOption = None,
+    initial_images: InitialImagesOption = None,
+    options: EstimatorOptionsFile = None,
     progress: Annotated[bool, typer.Option(
         "--progress/--no-progress", help="Progress bar on a terminal.")] = True,
     observations: Annotated[Path | None, typer.Option(
@@ -171,48 +228,20 @@ def run(
     report: Annotated[bool, typer.Option(
         "--report", help="Then write OUT/report.html and report.json (as seqat report).")]
     = False,
+    resume: Annotated[bool, typer.Option(
+        "--resume", help="Continue an interrupted run from OUT/journal/ (same results as an "
+        "uninterrupted run).")] = False,
+    budget_ms: BudgetOption = None,
 ) -> None:
     """Adjust a flight folder and write eop.csv, points.csv, run.json, nav.csv and
     observations.csv."""
-    from pipeline.runner import Method, run_flight
-    from seqat.errors import ConfigError
+    from pipeline.runner import run_flight
 
-    try:
-        chosen = Method(method)
-    except ValueError as err:
-        raise ConfigError(f"--method: expected one of "
-                          f"{', '.join(m.value for m in Method)}, got {method!r}") from err
-    summary = run_flight(flight, out, method=chosen, final_only=final_only,
+    summary = run_flight(flight, out, method=_method(method), final_only=final_only,
                          options_path=options, threshold=threshold,
                          initial_images=initial_images, progress=progress,
-                         observations=observations)
-    t = summary.update_ms
-    rows = [
-        ("method", summary.method.value + (" (final only)" if final_only else "")),
-        ("images / points / observations",
-         f"{summary.n_images} / {summary.n_points} / {summary.n_observations}"),
-        ("sigma0 (redundancy)", f"{_fmt(summary.sigma0, '.4f')} ({summary.redundancy})"),
-        ("update ms median / p95 / max", f"{t.median_ms:.1f} / {t.p95_ms:.1f} / "
-                                         f"{t.max_ms:.1f}"),
-    ]
-    ts = summary.sequential_update_ms
-    if math.isfinite(ts.median_ms):
-        rows.append(("  sequential stage only", f"{ts.median_ms:.1f} / {ts.p95_ms:.1f} / "
-                                                f"{ts.max_ms:.1f}"))
-    rows += [
-        ("total update / wall", f"{t.total_ms / 1e3:.2f} s / {summary.wall_s:.2f} s"),
-    ]
-    acc = summary.accuracy
-    if acc is not None:
-        rows += [
-            ("EOP position RMSE x y z (m)", _fmt(acc.pos_rmse_m, METRE_FORMAT)),
-            ("  GPS/INS input (m)", _fmt(acc.nav_pos_rmse_m, METRE_FORMAT)),
-            ("EOP attitude RMSE ω φ κ (deg)", _fmt(acc.att_rmse_deg, DEGREE_FORMAT)),
-            ("  GPS/INS input (deg)", _fmt(acc.nav_att_rmse_deg, DEGREE_FORMAT)),
-            ("ground point RMSE x y z (m)", _fmt(acc.gp_rmse_m, METRE_FORMAT)),
-        ]
-    rows.append(("results", str(summary.out_dir)))
-    _console().print(_table(f"seqat run {summary.flight_dir}", rows))
+                         observations=observations, resume=resume, budget_ms=budget_ms)
+    _console().print(_table(f"seqat run {summary.flight_dir}", _run_rows(summary, final_only)))
     if ortho:
         from pipeline.ortho_run import orthorectify_run
 
@@ -224,6 +253,72 @@ def run(
 
         r = make_report(summary.out_dir)
         _console().print("report: " + ", ".join(str(f) for f in r.files))
+
+
+def _method(method: str) -> Method:
+    from pipeline.runner import Method
+    from seqat.errors import ConfigError
+
+    try:
+        return Method(method)
+    except ValueError as err:
+        raise ConfigError(f"--method: expected one of "
+                          f"{', '.join(m.value for m in Method)}, got {method!r}") from err
+
+
+@app.command()
+@_guarded
+def watch(
+    flight: Annotated[Path, typer.Argument(help="Flight folder being written (flight.yaml "
+                                           "present).")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")],
+    method: MethodOption = "seq-r",
+    threshold: ThresholdOption = None,
+    initial_images: InitialImagesOption = None,
+    options: EstimatorOptionsFile = None,
+    budget_ms: BudgetOption = None,
+    idle_timeout_s: Annotated[float | None, typer.Option(
+        "--idle-timeout-s", "--idle-timeout", help="Stop after this many seconds without new "
+        "input (default: until Ctrl-C).")] = None,
+    wait_timeout_s: Annotated[float, typer.Option(
+        "--wait-timeout-s", help="Seconds an image waits for its nav row (or a nav row for "
+        "its image) before it is skipped.")] = 10.0,
+    poll_s: Annotated[float, typer.Option("--poll-s", help="Seconds between polls.")] = 0.05,
+    resume: Annotated[bool, typer.Option(
+        "--resume", help="Continue from OUT/journal/ (after a crash or an earlier stop).")]
+    = False,
+) -> None:
+    """Georeference images as they appear in a growing flight folder; one line per image.
+    Ctrl-C or --idle-timeout-s stops and publishes the results (as seqat run)."""
+    from pipeline.watch import WatchOptions, watch_flight
+
+    summary = watch_flight(flight, out, method=_method(method), options_path=options,
+                           threshold=threshold, initial_images=initial_images,
+                           budget_ms=budget_ms, resume=resume,
+                           watch=WatchOptions(idle_timeout_s=idle_timeout_s,
+                                              wait_timeout_s=wait_timeout_s, poll_s=poll_s))
+    rows = [("stopped", summary.stopped), *_run_rows(summary)]
+    _console().print(_table(f"seqat watch {summary.flight_dir}", rows))
+
+
+@app.command()
+@_guarded
+def feed(
+    src: Annotated[Path, typer.Argument(help="Flight folder to replay.")],
+    dst: Annotated[Path, typer.Argument(help="Folder to write (absent or empty).")],
+    rate: Annotated[float, typer.Option("--rate", help="Images per second.")] = 2.0,
+    limit: Annotated[int | None, typer.Option("--limit", help="Only the first N images.")]
+    = None,
+    delay_s: Annotated[float, typer.Option(
+        "--delay-s", help="Seconds between writing flight.yaml and the first image.")] = 0.0,
+) -> None:
+    """Copy a flight into a folder image by image at the camera's rate (for seqat watch),
+    with the partial-file convention (name.jpg.part, then renamed)."""
+    from pipeline.feed import feed_flight
+
+    s = feed_flight(src, dst, rate_hz=rate, limit=limit, delay_s=delay_s)
+    _console().print(f"fed {s.images} images in {s.duration_s:.1f} s (at most "
+                     f"{s.late_s * 1e3:.0f} ms late)")
 
 
 @app.command()

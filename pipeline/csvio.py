@@ -96,15 +96,7 @@ def read_csv(path: Path | str, columns: Sequence[str]) -> Iterator[CsvRow]:
                                  f"{','.join(columns)}") from None
         except (csv.Error, UnicodeDecodeError) as err:
             raise InputDataError(f"{where}:{reader.line_num}: malformed CSV: {err}") from err
-        if sorted(header) != sorted(columns):
-            missing = [c for c in columns if c not in header]
-            extra = [h for h in header if h not in columns or header.count(h) > 1]
-            detail = "; ".join(part for part in (
-                f"missing {', '.join(missing)}" if missing else "",
-                f"unexpected {', '.join(dict.fromkeys(extra))}" if extra else "") if part)
-            raise InputDataError(f"{where}:1: wrong columns ({detail}): expected "
-                                 f"{','.join(columns)}, got {','.join(header)}")
-        n_fields = len(header)
+        check_header(where, header, columns)
         while True:
             try:
                 fields = next(reader)
@@ -112,13 +104,88 @@ def read_csv(path: Path | str, columns: Sequence[str]) -> Iterator[CsvRow]:
                 return
             except (csv.Error, UnicodeDecodeError) as err:
                 raise InputDataError(f"{where}:{reader.line_num}: malformed CSV: {err}") from err
-            if not fields or (len(fields) == 1 and not fields[0].strip()):
+            row = make_row(where, reader.line_num, header, fields)
+            if row is not None:
+                yield row
+
+
+def check_header(where: str, header: Sequence[str], columns: Sequence[str]) -> None:
+    """Raise unless ``header`` names every column of ``columns`` exactly once."""
+    if sorted(header) != sorted(columns):
+        missing = [c for c in columns if c not in header]
+        extra = [h for h in header if h not in columns or header.count(h) > 1]
+        detail = "; ".join(part for part in (
+            f"missing {', '.join(missing)}" if missing else "",
+            f"unexpected {', '.join(dict.fromkeys(extra))}" if extra else "") if part)
+        raise InputDataError(f"{where}:1: wrong columns ({detail}): expected "
+                             f"{','.join(columns)}, got {','.join(header)}")
+
+
+def make_row(where: str, line: int, header: Sequence[str], fields: Sequence[str]) -> (
+        CsvRow | None):
+    """The row of one line's fields; None for a blank line."""
+    if not fields or (len(fields) == 1 and not fields[0].strip()):
+        return None
+    if len(fields) != len(header):
+        raise InputDataError(f"{where}:{line}: expected {len(header)} fields "
+                             f"({','.join(header)}), got {len(fields)}")
+    return CsvRow(path=where, line=line,
+                  values={h: v.strip() for h, v in zip(header, fields, strict=True)})
+
+
+class CsvTail:
+    """The complete rows of a CSV file that another program is appending to (watch mode).
+
+    Each :meth:`poll` returns the rows whose line has been completed (ends with a newline)
+    since the last call; a partial last line is left for the next call. Same rules as
+    :func:`read_csv`, one line per row (no quoted newlines). The file may not exist yet.
+
+    Raises (from :meth:`poll`)
+    ------
+    InputDataError
+        Bad header or row, not UTF-8, or the file shrank (rewritten instead of appended to).
+    """
+
+    def __init__(self, path: Path | str, columns: Sequence[str]) -> None:
+        self.path = Path(path)
+        self.columns = tuple(columns)
+        self._offset = 0
+        self._line = 0
+        self._header: list[str] | None = None
+
+    def poll(self) -> list[CsvRow]:
+        where = str(self.path)
+        try:
+            with self.path.open("rb") as handle:
+                handle.seek(0, 2)
+                size = handle.tell()
+                if size < self._offset:
+                    raise InputDataError(f"{where}: the file shrank from {self._offset} to "
+                                         f"{size} bytes; a watched file may only be appended to")
+                handle.seek(self._offset)
+                data = handle.read(size - self._offset)
+        except FileNotFoundError:
+            return []
+        except OSError as err:
+            raise InputDataError(f"{where}: cannot read: {err.strerror or err}") from err
+        end = data.rfind(b"\n") + 1
+        self._offset += end
+        rows: list[CsvRow] = []
+        for raw in data[:end].splitlines():
+            self._line += 1
+            try:
+                text = raw.decode("utf-8")
+                fields = next(csv.reader([text], skipinitialspace=True, strict=True), [])
+            except (csv.Error, UnicodeDecodeError) as err:
+                raise InputDataError(f"{where}:{self._line}: malformed CSV: {err}") from err
+            if self._header is None:
+                self._header = [h.strip() for h in fields]
+                check_header(where, self._header, self.columns)
                 continue
-            if len(fields) != n_fields:
-                raise InputDataError(f"{where}:{reader.line_num}: expected {n_fields} fields "
-                                     f"({','.join(header)}), got {len(fields)}")
-            yield CsvRow(path=where, line=reader.line_num,
-                         values={h: v.strip() for h, v in zip(header, fields, strict=True)})
+            row = make_row(where, self._line, self._header, fields)
+            if row is not None:
+                rows.append(row)
+        return rows
 
 
 def format_csv_line(values: Sequence[str]) -> str:

@@ -23,7 +23,7 @@ import pyproj
 
 from pipeline.camera import PixelCorrector, pinhole_camera
 from pipeline.config import CameraConfig, FlightConfig, NavConfig, load_flight_config
-from pipeline.csvio import read_csv
+from pipeline.csvio import CsvRow, read_csv
 from pipeline.image_metadata import HeightKind, ImageMetadata, found_tags, read_image_metadata
 from pipeline.navigation import (
     MIN_IMAGES,
@@ -60,26 +60,42 @@ ASPECT_TOLERANCE = 2e-3
 #: Half a pixel: observed pixel centres lie in ``[-0.5, width - 0.5]`` (OpenCV convention).
 HALF_PIXEL = 0.5
 
+class NavRowChecker:
+    """Validates ``nav.csv`` rows one at a time: ids unique, times strictly increasing.
+
+    Shared by the batch reader and the watch mode's reader of a growing ``nav.csv``.
+    """
+
+    def __init__(self, columns: tuple[str, ...]) -> None:
+        self.columns = columns
+        self._first_line: dict[str, int] = {}
+        self._prev_time, self._prev_line = -math.inf, 0
+
+    def check(self, row: CsvRow) -> tuple[str, float, list[float]]:
+        """Image id, time and the 6 value columns of a row (as written: degrees)."""
+        image = row.ident("image")
+        if image in self._first_line:
+            raise row.error(f"duplicate nav row for image {image!r} (first at line "
+                            f"{self._first_line[image]})")
+        time_s = row.number("time_s")
+        if not time_s > self._prev_time:
+            raise row.error(f"nav out of time order: time_s {time_s!r} of image {image!r} is "
+                            f"not after {self._prev_time!r} (line {self._prev_line})")
+        values = [row.number(c) for c in self.columns[2:]]
+        self._first_line[image] = row.line
+        self._prev_time, self._prev_line = time_s, row.line
+        return image, time_s, values
+
+
 def _read_nav_rows(path: Path | str, columns: tuple[str, ...]) -> (
         tuple[tuple[str, ...], FloatArray, FloatArray]):
     """Ids, times and the 6 value columns of a ``nav.csv`` (validated, order kept)."""
+    checker = NavRowChecker(columns)
     ids: list[str] = []
     times: list[float] = []
     rows: list[list[float]] = []
-    first_line: dict[str, int] = {}
-    prev_time, prev_line = -math.inf, 0
     for row in read_csv(path, columns):
-        image = row.ident("image")
-        if image in first_line:
-            raise row.error(f"duplicate nav row for image {image!r} (first at line "
-                            f"{first_line[image]})")
-        time_s = row.number("time_s")
-        if not time_s > prev_time:
-            raise row.error(f"nav out of time order: time_s {time_s!r} of image {image!r} is "
-                            f"not after {prev_time!r} (line {prev_line})")
-        values = [row.number(c) for c in columns[2:]]
-        first_line[image] = row.line
-        prev_time, prev_line = time_s, row.line
+        image, time_s, values = checker.check(row)
         ids.append(image)
         times.append(time_s)
         rows.append(values)
@@ -133,13 +149,18 @@ def read_nav_geodetic(path: Path | str) -> GeodeticNav:
         As :func:`read_nav_projected`, and latitude or longitude out of range.
     """
     ids, times, values = _read_nav_rows(path, NAV_GEODETIC_COLUMNS)
+    check_lat_lon(path, ids, values)
+    return GeodeticNav(image_ids=ids, times_s=times, lat_lon_h=values[:, :3].copy(),
+                       roll_pitch_yaw_deg=values[:, 3:].copy())
+
+
+def check_lat_lon(path: Path | str, ids: tuple[str, ...], values: FloatArray) -> None:
+    """Raise unless every latitude (column 0) and longitude (column 1) is in range."""
     bad = np.flatnonzero((np.abs(values[:, 0]) > 90.0) | (np.abs(values[:, 1]) > 180.0))
     if bad.size:
         i = int(bad[0])
         raise InputDataError(f"{path}: image {ids[i]!r}: latitude {values[i, 0]!r} / longitude "
                              f"{values[i, 1]!r} out of range (degrees, [-90, 90] / [-180, 180])")
-    return GeodeticNav(image_ids=ids, times_s=times, lat_lon_h=values[:, :3].copy(),
-                       roll_pitch_yaw_deg=values[:, 3:].copy())
 
 
 def read_ground_points(path: Path | str) -> GroundPoints:
@@ -273,15 +294,22 @@ def camera_from_exif(meta: ImageMetadata) -> CameraConfig:
                         cx_px=(w - 1) / 2.0, cy_px=(h - 1) / 2.0)
 
 
+def geodetic_nav_eop(config: FlightConfig, crs: pyproj.CRS, lat_lon_h: FloatArray,
+                     roll_pitch_yaw_deg: FloatArray) -> FloatArray:
+    """EOPs ``(n, 6)`` of geodetic ``nav.csv`` rows (``nav.height``, boresight, lever arm)."""
+    lat, lon, h = np.asarray(lat_lon_h, dtype=np.float64).reshape(-1, 3).T
+    n = len(lat)
+    kind: HeightKind = "orthometric" if config.nav.height == "egm96" else "ellipsoidal"
+    return geodetic_to_eop(lon, lat, h, roll_pitch_yaw_deg, ["body"] * n, [kind] * n, crs,
+                           config.nav.boresight, np.asarray(config.nav.lever_arm_m))
+
+
 def _geodetic_file_nav(path: Path, config: FlightConfig, source: str) -> tuple[pyproj.CRS,
                                                                               NavTable]:
     geo = read_nav_geodetic(path)
-    lat, lon, h = geo.lat_lon_h.T
+    lat, lon, _ = geo.lat_lon_h.T
     crs = resolve_working_crs(config.crs, float(lon[0]), float(lat[0]), source=source)
-    n = len(geo.image_ids)
-    kind: HeightKind = "orthometric" if config.nav.height == "egm96" else "ellipsoidal"
-    eop = geodetic_to_eop(lon, lat, h, geo.roll_pitch_yaw_deg, ["body"] * n, [kind] * n, crs,
-                          config.nav.boresight, np.asarray(config.nav.lever_arm_m))
+    eop = geodetic_nav_eop(config, crs, geo.lat_lon_h, geo.roll_pitch_yaw_deg)
     return crs, NavTable(image_ids=geo.image_ids, times_s=geo.times_s, eop=eop)
 
 
@@ -395,20 +423,32 @@ def _check_sizes(nav: NavTable, metas: dict[str, ImageMetadata], camera: CameraC
         meta = metas.get(image)
         if meta is None:
             continue
-        w, h = meta.width_px, meta.height_px
-        if (w, h) != (camera.width_px, camera.height_px):
-            if abs(w * camera.height_px - h * camera.width_px) <= ASPECT_TOLERANCE * w * h:
-                warnings.append(f"{meta.path.name}: size {w} x {h} px differs from the camera's "
-                                f"{camera.width_px} x {camera.height_px} px; resampled to it "
-                                "(same aspect ratio)")
-            else:
-                skipped.append(SkippedImage(
-                    image=image, reason=f"{meta.path.name}: size {w} x {h} px has another "
-                    f"aspect ratio than the camera's {camera.width_px} x {camera.height_px} px"))
-                continue
+        skip, warning = check_image_size(meta, camera)
+        if warning is not None:
+            warnings.append(warning)
+        if skip is not None:
+            skipped.append(SkippedImage(image=image, reason=skip))
+            continue
         keep.append(row)
     return NavTable(image_ids=tuple(nav.image_ids[i] for i in keep), times_s=nav.times_s[keep],
                     eop=nav.eop[keep])
+
+
+def check_image_size(meta: ImageMetadata, camera: CameraConfig) -> tuple[str | None, str | None]:
+    """``(reason to skip, warning)`` of an image's size against the camera's.
+
+    Another size with the same aspect ratio is resampled when read (warning); another aspect
+    ratio is skipped.
+    """
+    w, h = meta.width_px, meta.height_px
+    if (w, h) == (camera.width_px, camera.height_px):
+        return None, None
+    if abs(w * camera.height_px - h * camera.width_px) <= ASPECT_TOLERANCE * w * h:
+        return None, (f"{meta.path.name}: size {w} x {h} px differs from the camera's "
+                      f"{camera.width_px} x {camera.height_px} px; resampled to it "
+                      "(same aspect ratio)")
+    return (f"{meta.path.name}: size {w} x {h} px has another aspect ratio than the camera's "
+            f"{camera.width_px} x {camera.height_px} px"), None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -495,7 +535,6 @@ class FrameSource:
     def _groups(self) -> Iterator[_Group]:
         """Contiguous per-image groups of ``observations.csv``, validated, in nav order."""
         cam = self._flight.camera_config
-        u_max, v_max = cam.width_px - HALF_PIXEL, cam.height_px - HALF_PIXEL
         done: dict[str, int] = {}  # finished image -> last line of its rows
         current: str | None = None
         current_row = -1
@@ -524,20 +563,36 @@ class FrameSource:
                                     "acquisition order")
                 current, current_row = image, nav_row
                 point_line, uvs = {}, []
-            point = row.ident("point")
-            if point in point_line:
-                raise row.error(f"duplicate observation of point {point!r} in image {image!r} "
-                                f"(first at line {point_line[point]})")
-            u, v = row.number("x_px"), row.number("y_px")
-            if not (-HALF_PIXEL <= u <= u_max and -HALF_PIXEL <= v <= v_max):
-                raise row.error(f"pixel ({u!r}, {v!r}) of point {point!r} lies outside the "
-                                f"{cam.width_px} x {cam.height_px} px image")
-            point_line[point] = row.line
+            point, u, v = observation_row(row, image, point_line, cam)
             uvs.append((u, v))
             last_line = row.line
         if current is not None:
             yield _Group(image_id=current, nav_row=current_row, point_ids=tuple(point_line),
                          uv_px=np.asarray(uvs))
+
+
+def observation_row(row: CsvRow, image: str, point_line: dict[str, int],
+                    camera: CameraConfig) -> tuple[str, float, float]:
+    """Point id and pixel of an ``observations.csv`` row of ``image``, checked.
+
+    ``point_line`` (point -> line) holds the image's earlier rows; the row is added to it.
+
+    Raises
+    ------
+    InputDataError
+        A point observed twice in the image, a pixel outside the image.
+    """
+    point = row.ident("point")
+    if point in point_line:
+        raise row.error(f"duplicate observation of point {point!r} in image {image!r} "
+                        f"(first at line {point_line[point]})")
+    u, v = row.number("x_px"), row.number("y_px")
+    if not (-HALF_PIXEL <= u <= camera.width_px - HALF_PIXEL
+            and -HALF_PIXEL <= v <= camera.height_px - HALF_PIXEL):
+        raise row.error(f"pixel ({u!r}, {v!r}) of point {point!r} lies outside the "
+                        f"{camera.width_px} x {camera.height_px} px image")
+    point_line[point] = row.line
+    return point, u, v
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

@@ -158,7 +158,7 @@ def read_image_metadata(path: Path | str) -> ImageMetadata:
     try:
         with path.open("rb") as f:
             head = f.read(XMP_SEARCH_BYTES)
-        _check_jpeg_complete(path)
+        check_jpeg_complete(path)
         with Image.open(path) as im:
             if im.format != "JPEG":
                 raise InputDataError(f"{path.name}: not a JPEG (Pillow reads it as {im.format})")
@@ -223,7 +223,7 @@ def require_position(meta: ImageMetadata) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-def _check_jpeg_complete(path: Path) -> None:
+def check_jpeg_complete(path: Path) -> None:
     """Walk the JPEG segments up to the first scan and require an end-of-image marker after it.
 
     Entropy-coded data cannot contain ``FF D9`` (``FF`` bytes are stuffed), so the EOI after

@@ -122,6 +122,29 @@ class RealTime:
 
 
 @dataclass(frozen=True, kw_only=True)
+class LiveOperation:
+    """How the main run kept up (``run.json`` ``mode``, ``images[].live``, ``latency_budget``).
+
+    ``processing_ms_*``: tracking + update per image; ``latency_ms_*``: input complete ->
+    estimate (watch mode only, else None); ``threshold_changes``: the latency budget's events
+    (image, old and new threshold, measured ms, reason).
+    """
+
+    mode: str
+    replayed_images: int
+    processing_ms_median: float
+    processing_ms_p95: float
+    processing_ms_max: float
+    latency_ms_median: float | None
+    latency_ms_p95: float | None
+    latency_ms_max: float | None
+    budget_ms: float | None
+    images_over_budget: int | None
+    final_threshold: float | None
+    threshold_changes: tuple[Mapping[str, object], ...]
+
+
+@dataclass(frozen=True, kw_only=True)
 class CheckpointResidual:
     point: str
     n_images: int
@@ -170,6 +193,7 @@ class Report:
     accuracy_against: str | None
     accuracy: Mapping[str, MethodAccuracy]
     realtime: tuple[RealTime, ...]
+    live: LiveOperation | None
     checkpoints: Mapping[str, float | int | None] | None
     checkpoint_reports: tuple[CheckpointReport, ...]
     notes: tuple[str, ...]
@@ -360,6 +384,34 @@ def _realtime(label: str, record: Mapping[str, object]) -> RealTime:
         precision_plateau_image=None if plateau is None else str(images[plateau]["image_id"]))
 
 
+def live_operation(record: Mapping[str, object]) -> LiveOperation | None:
+    """The live section of a run (None for runs written before per-image timings existed)."""
+    images = record.get("images", [])
+    assert isinstance(images, list)
+    live = [im["live"] for im in images if isinstance(im.get("live"), dict)]
+    if not live:
+        return None
+    proc = np.array([float(x["prep_ms"]) + float(x["update_ms"]) for x in live])
+    lat = np.array([float(x["latency_ms"]) for x in live if x.get("latency_ms") is not None])
+    budget = record.get("latency_budget")
+
+    def stat(values: FloatArray, q: float | None) -> float | None:
+        if values.size == 0:
+            return None
+        return float(np.max(values) if q is None else np.percentile(values, q))
+
+    return LiveOperation(
+        mode=str(record.get("mode", "run")), replayed_images=int(record.get("replayed", 0)),  # type: ignore[call-overload]
+        processing_ms_median=float(np.median(proc)),
+        processing_ms_p95=float(np.percentile(proc, 95)), processing_ms_max=float(proc.max()),
+        latency_ms_median=stat(lat, 50), latency_ms_p95=stat(lat, 95),
+        latency_ms_max=stat(lat, None),
+        budget_ms=budget["budget_ms"] if isinstance(budget, dict) else None,
+        images_over_budget=budget["images_over_budget"] if isinstance(budget, dict) else None,
+        final_threshold=budget["final_threshold"] if isinstance(budget, dict) else None,
+        threshold_changes=tuple(budget["events"]) if isinstance(budget, dict) else ())
+
+
 def find_checkpoints(flight_dir: Path) -> tuple[Path, Path] | None:
     """``checkpoints.csv`` and ``checkpoint_obs.csv`` of a flight, or None.
 
@@ -523,7 +575,8 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
         processing_ms_per_image_median=realtime[0].update_ms_median,
         processing_total_s=float(totals.get("wall_s") or float("nan")),
         reference=reference_record, accuracy_against=against, accuracy=accuracy,
-        realtime=realtime, checkpoints=checkpoints, checkpoint_reports=tuple(cps),
+        realtime=realtime, live=live_operation(run.record), checkpoints=checkpoints,
+        checkpoint_reports=tuple(cps),
         notes=tuple(notes))
     extras: dict[str, object] = {
         "errors": errors,

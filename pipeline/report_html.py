@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pipeline.report import DIRECT, REFERENCE, CheckpointReport, Report
+from pipeline.report import DIRECT, REFERENCE, CheckpointReport, LiveOperation, Report
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -122,6 +122,32 @@ def _checkpoint_figure(cp: CheckpointReport) -> str:
     return _png(fig)
 
 
+def _live_section(live: LiveOperation) -> list[str]:
+    """Processing and end-to-end latency, and the latency budget's threshold changes."""
+    parts = ["<h2>Live operation</h2>"]
+    rows: list[tuple[object, ...]] = [
+        ("mode" + (f" (resumed: {live.replayed_images} images replayed from the journal)"
+                   if live.replayed_images else ""), live.mode, "", ""),
+        ("processing per image: tracking + update (ms)", live.processing_ms_median,
+         live.processing_ms_p95, live.processing_ms_max)]
+    if live.latency_ms_median is not None:
+        rows.append(("end-to-end latency: input complete → estimate (ms)",
+                     live.latency_ms_median, live.latency_ms_p95, live.latency_ms_max))
+    parts.append(_table(["", "median", "p95", "max"], rows, digits=1))
+    if live.budget_ms is None:
+        return parts
+    parts.append(f"<p>Latency budget {live.budget_ms:g} ms per image: "
+                 f"{live.images_over_budget} image(s) over it; final Seq-R threshold "
+                 f"{live.final_threshold:g}.</p>")
+    if live.threshold_changes:
+        parts.append(_table(["after image", "threshold", "measured (ms)", "why"], [
+            (e["image"], f"{e['old_threshold']:g} → {e['new_threshold']:g}",
+             e["measured_ms"], e["reason"]) for e in live.threshold_changes], digits=1))
+    else:
+        parts.append("<p>The threshold never changed.</p>")
+    return parts
+
+
 def render_html(report: Report, extras: Mapping[str, object]) -> str:
     """The self-contained ``report.html``."""
     import matplotlib
@@ -184,6 +210,8 @@ def render_html(report: Report, extras: Mapping[str, object]) -> str:
         assert isinstance(series, Mapping)
         parts.append(_realtime_figure(series, {r.method: r.precision_plateau_index
                                                for r in report.realtime}))
+    if report.live is not None:
+        parts += _live_section(report.live)
     parts.append("<h2>Check points (ASPRS 2023)</h2>")
     if not report.checkpoint_reports:
         parts.append("<p>The flight has no check points.</p>")

@@ -2,40 +2,58 @@
 
 The stage: validate the whole input first (flight.yaml, CRS, nav, one pass over
 observations.csv, truth) so bad input fails before any computation and nothing is written;
-then feed frames one at a time in acquisition order to the estimator (Seq-R, Seq-F or Sim),
-collect the per-image :class:`~seqat.types.ImageUpdate` records and publish ``eop.csv``,
+then feed frames one at a time in acquisition order to the estimator (Seq-R, Seq-F or Sim)
+through a :class:`~pipeline.session.RunSession` (the per-image path ``seqat watch`` shares:
+update, feedback, listeners, latency budget, journal), and publish ``eop.csv``,
 ``points.csv`` and ``run.json`` together (:func:`pipeline.store.write_run_outputs`).
+``--resume`` replays the journal of an interrupted run first (:mod:`pipeline.journal`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import enum
+import hashlib
 import time
-from dataclasses import dataclass
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
 
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from pipeline.accuracy import Accuracy, compare_with_truth
+from pipeline.budget import BudgetReport, LatencyBudget
 from pipeline.config import build_dataclass, load_yaml
-from pipeline.flight import read_flight, read_truth
+from pipeline.flight import FLIGHT_YAML, Truth, read_flight, read_truth
+from pipeline.journal import (
+    Journal,
+    JournalContents,
+    check_fingerprint,
+    read_journal,
+    replay_checks,
+)
+from pipeline.session import Estimator, ImageListener, RunSession
 from pipeline.sources import ImageSource, ObservationSource
 from pipeline.store import (
+    RunInputs,
     RunRecord,
     RunTotals,
+    SkippedImage,
     TimingStats,
     eop_table,
     point_table,
+    to_jsonable,
     write_run_outputs,
 )
-from seqat.errors import ConfigError, InputDataError
+from pipeline.tracking import TrackerOptions
+from seqat.errors import ConfigError, InputDataError, SeqatError
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simultaneous import SimOptions, SimultaneousAT
-from seqat.types import Frame, ImageUpdate, PinholeCamera, Solution
+from seqat.types import PinholeCamera, Solution
+
+__all__ = ["Estimator", "EstimatorConfig", "ImageListener", "Method", "RunSummary",
+           "estimator_options", "make_estimator", "run_flight"]
 
 
 class Method(enum.StrEnum):
@@ -107,27 +125,6 @@ def estimator_options(method: Method, config: EstimatorConfig, *, threshold: flo
     return opts
 
 
-class ImageListener(Protocol):
-    """Something that follows a run image by image (live ortho, journal, watch display).
-
-    ``on_image`` is called after each update with the frame, its update record and the
-    estimator (query ``window_solution()`` there: O(window)); ``on_finish`` once after the
-    final solution, before the run folder is published.
-    """
-
-    def on_image(self, frame: Frame, update: ImageUpdate, estimator: Estimator) -> None: ...
-
-    def on_finish(self, solution: Solution) -> None: ...
-
-
-class Estimator(Protocol):
-    """What the runner needs from an estimator (SequentialAT, SimultaneousAT)."""
-
-    def add_frame(self, frame: Frame) -> ImageUpdate: ...
-
-    def solution(self) -> Solution: ...
-
-
 def make_estimator(method: Method, camera: PinholeCamera, options: SequentialOptions | SimOptions,
                    *, final_only: bool = False) -> Estimator:
     """Build the estimator of ``method`` with ``options`` (from :func:`estimator_options`)."""
@@ -140,25 +137,35 @@ def make_estimator(method: Method, camera: PinholeCamera, options: SequentialOpt
 
 @dataclass(frozen=True, kw_only=True)
 class RunSummary:
-    """Typed result of :func:`run_flight` (what ``seqat run`` prints).
+    """Typed result of :func:`run_flight` and :func:`pipeline.watch.watch_flight`.
 
     Attributes
     ----------
     method : Method
     flight_dir, out_dir : Path
     files : tuple[Path, ...]
-        ``eop.csv``, ``points.csv``, ``run.json``.
+        ``eop.csv``, ``points.csv``, ``run.json``, ``nav.csv``, ``observations.csv``.
     n_images, n_points, n_observations : int
-        Images adjusted, ground points estimated, image observations read.
+        Images adjusted, ground points estimated, image observations used.
     sigma0 : float
         A posteriori standard error of unit weight of the final solution.
     redundancy : int
-    update_ms : TimingStats
-        Per-image update times.
+    update_ms, sequential_update_ms : TimingStats
+        Per-image update times (all images; the sequential stage only).
     wall_s : float
         Wall time of the whole stage (reading, estimating, writing).
     accuracy : Accuracy or None
         Against ``truth/`` when the flight has it (simulated flights).
+    replayed : int
+        Images replayed from the journal (``--resume``).
+    latency_ms : TimingStats or None
+        End-to-end latency per image (watch mode).
+    budget : BudgetReport or None
+        The latency budget and its threshold changes (``--budget-ms``).
+    skipped : tuple[SkippedImage, ...]
+        Images left out.
+    stopped : str
+        Why a watch stopped (``idle``, ``interrupted``); empty for a run.
     """
 
     method: Method
@@ -174,6 +181,11 @@ class RunSummary:
     sequential_update_ms: TimingStats
     wall_s: float
     accuracy: Accuracy | None
+    replayed: int = 0
+    latency_ms: TimingStats | None = None
+    budget: BudgetReport | None = None
+    skipped: tuple[SkippedImage, ...] = ()
+    stopped: str = ""
 
 
 def _progress(console: Console, enabled: bool) -> Progress:
@@ -182,11 +194,116 @@ def _progress(console: Console, enabled: bool) -> Progress:
                     transient=True, disable=not (enabled and console.is_terminal))
 
 
+def make_budget(budget_ms: float | None, method: Method,
+                options: SequentialOptions | SimOptions) -> LatencyBudget | None:
+    """The latency budget of ``--budget-ms`` (Seq-R only), or None.
+
+    Raises
+    ------
+    ConfigError
+        ``--budget-ms`` with another method than seq-r, or not positive.
+    """
+    if budget_ms is None:
+        return None
+    if method is not Method.SEQ_R or not isinstance(options, SequentialOptions):
+        raise ConfigError(f"--budget-ms applies to --method seq-r (it tightens the window "
+                          f"threshold), not --method {method.value}")
+    assert options.correlation_threshold is not None
+    return LatencyBudget(budget_ms, options.correlation_threshold)
+
+
+def run_fingerprint(flight_dir: Path, method: Method, options: SequentialOptions | SimOptions,
+                    final_only: bool, observations: Path | None) -> dict[str, object]:
+    """What a journal must have been written with to be resumed (flight and options)."""
+    yaml_path = flight_dir / FLIGHT_YAML
+    digest = (hashlib.sha256(yaml_path.read_bytes()).hexdigest() if yaml_path.is_file()
+              else None)
+    return {"flight": str(flight_dir.resolve()), "flight_yaml_sha256": digest,
+            "method": method.value, "options": to_jsonable(options), "final_only": final_only,
+            "observations": None if observations is None else str(observations.resolve())}
+
+
+def open_journal(out: Path, fingerprint: dict[str, object], resume: bool,
+                 console: Console) -> tuple[Journal, JournalContents | None]:
+    """A new journal, or with ``resume`` the existing one checked against ``fingerprint``.
+
+    Raises
+    ------
+    ConfigError
+        The journal was written for another flight or other options.
+    InputDataError
+        The journal is damaged (other than a torn last record, which is dropped).
+    """
+    contents = read_journal(out) if resume else None
+    if contents is None:
+        if resume:
+            console.print(f"seqat: no journal in {out}: starting from the first image",
+                          highlight=False, markup=False)
+        return Journal.create(out, fingerprint), None
+    check_fingerprint(contents, fingerprint, out)
+    if contents.dropped is not None:
+        console.print(f"seqat: journal: dropped the torn last record ({contents.dropped})",
+                      highlight=False, markup=False)
+    return Journal.resume(out, contents), contents
+
+
+def replay_journal(session: RunSession, source: ObservationSource | ImageSource,
+                   journal: Journal, contents: JournalContents | None) -> None:
+    """Replay the journaled frames and restore the tracker after the last one."""
+    if contents is None or not contents.images:
+        return
+    last = contents.images[-1]
+    if isinstance(source, ImageSource):
+        if not last.tracker_state:
+            raise InputDataError(f"{journal.folder}: the last image has no tracker state; "
+                                 "rerun without --resume")
+        source.restore_tracker(journal.load_tracker_state(last.seq))
+    for record in contents.images:
+        session.replay(record)
+
+
+def publish_run(out: Path, session: RunSession, solution: Solution, *, method: Method,
+                flight: str, inputs: RunInputs, options: SequentialOptions | SimOptions,
+                final_only: bool, tracking_options: TrackerOptions | None,
+                truth: Truth | None, t_start: float, mode: str = "run",
+                stopped: str = "") -> RunSummary:
+    """Write the run folder (atomically, all files or none) and summarise the run."""
+    eops, points = eop_table(solution.eops), point_table(solution.points)
+    accuracy = (compare_with_truth(eops, points, truth.eop, truth.points, inputs.nav)
+                if truth is not None else None)
+    updates = session.updates
+    timing = TimingStats.from_samples([u.update_ms for u in updates])
+    timing_seq = TimingStats.from_samples([u.update_ms for u in updates if u.stage == "sequential"])
+    latencies = [x.latency_ms for x in session.live if x.latency_ms is not None]
+    latency = TimingStats.from_samples(latencies) if latencies else None
+    budget = session.budget.report() if session.budget is not None else None
+    totals = RunTotals(images=len(solution.eops), points=len(solution.points),
+                       observations=session.n_observations, update_ms=timing,
+                       sequential_update_ms=timing_seq,
+                       wall_s=time.perf_counter() - t_start, sigma0=solution.sigma0,
+                       redundancy=solution.redundancy, accuracy=accuracy, latency_ms=latency,
+                       journal_ms=TimingStats.from_samples(session.journal_ms))
+    record = RunRecord(method=method.value, flight=flight, inputs=inputs, options=options,
+                       final_only=final_only, images=tuple(updates), totals=totals,
+                       tracking_options=tracking_options, tracking=tuple(session.tracking),
+                       live=tuple(session.live), latency_budget=budget, mode=mode,
+                       replayed=session.replayed)
+    files = write_run_outputs(out, solution, record, session.observations_text())
+    return RunSummary(method=method, flight_dir=Path(flight), out_dir=out, files=files,
+                      n_images=totals.images, n_points=totals.points,
+                      n_observations=session.n_observations, sigma0=solution.sigma0,
+                      redundancy=solution.redundancy, update_ms=timing,
+                      sequential_update_ms=timing_seq, wall_s=time.perf_counter() - t_start,
+                      accuracy=accuracy, replayed=session.replayed, latency_ms=latency,
+                      budget=budget, skipped=inputs.skipped, stopped=stopped)
+
+
 def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = Method.SEQ_R,
                final_only: bool = False, options_path: Path | str | None = None,
                threshold: float | None = None, initial_images: int | None = None,
                progress: bool = True, observations: Path | str | None = None,
-               listeners: Sequence[ImageListener] = ()) -> RunSummary:
+               listeners: Sequence[ImageListener] = (), resume: bool = False,
+               budget_ms: float | None = None) -> RunSummary:
     """Adjust a flight folder with one method and write the results to ``out_dir``.
 
     Parameters
@@ -195,7 +312,8 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
         Flight folder (docs/formats.md).
     out_dir : Path or str
         Output folder; created if absent, existing ``eop.csv``, ``points.csv`` and
-        ``run.json`` are replaced only when the run succeeds.
+        ``run.json`` are replaced only when the run succeeds. ``OUT/journal/`` records every
+        image as it is adjusted (:mod:`pipeline.journal`).
     method : Method
     final_only : bool
         Sim only: buffer the frames and adjust once at the end.
@@ -211,6 +329,13 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
         (``OUT/observations.csv``) with another method.
     listeners : sequence of ImageListener
         Called after every image and once at the end (:class:`ImageListener`).
+    resume : bool
+        Continue from ``OUT/journal/`` (written by an interrupted run of the same flight and
+        options): its frames are replayed, the tracker restored, the rest adjusted; the
+        results equal an uninterrupted run's. Without a journal the run starts afresh.
+    budget_ms : float or None
+        Latency budget per image (Seq-R): over it, the window threshold tightens
+        (:class:`pipeline.budget.LatencyBudget`).
 
     Returns
     -------
@@ -219,9 +344,10 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     Raises
     ------
     ConfigError, InputDataError
-        Bad options or input, detected before anything is computed or written.
+        Bad options or input, detected before anything is computed or written; a journal of
+        another flight or other options with ``resume``.
     EstimationError
-        The adjustment failed; nothing is written.
+        The adjustment failed; nothing is written (the journal is removed).
     """
     t_start = time.perf_counter()
     method = Method(method)
@@ -229,9 +355,11 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     config = load_estimator_config(options_path) if options_path is not None else EstimatorConfig()
     options = estimator_options(method, config, threshold=threshold,
                                 initial_images=initial_images, final_only=final_only)
+    budget = make_budget(budget_ms, method, options)
     if out.exists() and not out.is_dir():
         raise InputDataError(f"{out}: exists and is not a folder")
     flight = read_flight(flight_dir)
+    obs_path = None
     if observations is not None:
         obs_path = Path(observations)
         if not obs_path.is_file():
@@ -241,51 +369,36 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     source: ObservationSource | ImageSource
     if flight.kind == "observations":
         source = ObservationSource(flight)
+        source.validate()
     else:
         source = ImageSource(flight, flight.config.tracking)
-    estimator = make_estimator(method, flight.camera, options, final_only=final_only)
-    updates: list[ImageUpdate] = []
     console = Console(stderr=True)
-    for warning in flight.warnings:
-        console.print(f"seqat: warning: {warning}", highlight=False, markup=False)
-    for skipped in flight.skipped:
-        console.print(f"seqat: skipped: {skipped.reason}", highlight=False, markup=False)
-    with _progress(console, progress) as bar:
-        task = bar.add_task(method.value, total=len(flight.nav), info="")
-        for frame in source:
-            update = estimator.add_frame(frame)
-            updates.append(update)
-            source.feedback(update, estimator)
-            for listener in listeners:
-                listener.on_image(frame, update, estimator)
-            bar.update(task, advance=1,
-                       info=f"{update.update_ms:7.1f} ms  window {update.window_images}")
-    finish = getattr(estimator, "finish", None)
-    if finish is not None:
-        finish()  # sequential: re-linearise the window at the final estimate
-    solution = estimator.solution()
-    for listener in listeners:
-        listener.on_finish(solution)
-    stats = source.stats()
-
-    eops, points = eop_table(solution.eops), point_table(solution.points)
-    accuracy = (compare_with_truth(eops, points, truth.eop, truth.points, flight.nav)
-                if truth is not None else None)
-    timing = TimingStats.from_samples([u.update_ms for u in updates])
-    timing_seq = TimingStats.from_samples([u.update_ms for u in updates if u.stage == "sequential"])
-    totals = RunTotals(images=len(solution.eops), points=len(solution.points),
-                       observations=stats.n_observations, update_ms=timing,
-                       sequential_update_ms=timing_seq,
-                       wall_s=time.perf_counter() - t_start, sigma0=solution.sigma0,
-                       redundancy=solution.redundancy, accuracy=accuracy)
-    record = RunRecord(method=method.value, flight=str(flight.path), inputs=flight.inputs(),
-                       options=options, final_only=final_only, images=tuple(updates),
-                       totals=totals, tracking_options=source.tracking_options,
-                       tracking=source.tracking_stats)
-    files = write_run_outputs(out, solution, record, source.observations_text())
-    return RunSummary(method=method, flight_dir=flight.path, out_dir=out, files=files,
-                      n_images=totals.images, n_points=totals.points,
-                      n_observations=stats.n_observations, sigma0=solution.sigma0,
-                      redundancy=solution.redundancy, update_ms=timing,
-                      sequential_update_ms=timing_seq, wall_s=time.perf_counter() - t_start,
-                      accuracy=accuracy)
+    fingerprint = run_fingerprint(flight.path, method, options, final_only, obs_path)
+    journal, contents = open_journal(out, fingerprint, resume, console)
+    try:
+        if contents is not None:
+            replay_checks(contents, flight.nav.image_ids, flight.nav.eop, out)
+        session = RunSession(estimator=make_estimator(method, flight.camera, options,
+                                                      final_only=final_only),
+                             source=source, listeners=listeners, journal=journal, budget=budget)
+        replay_journal(session, source, journal, contents)
+        for warning in flight.warnings:
+            console.print(f"seqat: warning: {warning}", highlight=False, markup=False)
+        for skipped in flight.skipped:
+            console.print(f"seqat: skipped: {skipped.reason}", highlight=False, markup=False)
+        with _progress(console, progress) as bar:
+            task = bar.add_task(method.value, total=len(flight.nav), completed=session.images,
+                                info="")
+            for prepared in source.frames(start=session.images):
+                live = session.add(prepared)
+                bar.update(task, advance=1,
+                           info=f"{live.update_ms:7.1f} ms  window {live.window_images}")
+        solution = session.finish()
+    except SeqatError:
+        journal.discard()  # deterministic: a resume would fail the same way
+        raise
+    finally:
+        journal.close()
+    return publish_run(out, session, solution, method=method, flight=str(flight.path),
+                       inputs=flight.inputs(), options=options, final_only=final_only,
+                       tracking_options=source.tracking_options, truth=truth, t_start=t_start)

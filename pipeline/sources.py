@@ -10,8 +10,10 @@
   :class:`Initialiser`, which resects the next image's initial attitude and leaves out the
   matches that contradict it.
 
-Both keep the observed (distorted, full-resolution) pixels of every frame for the run
-folder's ``observations.csv``.
+Both hand out :class:`PreparedFrame` objects (the frame, its observed pixels for the run
+folder's ``observations.csv``, the tracking statistics) one image at a time, from a flight
+(:meth:`frames`) or, in watch mode, as each image's input completes (:meth:`prepare`).
+After a resume, :meth:`replay` takes the journaled frames in place of new ones.
 """
 
 from __future__ import annotations
@@ -27,22 +29,12 @@ import numpy as np
 
 from pipeline.flight import Flight, ObservationStats
 from pipeline.resection import Resection, resect_attitude
-from pipeline.store import format_observation_lines
-from pipeline.tracking import Tracker, TrackerOptions, read_gray_image
+from pipeline.tracking import Tracker, TrackerOptions, TrackerState, read_gray_image
 from seqat.geometry import rays_world
 from seqat.types import FloatArray, Frame, ImageUpdate, PinholeCamera
 
 #: A ray must point down by at least this (z of the unit vector) to meet the terrain plane.
 MIN_RAY_DOWN = 0.2
-
-
-@dataclass(frozen=True, kw_only=True)
-class SourceStats:
-    """Counts over a whole run (``run.json`` ``totals``)."""
-
-    n_observations: int
-    n_points: int
-    n_images_observed: int
 
 
 class Initialiser:
@@ -134,38 +126,77 @@ class Initialiser:
             self.ground_z = float(np.median([p.xyz_m[2] for p in solution.points]))
 
 
+@dataclass(frozen=True, kw_only=True, eq=False)
+class PreparedFrame:
+    """A frame ready for the estimator, with what the run folder keeps of it.
+
+    Attributes
+    ----------
+    frame : Frame
+        Ideal pixels, initial EOP from the resection, observations it rejected left out.
+    time_s : float
+        Acquisition time (nav).
+    observed_px : (k, 2) float
+        Observed pixels of the frame's observations (``observations.csv`` of the run).
+    tracking : Mapping or None
+        Tracker statistics and resection counts (image flights).
+    rejected : int
+        Observations left out because they contradict the resection.
+    prep_ms : float
+        Reading, tracking and resection, milliseconds.
+    ready_s : float or None
+        Wall-clock time (``time.time()``) at which the image's input was complete (watch
+        mode: the file's modification time), for the end-to-end latency.
+    """
+
+    frame: Frame
+    time_s: float
+    observed_px: FloatArray
+    tracking: Mapping[str, object] | None = None
+    rejected: int = 0
+    prep_ms: float = 0.0
+    ready_s: float | None = None
+
+
 class ObservationSource:
-    """Frames of an observations flight (validated in one streaming pass up front)."""
+    """Frames of an observations flight (validate in one streaming pass first)."""
 
     tracking_options: TrackerOptions | None = None
 
     def __init__(self, flight: Flight) -> None:
         self._flight = flight
-        self._frames = flight.frames()
-        self._stats: ObservationStats = self._frames.validate()
-        self._lines: list[str] = []
         self._init = Initialiser(flight.camera, flight.config.tracking.resection_threshold_deg)
-        self.tracking_stats: tuple[Mapping[str, object], ...] = ()
 
-    def __iter__(self) -> Iterator[Frame]:
-        for frame, observed in self._frames.with_observed():
-            frame, _, _, _ = self._init.resect(frame, reject=False)
-            self._init.record(frame)
-            self._lines.append(format_observation_lines(frame.image_id, frame.point_ids,
-                                                        observed))
-            yield frame
+    def validate(self) -> ObservationStats:
+        """Read the whole observations file once, raising on the first problem."""
+        return self._flight.frames().validate()
+
+    def frames(self, start: int = 0) -> Iterator[PreparedFrame]:
+        """The flight's frames from nav row ``start`` on (earlier rows are read, not used)."""
+        times = self._flight.nav.times_s
+        for k, (frame, observed) in enumerate(self._flight.frames().with_observed()):
+            if k >= start:
+                yield self.prepare(frame, observed, float(times[k]))
+
+    def prepare(self, frame: Frame, observed_px: FloatArray, time_s: float,
+                ready_s: float | None = None) -> PreparedFrame:
+        """Give a frame of precomputed observations its initial EOP (nothing is rejected)."""
+        t0 = time.perf_counter()
+        frame, _, _, _ = self._init.resect(frame, reject=False)
+        self._init.record(frame)
+        return PreparedFrame(frame=frame, time_s=time_s, observed_px=observed_px,
+                             prep_ms=(time.perf_counter() - t0) * 1e3, ready_s=ready_s)
+
+    def replay(self, frame: Frame) -> None:
+        """A journaled frame goes to the estimator again (:meth:`Initialiser.record`)."""
+        self._init.record(frame)
 
     def feedback(self, update: ImageUpdate, estimator: object) -> None:
         """Take the estimator's state after an update (:meth:`Initialiser.feedback`)."""
         self._init.feedback(update, estimator)
 
-    def stats(self) -> SourceStats:
-        return SourceStats(n_observations=self._stats.n_observations,
-                           n_points=self._stats.n_points,
-                           n_images_observed=self._stats.n_images_observed)
-
-    def observations_text(self) -> str:
-        return "".join(self._lines)
+    def tracker_state(self) -> TrackerState | None:
+        return None
 
 
 def read_tracker_image(path: Path, tracker: Tracker, width_px: int, height_px: int) -> np.ndarray:
@@ -189,7 +220,8 @@ class ImageSource:
     Parameters
     ----------
     flight : Flight
-        An image flight (:attr:`Flight.kind` ``"images"``).
+        An image flight (:attr:`Flight.kind` ``"images"``); its camera, corrector and sigmas
+        are used (its nav only by :meth:`frames`).
     options : TrackerOptions
     """
 
@@ -198,57 +230,53 @@ class ImageSource:
         self.tracking_options = options
         self._tracker = Tracker(options, flight.camera_config)
         self._init = Initialiser(flight.camera, options.resection_threshold_deg)
-        self._lines: list[str] = []
-        self._stats: list[Mapping[str, object]] = []
-        self._points: set[str] = set()
-        self._n_obs = 0
 
-    @property
-    def tracking_stats(self) -> tuple[Mapping[str, object], ...]:
-        """Per image: the tracker's :class:`TrackStats` fields and the resection's counts."""
-        return tuple(self._stats)
+    def frames(self, start: int = 0) -> Iterator[PreparedFrame]:
+        """The flight's images from nav row ``start`` on, one tracked frame each."""
+        nav = self._flight.nav
+        for row in range(start, len(nav)):
+            yield self.prepare(nav.image_ids[row], self._flight.image_paths[row], nav.eop[row],
+                               float(nav.times_s[row]))
 
-    def __iter__(self) -> Iterator[Frame]:
+    def prepare(self, image_id: str, path: Path, nav_eop: FloatArray, time_s: float,
+                ready_s: float | None = None) -> PreparedFrame:
+        """Read and track one image; resect its attitude and drop what contradicts it."""
         flight = self._flight
         cam = flight.camera_config
-        for row, (image_id, path) in enumerate(zip(flight.nav.image_ids, flight.image_paths,
-                                                   strict=True)):
-            t0 = time.perf_counter()
-            gray = read_tracker_image(path, self._tracker, cam.width_px, cam.height_px)
-            read_ms = (time.perf_counter() - t0) * 1e3
-            nav = flight.nav.eop[row]
-            tracked = self._tracker.add_image(image_id, gray, nav, self._init.ground_z)
-            observed: FloatArray = np.asarray(tracked.uv_px, dtype=np.float64).reshape(-1, 2)
-            point_ids = tracked.point_ids
-            frame = Frame(image_id=image_id, nav_eop=nav, nav_sigma=flight.nav_sigma,
-                          point_ids=point_ids, uv_px=flight.corrector.ideal_pixels(observed),
-                          sigma_px=flight.config.sigma_image_px)
-            cleaned, first, known, keep = self._init.resect(frame)
-            observed = observed[keep]
-            # the initial value from the kept observations only, as a replay of them
-            # (--observations) computes it: the sequential result depends on it
-            frame, res, _, _ = self._init.resect(cleaned, reject=False)
-            self._init.record(frame)
-            self._stats.append({**dataclasses.asdict(tracked.stats),
-                                "read_ms": read_ms,
-                                "resection_points": first.n_points,
-                                "resection_known_points": known,
-                                "resection_inliers": first.n_inliers,
-                                "resection_used": res.eop is not None,
-                                "observations_rejected": int((~keep).sum())})
-            self._lines.append(format_observation_lines(image_id, frame.point_ids, observed))
-            self._points.update(frame.point_ids)
-            self._n_obs += len(frame.point_ids)
-            yield frame
+        t0 = time.perf_counter()
+        gray = read_tracker_image(path, self._tracker, cam.width_px, cam.height_px)
+        read_ms = (time.perf_counter() - t0) * 1e3
+        tracked = self._tracker.add_image(image_id, gray, nav_eop, self._init.ground_z)
+        observed: FloatArray = np.asarray(tracked.uv_px, dtype=np.float64).reshape(-1, 2)
+        frame = Frame(image_id=image_id, nav_eop=nav_eop, nav_sigma=flight.nav_sigma,
+                      point_ids=tracked.point_ids, uv_px=flight.corrector.ideal_pixels(observed),
+                      sigma_px=flight.config.sigma_image_px)
+        cleaned, first, known, keep = self._init.resect(frame)
+        # the initial value from the kept observations only, as a replay of them
+        # (--observations) computes it: the sequential result depends on it
+        frame, res, _, _ = self._init.resect(cleaned, reject=False)
+        self._init.record(frame)
+        rejected = int((~keep).sum())
+        stats = {**dataclasses.asdict(tracked.stats), "read_ms": read_ms,
+                 "resection_points": first.n_points, "resection_known_points": known,
+                 "resection_inliers": first.n_inliers, "resection_used": res.eop is not None,
+                 "observations_rejected": rejected}
+        return PreparedFrame(frame=frame, time_s=time_s, observed_px=observed[keep],
+                             tracking=stats, rejected=rejected,
+                             prep_ms=(time.perf_counter() - t0) * 1e3, ready_s=ready_s)
+
+    def replay(self, frame: Frame) -> None:
+        """A journaled frame goes to the estimator again (:meth:`Initialiser.record`)."""
+        self._init.record(frame)
 
     def feedback(self, update: ImageUpdate, estimator: object) -> None:
         """Take the estimator's state after an update (:meth:`Initialiser.feedback`)."""
         self._init.feedback(update, estimator)
 
-    def stats(self) -> SourceStats:
-        observed = sum(1 for s in self._stats if s["emitted"])
-        return SourceStats(n_observations=self._n_obs, n_points=len(self._points),
-                           n_images_observed=observed)
+    def tracker_state(self) -> TrackerState | None:
+        """The tracker after the last image (journaled after every image)."""
+        return self._tracker.state()
 
-    def observations_text(self) -> str:
-        return "".join(self._lines)
+    def restore_tracker(self, state: TrackerState) -> None:
+        """Continue tracking from a journaled state (``--resume``)."""
+        self._tracker.restore(state)

@@ -324,6 +324,8 @@ class RunTotals:
     sigma0: float
     redundancy: int
     accuracy: Accuracy | None = None
+    latency_ms: TimingStats | None = None  # end to end per image (watch mode)
+    journal_ms: TimingStats | None = None  # journaling each new image (state file + record)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -396,6 +398,16 @@ class RunRecord:
     tracking : tuple[object, ...]
         Per-image tracker statistics (image flights; empty otherwise), stored in
         ``images[i].tracking``.
+    live : tuple[object, ...]
+        Per-image timings and counts (:class:`pipeline.session.ImageLive`), stored in
+        ``images[i].live``.
+    latency_budget : object or None
+        ``--budget-ms``: the budget and its threshold changes
+        (:class:`pipeline.budget.BudgetReport`).
+    mode : str
+        ``run`` or ``watch``.
+    replayed : int
+        Images replayed from the journal (``--resume``).
     """
 
     method: str
@@ -407,6 +419,10 @@ class RunRecord:
     totals: RunTotals
     tracking_options: object | None = None
     tracking: tuple[object, ...] = ()
+    live: tuple[object, ...] = ()
+    latency_budget: object | None = None
+    mode: str = "run"
+    replayed: int = 0
 
 
 def eop_json(eop: EopEstimate) -> dict[str, object]:
@@ -470,10 +486,14 @@ def format_run_json(record: RunRecord) -> str:
     assert isinstance(images, list)
     for image, stats in zip(images, record.tracking, strict=False):
         image["tracking"] = to_jsonable(stats)
+    for image, live in zip(images, record.live, strict=False):
+        image["live"] = to_jsonable(live)
     doc = {"version": RUN_JSON_VERSION, "method": record.method, "flight": record.flight,
+           "mode": record.mode, "replayed": record.replayed,
            **_inputs_json(record.inputs),
            "options": to_jsonable(record.options), "final_only": record.final_only,
            "tracking_options": to_jsonable(record.tracking_options),
+           "latency_budget": to_jsonable(record.latency_budget),
            "images": images, "totals": to_jsonable(record.totals)}
     return json.dumps(doc, indent=JSON_INDENT, allow_nan=False) + "\n"
 

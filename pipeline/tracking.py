@@ -44,6 +44,7 @@ product is an integer (3600 x 2700 at 800, 1000 or 1400 px).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -76,6 +77,8 @@ RANSAC_MAX_ITERATIONS = 10000
 FLANN_KDTREE = 1
 FLANN_TREES = 4
 FLANN_CHECKS = 32
+#: Seed of OpenCV's RNG before each kd-tree build (deterministic matching).
+FLANN_SEED = 1
 #: A corner ray must point at least this much below the horizon to give a footprint (radians);
 #: flatter rays count as "horizon" and the image falls back to recency-based candidates.
 MIN_RAY_DEPRESSION_RAD = math.radians(5.0)
@@ -280,8 +283,8 @@ class TrackedImage:
 
 
 @dataclass(kw_only=True, eq=False)
-class _HeldImage:
-    """What the tracker keeps of an earlier image (no pixels)."""
+class HeldImage:
+    """What the tracker keeps of an earlier image (no pixels); arrays never change once held."""
 
     image_id: str
     seq: int  # acquisition index
@@ -293,8 +296,37 @@ class _HeldImage:
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
+class TrackerState:
+    """Everything a :class:`Tracker` holds between images (:meth:`Tracker.state`).
+
+    A fresh tracker of the same options and camera given this state (:meth:`Tracker.restore`)
+    tracks the next images exactly as the tracker it was taken from. ``held`` are copies whose
+    arrays are shared with the tracker (they never change once an image is held).
+
+    Attributes
+    ----------
+    seq : int
+        Images added so far.
+    next_point : int
+        Number of the next fresh track id.
+    origin_xy : (2,) float or None
+        Local origin of the footprints.
+    held : tuple[HeldImage, ...]
+        Held images, oldest first, with their ``last_overlap_seq`` at the time of the state.
+    tracks : (m, 3) int64
+        Point number, images in the track, held images holding it.
+    """
+
+    seq: int
+    next_point: int
+    origin_xy: FloatArray | None
+    held: tuple[HeldImage, ...]
+    tracks: NDArray[np.int64]
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
 class _Candidate:
-    held: _HeldImage
+    held: HeldImage
     overlap: float  # fraction of the new footprint; NaN when a footprint is unknown
 
 
@@ -337,7 +369,7 @@ class Tracker:
                                             scaleFactor=ORB_SCALE_FACTOR)
         if options.opencv_threads > 0:
             cv2.setNumThreads(options.opencv_threads)
-        self._held: list[_HeldImage] = []
+        self._held: list[HeldImage] = []
         self._seq = 0
         self._next_point = 1
         #: point number -> [track length in images, held images holding it]
@@ -354,6 +386,22 @@ class Tracker:
     def held_image_ids(self) -> tuple[str, ...]:
         """Ids of the held images, oldest first."""
         return tuple(h.image_id for h in self._held)
+
+    def state(self) -> TrackerState:
+        """The tracker's state after the last image (:class:`TrackerState`)."""
+        tracks = np.array([[num, length, held] for num, (length, held) in self._tracks.items()],
+                          dtype=np.int64).reshape(-1, 3)
+        return TrackerState(seq=self._seq, next_point=self._next_point,
+                            origin_xy=None if self._origin_xy is None else self._origin_xy.copy(),
+                            held=tuple(dataclasses.replace(h) for h in self._held),
+                            tracks=tracks)
+
+    def restore(self, state: TrackerState) -> None:
+        """Continue from ``state`` (taken from a tracker of the same options and camera)."""
+        self._seq, self._next_point = state.seq, state.next_point
+        self._origin_xy = None if state.origin_xy is None else np.array(state.origin_xy)
+        self._held = [dataclasses.replace(h) for h in state.held]
+        self._tracks = {int(n): [int(length), int(held)] for n, length, held in state.tracks}
 
     def to_full_px(self, uv_work: FloatArray) -> FloatArray:
         """Working-resolution pixels -> full-resolution pixels (exact, see module docstring).
@@ -424,7 +472,7 @@ class Tracker:
 
         # every feature is held for matching (verification needs many matches); only the
         # emitted ones carry tracks
-        held = _HeldImage(image_id=image_id, seq=self._seq, nav_eop=nav, kp_work=kp_work,
+        held = HeldImage(image_id=image_id, seq=self._seq, nav_eop=nav, kp_work=kp_work,
                           desc=desc, point_nums=held_nums, last_overlap_seq=self._seq)
         self._held.append(held)
         self._seq += 1
@@ -551,6 +599,10 @@ class Tracker:
             return links, 0, 0, 0
         sift = opts.detector == "sift"
         if sift and opts.matcher == "flann":
+            # FLANN's randomised kd-trees draw from OpenCV's thread RNG: seed it so an image's
+            # matches depend on its inputs only, not on what the process did before (a
+            # resumed run must track like an uninterrupted one)
+            cv2.setRNGSeed(FLANN_SEED)
             matcher: cv2.DescriptorMatcher = cv2.FlannBasedMatcher(
                 {"algorithm": FLANN_KDTREE, "trees": FLANN_TREES}, {"checks": FLANN_CHECKS})
             matcher.add([desc.astype(np.float32)])
@@ -740,7 +792,7 @@ class Tracker:
                 self._release(h)
         self._held = keep
 
-    def _release(self, held: _HeldImage) -> None:
+    def _release(self, held: HeldImage) -> None:
         for num in held.point_nums[held.point_nums >= 0].tolist():
             track = self._tracks[num]
             track[1] -= 1

@@ -15,6 +15,7 @@ from pipeline.simulate_io import write_simulated_flight
 from seqat.simulate import SimulatedFlight, simulate_strip
 
 from .sample_flight import FLIGHT_FILES, SIM_CRS, SIM_SEED, SMALL_SIM, FlightMaker
+from .sample_runs import AUTZEN, STRIP
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 #: Where the shared data folder may be, in order of preference.
@@ -77,3 +78,23 @@ def small_sim() -> SimulatedFlight:
 def small_sim_dir(small_sim: SimulatedFlight, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """``small_sim`` written as a flight folder (read-only for the tests)."""
     return write_simulated_flight(small_sim, SIM_CRS, tmp_path_factory.mktemp("sim") / "flight")
+
+
+@pytest.fixture(scope="session")
+def strip_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``seqat run`` of ``sample_data/strip_demo`` (Seq-R; read-only for the tests)."""
+    from pipeline.runner import run_flight
+
+    out = tmp_path_factory.mktemp("strip_run") / "out"
+    run_flight(STRIP, out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="session")
+def autzen_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``seqat run`` of ``sample_data/autzen_rendered`` (Seq-R; read-only for the tests)."""
+    from pipeline.runner import run_flight
+
+    out = tmp_path_factory.mktemp("autzen_run") / "out"
+    run_flight(AUTZEN, out, progress=False)
+    return out

@@ -178,3 +178,17 @@ def test_cli_report_bad_input_is_exit_2(tmp_path: Path, small_sim_dir: Path) -> 
     assert result.exit_code == 2
     assert "not of the same flight" in result.stderr and result.stderr.count("\n") == 1
     assert not (a / REPORT_JSON).exists()
+
+
+def test_report_shows_the_latency_budget_changes(small_sim_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    run_flight(small_sim_dir, out, progress=False, budget_ms=1e-6)  # every image is over
+    make_report(out)
+    live = json.loads((out / "report.json").read_text())["live"]
+    assert live["mode"] == "run" and live["budget_ms"] == 1e-6
+    assert live["images_over_budget"] == 24 and live["final_threshold"] == 0.8
+    changes = [(c["image"], c["old_threshold"], c["new_threshold"])
+               for c in live["threshold_changes"]]
+    assert changes == [("img_0011", 0.1, 0.2), ("img_0012", 0.2, 0.4), ("img_0013", 0.4, 0.8)]
+    html_text = (out / "report.html").read_text()
+    assert "<h2>Live operation</h2>" in html_text and "0.1 → 0.2" in html_text
