@@ -114,9 +114,7 @@ def _set_threshold(estimator: object, threshold: float | None) -> None:
     """Seq-R: the threshold of the next updates (options are frozen: replaced whole)."""
     if threshold is None or threshold == _threshold(estimator):
         return
-    options = getattr(estimator, "options")  # noqa: B009 - only sequential estimators get here
-    estimator.options = dataclasses.replace(  # type: ignore[attr-defined]
-        options, correlation_threshold=threshold)
+    estimator.set_correlation_threshold(threshold)  # type: ignore[attr-defined]
 
 
 class RunSession:
