@@ -48,7 +48,14 @@ import scipy.linalg
 from threadpoolctl import ThreadpoolController
 
 from seqat import snooping
-from seqat.geometry import depth, intersect_rays, project, project_with_jacobians, wrap_angle
+from seqat.geometry import depth, intersect_rays, project, wrap_angle
+from seqat.rows import (
+    Factors,
+    RowBuilder,
+    add_information,
+    normal_from_factors,
+    snoop_update,
+)
 from seqat.simultaneous import (
     Covariance,
     SimOptions,
@@ -68,7 +75,7 @@ from seqat.types import (
     PointEstimate,
     Solution,
 )
-from seqat.update import LinearRows, UpdateSolution, solve_update, update_cofactor
+from seqat.update import LinearRows, solve_update, update_cofactor
 from seqat.window import eop_correlations, first_over_threshold
 
 #: BLAS threads used by an update: the matrices are small (a few hundred), where OpenBLAS's
@@ -195,7 +202,7 @@ class _Departure:
 
 
 @dataclass(eq=False)
-class _Window:
+class Window:
     """Parameters being updated: estimates, cofactor, and their block layout.
 
     ``L`` is the information matrix ``Q^-1`` of the window, kept only for smoothing (it gives
@@ -265,7 +272,7 @@ class SequentialAT:
         self._initial: SimultaneousAT | None = SimultaneousAT(
             camera, sim_opts, refit_every_frame=options.snooping_critical is None)
         self._origin: FloatArray | None = None
-        self._w = _Window()
+        self._w = Window()
         self._window_images: deque[int] = deque()
         self._image_ids: list[str] = []
         self._point_ids: list[str] = []
@@ -300,7 +307,7 @@ class SequentialAT:
         self._forced: set[int] = set()  # pending points already held back once (never twice)
         self._ssr = 0.0
         self._redundancy = 0
-        self._factors = _Factors()
+        self._factors = Factors()
         self.relinearisations = 0  # window re-linearisations so far
         self._drift_px = self._drift_m = self._drift_deg = float("nan")
         self.recorded: list[RecordedRows] | None = [] if record else None
@@ -715,7 +722,7 @@ class SequentialAT:
             ]
             obs += [(t, t + EOP_SIZE + GP_SIZE * b, uv, s, False, (i, born[b]))
                     for (b, uv, s) in y22]
-            builder = _RowBuilder(cam, t, n2, obs, nav, nav_sigma)
+            builder = RowBuilder(cam, t, n2, obs, nav, nav_sigma)
             x1t = w.x[touched]
             d1t = np.zeros(touched.size)
             d2 = np.zeros(n2)
@@ -735,7 +742,8 @@ class SequentialAT:
             if opts.snooping_critical is None or rounds >= MAX_SNOOPING_ROUNDS:
                 break
             rounds += 1
-            verdict = _snoop(w.Q, touched, rows, sol, builder, d1t, d2, opts.snooping_critical)
+            verdict = snoop_update(w.Q, touched, rows, sol, builder, d1t, d2,
+                                   opts.snooping_critical)
             if not verdict.observations and not set(verdict.nav_groups) - set(downweighted):
                 break
             for q, wq in zip(verdict.observations, verdict.w, strict=True):
@@ -761,7 +769,7 @@ class SequentialAT:
         w.x = np.concatenate([w.x + sol.delta1(), x2_0 + sol.delta2])
         w.Q = update_cofactor(w.Q, touched, rows, sol)
         if w.L is not None:
-            w.L = _add_information(w.L, touched, rows)
+            w.L = add_information(w.L, touched, rows)
         w.relayout(w.keys + [("e", i)] + [("p", p) for p in born])
         self._ssr += sol.ssr_increment
         self._redundancy += int(np.count_nonzero(rows.w2) + np.count_nonzero(rows.w3)) - n2
@@ -1097,7 +1105,7 @@ class SequentialAT:
         prior_old = 0.5 * x @ H_p @ x - eta_p @ x
         for _ in range(opts.relinearise_iterations):
             Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self.camera)
-            H, g = _normal_from_factors(Je, Jp, r, f.w, cols, x.size)
+            H, g = normal_from_factors(Je, Jp, r, f.w, cols, x.size)
             H += H_p
             g += eta_p - H_p @ xk
             delta = np.linalg.solve(H, g)
@@ -1105,7 +1113,7 @@ class SequentialAT:
             if np.max(np.abs(delta)) < RELINEARISE_TOLERANCE:
                 break
         Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self.camera)
-        H, _ = _normal_from_factors(Je, Jp, r, f.w, cols, x.size)
+        H, _ = normal_from_factors(Je, Jp, r, f.w, cols, x.size)
         H += H_p
         prior_new = 0.5 * xk @ H_p @ xk - eta_p @ xk
         ssr_new_factors = float(np.sum(f.w[:, None] * r**2))
@@ -1295,306 +1303,7 @@ class SequentialAT:
         )
 
 
-@dataclass(frozen=True, kw_only=True, eq=False)
-class _Verdict:
-    """What one round of data snooping rejects: image observations (indices in the row
-    builder's order) with their w, and GPS/INS groups to down-weight."""
-
-    observations: list[int]
-    w: list[float]
-    nav_groups: list[str]
-
-
-def _snoop(Q: FloatArray, touched: np.ndarray, rows: LinearRows, sol: UpdateSolution,
-           builder: _RowBuilder, d1t: FloatArray, d2: FloatArray, critical: float) -> _Verdict:
-    """Baarda's w-test on the rows of one update (seed 003 §3.1; docs/algorithm.md).
-
-    ``w_i = v_i / (sigma_i sqrt(r_i))`` with the residual ``v = l - A d`` of the converged
-    update and the redundancy number ``r_i = 1 - (A Q_post A^T)_ii / sigma_i^2``, where
-    ``Q_post`` is the cofactor after the update of the parameters the rows touch (Eq. 11-12
-    restricted to them: O((t + n2)^2)). An image point fails when either coordinate does;
-    observations with ``r < MIN_REDUNDANCY`` cannot be tested (a blunder there is absorbed).
-    """
-    T = np.linalg.solve(sol.S, sol.P2bar)
-    T = 0.5 * (T + T.T)
-    Gt = sol.G[touched]
-    Qtt = Q[np.ix_(touched, touched)] - Gt @ T @ Gt.T
-    W1t = (rows.A21.T @ (rows.w2[:, None] * rows.A22)) @ sol.D_inv
-    Q12 = -Qtt @ W1t
-    Q22 = sol.D_inv + W1t.T @ Qtt @ W1t
-    Z = np.block([[Qtt, Q12], [Q12.T, Q22]])
-    v = builder.residuals(d1t, d2)
-    k = builder.k
-    observations: list[int] = []
-    wq: list[float] = []
-    if k:
-        _, _, Je, Jp, _ = builder._lin
-        cols = np.concatenate([builder.eidx, builder.pidx], axis=1)  # (k, 9)
-        worst = snooping.point_w(np.concatenate([Je, Jp], axis=2),
-                                 Z[cols[:, :, None], cols[:, None, :]],
-                                 v[: 2 * k].reshape(k, 2), builder.sigmas)
-        sel = snooping.select(worst, critical, builder.ids[:, 0], builder.ids[:, 1])[:1]
-        observations = [int(q) for q in sel]
-        wq = [float(worst[q]) for q in sel]
-    if observations:
-        return _Verdict(observations=observations, w=wq, nav_groups=[])  # image blunders first
-    t = touched.size
-    with np.errstate(divide="ignore"):
-        nav_sigma = 1.0 / np.sqrt(builder.w[2 * k:])
-    groups = snooping.nav_groups(v[2 * k:], nav_sigma, np.diagonal(Z)[t : t + EOP_SIZE],
-                                 critical)
-    return _Verdict(observations=observations, w=wq, nav_groups=groups)
-
-
-def _add_information(L: FloatArray, touched: np.ndarray, rows: LinearRows) -> FloatArray:
-    """Information matrix after adding new parameters and the rows ``y2``, ``y3`` (Eq. 10).
-
-    ``L`` (n1, n1) is extended by ``n2`` new parameters; ``A^T P A`` of the rows is added on
-    the touched and new columns only.
-    """
-    n1, n2 = L.shape[0], rows.A22.shape[1]
-    out = np.zeros((n1 + n2, n1 + n2))
-    out[:n1, :n1] = L
-    cols = np.concatenate([touched, n1 + np.arange(n2)])
-    A2 = np.hstack([rows.A21, rows.A22])
-    out[np.ix_(cols, cols)] += A2.T @ (rows.w2[:, None] * A2)
-    out[n1:, n1:] += rows.A32.T @ (rows.w3[:, None] * rows.A32)
-    return out
-
-
-class _RowBuilder:
-    """Linearises one image's new rows around the current iterate (corrections form).
-
-    All image rows are projected in one vectorised call. Parameters are addressed in the
-    stacked vector ``z = [x1 (touched existing), x2 (new)]`` of length ``t + n2``; the design
-    of every row is scattered into one matrix ``[[A21, A22], [0, A32]]``.
-
-    Parameters
-    ----------
-    cam : PinholeCamera
-    t, n2 : int
-        Numbers of touched existing and of new parameters.
-    obs : list of (eop_col, point_col, uv, sigma_px, in_y2, (image, point))
-        One entry per image observation: columns in ``z`` of its EOP and GP blocks, the
-        observed pixel, its sigma, whether it belongs to y2 (touches an existing
-        parameter) rather than y3, and its image and point indices.
-    nav, nav_sigma : (6,) float
-        GPS/INS constraint of the new image (local), its sigma.
-    """
-
-    def __init__(
-        self,
-        cam: PinholeCamera,
-        t: int,
-        n2: int,
-        obs: list[tuple[int, int, FloatArray, float, bool, tuple[int, int]]],
-        nav: FloatArray,
-        nav_sigma: FloatArray,
-    ) -> None:
-        self.cam, self.t, self.n2 = cam, t, n2
-        self.nav = nav
-        y2 = [o for o in obs if o[4]]
-        y3 = [o for o in obs if not o[4]]
-        ordered = y2 + y3
-        self.m2 = 2 * len(y2)
-        self.m3 = 2 * len(y3) + EOP_SIZE
-        ncol = t + n2
-        k = len(ordered)
-        ecol = np.asarray([o[0] for o in ordered], dtype=np.int64).reshape(k)
-        pcol = np.asarray([o[1] for o in ordered], dtype=np.int64).reshape(k)
-        self.eidx = ecol[:, None] + np.arange(EOP_SIZE)
-        self.pidx = pcol[:, None] + np.arange(GP_SIZE)
-        rows = np.arange(2 * k).reshape(k, 2)
-        # Flat indices of each observation's 2x6 EOP and 2x3 GP Jacobians in the design.
-        self.flat_e = (rows[:, :, None] * ncol + self.eidx[:, None, :]).ravel()
-        self.flat_p = (rows[:, :, None] * ncol + self.pidx[:, None, :]).ravel()
-        self.obs = np.asarray([o[2] for o in ordered], dtype=np.float64).reshape(2 * k)
-        self.ids = np.asarray([o[5] for o in ordered], dtype=np.int64).reshape(k, 2)
-        self.sigmas = np.asarray([o[3] for o in ordered], dtype=np.float64).reshape(k)
-        w_img = np.repeat(1.0 / np.asarray([o[3] for o in ordered], dtype=np.float64) ** 2, 2)
-        self.w = np.concatenate([w_img, 1.0 / nav_sigma**2])
-        self.k = k
-        self.ncol = ncol
-
-    def rows(
-        self, x1t: FloatArray, x2_0: FloatArray, d1t: FloatArray, d2: FloatArray
-    ) -> LinearRows:
-        """Rows linearised at ``(x1t + d1t, x2_0 + d2)``; reduced observations in corrections
-        from ``(x1t, x2_0)``: ``l = y - f(x_lin) + A (x_lin - x_prior)``."""
-        t, k = self.t, self.k
-        z = np.concatenate([x1t + d1t, x2_0 + d2])
-        A = np.zeros((2 * k + EOP_SIZE, self.ncol))
-        ell = np.empty(2 * k + EOP_SIZE)
-        if k:
-            uv, Je, Jp = project_with_jacobians(z[self.eidx], z[self.pidx], self.cam)
-            A.flat[self.flat_e] = Je.ravel()
-            A.flat[self.flat_p] = Jp.ravel()
-            ell[: 2 * k] = self.obs - uv.ravel()
-            self._lin = (z[self.eidx], z[self.pidx], Je, Jp, (self.obs - uv.ravel()).reshape(k, 2))
-        # GPS/INS constraint of the new EOP (linear, A = I): nav - e_new, angles wrapped.
-        A[2 * k + np.arange(EOP_SIZE), t + np.arange(EOP_SIZE)] = 1.0
-        dz = self.nav - z[t : t + EOP_SIZE]
-        dz[3:] = wrap_angle(dz[3:])
-        ell[2 * k :] = dz
-        ell += A @ np.concatenate([d1t, d2])
-        self._A, self._ell = A, ell
-        m2 = self.m2
-        return LinearRows(
-            A21=A[:m2, :t],
-            A22=A[:m2, t:],
-            w2=self.w[:m2],
-            l2=ell[:m2],
-            A32=A[m2:, t:],
-            w3=self.w[m2:],
-            l3=ell[m2:],
-        )
-
-    def store_factors(self, factors: _Factors) -> None:
-        """Keep the image rows as finally linearised (for window re-linearisation)."""
-        if self.k == 0:
-            return
-        e, p, Je, Jp, r = self._lin
-        factors.add_linearised(self.ids[:, 0], self.ids[:, 1],
-                               self.obs.reshape(self.k, 2), self.sigmas, e, p, Je, Jp, r)
-
-    def residuals(self, d1t: FloatArray, d2: FloatArray) -> FloatArray:
-        """Residuals of the last linearised rows at the corrections ``(d1t, d2)``: image rows
-        in builder order (2 per observation), then the 6 GPS/INS rows."""
-        return self._ell - self._A @ np.concatenate([d1t, d2])
-
-    def linearisation_error(
-        self, x1t: FloatArray, x2_0: FloatArray, d1t: FloatArray, d2: FloatArray
-    ) -> float:
-        """Largest difference (px) between the image points projected at ``(d1t, d2)`` and the
-        last linearised rows' prediction there; 0 without image rows."""
-        k = self.k
-        if k == 0:
-            return 0.0
-        z = np.concatenate([x1t + d1t, x2_0 + d2])
-        true_resid = self.obs - project(z[self.eidx], z[self.pidx], self.cam).ravel()
-        lin_resid = self._ell[: 2 * k] - self._A[: 2 * k] @ np.concatenate([d1t, d2])
-        return float(np.max(np.abs(true_resid - lin_resid)))
-
-
 #: A window re-linearisation stops when no parameter moves more than this (m or rad).
 RELINEARISE_TOLERANCE = 1e-7
 #: finish() re-linearises the window when its rows are this far off (pixels).
 FINAL_RELINEARISE_PX = 1e-3
-
-
-def _normal_from_factors(Je: FloatArray, Jp: FloatArray, r: FloatArray, w: FloatArray,
-                         cols: np.ndarray, n: int) -> tuple[FloatArray, FloatArray]:
-    """``J^T W J`` and ``J^T W r`` of image-point factors scattered into ``n`` window columns."""
-    J = np.concatenate([Je, Jp], axis=2)  # (k, 2, 9)
-    wJ = J * w[:, None, None]
-    blocks = np.einsum("kri,krj->kij", wJ, J)  # (k, 9, 9)
-    H = np.zeros((n, n))
-    np.add.at(H, (cols[:, :, None], cols[:, None, :]), blocks)
-    g = np.zeros(n)
-    np.add.at(g, cols, np.einsum("kri,kr->ki", wJ, r))
-    return H, g
-
-
-@dataclass(eq=False)
-class _FactorSet:
-    """Image-point factors (one observation each) with their linearisation, as arrays."""
-
-    img: np.ndarray  # (k,) image index
-    pt: np.ndarray  # (k,) point index
-    uv: FloatArray  # (k, 2) ideal pixels
-    w: FloatArray  # (k,) weight 1/sigma^2
-    e_lin: FloatArray  # (k, 6) EOP where the factor was linearised (local)
-    p_lin: FloatArray  # (k, 3)
-    Je: FloatArray  # (k, 2, 6) Jacobians there
-    Jp: FloatArray  # (k, 2, 3)
-    r_lin: FloatArray  # (k, 2) residual there
-
-    def columns(self, w: _Window) -> tuple[np.ndarray, np.ndarray]:
-        """Window columns of every factor's EOP (k, 6) and GP (k, 3)."""
-        e_keys = {k[1]: off for k, off in w.offset.items() if k[0] == "e"}
-        p_keys = {k[1]: off for k, off in w.offset.items() if k[0] == "p"}
-        e_ids, e_offs = (np.fromiter(d, dtype=np.int64, count=len(d)) for d in
-                         (e_keys, e_keys.values()))
-        p_ids, p_offs = (np.fromiter(d, dtype=np.int64, count=len(d)) for d in
-                         (p_keys, p_keys.values()))
-        e_order, p_order = np.argsort(e_ids), np.argsort(p_ids)
-        e = e_offs[e_order][np.searchsorted(e_ids[e_order], self.img)]
-        p = p_offs[p_order][np.searchsorted(p_ids[p_order], self.pt)]
-        return e[:, None] + np.arange(EOP_SIZE), p[:, None] + np.arange(GP_SIZE)
-
-    def predicted(self, e: FloatArray, p: FloatArray) -> FloatArray:
-        """Residuals the linearised factors predict at ``(e, p)``."""
-        return (self.r_lin - np.einsum("kri,ki->kr", self.Je, e - self.e_lin)
-                - np.einsum("kri,ki->kr", self.Jp, p - self.p_lin))
-
-    def evaluate(self, e: FloatArray, p: FloatArray,
-                 cam: PinholeCamera) -> tuple[FloatArray, FloatArray, FloatArray]:
-        uv, Je, Jp = project_with_jacobians(e, p, cam)
-        return Je, Jp, self.uv - uv
-
-    def linearisation_error(self, e: FloatArray, p: FloatArray, cam: PinholeCamera) -> float:
-        true = self.uv - project(e, p, cam)
-        return float(np.max(np.abs(true - self.predicted(e, p))))
-
-    def linearised_ssr(self, e: FloatArray, p: FloatArray) -> float:
-        return float(np.sum(self.w[:, None] * self.predicted(e, p) ** 2))
-
-    def information(self, cols: np.ndarray, n: int) -> tuple[FloatArray, FloatArray]:
-        """``J^T W J`` and ``J^T W (r_lin + J x_lin)`` at the stored linearisation."""
-        x_lin = np.concatenate([self.e_lin, self.p_lin], axis=1)
-        J = np.concatenate([self.Je, self.Jp], axis=2)
-        rhs = self.r_lin + np.einsum("kri,ki->kr", J, x_lin)
-        return _normal_from_factors(self.Je, self.Jp, rhs, self.w, cols, n)
-
-    def relinearised_at(self, e: FloatArray, p: FloatArray, Je: FloatArray, Jp: FloatArray,
-                        r: FloatArray) -> None:
-        self.e_lin, self.p_lin, self.Je, self.Jp, self.r_lin = e.copy(), p.copy(), Je, Jp, r
-
-
-class _Factors:
-    """The image-point factors of the window, as appended array chunks (no per-factor Python
-    objects: the check after every update must stay well below the update itself)."""
-
-    _FIELDS = ("img", "pt", "uv", "w", "e_lin", "p_lin", "Je", "Jp", "r_lin")
-
-    def __init__(self) -> None:
-        self._chunks: list[tuple[np.ndarray, ...]] = []
-
-    def add(self, img: np.ndarray, pt: np.ndarray, uv: FloatArray, sigma: FloatArray,
-            e_lin: FloatArray, p_lin: FloatArray, cam: PinholeCamera) -> None:
-        if len(img) == 0:
-            return
-        proj, Je, Jp = project_with_jacobians(e_lin, p_lin, cam)
-        r = np.asarray(uv, dtype=np.float64).reshape(-1, 2) - proj
-        self.add_linearised(img, pt, uv, sigma, e_lin, p_lin, Je, Jp, r)
-
-    def add_linearised(self, img: np.ndarray, pt: np.ndarray, uv: FloatArray,
-                       sigma: FloatArray, e_lin: FloatArray, p_lin: FloatArray, Je: FloatArray,
-                       Jp: FloatArray, r: FloatArray) -> None:
-        if len(img) == 0:
-            return
-        w = 1.0 / np.asarray(sigma, dtype=np.float64).reshape(-1) ** 2
-        self._chunks.append((np.asarray(img, dtype=np.int64).copy(),
-                             np.asarray(pt, dtype=np.int64).copy(),
-                             np.asarray(uv, dtype=np.float64).reshape(-1, 2).copy(), w,
-                             np.array(e_lin, dtype=np.float64), np.array(p_lin, dtype=np.float64),
-                             np.array(Je, dtype=np.float64), np.array(Jp, dtype=np.float64),
-                             np.array(r, dtype=np.float64)))
-
-    def in_window(self, w: _Window) -> _FactorSet | None:
-        """The factors whose image and point are both in the window (others are dropped)."""
-        if not self._chunks:
-            return None
-        parts = [np.concatenate(col) for col in zip(*self._chunks, strict=True)]
-        img, pt = parts[0], parts[1]
-        imgs = np.fromiter((k[1] for k in w.keys if k[0] == "e"), dtype=np.int64)
-        pts = np.fromiter((k[1] for k in w.keys if k[0] == "p"), dtype=np.int64)
-        keep = np.isin(img, imgs) & np.isin(pt, pts)
-        parts = [a[keep] for a in parts]
-        self._chunks = [tuple(parts)] if keep.any() else []
-        if not keep.any():
-            return None
-        return _FactorSet(**dict(zip(self._FIELDS, parts, strict=True)))
-
-    def replace(self, f: _FactorSet) -> None:
-        self._chunks = [tuple(getattr(f, name) for name in self._FIELDS)]
