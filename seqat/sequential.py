@@ -809,6 +809,7 @@ class SequentialAT:
         )
         return dataclasses.replace(
             update,
+            reopened=len(reopened),
             drift_px=self._drift_px,
             drift_m=self._drift_m,
             drift_deg=self._drift_deg,

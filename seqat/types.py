@@ -170,6 +170,8 @@ class ImageUpdate:
     iterations: int
     eop: EopEstimate
     images_left_window: int = 0  # Seq-R: images that left the window before this update
+    #: Seq-R: departed images and GPs re-opened in this update (docs/algorithm.md).
+    reopened: int = 0
     #: Largest gap (px) between the window's linearised rows and the collinearity equations
     #: after this update (nan: not checked); above relinearise_px the window is re-adjusted.
     drift_px: float = float("nan")
