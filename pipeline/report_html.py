@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pipeline.report import DIRECT, REFERENCE, CheckpointReport, Report
+from pipeline.robustness import robustness_rows
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -184,6 +185,9 @@ def render_html(report: Report, extras: Mapping[str, object]) -> str:
         assert isinstance(series, Mapping)
         parts.append(_realtime_figure(series, {r.method: r.precision_plateau_index
                                                for r in report.realtime}))
+    if report.robustness is not None:
+        parts.append("<h2>Blunders and GNSS faults</h2>")
+        parts.append(_table(["", "value"], robustness_rows(report.robustness)))
     parts.append("<h2>Check points (ASPRS 2023)</h2>")
     if not report.checkpoint_reports:
         parts.append("<p>The flight has no check points.</p>")

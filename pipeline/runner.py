@@ -23,6 +23,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from pipeline.accuracy import Accuracy, compare_with_truth
 from pipeline.config import build_dataclass, load_yaml
 from pipeline.flight import read_flight, read_truth
+from pipeline.robustness import robustness_record
 from pipeline.sources import ImageSource, ObservationSource
 from pipeline.store import (
     RunRecord,
@@ -267,6 +268,8 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     for listener in listeners:
         listener.on_finish(solution)
     stats = source.stats()
+    for skipped in source.skipped:  # GNSS dropouts that could not be bridged
+        console.print(f"seqat: skipped: {skipped.reason}", highlight=False, markup=False)
 
     eops, points = eop_table(solution.eops), point_table(solution.points)
     accuracy = (compare_with_truth(eops, points, truth.eop, truth.points, flight.nav)
@@ -278,10 +281,13 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
                        sequential_update_ms=timing_seq,
                        wall_s=time.perf_counter() - t_start, sigma0=solution.sigma0,
                        redundancy=solution.redundancy, accuracy=accuracy)
-    record = RunRecord(method=method.value, flight=str(flight.path), inputs=flight.inputs(),
+    inputs = dataclasses.replace(flight.inputs(), skipped=flight.skipped + tuple(source.skipped))
+    robustness = robustness_record(estimator, options, bridged=source.bridged,
+                                   skipped=[s.image for s in source.skipped])
+    record = RunRecord(method=method.value, flight=str(flight.path), inputs=inputs,
                        options=options, final_only=final_only, images=tuple(updates),
                        totals=totals, tracking_options=source.tracking_options,
-                       tracking=source.tracking_stats)
+                       tracking=source.tracking_stats, robustness=robustness)
     files = write_run_outputs(out, solution, record, source.observations_text())
     return RunSummary(method=method, flight_dir=flight.path, out_dir=out, files=files,
                       n_images=totals.images, n_points=totals.points,

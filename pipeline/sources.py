@@ -25,9 +25,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipeline.dropout import PoseResection, resect_from_known
 from pipeline.flight import Flight, ObservationStats
 from pipeline.resection import Resection, resect_attitude
-from pipeline.store import format_observation_lines
+from pipeline.store import SkippedImage, format_observation_lines
 from pipeline.tracking import Tracker, TrackerOptions, read_gray_image
 from seqat.geometry import rays_world
 from seqat.types import FloatArray, Frame, ImageUpdate, PinholeCamera
@@ -116,6 +117,32 @@ class Initialiser:
                                     uv_px=ideal[keep], initial_eop=res.eop)
         return frame, res, len(known), keep
 
+    def bridge(self, frame: Frame, *, reject: bool = True) -> tuple[Frame | None, PoseResection,
+                                                                    np.ndarray]:
+        """A GNSS dropout frame (``inf`` position σ): 6-DoF resection on the known ground
+        points (:func:`pipeline.dropout.resect_pose`) as its ``initial_eop``.
+
+        ``reject`` leaves out the observations of known points that disagree with the pose.
+
+        Returns
+        -------
+        frame : Frame or None
+            ``None`` when the image cannot be resected (``resection.reason`` says why).
+        resection : PoseResection
+        keep : (k,) bool
+            The observations kept.
+        """
+        res, used = resect_from_known(frame.point_ids, frame.uv_px, self._known, self.camera,
+                                      sigma_px=frame.sigma_px, start_eop=frame.nav_eop)
+        keep = np.ones(len(frame.point_ids), dtype=bool)
+        if res.eop is None:
+            return None, res, keep
+        if reject:
+            keep[used[~res.inliers]] = False
+        frame = dataclasses.replace(frame, point_ids=tuple(np.asarray(frame.point_ids)[keep]),
+                                    uv_px=frame.uv_px[keep], initial_eop=res.eop)
+        return frame, res, keep
+
     def record(self, frame: Frame) -> None:
         """Keep the rays of a frame sent to the estimator (plane points of later frames)."""
         for pid, uv in zip(frame.point_ids, frame.uv_px, strict=True):
@@ -134,6 +161,11 @@ class Initialiser:
             self.ground_z = float(np.median([p.xyz_m[2] for p in solution.points]))
 
 
+def _not_bridged(image_id: str, resection: PoseResection) -> SkippedImage:
+    return SkippedImage(image=image_id, reason=f"{image_id}: GNSS dropout not bridged: "
+                                               f"{resection.reason}")
+
+
 class ObservationSource:
     """Frames of an observations flight (validated in one streaming pass up front)."""
 
@@ -146,10 +178,21 @@ class ObservationSource:
         self._lines: list[str] = []
         self._init = Initialiser(flight.camera, flight.config.tracking.resection_threshold_deg)
         self.tracking_stats: tuple[Mapping[str, object], ...] = ()
+        #: GNSS dropout images left out (no resection) and bridged so far.
+        self.skipped: list[SkippedImage] = []
+        self.bridged: list[str] = []
 
     def __iter__(self) -> Iterator[Frame]:
-        for frame, observed in self._frames.with_observed():
-            frame, _, _, _ = self._init.resect(frame, reject=False)
+        for row, (frame, observed) in enumerate(self._frames.with_observed()):
+            if self._flight.is_dropout(row):
+                bridged, res, _ = self._init.bridge(frame, reject=False)
+                if bridged is None:
+                    self.skipped.append(_not_bridged(frame.image_id, res))
+                    continue
+                frame = bridged
+                self.bridged.append(frame.image_id)
+            else:
+                frame, _, _, _ = self._init.resect(frame, reject=False)
             self._init.record(frame)
             self._lines.append(format_observation_lines(frame.image_id, frame.point_ids,
                                                         observed))
@@ -202,6 +245,9 @@ class ImageSource:
         self._stats: list[Mapping[str, object]] = []
         self._points: set[str] = set()
         self._n_obs = 0
+        #: GNSS dropout images left out (no resection) and bridged so far.
+        self.skipped: list[SkippedImage] = []
+        self.bridged: list[str] = []
 
     @property
     def tracking_stats(self) -> tuple[Mapping[str, object], ...]:
@@ -216,26 +262,40 @@ class ImageSource:
             t0 = time.perf_counter()
             gray = read_tracker_image(path, self._tracker, cam.width_px, cam.height_px)
             read_ms = (time.perf_counter() - t0) * 1e3
-            nav = flight.nav.eop[row]
+            nav, nav_sigma = flight.frame_nav(row)
             tracked = self._tracker.add_image(image_id, gray, nav, self._init.ground_z)
             observed: FloatArray = np.asarray(tracked.uv_px, dtype=np.float64).reshape(-1, 2)
             point_ids = tracked.point_ids
-            frame = Frame(image_id=image_id, nav_eop=nav, nav_sigma=flight.nav_sigma,
+            frame = Frame(image_id=image_id, nav_eop=nav, nav_sigma=nav_sigma,
                           point_ids=point_ids, uv_px=flight.corrector.ideal_pixels(observed),
                           sigma_px=flight.config.sigma_image_px)
-            cleaned, first, known, keep = self._init.resect(frame)
-            observed = observed[keep]
-            # the initial value from the kept observations only, as a replay of them
-            # (--observations) computes it: the sequential result depends on it
-            frame, res, _, _ = self._init.resect(cleaned, reject=False)
+            stats: dict[str, object] = {**dataclasses.asdict(tracked.stats), "read_ms": read_ms}
+            if flight.is_dropout(row):
+                cleaned, pose, keep = self._init.bridge(frame)
+                stats.update({"dropout": True, "resection_points": pose.n_points,
+                              "resection_inliers": pose.n_inliers,
+                              "resection_used": cleaned is not None,
+                              "observations_rejected": int((~keep).sum())})
+                if cleaned is None:
+                    self.skipped.append(_not_bridged(image_id, pose))
+                    continue
+                observed = observed[keep]
+                bridged, _, _ = self._init.bridge(cleaned, reject=False)  # as a replay does
+                frame = cleaned if bridged is None else bridged
+                self.bridged.append(image_id)
+            else:
+                cleaned, first, known, keep = self._init.resect(frame)
+                observed = observed[keep]
+                # the initial value from the kept observations only, as a replay of them
+                # (--observations) computes it: the sequential result depends on it
+                frame, res, _, _ = self._init.resect(cleaned, reject=False)
+                stats.update({"resection_points": first.n_points,
+                              "resection_known_points": known,
+                              "resection_inliers": first.n_inliers,
+                              "resection_used": res.eop is not None,
+                              "observations_rejected": int((~keep).sum())})
             self._init.record(frame)
-            self._stats.append({**dataclasses.asdict(tracked.stats),
-                                "read_ms": read_ms,
-                                "resection_points": first.n_points,
-                                "resection_known_points": known,
-                                "resection_inliers": first.n_inliers,
-                                "resection_used": res.eop is not None,
-                                "observations_rejected": int((~keep).sum())})
+            self._stats.append(stats)
             self._lines.append(format_observation_lines(image_id, frame.point_ids, observed))
             self._points.update(frame.point_ids)
             self._n_obs += len(frame.point_ids)
