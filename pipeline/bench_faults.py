@@ -36,7 +36,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from pipeline.bench import _load_average, _load_sim_config, _machine, _progress
 from pipeline.bench_report import Machine, Triple

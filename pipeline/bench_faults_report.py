@@ -7,8 +7,11 @@ ratio shown is the worst of the components (X, Y, Z, ω, φ, κ for EOPs; X, Y, 
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Sequence
+import types
+import typing
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -34,14 +37,15 @@ def _t(t: Sequence[float], digits: int = 3) -> str:
 
 
 def _reference(run: FaultRun, runs: Sequence[FaultRun]) -> FaultRun | None:
+    """Blunder runs: the oracle; a jump or dropout with snooping on: the clean run with it
+    on; everything else: the clean run without snooping."""
     same = [r for r in runs if r.case == run.case and r.seed == run.seed and not r.error]
     if run.fault.startswith("blunders") and run.variant != ORACLE:
         return next((r for r in same if r.fault == run.fault and r.variant == ORACLE), None)
-    if run.fault == "clean" and run.variant == OFF:
+    if (run.fault == "clean" and run.variant == OFF) or run.variant == ORACLE:
         return None
-    if run.variant == ORACLE:
-        return None
-    return next((r for r in same if r.fault == "clean" and r.variant == OFF), None)
+    variant = ON if run.variant == ON and run.fault != "clean" else OFF
+    return next((r for r in same if r.fault == "clean" and r.variant == variant), None)
 
 
 def worst_ratios(run: FaultRun, ref: FaultRun | None) -> tuple[float, float]:
@@ -130,14 +134,17 @@ def _accuracy(case: str, runs: Sequence[FaultRun]) -> list[str]:
 
 def _detection(case: str, runs: Sequence[FaultRun]) -> list[str]:
     rows = []
-    for r in _order([r for r in runs if r.case == case and r.detection is not None]):
+    for r in _order([r for r in runs if r.case == case and r.detection is not None
+                     and r.variant == ON]):  # without snooping nothing is rejected
         d, t = r.detection, r.detection_testable
         assert d is not None
         rows.append([str(r.seed), r.fault, str(d.injected), str(d.rejected),
                      str(d.true_positives), _f(d.precision), _f(d.recall),
                      f"{_f(t.recall)} ({t.injected})" if t is not None else "–"])
     return _table(["seed", "fault", "injected", "rejected", "true positives", "precision",
-                   "recall", "recall of testable (count)"], rows)
+                   "recall", "recall of testable (count)"], rows) + [
+        "Testable: blunders of points with at least `min_rays` observations (a point seen "
+        "fewer times never enters with snooping on).", ""]
 
 
 def _jump(case: str, runs: Sequence[FaultRun], report: FaultBenchReport) -> list[str]:
@@ -151,6 +158,31 @@ def _jump(case: str, runs: Sequence[FaultRun], report: FaultBenchReport) -> list
                      str(len(others)), _f(r.jump_error_m), _f(e, 2), r.error[:60]])
     return _table(["seed", "image", "variant", "flagged", "other nav groups down-weighted",
                    "error at jump image (m)", "EOP ÷ clean", "failure"], rows)
+
+
+def report_from_json(doc: Mapping[str, object]) -> FaultBenchReport:
+    """A :class:`FaultBenchReport` from ``faults.json`` (``null`` numbers become NaN), to
+    render the tables again without running the benchmark."""
+    return _build(FaultBenchReport, doc)  # type: ignore[no-any-return]
+
+
+def _build(tp: object, value: object) -> object:
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if dataclasses.is_dataclass(tp) and isinstance(value, Mapping):
+        hints = typing.get_type_hints(tp)
+        return tp(**{f.name: _build(hints[f.name], value[f.name])  # type: ignore[operator]
+                     for f in dataclasses.fields(tp) if f.name in value})
+    if origin in (types.UnionType, typing.Union):
+        if value is None and type(None) in args:
+            return None
+        return _build(next(a for a in args if a is not type(None)), value)
+    if origin is tuple and isinstance(value, list):
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_build(args[0], v) for v in value)
+        return tuple(_build(a, v) for a, v in zip(args, value, strict=True))
+    if tp is float:
+        return math.nan if value is None else float(value)  # type: ignore[arg-type]
+    return value
 
 
 def _dropout(case: str, runs: Sequence[FaultRun], report: FaultBenchReport) -> list[str]:
@@ -172,6 +204,10 @@ def _dropout(case: str, runs: Sequence[FaultRun], report: FaultBenchReport) -> l
                    "att max / rms ÷ nbr rms", "EOP ÷ clean"], rows)
 
 
+def _span(images: Sequence[str]) -> str:
+    return f"{len(images)}: {images[0]}–{images[-1]}" if images else "0"
+
+
 def render_fault_markdown(report: FaultBenchReport) -> str:
     """All tables of a fault benchmark, one section per case."""
     o, m = report.options, report.machine
@@ -183,17 +219,16 @@ def render_fault_markdown(report: FaultBenchReport) -> str:
              f"({o.blunder_min_px:g}–{o.blunder_max_px:g} px); jump {o.jump_m:g} m; dropout "
              f"{o.dropout_s:g} s. Seq-R ρ ≥ {o.threshold:g}, RTS-smoothed; snooping on: "
              f"critical w {o.snooping_critical:g}, min_rays {o.min_rays}. GPs off: error > "
-             f"{o.gp_outlier_m:g} m. Ratios: worst component, blunder runs ÷ oracle, others ÷ "
-             "clean (snooping off).", ""]
+             f"{o.gp_outlier_m:g} m. Ratios: worst component; blunder runs ÷ oracle, jump and "
+             "dropout ÷ clean with the same snooping setting, clean with snooping ÷ clean "
+             "without.", ""]
     for case in report.cases:
         lines += [f"## {case}", ""]
         setups = [s for s in report.setups if s.case == case]
         lines += _table(["seed", "images", "observations", "blunders", "jump image",
                          "dropout images"],
                         [[str(s.seed), str(s.n_images), str(s.n_observations),
-                          " / ".join(map(str, s.blunders)), s.jump_image,
-                          f"{len(s.dropout_images)}: {s.dropout_images[0] if s.dropout_images else ''}"
-                          f"–{s.dropout_images[-1] if s.dropout_images else ''}"]
+                          " / ".join(map(str, s.blunders)), s.jump_image, _span(s.dropout_images)]
                          for s in setups])
         lines += ["### Summary (over seeds)", ""] + _summary(case, report.runs)
         lines += ["### Blunder detection", ""] + _detection(case, report.runs)

@@ -155,3 +155,11 @@ def test_cli_bench_faults_bad_case_exits_2(tmp_path: Path) -> None:
     assert result.exit_code == 2
     assert result.stderr.strip().startswith("seqat: error: bench faults: --case")
     assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "o").exists()
+
+
+def test_faults_json_renders_the_same_tables_again(tiny_faults: tuple[dict, Path]) -> None:  # type: ignore[type-arg]
+    from pipeline.bench_faults_report import render_fault_markdown, report_from_json
+
+    doc, out = tiny_faults
+    again = render_fault_markdown(report_from_json(doc))
+    assert again == (out / "faults.md").read_text(encoding="utf-8")
