@@ -13,6 +13,7 @@ from typer.testing import CliRunner
 from pipeline.cli import app
 from pipeline.dropout import MIN_POINTS, predict_missing, resect_pose
 from pipeline.flight import read_flight, read_truth
+from pipeline.reference import run_reference
 from pipeline.report import make_report
 from pipeline.runner import run_flight
 from pipeline.store import read_eop_csv, read_run
@@ -125,6 +126,11 @@ def test_dropout_of_an_observations_flight_is_bridged_end_to_end(tmp_path: Path)
     summary = make_report(out)  # a report of a dropout run: the direct method skips them
     assert summary.report.robustness is not None
     assert summary.report.robustness.dropout_bridged == 10
+    ref = run_reference(out).record  # COLMAP: a free prior on the missing components, as Sim
+    assert ref.n_images_adjusted == 60 and abs(ref.sigma0 - run.record["totals"]["sigma0"]) < 0.01
+    ref_eop = read_eop_csv(out / "reference" / "eop.csv")
+    d = np.linalg.norm(ref_eop.eop[30:40, :3] - run.eop.eop[30:40, :3], axis=1)
+    assert d.max() < 0.05  # metres: Sim's minimum, which the sequential run reached
 
 
 def test_images_without_a_fix_are_bridged_in_an_image_flight(tmp_path: Path) -> None:
