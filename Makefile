@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.seqat-installed
 DEMO := out/demo
 
-.PHONY: demo test bench sysdeps clean
+.PHONY: demo test bench bench-faults sysdeps clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -47,6 +47,11 @@ test: $(STAMP) sysdeps
 bench: $(STAMP) sysdeps
 	$(BIN)/seqat bench configs/paper_sim.yaml --out out/bench --seed 1 --seed 2 --seed 3 \
 		--threshold 0.1 --threshold 0.03 --threshold 0.01
+
+# Seeded blunders, a GNSS jump and a dropout on the paper strip, a 3-strip block and the
+# rendered sample (docs/benchmarks.md, *Faults*).
+bench-faults: $(STAMP) sysdeps
+	$(BIN)/seqat bench faults --out out/bench_faults --seed 1 --seed 2 --seed 3
 
 clean:
 	rm -rf out .pytest_cache

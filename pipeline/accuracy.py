@@ -116,7 +116,9 @@ def compare_with_truth(eops: EopTable, points: PointTable, truth_eop: NavTable,
         NaN triples where nothing matched.
     """
     pos, att, n_img = _eop_errors(eops.image_ids, eops.eop, truth_eop)
-    nav_pos, nav_att, _ = _eop_errors(nav.image_ids, nav.eop, truth_eop)
+    fix = np.all(np.isfinite(nav.eop), axis=1)  # GNSS dropouts have no input to compare
+    nav_pos, nav_att, _ = _eop_errors(tuple(np.asarray(nav.image_ids)[fix]), nav.eop[fix],
+                                      truth_eop)
     d = point_differences(points.point_ids, points.xyz_m, truth_points.point_ids,
                           truth_points.xyz_m)
     return Accuracy(n_images=n_img, n_points=d.shape[0], pos_rmse_m=pos, att_rmse_deg=att,

@@ -333,13 +333,25 @@ def bench(
         "--seed", help="Seed of one simulated flight (repeat for several).")] = None,
     threshold: Annotated[list[float] | None, typer.Option(
         "--threshold", help="Seq-R correlation threshold (repeat for several).")] = None,
+    case: Annotated[list[str] | None, typer.Option(
+        "--case", help="bench faults: strip, block or rendered (repeat; default all).")] = None,
+    strip_config: Annotated[Path, typer.Option(
+        "--strip-config", help="bench faults: config of the strip case.")] = Path(
+        "configs/paper_sim.yaml"),
+    rendered: Annotated[Path, typer.Option(
+        "--rendered", help="bench faults: flight folder (with truth/) of the rendered case.")]
+    = Path("sample_data/autzen_rendered"),
 ) -> None:
     """Compare direct georeferencing, Seq-R, Seq-F and Sim on simulated flights, or, for an
-    image flight folder, Seq-R (tracking) with Sim and Seq-F on the same tie points."""
+    image flight folder, Seq-R (tracking) with Sim and Seq-F on the same tie points.
+    ``seqat bench faults``: seeded blunders, a GNSS jump and a dropout (docs/benchmarks.md)."""
     from pipeline.bench import run_bench
 
     if str(config) == "long":
         _long_bench(out)
+        return
+    if str(config) == FAULTS_BENCH and not config.exists():
+        _faults_bench(out, seed, case, strip_config, rendered)
         return
     if config.is_dir():
         _flight_bench(config, out)
@@ -375,6 +387,25 @@ def _long_bench(out: Path) -> None:
                              f"{v.wall_s:.0f} s"))
     rows.append(("written", str(out)))
     _console().print(_table(f"seqat bench long ({b.images} images)", rows))
+#: ``seqat bench faults``: the fault benchmark instead of a config.
+FAULTS_BENCH = "faults"
+
+
+def _faults_bench(out: Path, seeds: list[int] | None, cases: list[str] | None,
+                  strip_config: Path, rendered: Path) -> None:
+    from pipeline.bench_faults import CASES, run_fault_bench
+    from pipeline.bench_faults_report import summary_rows
+
+    report = run_fault_bench(out, seeds=tuple(seeds or (1, 2, 3)), cases=tuple(cases or CASES),
+                             strip_config=strip_config, rendered_flight=rendered)
+    table = Table(title="seqat bench faults (mean over seeds)", title_justify="left")
+    header, rows = summary_rows(report)
+    for col in header:
+        table.add_column(col)
+    for row in rows:
+        table.add_row(*row)
+    _console().print(table)
+    _console().print(f"benchmark written to {out / 'faults.json'} and {out / 'faults.md'}")
 
 
 def _flight_bench(flight: Path, out: Path) -> None:

@@ -52,6 +52,7 @@ from seqat.cvframe import (
 )
 from seqat.errors import ConfigError, EstimationError
 from seqat.geometry import wrap_angle
+from seqat.simultaneous import free_nav_sigma
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 
 if TYPE_CHECKING:
@@ -138,7 +139,8 @@ class ReferenceInput:
     image_ids : tuple[str, ...]
         Acquisition order.
     nav_eop : (n, 6) float
-        GPS/INS EOPs (metres, radians): the priors.
+        GPS/INS EOPs (metres, radians): the priors. NaN (a GNSS dropout) takes Sim's free
+        prior: ``eop0`` with σ 1 km / 1 rad (:func:`seqat.simultaneous.free_nav_sigma`).
     nav_sigma : (6,) float
         Their standard deviations (metres, radians).
     sigma_px : float
@@ -422,7 +424,10 @@ def adjust_reference(data: ReferenceInput,
         solve.
     """
     pycolmap, pyceres = _import_pycolmap()
-    origin = np.round(data.nav_eop[0, :3])
+    missing = np.isnan(data.nav_eop)
+    nav_eop = np.where(missing, data.eop0, data.nav_eop)
+    nav_sigma = free_nav_sigma(np.where(missing, np.inf, data.nav_sigma))  # (n, 6)
+    origin = np.round(nav_eop[0, :3])
     model = build_reconstruction(data, origin)
     rec = model.reconstruction
     if model.point_rows.size == 0:
@@ -443,14 +448,14 @@ def adjust_reference(data: ReferenceInput,
                               f"({n_obs_used} observations)")
     # GPS/INS priors: Sim's weights times sigma_px^2 (COLMAP's image residuals are unweighted).
     scale = 1.0 / data.sigma_px**2
-    nav_local = data.nav_eop.copy()
+    nav_local = nav_eop.copy()
     nav_local[:, :3] -= origin
-    pose_cov = pose_prior_covariance(data.nav_eop, data.nav_sigma) * scale
-    position_var = data.nav_sigma[:3] ** 2 * scale
+    pose_cov = pose_prior_covariance(nav_eop, nav_sigma) * scale
+    position_var = nav_sigma[:, :3] ** 2 * scale
     n_blocks = problem.num_parameter_blocks()
     for i in model.image_rows:
         frame = rec.frame(rec.image(int(i) + 1).frame_id)
-        cost = _prior_cost(options.prior, nav_local[i], pose_cov[i], position_var)
+        cost = _prior_cost(options.prior, nav_local[i], pose_cov[i], position_var[i])
         problem.add_residual_block(cost, None, [frame.rig_from_world.params])
     per_prior = (POSE_PRIOR_RESIDUALS if options.prior is PriorKind.POSE
                  else POSITION_PRIOR_RESIDUALS)
@@ -496,13 +501,13 @@ def adjust_reference(data: ReferenceInput,
     p_cam += t_cv[img_used]
     uv_hat = np.asarray(rec.camera(CAMERA_ID).img_from_cam(p_cam, check_cheirality=False))
     v_img = uv_obs - uv_hat
-    v_nav = data.nav_eop - (eop_local + np.concatenate([origin, np.zeros(3)]))
+    v_nav = nav_eop - (eop_local + np.concatenate([origin, np.zeros(3)]))
     v_nav[:, 3:] = wrap_angle(v_nav[:, 3:])
     in_adj = np.zeros(n, dtype=bool)
     in_adj[model.image_rows] = True
     prior_cols = slice(0, EOP_SIZE if options.prior is PriorKind.POSE else 3)
     ssr = float(np.sum(v_img**2) / data.sigma_px**2
-                + np.sum((v_nav[in_adj] / data.nav_sigma)[:, prior_cols] ** 2))
+                + np.sum((v_nav[in_adj] / nav_sigma[in_adj])[:, prior_cols] ** 2))
     redundancy = OBS_RESIDUALS * n_obs_used - GP_SIZE * int(model.point_rows.size)
     if options.prior is PriorKind.POSITION:
         redundancy -= 3 * int(model.image_rows.size)  # attitudes without pseudo-observations
@@ -511,7 +516,7 @@ def adjust_reference(data: ReferenceInput,
     scale_post = sigma0 if np.isfinite(sigma0) else 1.0
 
     eop_sigma = np.full((n, EOP_SIZE), np.nan)
-    eop_sigma[~in_adj] = data.nav_sigma
+    eop_sigma[~in_adj] = nav_sigma[~in_adj]
     xyz_sigma = np.full((model.point_rows.size, GP_SIZE), np.nan)
     status = "off"
     if options.covariance:

@@ -455,7 +455,10 @@ class NavConfig:
     reads each image's EXIF/XMP (docs/formats.md). ``height`` is the height kind of a
     geodetic ``nav.csv`` (``ellipsoidal`` WGS 84 or ``egm96`` orthometric). ``boresight`` and
     ``lever_arm_m`` (GPS antenna -> camera, body axes x forward, y right, z down, metres) apply
-    to geodetic attitudes and positions only.
+    to geodetic attitudes and positions only. ``dropout`` is what becomes of an image
+    without a GNSS fix (empty or ``nan`` position fields, no ``nav.csv`` row, no GPS in its
+    EXIF): ``bridge`` (default) sends it to the estimator without a position constraint,
+    resected on the known ground points; ``skip`` leaves it out (docs/formats.md).
     """
 
     source: Literal["file", "images"] = "file"
@@ -466,6 +469,7 @@ class NavConfig:
     sigma_attitude_deg: SigmaTriple = DEFAULT_SIGMA_ATTITUDE_DEG
     boresight: BoresightConfig = BoresightConfig()
     lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    dropout: Literal["bridge", "skip"] = "bridge"
 
     def __post_init__(self) -> None:
         _triple(self.sigma_position_m, "sigma_position_m")

@@ -24,6 +24,7 @@ import pyproj
 from pipeline.camera import PixelCorrector, pinhole_camera
 from pipeline.config import CameraConfig, FlightConfig, NavConfig, load_flight_config
 from pipeline.csvio import CsvRow, read_csv
+from pipeline.dropout import dropout_sigma, predict_missing
 from pipeline.image_metadata import HeightKind, ImageMetadata, found_tags, read_image_metadata
 from pipeline.navigation import (
     MIN_IMAGES,
@@ -60,14 +61,23 @@ ASPECT_TOLERANCE = 2e-3
 #: Half a pixel: observed pixel centres lie in ``[-0.5, width - 0.5]`` (OpenCV convention).
 HALF_PIXEL = 0.5
 
+#: Value columns of a nav row taken together: a fix (3 positions) and an attitude (3 angles).
+NAV_GROUPS = (slice(0, 3), slice(3, 6))
+#: Fields read as "missing" in a nav row (a GNSS dropout) when missing values are allowed.
+MISSING_TEXT = ("", "nan", "NaN", "NAN")
+
+
 class NavRowChecker:
     """Validates ``nav.csv`` rows one at a time: ids unique, times strictly increasing.
 
-    Shared by the batch reader and the watch mode's reader of a growing ``nav.csv``.
+    Shared by the batch reader and the watch mode's reader of a growing ``nav.csv``. With
+    ``allow_missing`` an empty or ``nan`` value field is a dropout: the whole group it belongs
+    to (the 3 position or the 3 attitude fields) is NaN.
     """
 
-    def __init__(self, columns: tuple[str, ...]) -> None:
+    def __init__(self, columns: tuple[str, ...], *, allow_missing: bool = False) -> None:
         self.columns = columns
+        self.allow_missing = allow_missing
         self._first_line: dict[str, int] = {}
         self._prev_time, self._prev_line = -math.inf, 0
 
@@ -81,16 +91,23 @@ class NavRowChecker:
         if not time_s > self._prev_time:
             raise row.error(f"nav out of time order: time_s {time_s!r} of image {image!r} is "
                             f"not after {self._prev_time!r} (line {self._prev_line})")
-        values = [row.number(c) for c in self.columns[2:]]
+        values = [math.nan if self.allow_missing and row.values[c] in MISSING_TEXT
+                  else row.number(c) for c in self.columns[2:]]
+        for group in NAV_GROUPS:
+            if any(math.isnan(v) for v in values[group]):
+                values[group] = [math.nan] * 3
         self._first_line[image] = row.line
         self._prev_time, self._prev_line = time_s, row.line
         return image, time_s, values
 
 
-def _read_nav_rows(path: Path | str, columns: tuple[str, ...]) -> (
+def _read_nav_rows(path: Path | str, columns: tuple[str, ...], *,
+                   allow_missing: bool = False) -> (
         tuple[tuple[str, ...], FloatArray, FloatArray]):
-    """Ids, times and the 6 value columns of a ``nav.csv`` (validated, order kept)."""
-    checker = NavRowChecker(columns)
+    """Ids, times and the 6 value columns of a ``nav.csv`` (validated, order kept; missing
+    values as :class:`NavRowChecker`). At least :data:`MIN_IMAGES` rows must keep their
+    position."""
+    checker = NavRowChecker(columns, allow_missing=allow_missing)
     ids: list[str] = []
     times: list[float] = []
     rows: list[list[float]] = []
@@ -99,17 +116,21 @@ def _read_nav_rows(path: Path | str, columns: tuple[str, ...]) -> (
         ids.append(image)
         times.append(time_s)
         rows.append(values)
-    if len(ids) < MIN_IMAGES:
-        raise InputDataError(f"{path}: {len(ids)} image(s); at least {MIN_IMAGES} are needed")
-    return (tuple(ids), np.asarray(times, dtype=np.float64),
-            np.asarray(rows, dtype=np.float64).reshape(-1, 6))
+    eop = np.asarray(rows, dtype=np.float64).reshape(-1, 6)
+    with_fix = int(np.count_nonzero(np.isfinite(eop[:, 0])))
+    if with_fix < MIN_IMAGES:
+        what = "image(s)" if with_fix == len(ids) else f"of {len(ids)} image(s) with a position"
+        raise InputDataError(f"{path}: {with_fix} {what}; at least {MIN_IMAGES} are needed")
+    return tuple(ids), np.asarray(times, dtype=np.float64), eop
 
 
-def read_nav_projected(path: Path | str) -> NavTable:
+def read_nav_projected(path: Path | str, *, allow_missing: bool = False) -> NavTable:
     """Read a projected ``nav.csv`` (or ``truth/eop.csv``).
 
     Columns ``image,time_s,x_m,y_m,z_m,omega_deg,phi_deg,kappa_deg``: ``x_m`` easting,
     ``y_m`` northing, ``z_m`` height (all in the flight CRS), angles in degrees.
+    ``allow_missing``: empty or ``nan`` fields are a GNSS dropout (NaN for the whole
+    position or attitude group).
 
     Returns
     -------
@@ -122,7 +143,7 @@ def read_nav_projected(path: Path | str) -> NavTable:
         Malformed row, non-finite value, duplicate image, time not strictly increasing,
         fewer than :data:`MIN_IMAGES` rows.
     """
-    ids, times, eop = _read_nav_rows(path, NAV_PROJECTED_COLUMNS)
+    ids, times, eop = _read_nav_rows(path, NAV_PROJECTED_COLUMNS, allow_missing=allow_missing)
     eop[:, 3:] = np.radians(eop[:, 3:])
     return NavTable(image_ids=ids, times_s=times, eop=eop)
 
@@ -137,26 +158,29 @@ class GeodeticNav:
     roll_pitch_yaw_deg: FloatArray  # (n, 3)
 
 
-def read_nav_geodetic(path: Path | str) -> GeodeticNav:
+def read_nav_geodetic(path: Path | str, *, allow_missing: bool = False) -> GeodeticNav:
     """Read a geodetic ``nav.csv``.
 
     Columns ``image,time_s,lat_deg,lon_deg,h_m,roll_deg,pitch_deg,yaw_deg``: WGS 84 fix of the
-    GPS antenna, aircraft attitude (yaw from true north), degrees.
+    GPS antenna, aircraft attitude (yaw from true north), degrees. ``allow_missing``: as
+    :func:`read_nav_projected`.
 
     Raises
     ------
     InputDataError
         As :func:`read_nav_projected`, and latitude or longitude out of range.
     """
-    ids, times, values = _read_nav_rows(path, NAV_GEODETIC_COLUMNS)
+    ids, times, values = _read_nav_rows(path, NAV_GEODETIC_COLUMNS, allow_missing=allow_missing)
     check_lat_lon(path, ids, values)
     return GeodeticNav(image_ids=ids, times_s=times, lat_lon_h=values[:, :3].copy(),
                        roll_pitch_yaw_deg=values[:, 3:].copy())
 
 
 def check_lat_lon(path: Path | str, ids: tuple[str, ...], values: FloatArray) -> None:
-    """Raise unless every latitude (column 0) and longitude (column 1) is in range."""
-    bad = np.flatnonzero((np.abs(values[:, 0]) > 90.0) | (np.abs(values[:, 1]) > 180.0))
+    """Raise unless every latitude (column 0) and longitude (column 1) is in range (NaN: a
+    dropout, not checked)."""
+    with np.errstate(invalid="ignore"):
+        bad = np.flatnonzero((np.abs(values[:, 0]) > 90.0) | (np.abs(values[:, 1]) > 180.0))
     if bad.size:
         i = int(bad[0])
         raise InputDataError(f"{path}: image {ids[i]!r}: latitude {values[i, 0]!r} / longitude "
@@ -201,7 +225,8 @@ class Flight:
     corrector : PixelCorrector
         Observed -> ideal pixels.
     nav : NavTable
-        GPS/INS EOPs in the working CRS, acquisition order, usable images only.
+        GPS/INS EOPs in the working CRS, acquisition order, usable images only; NaN for the
+        position or attitude of a GNSS dropout (``nav.dropout: bridge``).
     nav_sigma : (6,) float
         A priori σ, metres and radians.
     observations_path : Path or None
@@ -228,6 +253,24 @@ class Flight:
     image_paths: tuple[Path, ...] = ()
     skipped: tuple[SkippedImage, ...] = ()
     warnings: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        # start values of dropout components, from earlier rows only (pipeline.dropout)
+        object.__setattr__(self, "_nav_start", predict_missing(self.nav.eop, self.nav.times_s))
+
+    def frame_nav(self, row: int) -> tuple[FloatArray, FloatArray]:
+        """The ``nav_eop`` and ``nav_sigma`` of the frame of nav row ``row``.
+
+        A dropout's missing components get ``inf`` σ (no constraint) and a start value
+        predicted from the earlier rows (:func:`pipeline.dropout.predict_missing`).
+        """
+        missing = np.isnan(self.nav.eop[row])
+        start: FloatArray = self._nav_start[row]  # type: ignore[attr-defined]
+        return start, dropout_sigma(self.nav_sigma, missing)
+
+    def is_dropout(self, row: int) -> bool:
+        """Whether nav row ``row`` misses its position or attitude (a GNSS dropout)."""
+        return bool(np.isnan(self.nav.eop[row]).any())
 
     @property
     def kind(self) -> Literal["observations", "images"]:
@@ -302,15 +345,82 @@ def geodetic_nav_eop(config: FlightConfig, crs: pyproj.CRS, lat_lon_h: FloatArra
     kind: HeightKind = "orthometric" if config.nav.height == "egm96" else "ellipsoidal"
     return geodetic_to_eop(lon, lat, h, roll_pitch_yaw_deg, ["body"] * n, [kind] * n, crs,
                            config.nav.boresight, np.asarray(config.nav.lever_arm_m))
+def _fill_from_previous(values: FloatArray) -> FloatArray:
+    """Rows with NaN take the previous complete row (before the first: the first complete)."""
+    out = values.copy()
+    ok = np.flatnonzero(np.all(np.isfinite(values), axis=1))
+    for i in np.flatnonzero(~np.all(np.isfinite(values), axis=1)):
+        before = ok[ok < i]
+        out[i] = values[before[-1] if before.size else ok[0]] if ok.size else 0.0
+    return out
 
 
 def _geodetic_file_nav(path: Path, config: FlightConfig, source: str) -> tuple[pyproj.CRS,
                                                                               NavTable]:
-    geo = read_nav_geodetic(path)
-    lat, lon, _ = geo.lat_lon_h.T
-    crs = resolve_working_crs(config.crs, float(lon[0]), float(lat[0]), source=source)
-    eop = geodetic_nav_eop(config, crs, geo.lat_lon_h, geo.roll_pitch_yaw_deg)
+    geo = read_nav_geodetic(path, allow_missing=True)  # nav.dropout: skip drops them later
+    missing = np.isnan(np.column_stack([geo.lat_lon_h, geo.roll_pitch_yaw_deg]))
+    # A dropout row is converted with the previous fix and attitude (the grid convergence
+    # and the lever arm need them), then its missing groups are set back to NaN.
+    lat_lon_h = _fill_from_previous(geo.lat_lon_h)
+    first = int(np.flatnonzero(~missing[:, 0])[0])
+    crs = resolve_working_crs(config.crs, float(lat_lon_h[first, 1]),
+                              float(lat_lon_h[first, 0]), source=source)
+    eop = geodetic_nav_eop(config, crs, lat_lon_h, _fill_from_previous(geo.roll_pitch_yaw_deg))
+    eop[missing] = np.nan
     return crs, NavTable(image_ids=geo.image_ids, times_s=geo.times_s, eop=eop)
+
+
+def _dropout_reason(image: str, missing: np.ndarray, source: str) -> str:
+    what = " and ".join(name for name, sl in (("position", slice(0, 3)),
+                                             ("attitude", slice(3, 6))) if missing[sl].any())
+    return f"{image}: GNSS dropout (no {what} in {source}; nav.dropout: skip)"
+
+
+def _skip_dropouts(nav: NavTable, skipped: list[SkippedImage], source: str) -> NavTable:
+    """``nav.dropout: skip``: leave out the rows with a missing group."""
+    missing = np.isnan(nav.eop)
+    keep = ~missing.any(axis=1)
+    for i in np.flatnonzero(~keep):
+        skipped.append(SkippedImage(image=nav.image_ids[i],
+                                    reason=_dropout_reason(nav.image_ids[i], missing[i], source)))
+    return NavTable(image_ids=tuple(np.asarray(nav.image_ids)[keep]), times_s=nav.times_s[keep],
+                    eop=nav.eop[keep])
+
+
+def _insert_rows(nav: NavTable, images: list[str]) -> NavTable:
+    """Add dropout rows (all NaN) for images without a ``nav.csv`` row.
+
+    Each goes after the last nav image whose id sorts before it (file names follow the
+    acquisition order); its time is interpolated between its neighbours' (after the last:
+    the median interval on), a placeholder that only keeps the times increasing.
+    """
+    if not images:
+        return nav
+    order = list(nav.image_ids)
+    for image in sorted(images):
+        pos = 0
+        for k, other in enumerate(order):
+            if other < image:
+                pos = k + 1
+        order.insert(pos, image)
+    row_of = nav.index()
+    eop = np.full((len(order), 6), np.nan)
+    times = np.full(len(order), np.nan)
+    for k, image in enumerate(order):
+        if image in row_of:
+            eop[k], times[k] = nav.eop[row_of[image]], nav.times_s[row_of[image]]
+    known = np.flatnonzero(np.isfinite(times))
+    step = float(np.median(np.diff(nav.times_s))) if len(nav) > 1 else 1.0
+    for k in np.flatnonzero(np.isnan(times)):
+        before, after = known[known < k], known[known > k]
+        if before.size and after.size:
+            a, b = before[-1], after[0]
+            times[k] = times[a] + (times[b] - times[a]) * (k - a) / (b - a)
+        elif before.size:
+            times[k] = times[before[-1]] + step * (k - before[-1])
+        else:
+            times[k] = times[after[0]] - step * (after[0] - k)
+    return NavTable(image_ids=tuple(order), times_s=times, eop=eop)
 
 
 def read_flight(flight_dir: Path | str) -> Flight:
@@ -349,11 +459,13 @@ def read_flight(flight_dir: Path | str) -> Flight:
         raise InputDataError(f"{images_dir}: no such image folder (images in {source})")
     skipped: list[SkippedImage] = []
     metas: dict[str, ImageMetadata] = {}
+    bridge = config.nav.dropout == "bridge"
     if config.nav.source == "images":
         if images_dir is None:
             raise ConfigError(f"{source}: nav.source: 'images' needs images: (a folder)")
         folder_nav = read_image_folder_nav(images_dir, config.crs, config.nav.boresight,
-                                           np.asarray(config.nav.lever_arm_m), skip_bad=True)
+                                           np.asarray(config.nav.lever_arm_m), skip_bad=True,
+                                           dropout=bridge)
         crs, nav = folder_nav.crs, folder_nav.to_nav_table()
         skipped += [SkippedImage(image=i, reason=r) for i, r in folder_nav.skipped]
         warnings += folder_nav.warnings
@@ -364,14 +476,18 @@ def read_flight(flight_dir: Path | str) -> Flight:
             crs, nav = _geodetic_file_nav(nav_path, config, source)
         else:
             crs = resolve_projected_crs(config.crs, source)
-            nav = read_nav_projected(nav_path)
+            nav = read_nav_projected(nav_path, allow_missing=True)
     obs_path = None
     if config.observations is not None:
         obs_path = _in_folder(folder, config.observations)
         if not obs_path.is_file():
             raise InputDataError(f"{obs_path}: no such file (observations in {source})")
     elif images_dir is not None and config.nav.source == "file":
-        metas = _image_metadata_for_nav(images_dir, nav, skipped)
+        metas, no_row = _image_metadata_for_nav(images_dir, nav, skipped, bridge=bridge)
+        nav = _insert_rows(nav, no_row)
+    if not bridge:
+        nav = _skip_dropouts(nav, skipped, config.nav.file if config.nav.source == "file"
+                             else "the image metadata")
     camera_config, approximate = config.camera, False
     if camera_config is None:
         if not metas:
@@ -391,9 +507,13 @@ def read_flight(flight_dir: Path | str) -> Flight:
                   warnings=tuple(warnings))
 
 
-def _image_metadata_for_nav(images_dir: Path, nav: NavTable,
-                            skipped: list[SkippedImage]) -> dict[str, ImageMetadata]:
-    """Metadata of the image of each nav row; unreadable or missing ones go to ``skipped``."""
+def _image_metadata_for_nav(images_dir: Path, nav: NavTable, skipped: list[SkippedImage], *,
+                            bridge: bool = False) -> tuple[dict[str, ImageMetadata], list[str]]:
+    """Metadata of the image of each nav row; unreadable or missing ones go to ``skipped``.
+
+    Images without a nav row are skipped, or with ``bridge`` returned as dropouts (second
+    value; their metadata is in the first).
+    """
     files = {p.stem: p for p in image_files(images_dir)}
     metas: dict[str, ImageMetadata] = {}
     for image in nav.image_ids:
@@ -406,9 +526,17 @@ def _image_metadata_for_nav(images_dir: Path, nav: NavTable,
             metas[image] = read_image_metadata(path)
         except InputDataError as err:
             skipped.append(SkippedImage(image=image, reason=str(err)))
+    no_row: list[str] = []
     for stem, path in files.items():
-        skipped.append(SkippedImage(image=stem, reason=f"{path.name}: no row in nav.csv"))
-    return metas
+        if not bridge:
+            skipped.append(SkippedImage(image=stem, reason=f"{path.name}: no row in nav.csv"))
+            continue
+        try:
+            metas[stem] = read_image_metadata(path)
+            no_row.append(stem)
+        except InputDataError as err:
+            skipped.append(SkippedImage(image=stem, reason=str(err)))
+    return metas, no_row
 
 
 def _check_sizes(nav: NavTable, metas: dict[str, ImageMetadata], camera: CameraConfig,
@@ -527,9 +655,9 @@ class FrameSource:
                                 n_images_observed=n_images)
 
     def _frame(self, row: int, point_ids: tuple[str, ...], uv_px: FloatArray) -> Frame:
-        nav = self._flight.nav
-        return Frame(image_id=nav.image_ids[row], nav_eop=nav.eop[row], nav_sigma=self._nav_sigma,
-                     point_ids=point_ids, uv_px=uv_px,
+        nav_eop, nav_sigma = self._flight.frame_nav(row)
+        return Frame(image_id=self._flight.nav.image_ids[row], nav_eop=nav_eop,
+                     nav_sigma=nav_sigma, point_ids=point_ids, uv_px=uv_px,
                      sigma_px=self._flight.config.sigma_image_px)
 
     def _groups(self) -> Iterator[_Group]:
@@ -542,9 +670,12 @@ class FrameSource:
         uvs: list[tuple[float, float]] = []
         last_line = 0
         nav_name = self._flight.config.nav.file
+        left_out = {s.image for s in self._flight.skipped}  # nav.dropout: skip
         assert self._flight.observations_path is not None
         for row in read_csv(self._flight.observations_path, OBSERVATION_COLUMNS):
             image = row.ident("image")
+            if image in left_out and image not in self._nav_index:
+                continue
             if image != current:
                 if current is not None:
                     yield _Group(image_id=current, nav_row=current_row,

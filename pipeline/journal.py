@@ -121,7 +121,19 @@ class JournalContents:
 
 
 def _floats(values: np.ndarray) -> list[object]:
-    return np.asarray(values, dtype=np.float64).tolist()  # type: ignore[no-any-return]
+    """JSON numbers; ``inf`` (a GNSS dropout's free nav sigma) and ``nan`` as strings, which
+    ``np.asarray(..., dtype=float)`` reads back."""
+    a = np.asarray(values, dtype=np.float64)
+    out: list[object] = a.tolist()
+    if np.all(np.isfinite(a)):
+        return out
+
+    def fix(v: object) -> object:
+        if isinstance(v, list):
+            return [fix(x) for x in v]
+        return v if np.isfinite(v) else str(v)  # type: ignore[arg-type]
+
+    return [fix(v) for v in out]
 
 
 def _image_payload(rec: ImageRecord) -> dict[str, object]:

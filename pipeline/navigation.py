@@ -478,7 +478,7 @@ def image_files(folder: Path) -> list[Path]:
 def read_image_folder_nav(folder: Path | str, crs: str = "auto",
                           boresight: BoresightConfig | None = None,
                           lever_arm_m: FloatArray | None = None, *,
-                          skip_bad: bool = False) -> ImageFolderNav:
+                          skip_bad: bool = False, dropout: bool = False) -> ImageFolderNav:
     """Navigation of every JPEG of a folder in the working CRS.
 
     Parameters
@@ -493,6 +493,9 @@ def read_image_folder_nav(folder: Path | str, crs: str = "auto",
     skip_bad : bool
         Leave out (and list in ``skipped``) images that cannot be read, are truncated, or
         lack a GPS position, attitude or time, instead of raising.
+    dropout : bool
+        Keep an image without a GPS position but with a time as a GNSS dropout: its record
+        has NaN ``x_m``, ``y_m``, ``z_m`` (its attitude is converted with the previous fix).
 
     Returns
     -------
@@ -518,7 +521,8 @@ def read_image_folder_nav(folder: Path | str, crs: str = "auto",
     for p in paths:
         try:
             meta = read_image_metadata(p)
-            require_position(meta)
+            if not (dropout and meta.time_s is not None and not meta.has_position):
+                require_position(meta)
             if skip_bad and (meta.time_s is None or not meta.has_attitude):
                 missing = "acquisition time" if meta.time_s is None else "attitude in XMP"
                 raise InputDataError(f"{p.name}: no {missing} (found: {found_tags(meta)})")
@@ -528,15 +532,23 @@ def read_image_folder_nav(folder: Path | str, crs: str = "auto",
             skipped.append((p.stem, str(err)))
             continue
         metas.append(meta)
-    if len(metas) < MIN_IMAGES:
-        raise InputDataError(f"{folder}: {len(metas)} usable JPEG image(s) of {len(paths)}; "
-                             f"at least {MIN_IMAGES} are needed")
+    with_fix = sum(1 for m in metas if m.has_position)
+    if with_fix < MIN_IMAGES:
+        extra = f" ({len(metas) - with_fix} without a position)" if with_fix < len(metas) else ""
+        raise InputDataError(f"{folder}: {with_fix} usable JPEG image(s) of {len(paths)}"
+                             f"{extra}; at least {MIN_IMAGES} are needed")
     metas.sort(key=lambda m: (m.time_s is None, m.time_s or 0.0, m.path.name))
     boresight = boresight or BoresightConfig()
-    first_lon, first_lat, _ = _fix(metas[0])
-    working = resolve_working_crs(crs, first_lon, first_lat)
+    fixes = np.array([_fix(m) if m.has_position else (np.nan, np.nan, np.nan)
+                      for m in metas])
+    no_fix = np.isnan(fixes[:, 0])
+    ok = np.flatnonzero(~no_fix)
+    for i in np.flatnonzero(no_fix):  # converted with the previous fix, position set to NaN
+        before = ok[ok < i]
+        fixes[i] = fixes[before[-1] if before.size else ok[0]]
+    first_lon, first_lat, _ = fixes[ok[0]]
+    working = resolve_working_crs(crs, float(first_lon), float(first_lat))
     warnings = _folder_warnings(metas)
-    fixes = np.array([_fix(m) for m in metas])
     with_att = [i for i, m in enumerate(metas) if m.has_attitude and m.attitude_frame]
     eop = np.full((len(metas), 6), np.nan)
     xyz_only = geodetic_to_eop(fixes[:, 0], fixes[:, 1], fixes[:, 2], np.zeros((len(metas), 3)),
@@ -550,6 +562,7 @@ def read_image_folder_nav(folder: Path | str, crs: str = "auto",
             np.array([[m.roll_deg, m.pitch_deg, m.yaw_deg] for m in sub], dtype=np.float64),
             [m.attitude_frame for m in sub],  # type: ignore[misc]
             [m.height_kind for m in sub], working, boresight, lever_arm_m)
+    eop[no_fix, :3] = np.nan
     records = []
     for m, e in zip(metas, eop, strict=True):
         has_att = bool(np.isfinite(e[3]))

@@ -28,6 +28,7 @@ from pipeline.camera import PixelCorrector, pinhole_camera
 from pipeline.config import load_flight_config
 from pipeline.flight import FLIGHT_YAML, read_ground_points, read_truth
 from pipeline.reference import REFERENCE_DIR, REFERENCE_JSON, read_observations
+from pipeline.robustness import RobustnessSummary, summarise
 from pipeline.store import (
     EOP_FILE,
     JSON_INDENT,
@@ -197,6 +198,7 @@ class Report:
     checkpoints: Mapping[str, float | int | None] | None
     checkpoint_reports: tuple[CheckpointReport, ...]
     notes: tuple[str, ...]
+    robustness: RobustnessSummary | None = None  # data snooping, GNSS dropouts
 
 
 # --------------------------------------------------------------------------------------------
@@ -284,6 +286,8 @@ def _direct_points(run: RunFolder, obs: tuple[np.ndarray, tuple[str, ...], np.nd
                                                FloatArray]) -> PointTable:
     """Tie points intersected with the nav EOPs (what direct georeferencing gives)."""
     obs_image, point_ids, obs_point, uv = obs
+    fix = np.all(np.isfinite(run.nav.eop[obs_image]), axis=1)  # not the GNSS dropouts
+    obs_image, obs_point, uv = obs_image[fix], obs_point[fix], uv[fix]
     ideal = PixelCorrector(camera=run.camera).ideal_pixels(uv)
     X, _ = intersect_rays(run.nav.eop[obs_image], ideal, obs_point, len(point_ids),
                           pinhole_camera(run.camera))
@@ -341,13 +345,13 @@ def _flight_summary(run: RunFolder) -> FlightSummary:
     nav = run.nav
     cam = run.camera
     z_ground = float(np.median(run.points.xyz_m[:, 2])) if len(run.points) else float("nan")
-    height = float(np.median(nav.eop[:, 2])) - z_ground
+    height = float(np.nanmedian(nav.eop[:, 2])) - z_ground
     gsd = height / cam.fx_px
     overlaps = []
     for i in range(len(nav) - 1):
         base = nav.eop[i + 1, :3] - nav.eop[i, :3]
         b = float(np.linalg.norm(base[:2]))
-        if b == 0.0:
+        if b == 0.0 or not np.all(np.isfinite(nav.eop[i])) or not np.isfinite(b):
             continue
         R = rotation_matrix(*nav.eop[i, 3:])
         d_cam = R.T @ np.array([base[0], base[1], 0.0]) / b
@@ -506,9 +510,11 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
         other = read_run(other_dir)
         _same_flight(run, other)
         runs.append(other)
-    methods = [_Method(label=DIRECT, eop=EopTable(image_ids=run.nav.image_ids, eop=run.nav.eop,
-                                                  sigma=np.full_like(run.nav.eop, np.nan)),
-                       points=_direct_points(run, obs), record=None)]
+    fix = np.all(np.isfinite(run.nav.eop), axis=1)  # GNSS dropouts have no direct EOP
+    methods = [_Method(label=DIRECT, eop=EopTable(
+        image_ids=tuple(np.asarray(run.nav.image_ids)[fix]), eop=run.nav.eop[fix],
+        sigma=np.full_like(run.nav.eop[fix], np.nan)), points=_direct_points(run, obs),
+        record=None)]
     labels = {DIRECT}
     for r in runs:
         label = r.method if r.method not in labels else f"{r.method} ({r.path.name})"
@@ -577,7 +583,7 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
         reference=reference_record, accuracy_against=against, accuracy=accuracy,
         realtime=realtime, live=live_operation(run.record), checkpoints=checkpoints,
         checkpoint_reports=tuple(cps),
-        notes=tuple(notes))
+        notes=tuple(notes), robustness=summarise(run.record))
     extras: dict[str, object] = {
         "errors": errors,
         "series": {m.label: m.record.get("images", []) for m in methods if m.record is not None},

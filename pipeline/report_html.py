@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pipeline.report import DIRECT, REFERENCE, CheckpointReport, LiveOperation, Report
+from pipeline.robustness import robustness_rows
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -212,6 +213,9 @@ def render_html(report: Report, extras: Mapping[str, object]) -> str:
                                                for r in report.realtime}))
     if report.live is not None:
         parts += _live_section(report.live)
+    if report.robustness is not None:
+        parts.append("<h2>Blunders and GNSS faults</h2>")
+        parts.append(_table(["", "value"], robustness_rows(report.robustness)))
     parts.append("<h2>Check points (ASPRS 2023)</h2>")
     if not report.checkpoint_reports:
         parts.append("<p>The flight has no check points.</p>")

@@ -33,6 +33,7 @@ from pipeline.journal import (
     read_journal,
     replay_checks,
 )
+from pipeline.robustness import RobustnessRecord, robustness_record
 from pipeline.session import Estimator, ImageListener, RunSession
 from pipeline.sources import ImageSource, ObservationSource
 from pipeline.store import (
@@ -266,7 +267,7 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                 flight: str, inputs: RunInputs, options: SequentialOptions | SimOptions,
                 final_only: bool, tracking_options: TrackerOptions | None,
                 truth: Truth | None, t_start: float, mode: str = "run",
-                stopped: str = "") -> RunSummary:
+                stopped: str = "", robustness: RobustnessRecord | None = None) -> RunSummary:
     """Write the run folder (atomically, all files or none) and summarise the run."""
     eops, points = eop_table(solution.eops), point_table(solution.points)
     accuracy = (compare_with_truth(eops, points, truth.eop, truth.points, inputs.nav)
@@ -287,7 +288,7 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                        final_only=final_only, images=tuple(updates), totals=totals,
                        tracking_options=tracking_options, tracking=tuple(session.tracking),
                        live=tuple(session.live), latency_budget=budget, mode=mode,
-                       replayed=session.replayed)
+                       replayed=session.replayed, robustness=robustness)
     files = write_run_outputs(out, solution, record, session.observations_text())
     return RunSummary(method=method, flight_dir=Path(flight), out_dir=out, files=files,
                       n_images=totals.images, n_points=totals.points,
@@ -375,6 +376,7 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     console = Console(stderr=True)
     fingerprint = run_fingerprint(flight.path, method, options, final_only, obs_path)
     journal, contents = open_journal(out, fingerprint, resume, console)
+    skipped = list(contents.skips) if contents is not None else []  # dropouts not bridged
     try:
         if contents is not None:
             replay_checks(contents, flight.nav.image_ids, flight.nav.eop, out)
@@ -384,12 +386,19 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
         replay_journal(session, source, journal, contents)
         for warning in flight.warnings:
             console.print(f"seqat: warning: {warning}", highlight=False, markup=False)
-        for skipped in flight.skipped:
-            console.print(f"seqat: skipped: {skipped.reason}", highlight=False, markup=False)
+        for skip in flight.skipped:
+            console.print(f"seqat: skipped: {skip.reason}", highlight=False, markup=False)
         with _progress(console, progress) as bar:
-            task = bar.add_task(method.value, total=len(flight.nav), completed=session.images,
-                                info="")
-            for prepared in source.frames(start=session.images):
+            done = session.images + len(skipped)
+            task = bar.add_task(method.value, total=len(flight.nav), completed=done, info="")
+            for prepared in source.frames(start=done):
+                if isinstance(prepared, SkippedImage):  # a GNSS dropout that was not bridged
+                    journal.append_skip(prepared)
+                    skipped.append(prepared)
+                    console.print(f"seqat: skipped: {prepared.reason}", highlight=False,
+                                  markup=False)
+                    bar.update(task, advance=1)
+                    continue
                 live = session.add(prepared)
                 bar.update(task, advance=1,
                            info=f"{live.update_ms:7.1f} ms  window {live.window_images}")
@@ -399,6 +408,13 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
         raise
     finally:
         journal.close()
+    done_ids = {u.image_id for u in session.updates}
+    bridged = [iid for row, iid in enumerate(flight.nav.image_ids)
+               if iid in done_ids and flight.is_dropout(row)]
+    robustness = robustness_record(session.estimator, options, bridged=bridged,
+                                   skipped=[s.image for s in skipped])
+    inputs = dataclasses.replace(flight.inputs(), skipped=flight.skipped + tuple(skipped))
     return publish_run(out, session, solution, method=method, flight=str(flight.path),
-                       inputs=flight.inputs(), options=options, final_only=final_only,
-                       tracking_options=source.tracking_options, truth=truth, t_start=t_start)
+                       inputs=inputs, options=options, final_only=final_only,
+                       tracking_options=source.tracking_options, truth=truth, t_start=t_start,
+                       robustness=robustness)

@@ -27,8 +27,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipeline.dropout import PoseResection, resect_from_known
 from pipeline.flight import Flight, ObservationStats
 from pipeline.resection import Resection, resect_attitude
+from pipeline.store import SkippedImage
 from pipeline.tracking import Tracker, TrackerOptions, TrackerState, read_gray_image
 from seqat.geometry import rays_world
 from seqat.types import FloatArray, Frame, ImageUpdate, PinholeCamera
@@ -108,6 +110,32 @@ class Initialiser:
                                     uv_px=ideal[keep], initial_eop=res.eop)
         return frame, res, len(known), keep
 
+    def bridge(self, frame: Frame, *, reject: bool = True) -> tuple[Frame | None, PoseResection,
+                                                                    np.ndarray]:
+        """A GNSS dropout frame (``inf`` position σ): 6-DoF resection on the known ground
+        points (:func:`pipeline.dropout.resect_pose`) as its ``initial_eop``.
+
+        ``reject`` leaves out the observations of known points that disagree with the pose.
+
+        Returns
+        -------
+        frame : Frame or None
+            ``None`` when the image cannot be resected (``resection.reason`` says why).
+        resection : PoseResection
+        keep : (k,) bool
+            The observations kept.
+        """
+        res, used = resect_from_known(frame.point_ids, frame.uv_px, self._known, self.camera,
+                                      sigma_px=frame.sigma_px, start_eop=frame.nav_eop)
+        keep = np.ones(len(frame.point_ids), dtype=bool)
+        if res.eop is None:
+            return None, res, keep
+        if reject:
+            keep[used[~res.inliers]] = False
+        frame = dataclasses.replace(frame, point_ids=tuple(np.asarray(frame.point_ids)[keep]),
+                                    uv_px=frame.uv_px[keep], initial_eop=res.eop)
+        return frame, res, keep
+
     def record(self, frame: Frame) -> None:
         """Keep the rays of a frame sent to the estimator (plane points of later frames)."""
         for pid, uv in zip(frame.point_ids, frame.uv_px, strict=True):
@@ -156,6 +184,9 @@ class PreparedFrame:
     rejected: int = 0
     prep_ms: float = 0.0
     ready_s: float | None = None
+def _not_bridged(image_id: str, resection: PoseResection) -> SkippedImage:
+    return SkippedImage(image=image_id, reason=f"{image_id}: GNSS dropout not bridged: "
+                                               f"{resection.reason}")
 
 
 class ObservationSource:
@@ -166,23 +197,39 @@ class ObservationSource:
     def __init__(self, flight: Flight) -> None:
         self._flight = flight
         self._init = Initialiser(flight.camera, flight.config.tracking.resection_threshold_deg)
+        #: GNSS dropout images left out (no resection) and bridged so far.
+        self.skipped: list[SkippedImage] = []
+        self.bridged: list[str] = []
 
     def validate(self) -> ObservationStats:
         """Read the whole observations file once, raising on the first problem."""
         return self._flight.frames().validate()
 
-    def frames(self, start: int = 0) -> Iterator[PreparedFrame]:
-        """The flight's frames from nav row ``start`` on (earlier rows are read, not used)."""
+    def frames(self, start: int = 0) -> Iterator[PreparedFrame | SkippedImage]:
+        """The flight's frames from nav row ``start`` on (earlier rows are read, not used);
+        a GNSS dropout that cannot be bridged comes as its :class:`SkippedImage`."""
         times = self._flight.nav.times_s
         for k, (frame, observed) in enumerate(self._flight.frames().with_observed()):
             if k >= start:
-                yield self.prepare(frame, observed, float(times[k]))
+                yield self.prepare(frame, observed, float(times[k]),
+                                   dropout=self._flight.is_dropout(k))
 
     def prepare(self, frame: Frame, observed_px: FloatArray, time_s: float,
-                ready_s: float | None = None) -> PreparedFrame:
-        """Give a frame of precomputed observations its initial EOP (nothing is rejected)."""
+                ready_s: float | None = None, *,
+                dropout: bool = False) -> PreparedFrame | SkippedImage:
+        """Give a frame of precomputed observations its initial EOP (nothing is rejected); a
+        dropout (``dropout``) is resected in 6 DoF on the known points, or skipped."""
         t0 = time.perf_counter()
-        frame, _, _, _ = self._init.resect(frame, reject=False)
+        if dropout:
+            bridged, res, _ = self._init.bridge(frame, reject=False)
+            if bridged is None:
+                skip = _not_bridged(frame.image_id, res)
+                self.skipped.append(skip)
+                return skip
+            frame = bridged
+            self.bridged.append(frame.image_id)
+        else:
+            frame, _, _, _ = self._init.resect(frame, reject=False)
         self._init.record(frame)
         return PreparedFrame(frame=frame, time_s=time_s, observed_px=observed_px,
                              prep_ms=(time.perf_counter() - t0) * 1e3, ready_s=ready_s)
@@ -230,37 +277,63 @@ class ImageSource:
         self.tracking_options = options
         self._tracker = Tracker(options, flight.camera_config)
         self._init = Initialiser(flight.camera, options.resection_threshold_deg)
+        #: GNSS dropout images left out (no resection) and bridged so far.
+        self.skipped: list[SkippedImage] = []
+        self.bridged: list[str] = []
 
-    def frames(self, start: int = 0) -> Iterator[PreparedFrame]:
-        """The flight's images from nav row ``start`` on, one tracked frame each."""
+    def frames(self, start: int = 0) -> Iterator[PreparedFrame | SkippedImage]:
+        """The flight's images from nav row ``start`` on, one tracked frame each (a GNSS
+        dropout that cannot be bridged: its :class:`SkippedImage`)."""
         nav = self._flight.nav
         for row in range(start, len(nav)):
-            yield self.prepare(nav.image_ids[row], self._flight.image_paths[row], nav.eop[row],
-                               float(nav.times_s[row]))
+            nav_eop, nav_sigma = self._flight.frame_nav(row)
+            yield self.prepare(nav.image_ids[row], self._flight.image_paths[row], nav_eop,
+                               float(nav.times_s[row]), nav_sigma=nav_sigma,
+                               dropout=self._flight.is_dropout(row))
 
     def prepare(self, image_id: str, path: Path, nav_eop: FloatArray, time_s: float,
-                ready_s: float | None = None) -> PreparedFrame:
-        """Read and track one image; resect its attitude and drop what contradicts it."""
+                ready_s: float | None = None, *, nav_sigma: FloatArray | None = None,
+                dropout: bool = False) -> PreparedFrame | SkippedImage:
+        """Read and track one image; resect its attitude and drop what contradicts it. A
+        dropout (``dropout``; ``nav_sigma`` inf where the nav is missing) is resected in
+        6 DoF on the known points instead, or skipped."""
         flight = self._flight
         cam = flight.camera_config
         t0 = time.perf_counter()
         gray = read_tracker_image(path, self._tracker, cam.width_px, cam.height_px)
         read_ms = (time.perf_counter() - t0) * 1e3
+        if nav_sigma is None:
+            nav_sigma = flight.nav_sigma
         tracked = self._tracker.add_image(image_id, gray, nav_eop, self._init.ground_z)
         observed: FloatArray = np.asarray(tracked.uv_px, dtype=np.float64).reshape(-1, 2)
-        frame = Frame(image_id=image_id, nav_eop=nav_eop, nav_sigma=flight.nav_sigma,
+        frame = Frame(image_id=image_id, nav_eop=nav_eop, nav_sigma=nav_sigma,
                       point_ids=tracked.point_ids, uv_px=flight.corrector.ideal_pixels(observed),
                       sigma_px=flight.config.sigma_image_px)
-        cleaned, first, known, keep = self._init.resect(frame)
-        # the initial value from the kept observations only, as a replay of them
-        # (--observations) computes it: the sequential result depends on it
-        frame, res, _, _ = self._init.resect(cleaned, reject=False)
+        stats: dict[str, object] = {**dataclasses.asdict(tracked.stats), "read_ms": read_ms}
+        if dropout:
+            cleaned, pose, keep = self._init.bridge(frame)
+            stats.update({"dropout": True, "resection_points": pose.n_points,
+                          "resection_inliers": pose.n_inliers,
+                          "resection_used": cleaned is not None,
+                          "observations_rejected": int((~keep).sum())})
+            if cleaned is None:
+                skip = _not_bridged(image_id, pose)
+                self.skipped.append(skip)
+                return skip
+            bridged, _, _ = self._init.bridge(cleaned, reject=False)  # as a replay does
+            frame = cleaned if bridged is None else bridged
+            self.bridged.append(image_id)
+        else:
+            cleaned, first, known, keep = self._init.resect(frame)
+            # the initial value from the kept observations only, as a replay of them
+            # (--observations) computes it: the sequential result depends on it
+            frame, res, _, _ = self._init.resect(cleaned, reject=False)
+            stats.update({"resection_points": first.n_points, "resection_known_points": known,
+                          "resection_inliers": first.n_inliers,
+                          "resection_used": res.eop is not None,
+                          "observations_rejected": int((~keep).sum())})
         self._init.record(frame)
         rejected = int((~keep).sum())
-        stats = {**dataclasses.asdict(tracked.stats), "read_ms": read_ms,
-                 "resection_points": first.n_points, "resection_known_points": known,
-                 "resection_inliers": first.n_inliers, "resection_used": res.eop is not None,
-                 "observations_rejected": rejected}
         return PreparedFrame(frame=frame, time_s=time_s, observed_px=observed[keep],
                              tracking=stats, rejected=rejected,
                              prep_ms=(time.perf_counter() - t0) * 1e3, ready_s=ready_s)

@@ -37,6 +37,7 @@ from pyproj.exceptions import CRSError
 from pipeline.accuracy import Accuracy
 from pipeline.config import CameraConfig, build_dataclass
 from pipeline.csvio import format_csv_line, read_csv
+from pipeline.robustness import RobustnessRecord
 from pipeline.tables import EopTable, NavTable, PointTable
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import EopEstimate, ImageUpdate, PointEstimate, Solution
@@ -408,6 +409,8 @@ class RunRecord:
         ``run`` or ``watch``.
     replayed : int
         Images replayed from the journal (``--resume``).
+    robustness : RobustnessRecord or None
+        Data snooping and GNSS dropouts (:mod:`pipeline.robustness`).
     """
 
     method: str
@@ -423,6 +426,7 @@ class RunRecord:
     latency_budget: object | None = None
     mode: str = "run"
     replayed: int = 0
+    robustness: RobustnessRecord | None = None
 
 
 def eop_json(eop: EopEstimate) -> dict[str, object]:
@@ -494,7 +498,8 @@ def format_run_json(record: RunRecord) -> str:
            "options": to_jsonable(record.options), "final_only": record.final_only,
            "tracking_options": to_jsonable(record.tracking_options),
            "latency_budget": to_jsonable(record.latency_budget),
-           "images": images, "totals": to_jsonable(record.totals)}
+           "images": images, "totals": to_jsonable(record.totals),
+           "robustness": to_jsonable(record.robustness)}
     return json.dumps(doc, indent=JSON_INDENT, allow_nan=False) + "\n"
 
 
@@ -646,7 +651,7 @@ def read_run(out_dir: Path | str) -> RunFolder:
     from pipeline.flight import read_nav_projected  # flight imports store: no cycle at load
     inputs = RunInputs(
         crs=crs, camera=camera, camera_approximate=approximate,
-        nav=read_nav_projected(out / NAV_FILE), nav_sigma=nav_sigma,
+        nav=read_nav_projected(out / NAV_FILE, allow_missing=True), nav_sigma=nav_sigma,
         sigma_image_px=float(_json_field(doc, "sigma_image_px", run_path)),  # type: ignore[arg-type]
         images_dir=None if images_dir is None else Path(str(images_dir)),
         skipped=tuple(SkippedImage(**s) for s in doc.get("skipped", [])),

@@ -134,7 +134,8 @@ def test_geodetic_nav_csv_equals_the_image_metadata(tmp_path: Path) -> None:
 def test_nav_rows_without_images_and_images_without_rows_are_skipped(tmp_path: Path) -> None:
     paths = _copy_images(tmp_path, 4)
     rows = _rows_from_exif(paths)
-    _geodetic_nav(tmp_path, rows[:3] + [rows[3].replace(paths[3].stem, "IMG_9999")])
+    _geodetic_nav(tmp_path, rows[:3] + [rows[3].replace(paths[3].stem, "IMG_9999")],
+                  "  dropout: skip\n")  # bridge (default): tests/pipeline/test_dropout.py
     flight = read_flight(tmp_path)
     reasons = {s.image: s.reason for s in flight.skipped}
     assert "listed in nav.csv but no IMG_9999.jpg" in reasons["IMG_9999"]

@@ -1,0 +1,130 @@
+"""What a run did about bad data: data snooping and GNSS dropouts (``run.json`` ``robustness``).
+
+The estimators keep the observations data snooping removed (``rejections``) and the GPS/INS
+groups it down-weighted (``nav_downweighted``), over the whole run including the initial
+simultaneous stage and the ray screening at a point's birth (docs/algorithm.md, *Blunders and
+GNSS faults*); the frame sources list the dropout images they bridged or left out. This
+module turns them into one typed record for ``run.json`` and reads it back for the report.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True, kw_only=True)
+class Rejection:
+    """An image observation removed by data snooping, with its w-test value."""
+
+    image: str
+    point: str
+    w: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class NavDownweight:
+    """A GPS/INS group (``position`` or ``attitude``) of an image whose σ was multiplied by
+    :data:`seqat.snooping.NAV_DOWNWEIGHT`."""
+
+    image: str
+    group: str
+
+
+@dataclass(frozen=True, kw_only=True)
+class RobustnessRecord:
+    """``run.json`` ``robustness``.
+
+    Attributes
+    ----------
+    snooping_critical : float or None
+        Critical value of the w-test (``None``: data snooping off).
+    min_rays : int
+        Rays a tie point needs before it enters the adjustment.
+    rejections : tuple[Rejection, ...]
+        Every observation removed (final state: Sim's re-admitted ones are not listed).
+    nav_downweighted : tuple[NavDownweight, ...]
+    dropout_bridged : tuple[str, ...]
+        GNSS dropout images sent to the estimator with a resected start value.
+    dropout_skipped : tuple[str, ...]
+        GNSS dropout images left out (too few known ground points to resect them).
+    """
+
+    snooping_critical: float | None
+    min_rays: int
+    rejections: tuple[Rejection, ...]
+    nav_downweighted: tuple[NavDownweight, ...]
+    dropout_bridged: tuple[str, ...] = ()
+    dropout_skipped: tuple[str, ...] = ()
+
+
+def robustness_record(estimator: object, options: object, *, bridged: Sequence[str] = (),
+                      skipped: Sequence[str] = ()) -> RobustnessRecord:
+    """The record of a finished run.
+
+    Parameters
+    ----------
+    estimator : SequentialAT or SimultaneousAT
+        Read: ``rejections`` [(image, point, w)], ``nav_downweighted`` [(image, group)].
+    options : SequentialOptions or SimOptions
+        Read: ``snooping_critical``, ``min_rays``.
+    bridged, skipped : sequence of str
+        Dropout image ids.
+    """
+    rejections = tuple(Rejection(image=i, point=p, w=round(float(w), 3))
+                       for i, p, w in getattr(estimator, "rejections", ()))
+    nav = tuple(NavDownweight(image=i, group=g)
+                for i, g in getattr(estimator, "nav_downweighted", ()))
+    return RobustnessRecord(snooping_critical=getattr(options, "snooping_critical", None),
+                            min_rays=int(getattr(options, "min_rays", 2)),
+                            rejections=rejections, nav_downweighted=nav,
+                            dropout_bridged=tuple(bridged), dropout_skipped=tuple(skipped))
+
+
+@dataclass(frozen=True, kw_only=True)
+class RobustnessSummary:
+    """Counts for the report (``report.json`` ``robustness``)."""
+
+    snooping_critical: float | None
+    observations_rejected: int
+    observations_rejected_in_updates: int  # by the w-test of a sequential update
+    images_with_rejections: int
+    nav_downweighted: tuple[str, ...]  # "image: group"
+    dropout_bridged: int
+    dropout_skipped: tuple[str, ...]
+
+
+def summarise(record: Mapping[str, object]) -> RobustnessSummary | None:
+    """Counts from a ``run.json`` document (``None`` for runs written before the record)."""
+    rob = record.get("robustness")
+    if not isinstance(rob, Mapping):
+        return None
+    rejections = rob.get("rejections") or []
+    nav = rob.get("nav_downweighted") or []
+    images = record.get("images") or []
+    assert isinstance(rejections, list) and isinstance(nav, list) and isinstance(images, list)
+    in_updates = sum(len(im.get("rejected") or ()) for im in images if isinstance(im, Mapping))
+    critical = rob.get("snooping_critical")
+    return RobustnessSummary(
+        snooping_critical=float(critical) if isinstance(critical, int | float) else None,
+        observations_rejected=len(rejections),
+        observations_rejected_in_updates=in_updates,
+        images_with_rejections=len({r["image"] for r in rejections}),
+        nav_downweighted=tuple(f"{n['image']}: {n['group']}" for n in nav),
+        dropout_bridged=len(rob.get("dropout_bridged") or ()),  # type: ignore[arg-type]
+        dropout_skipped=tuple(rob.get("dropout_skipped") or ()))  # type: ignore[arg-type]
+
+
+def robustness_rows(summary: RobustnessSummary) -> list[tuple[str, str]]:
+    """Rows of the report's *Blunders and GNSS faults* table."""
+    critical = summary.snooping_critical
+    return [
+        ("data snooping", "off" if critical is None else f"w-test, critical value {critical:g}"),
+        ("observations rejected (by update w-tests) / images",
+         f"{summary.observations_rejected} ({summary.observations_rejected_in_updates}) / "
+         f"{summary.images_with_rejections}"),
+        ("GPS/INS groups down-weighted", ", ".join(summary.nav_downweighted) or "none"),
+        ("GNSS dropout images bridged / skipped",
+         f"{summary.dropout_bridged} / {len(summary.dropout_skipped)}"
+         + (f" ({', '.join(summary.dropout_skipped)})" if summary.dropout_skipped else "")),
+    ]
