@@ -214,6 +214,13 @@ class OrthoResult:
     warnings: tuple[str, ...] = field(default=())
 
 
+def _checked_eop(image_id: str, eop: FloatArray) -> FloatArray:
+    eop = np.asarray(eop, dtype=np.float64).reshape(-1)
+    if eop.shape != (6,) or not np.all(np.isfinite(eop)):
+        raise InputDataError(f"image {image_id!r}: EOP must be 6 finite numbers, got {eop}")
+    return eop
+
+
 def _nice_pixel(gsd_m: float) -> float:
     digits = PIXEL_SIGNIFICANT_DIGITS - 1 - int(math.floor(math.log10(gsd_m)))
     return round(gsd_m, digits)
@@ -274,7 +281,8 @@ class Orthorectifier:
 
     # ----------------------------------------------------------------------------------------
 
-    def add_image(self, image_id: str, image: np.ndarray, eop: FloatArray) -> OrthoResult:
+    def add_image(self, image_id: str, image: np.ndarray, eop: FloatArray, *,
+                  write: bool = True) -> OrthoResult:
         """Orthorectify one image.
 
         Parameters
@@ -284,6 +292,8 @@ class Orthorectifier:
             RGB (not OpenCV's BGR) or grey, the camera's size.
         eop : (6,) float
             ``[X0_m, Y0_m, Z0_m, omega_rad, phi_rad, kappa_rad]`` (refined EOP).
+        write : bool
+            Write ``ortho/<image>.tif`` (when the orthorectifier writes images at all).
 
         Returns
         -------
@@ -297,18 +307,9 @@ class Orthorectifier:
         """
         t0 = time.perf_counter()
         image = self._check_image(image_id, image)
-        eop = np.asarray(eop, dtype=np.float64).reshape(-1)
-        if eop.shape != (6,) or not np.all(np.isfinite(eop)):
-            raise InputDataError(f"image {image_id!r}: EOP must be 6 finite numbers, got {eop}")
+        eop = _checked_eop(image_id, eop)
         warnings: list[str] = []
-        R = rotation_matrix(eop[3], eop[4], eop[5])
-        axis = -R[:, 2]
-        if axis[2] > -MIN_DEPRESSION_SIN:
-            elevation = math.degrees(math.asin(float(np.clip(axis[2], -1.0, 1.0))))
-            raise InputDataError(
-                f"image {image_id!r}: the viewing axis points {elevation:+.1f} deg from the "
-                f"horizon (omega {math.degrees(eop[3]):.1f}, phi {math.degrees(eop[4]):.1f} deg); "
-                "it must look at least 1 deg below the horizon to be orthorectified")
+        R = self._rotation(image_id, eop)
         z_ground = self._ground_height(image_id, eop)
         height_agl = eop[2] - z_ground
         if self.pixel_m is None:
@@ -351,7 +352,7 @@ class Orthorectifier:
         compute_ms = (time.perf_counter() - t0) * 1e3
         path = None
         t1 = time.perf_counter()
-        if self.out_dir is not None and self.options.write_images:
+        if self.out_dir is not None and self.options.write_images and write:
             path = self.out_dir / f"{image_id}.tif"
             self.flush()  # at most one write pending: memory stays bounded
             if self.options.background_writes:
@@ -365,7 +366,55 @@ class Orthorectifier:
                            occlusion_ms=occlusion_ms,
                            warnings=tuple(warnings))
 
+    def ground_window(self, image_id: str, eop: FloatArray) -> tuple[float, float, float, float]:
+        """``(west, south, east, north)`` of the ground an image would cover (what
+        :meth:`add_image` grids before cropping to the cells seen), without orthorectifying.
+
+        Raises
+        ------
+        InputDataError
+            As :meth:`add_image` for the geometry (horizon, below the surface, off the DSM).
+        """
+        eop = _checked_eop(image_id, eop)
+        z_ground = self._ground_height(image_id, eop)
+        _, _, window, _ = self._footprint(image_id, eop, self._rotation(image_id, eop),
+                                          z_ground, eop[2] - z_ground)
+        return window
+
+    def footprint_shift_m(self, image_id: str, eop_a: FloatArray, eop_b: FloatArray) -> float:
+        """How far the ground under an image moves from ``eop_a`` to ``eop_b``, metres.
+
+        The largest horizontal displacement of the ground points of the image's four corners
+        and centre on the plane at the DSM height under the camera (``eop_a``); rays that do
+        not meet the plane count as infinite.
+        """
+        eop_a, eop_b = _checked_eop(image_id, eop_a), _checked_eop(image_id, eop_b)
+        w, h = self.camera.width_px - 1.0, self.camera.height_px - 1.0
+        observed = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h], [w / 2, h / 2]])
+        ideal = self._corrector.ideal_pixels(observed)
+        z = self._ground_height(image_id, eop_a)
+        ground = []
+        for eop in (eop_a, eop_b):
+            rays = rays_world(np.tile(eop, (len(ideal), 1)), ideal, self._pinhole)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = np.where(rays[:, 2] < -MIN_DEPRESSION_SIN, (z - eop[2]) / rays[:, 2], np.inf)
+            ground.append(eop[:2] + t[:, None] * rays[:, :2])
+        shift = np.linalg.norm(ground[1] - ground[0], axis=1)
+        return float(np.max(np.where(np.isfinite(shift), shift, np.inf)))
+
     # ----------------------------------------------------------------------------------------
+
+    def _rotation(self, image_id: str, eop: FloatArray) -> FloatArray:
+        """``R_world_from_cam``; the viewing axis must look at least 1 deg below the horizon."""
+        R = rotation_matrix(eop[3], eop[4], eop[5])
+        axis = -R[:, 2]
+        if axis[2] > -MIN_DEPRESSION_SIN:
+            elevation = math.degrees(math.asin(float(np.clip(axis[2], -1.0, 1.0))))
+            raise InputDataError(
+                f"image {image_id!r}: the viewing axis points {elevation:+.1f} deg from the "
+                f"horizon (omega {math.degrees(eop[3]):.1f}, phi {math.degrees(eop[4]):.1f} deg); "
+                "it must look at least 1 deg below the horizon to be orthorectified")
+        return R
 
     def _check_image(self, image_id: str, image: np.ndarray) -> np.ndarray:
         image = np.asarray(image)
