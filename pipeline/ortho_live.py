@@ -395,20 +395,22 @@ class LiveOrtho:
                  kept: _Kept | None) -> None:
         """Orthorectify a moved image again with its final EOP (its COG too)."""
         assert self._ortho is not None
+        t0 = time.perf_counter()
         try:
             record, result, update = ortho_image(self._ortho, self._mosaic, image_id,
                                                  self.images.get(image_id), eop, tiles=tiles)
         except InputDataError as err:
             self._skipped[image_id] = f"skipped: {err}"
+            if kept is not None and kept.record.path is not None:
+                Path(kept.record.path).unlink(missing_ok=True)  # made with the live EOP
             self._kept.pop(image_id, None)
             return
-        shift = kept.record.shift_px if kept is not None else math.nan
-        old = kept.record if kept is not None else None
-        self._kept[image_id] = _Kept(
-            eop=eop, tiles=update.tiles, footprint_m=result.footprint_m,
-            record=replace(record, eop="final", shift_px=shift,
-                           queue_ms=old.queue_ms if old else math.nan,
-                           latency_ms=old.latency_ms if old else math.nan))
+        reortho_ms = (time.perf_counter() - t0) * 1e3
+        if kept is not None:  # the live timings stay (latency); the products are the new ones
+            record = replace(kept.record, path=record.path, seen_cells=record.seen_cells,
+                             occluded_cells=record.occluded_cells, warnings=record.warnings)
+        self._kept[image_id] = _Kept(eop=eop, tiles=update.tiles, footprint_m=result.footprint_m,
+                                     record=replace(record, eop="final", reortho_ms=reortho_ms))
         self._skipped.pop(image_id, None)
 
 

@@ -144,10 +144,12 @@ class ImageOrtho:
     ``read_ms`` is the colour decode of the image; ``compute_ms``, ``write_ms`` as in
     :class:`pipeline.ortho.OrthoResult`; ``mosaic_ms`` the mosaic update. Live runs
     (``seqat run --ortho``, :mod:`pipeline.ortho_live`) add ``eop`` (``live``: the ortho was
-    made with the estimate at the image's own update and kept; ``final``: with the final
-    EOP), ``shift_px`` (how far the final EOP moves the footprint, ortho pixels),
-    ``queue_ms`` (waiting for the ortho worker) and ``latency_ms`` (from the end of the
-    image's AT update to its mosaic update: queue + read + ortho + mosaic).
+    made with the estimate at the image's own update and kept; ``final``: made again at the
+    end with the final EOP), ``shift_px`` (how far the final EOP moves the footprint, ortho
+    pixels), ``queue_ms`` (waiting for the ortho worker), ``latency_ms`` (from the end of
+    the image's AT update to its mosaic update: queue + read + ortho + COG write wait +
+    mosaic) and ``reortho_ms`` (the ortho again at the end). The timings of a live run are
+    those of the live ortho; path, cells and warnings those of the final product.
     """
 
     image: str
@@ -163,6 +165,7 @@ class ImageOrtho:
     shift_px: float = math.nan
     queue_ms: float = math.nan
     latency_ms: float = math.nan
+    reortho_ms: float = math.nan
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -27,6 +27,7 @@ from pipeline.accuracy import Triple, eop_differences, point_differences, rmse
 from pipeline.camera import PixelCorrector, pinhole_camera
 from pipeline.config import load_flight_config
 from pipeline.flight import FLIGHT_YAML, read_ground_points, read_truth
+from pipeline.latency import LatencyTable, latency_table, read_ortho_json
 from pipeline.reference import REFERENCE_DIR, REFERENCE_JSON, read_observations
 from pipeline.store import (
     EOP_FILE,
@@ -170,6 +171,7 @@ class Report:
     accuracy_against: str | None
     accuracy: Mapping[str, MethodAccuracy]
     realtime: tuple[RealTime, ...]
+    latency: LatencyTable
     checkpoints: Mapping[str, float | int | None] | None
     checkpoint_reports: tuple[CheckpointReport, ...]
     notes: tuple[str, ...]
@@ -523,7 +525,8 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
         processing_ms_per_image_median=realtime[0].update_ms_median,
         processing_total_s=float(totals.get("wall_s") or float("nan")),
         reference=reference_record, accuracy_against=against, accuracy=accuracy,
-        realtime=realtime, checkpoints=checkpoints, checkpoint_reports=tuple(cps),
+        realtime=realtime, latency=latency_table(run.record, read_ortho_json(run.path)),
+        checkpoints=checkpoints, checkpoint_reports=tuple(cps),
         notes=tuple(notes))
     extras: dict[str, object] = {
         "errors": errors,
