@@ -37,7 +37,9 @@ afterwards. Any other error of the worker stops the run at the next image.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
 import threading
 import time
 from collections.abc import Mapping
@@ -75,6 +77,9 @@ from seqat.types import FloatArray, Frame, ImageUpdate, Solution
 
 #: Default of the re-ortho rule, ortho pixels.
 REORTHO_SHIFT_PX = 0.5
+#: Niceness of the ortho worker thread relative to the AT loop (Linux ``setpriority``).
+WORKER_NICE = 10
+MAX_NICE = 19
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -89,15 +94,22 @@ class LiveOrthoOptions:
     background : bool
         Orthorectify on a worker thread (the AT loop only hands the image over); False: in
         the AT loop, before the next image.
+    worker_nice : int
+        The worker thread runs this much nicer than the AT loop (Linux: per-thread priority,
+        inherited by the threads it starts: the projection pool, the COG writer and GDAL's
+        compression threads), so the two cores go to tracking and AT first. 0: same priority.
     """
 
     reortho_shift_px: float = REORTHO_SHIFT_PX
     background: bool = True
+    worker_nice: int = WORKER_NICE
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.reortho_shift_px) and self.reortho_shift_px >= 0):
             raise ConfigError(f"reortho_shift_px: expected a number >= 0, got "
                               f"{self.reortho_shift_px!r}")
+        if not 0 <= self.worker_nice <= MAX_NICE:
+            raise ConfigError(f"worker_nice: expected 0 to {MAX_NICE}, got {self.worker_nice!r}")
 
 
 @dataclass(kw_only=True, eq=False)
@@ -108,6 +120,17 @@ class _Kept:
     tiles: frozenset[tuple[int, int]]
     record: ImageOrtho
     footprint_m: FloatArray
+
+
+def _lower_priority(nice: int) -> None:
+    """Make the calling thread ``nice`` steps nicer (Linux: a thread id is a process id for
+    ``setpriority``; elsewhere, or without permission, nothing happens)."""
+    if nice <= 0 or not hasattr(os, "setpriority"):
+        return
+    tid = threading.get_native_id()
+    with contextlib.suppress(OSError):
+        os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + nice,
+                                                 MAX_NICE))
 
 
 class LiveOrtho:
@@ -164,7 +187,9 @@ class LiveOrtho:
         self._kept: dict[str, _Kept] = {}
         self._skipped: dict[str, str] = {}  # image -> warning
         self._listener_ms: list[float] = []
-        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="live-ortho")
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="live-ortho",
+                                          initializer=_lower_priority,
+                                          initargs=(self.options.worker_nice,))
         self._futures: list[Future[None]] = []
         self._lock = threading.Lock()
         self._worker_error: BaseException | None = None

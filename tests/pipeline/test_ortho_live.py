@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import threading
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -18,6 +20,7 @@ from pipeline.ortho import OrthoOptions
 from pipeline.ortho_live import LiveOrtho, LiveOrthoOptions
 from pipeline.ortho_run import image_files, orthorectify_run
 from pipeline.store import read_run
+from seqat.errors import ConfigError
 from seqat.types import EopEstimate, PointEstimate, Solution
 
 from .test_ortho_run import Z_PLANE_M, mosaic_matches_texture, write_run, write_scene_dsm
@@ -164,3 +167,28 @@ def test_cli_run_ortho_flags(tmp_path: Path, small_sim_dir: Path) -> None:
                                    "--ortho"])
     assert bad.exit_code == 2 and "image flight" in bad.output
     assert len(bad.output.strip().splitlines()) == 1 and not (tmp_path / "b").exists()
+
+
+@pytest.mark.skipif(not hasattr(os, "setpriority"), reason="per-thread priority: Linux")
+def test_the_worker_thread_runs_nicer_than_the_at_loop() -> None:
+    from pipeline.ortho_live import _lower_priority
+
+    seen: list[int] = []
+
+    def worker() -> None:
+        _lower_priority(5)
+        tid = threading.get_native_id()
+        inner = threading.Thread(target=lambda: seen.append(
+            os.getpriority(os.PRIO_PROCESS, threading.get_native_id())))
+        inner.start()
+        inner.join()  # threads it starts inherit the priority
+        seen.append(os.getpriority(os.PRIO_PROCESS, tid))
+
+    main = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    thread = threading.Thread(target=worker)
+    thread.start()
+    thread.join()
+    assert seen == [min(main + 5, 19)] * 2
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == main
+    with pytest.raises(ConfigError, match="worker_nice"):
+        LiveOrthoOptions(worker_nice=25)
