@@ -20,7 +20,6 @@ ortho (``seqat ortho``) has ortho times but is not part of the per-image latency
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -28,8 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.store import TimingStats
-from seqat.errors import InputDataError
+from pipeline.store import TimingStats, read_json_object
 
 #: ``ortho.json`` of a run folder (pipeline.ortho_run.ORTHO_JSON; not imported: no cycle).
 ORTHO_JSON = "ortho.json"
@@ -61,15 +59,7 @@ class LatencyTable:
 def read_ortho_json(run_dir: Path) -> Mapping[str, object] | None:
     """``OUT/ortho.json`` parsed, or None when the run has no ortho."""
     path = run_dir / ORTHO_JSON
-    if not path.is_file():
-        return None
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise InputDataError(f"{path}: cannot read ortho.json: {err}") from err
-    if not isinstance(doc, dict):
-        raise InputDataError(f"{path}: expected a JSON object")
-    return doc
+    return read_json_object(path) if path.is_file() else None
 
 
 def _stage(name: str, values: Sequence[float]) -> StageLatency:
