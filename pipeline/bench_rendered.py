@@ -11,8 +11,8 @@ of ``seqat run FLIGHT --out OUT --ortho`` (FLIGHT rendered by ``seqat simulate C
   (``OUT/bench_<eops>/``, same DSM and pixel, no per-image COGs);
 * **DSM vs truth**: ``OUT/dsm.tif`` minus the rendering surface (highest LiDAR point per
   ``source.cell_m`` cell of the source clouds, gaps filled, :func:`pipeline.render_scene.
-  lidar_surface`) at the DSM's valid cell centres: mean, RMSE, 95th percentile of the
-  absolute difference;
+  lidar_surface`) at the DSM's valid cell centres: mean, RMSE, median and 95th percentile
+  of the absolute difference;
 * **latency** per image by stage (:mod:`pipeline.latency`).
 
 Prints the summary as JSON (and writes it to ``--json``).
@@ -83,6 +83,7 @@ class DsmCheck:
     nodata_fraction: float
     mean_m: float
     rmse_m: float
+    median_abs_m: float
     p95_abs_m: float
 
 
@@ -145,6 +146,7 @@ def dsm_check(run_dir: Path, config: RenderSimulateConfig, config_dir: Path) -> 
     return DsmCheck(cell_m=cw, truth_cell_m=src.cell_m, cells=int(valid.sum()),
                     nodata_fraction=float(1.0 - valid.mean()), mean_m=float(d.mean()),
                     rmse_m=float(np.sqrt(np.mean(d**2))),
+                    median_abs_m=float(np.median(np.abs(d))),
                     p95_abs_m=float(np.percentile(np.abs(d), 95)))
 
 
