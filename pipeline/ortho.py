@@ -255,6 +255,9 @@ class Orthorectifier:
         self._corrector = PixelCorrector(camera=camera)
         self._pinhole = pinhole_camera(camera)
         self._lut = DistortionTable.for_camera(camera)
+        # An ideal camera (no distortion, square pixels) skips the table: ideal = observed.
+        self._distorted = (any((camera.k1, camera.k2, camera.p1, camera.p2, camera.k3))
+                           or camera.fy_px != camera.fx_px)
         self._pool = ThreadPoolExecutor(max_workers=self.options.threads)
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ortho-cog")
         self._pending: Future[Path] | None = None
@@ -519,7 +522,7 @@ class Orthorectifier:
         dxy2 = ((dx**2).astype(f32), (dy**2).astype(f32))  # squared horizontal offsets
         ks = OCCLUSION_SUBSAMPLE
         sub_shape = (-(-rows // ks), -(-cols // ks))
-        out = _Projection(uv=np.empty((rows, cols, 2), f32), depth=np.empty((rows, cols), f32),
+        out = _Projection(uv=np.empty((rows, cols, 2), f32),
                           off_nadir=np.empty((rows, cols), f32),
                           seen=np.empty((rows, cols), bool), off_dsm=[],
                           uv_s=np.empty(sub_shape + (2,), f32), depth_s=np.empty(sub_shape, f32),
@@ -534,19 +537,18 @@ class Orthorectifier:
             rs = slice(r0, min(r0 + BLOCK_ROWS, rows))
             # Only the columns the footprint can reach in these rows are projected.
             c_lo, c_hi = _hull_columns(hull, col0, row0 + rs.start, row0 + rs.stop, p, cols)
+            ss = slice(rs.start // ks, -(-rs.stop // ks))
             for part in (slice(0, c_lo), slice(c_hi, cols)):
                 out.seen[rs, part] = False
                 out.uv[rs, part] = OUTSIDE_PX
-                out.depth[rs, part] = np.inf
                 out.off_nadir[rs, part] = np.inf
+                out.depth_s[ss, -(-part.start // ks):-(-part.stop // ks)] = np.inf
             cs = slice(c_lo, c_hi)
             if c_lo < c_hi:
                 self._project_block(out, rs, cs, Z, k_f32, row_terms, col_terms, dxy2,
                                     z0, z_fill, has_holes, lo, hi)
             # Every ks-th cell for the z-buffer, copied while the block is in the cache.
-            ss = slice(rs.start // ks, -(-rs.stop // ks))
             out.uv_s[ss] = out.uv[rs][::ks, ::ks]
-            out.depth_s[ss] = out.depth[rs][::ks, ::ks]
             out.seen_s[ss] = out.seen[rs][::ks, ::ks]
             out.z_s[ss] = Z[rs][::ks, ::ks]
 
@@ -570,7 +572,8 @@ class Orthorectifier:
         depth += col_terms[2, cs]
         behind = depth <= 0
         any_behind = bool(behind.any())
-        uv = np.empty(depth.shape + (2,), f32)
+        uv_obs = out.uv[rs, cs]  # written in place (OpenCV takes the strided view)
+        uv = np.empty(depth.shape + (2,), f32) if self._distorted else uv_obs
         for c in (0, 1):
             num = kz[c] * dz
             num += row_terms[c, rs, None]
@@ -579,17 +582,19 @@ class Orthorectifier:
         if any_behind:
             uv[behind] = OUTSIDE_PX
             depth[behind] = np.nan
-        delta = cv2.remap(lut.table, uv, None, cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_CONSTANT, borderValue=(OUTSIDE_PX,) * 4)
-        uv_obs = cv2.scaleAdd(uv, lut.step_px, delta)
-        seen = cv2.inRange(uv_obs, lo, hi) > 0
+        if self._distorted:
+            delta = cv2.remap(lut.table, uv, None, cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=(OUTSIDE_PX,) * 4)
+            cv2.scaleAdd(uv, lut.step_px, delta, dst=uv_obs)
+        seen = out.seen[rs, cs]
+        np.greater(cv2.inRange(uv_obs, lo, hi), 0, out=seen)
         if no_height is not None:
             out.off_dsm.append(int(np.count_nonzero(seen & no_height)))
             seen &= ~no_height
             uv_obs[~seen] = OUTSIDE_PX
-        out.uv[rs, cs] = uv_obs
-        out.seen[rs, cs] = seen
-        out.depth[rs, cs] = depth
+        ks = OCCLUSION_SUBSAMPLE  # the z-buffer needs the depth of every ks-th cell only
+        out.depth_s[rs.start // ks:-(-rs.stop // ks), -(-cs.start // ks):-(-cs.stop // ks)] = (
+            depth[(-rs.start) % ks::ks, (-cs.start) % ks::ks])
         hdist = np.sqrt(dxy2[0][cs] + dxy2[1][rs, None])
         np.divide(hdist, dz, out=hdist)
         np.negative(hdist, out=out.off_nadir[rs, cs])
@@ -598,15 +603,17 @@ class Orthorectifier:
         """(3, 3) map from ``(X - X0, Y - Y0, Z - Z0)`` to (numerator u, numerator v, depth).
 
         ``depth = -p_z``; ``u = (cx d + f p_x) / d``, ``v = (cy d - f p_y) / d`` with the
-        distortion table's origin and step folded in: ``num_u / d = (u - u0) / step``.
+        distortion table's origin and step folded in: ``num_u / d = (u - u0) / step``
+        (an ideal camera: ``num_u / d = u``).
         """
         lut = self._lut
+        u0, v0, step = (lut.u0, lut.v0, lut.step_px) if self._distorted else (0.0, 0.0, 1.0)
         f, cx, cy = self._pinhole.f_px, self._pinhole.cx_px, self._pinhole.cy_px
         Rt = R.T  # rows: camera axes in world coordinates
-        k = np.vstack([f * Rt[0] - (cx - lut.u0) * Rt[2],
-                       -f * Rt[1] - (cy - lut.v0) * Rt[2],
+        k = np.vstack([f * Rt[0] - (cx - u0) * Rt[2],
+                       -f * Rt[1] - (cy - v0) * Rt[2],
                        -Rt[2]])
-        k[:2] /= lut.step_px
+        k[:2] /= step
         return k
 
     def _project_points(self, k: FloatArray, offsets_m: FloatArray) -> (
@@ -628,6 +635,8 @@ class Orthorectifier:
             np.divide(num_u, depth, out=uv[:, 0])
             np.divide(num_v, depth, out=uv[:, 1])
         uv[~(depth > 0)] = OUTSIDE_PX
+        if not self._distorted:
+            return uv, depth
         n = len(uv)
         # cv2.remap needs maps under 32767 x 32767: lay the points out in rows.
         rows = -(-n // POINTS_PER_ROW)
@@ -764,11 +773,11 @@ class _Projection:
     """Per-cell work arrays of one image (float32 / bool, the ortho grid's shape)."""
 
     uv: np.ndarray  # (rows, cols, 2) observed pixels, OUTSIDE_PX where unseen
-    depth: np.ndarray
     off_nadir: np.ndarray
     seen: np.ndarray
     off_dsm: list[int]
-    # Every OCCLUSION_SUBSAMPLE-th cell in each direction (z-buffer), and the DSM heights there.
+    # Every OCCLUSION_SUBSAMPLE-th cell in each direction (z-buffer): observed pixels, depth
+    # (NaN behind the camera, inf outside the footprint), seen, and the DSM heights there.
     uv_s: np.ndarray
     depth_s: np.ndarray
     seen_s: np.ndarray
