@@ -258,6 +258,7 @@ class Orthorectifier:
         # An ideal camera (no distortion, square pixels) skips the table: ideal = observed.
         self._distorted = (any((camera.k1, camera.k2, camera.p1, camera.p2, camera.k3))
                            or camera.fy_px != camera.fx_px)
+        self._buffers: dict[str, np.ndarray] = {}
         self._pool = ThreadPoolExecutor(max_workers=self.options.threads)
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ortho-cog")
         self._pending: Future[Path] | None = None
@@ -329,7 +330,8 @@ class Orthorectifier:
         if rows * cols > max_cells:
             raise InputDataError(f"image {image_id!r}: footprint of {cols} x {rows} cells at "
                                  f"{p:g} m is too large (pixel_m too small for this image?)")
-        Z = self.dsm.sample_grid(col0 * p, -row0 * p, p, rows, cols)
+        Z = self.dsm.sample_grid(col0 * p, -row0 * p, p, rows, cols,
+                                 out=self._buffer("Z", (rows, cols)))
         proj = self._project(eop, R, col0, row0, Z, z_ground, hull)
         off_dsm = sum(proj.off_dsm)
         if off_dsm:
@@ -406,6 +408,15 @@ class Orthorectifier:
         return float(np.max(np.where(np.isfinite(shift), shift, np.inf)))
 
     # ----------------------------------------------------------------------------------------
+
+    def _buffer(self, name: str, shape: tuple[int, ...]) -> np.ndarray:
+        """A float32 work array kept from image to image (never part of a result): a fresh
+        array of this size costs a page fault per 4 kB on first touch, ~20 % of an image."""
+        size = math.prod(shape)
+        buf = self._buffers.get(name)
+        if buf is None or buf.size < size:
+            buf = self._buffers[name] = np.empty(size, np.float32)
+        return buf[:size].reshape(shape)
 
     def _rotation(self, image_id: str, eop: FloatArray) -> FloatArray:
         """``R_world_from_cam``; the viewing axis must look at least 1 deg below the horizon."""
@@ -522,11 +533,12 @@ class Orthorectifier:
         dxy2 = ((dx**2).astype(f32), (dy**2).astype(f32))  # squared horizontal offsets
         ks = OCCLUSION_SUBSAMPLE
         sub_shape = (-(-rows // ks), -(-cols // ks))
-        out = _Projection(uv=np.empty((rows, cols, 2), f32),
+        out = _Projection(uv=self._buffer("uv", (rows, cols, 2)),
                           off_nadir=np.empty((rows, cols), f32),
                           seen=np.empty((rows, cols), bool), off_dsm=[],
-                          uv_s=np.empty(sub_shape + (2,), f32), depth_s=np.empty(sub_shape, f32),
-                          seen_s=np.empty(sub_shape, bool), z_s=np.empty(sub_shape, f32))
+                          uv_s=self._buffer("uv_s", sub_shape + (2,)),
+                          depth_s=self._buffer("depth_s", sub_shape),
+                          seen_s=np.empty(sub_shape, bool), z_s=self._buffer("z_s", sub_shape))
         z0, z_fill = f32(eop[2]), f32(z_ground)
         margin = 1.0 if self.options.resampling == "cubic" else 0.0  # kernel inside the image
         lo = (margin, margin)
