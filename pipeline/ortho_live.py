@@ -388,6 +388,7 @@ class LiveOrtho:
             elif kept is not None and kept.tiles & frozen:
                 ortho_image(ortho, self._mosaic, image_id, self.images.get(image_id), kept.eop,
                             write=False, tiles=frozen)
+        ortho.flush()  # every COG complete before the mosaic, the warp and ortho.json
         records = [self._kept[i].record for i in final if i in self._kept]
         skipped = [i for i in final if i not in self._kept]
         warnings = self._warnings + [w for k in self._kept.values() for w in k.record.warnings]

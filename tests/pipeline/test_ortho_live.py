@@ -146,6 +146,22 @@ def test_flat_fallback_waits_for_the_first_ground_points(tmp_path: Path) -> None
     mosaic_matches_texture(out / "mosaic.tif")
 
 
+def test_live_ortho_in_another_crs(tmp_path: Path) -> None:
+    out = write_run(tmp_path)
+    run = read_run(out)
+    solution = _solution(out)
+    assert run.images_dir is not None
+    with LiveOrtho(out, crs=run.crs, camera=run.camera, images=image_files(run.images_dir),
+                   nav=run.nav, dsm=read_dsm(write_scene_dsm(tmp_path / "dsm.tif"), run.crs),
+                   ortho_options=OrthoOptions(pixel_m=0.2), out_crs="EPSG:4326") as live:
+        _feed(live, solution, {e.image_id: e.eop for e in solution.eops})
+    summary = live.result()
+    assert summary.crs == "WGS 84" and len(summary.images) == 3
+    for record in summary.images:
+        with rasterio.open(record.path or "") as src:
+            assert src.crs.to_epsg() == 4326
+
+
 def test_live_errors_are_kept_until_the_run_is_published(tmp_path: Path) -> None:
     out = write_run(tmp_path)
     solution = _solution(out)
