@@ -183,6 +183,15 @@ def test_cli_run_ortho_flags(tmp_path: Path, small_sim_dir: Path) -> None:
                                    "--ortho"])
     assert bad.exit_code == 2 and "image flight" in bad.output
     assert len(bad.output.strip().splitlines()) == 1 and not (tmp_path / "b").exists()
+    options = tmp_path / "live.yaml"
+    options.write_text("live:\n  reortho_shift_px: -1\n")
+    bad = CliRunner().invoke(app, ["run", str(small_sim_dir), "--out", str(tmp_path / "c"),
+                                   "--ortho", "--ortho-options", str(options)])
+    assert bad.exit_code == 2 and "reortho_shift_px" in bad.output
+    options.write_text("dsm:\n  cell_m: 1\n")  # seqat dsm's section has no use here
+    bad = CliRunner().invoke(app, ["run", str(small_sim_dir), "--out", str(tmp_path / "c"),
+                                   "--ortho", "--ortho-options", str(options)])
+    assert bad.exit_code == 2 and "dsm: unknown key" in bad.output
 
 
 @pytest.mark.skipif(not hasattr(os, "setpriority"), reason="per-thread priority: Linux")
