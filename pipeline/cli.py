@@ -9,6 +9,7 @@ atomically, so a failed command leaves nothing half-written.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import math
@@ -223,8 +224,14 @@ def run(
         "--observations", help="Image points to use instead of the flight's own or of "
         "tracking (e.g. OUT/observations.csv of an earlier run).")] = None,
     ortho: Annotated[bool, typer.Option(
-        "--ortho", help="Then orthorectify the images with the final EOPs (as seqat ortho).")]
-    = False,
+        "--ortho", help="Orthorectify each image as soon as it is georeferenced and build "
+        "the mosaic live (ortho/, mosaic.tif, cameras.gpkg, ortho.json).")] = False,
+    dsm: Annotated[Path | None, typer.Option(
+        "--dsm", help="--ortho: DSM GeoTIFF (default: OUT/dsm.tif, the flight's lidar, else a "
+        "flat plane).")] = None,
+    ortho_options: Annotated[Path | None, typer.Option(
+        "--ortho-options", help="--ortho: options YAML (sections ortho:, mosaic:, live:).")]
+    = None,
     report: Annotated[bool, typer.Option(
         "--report", help="Then write OUT/report.html and report.json (as seqat report).")]
     = False,
@@ -236,18 +243,31 @@ def run(
     """Adjust a flight folder and write eop.csv, points.csv, run.json, nav.csv and
     observations.csv."""
     from pipeline.runner import run_flight
+    from seqat.errors import ConfigError
 
-    summary = run_flight(flight, out, method=_method(method), final_only=final_only,
-                         options_path=options, threshold=threshold,
-                         initial_images=initial_images, progress=progress,
-                         observations=observations, resume=resume, budget_ms=budget_ms)
-    _console().print(_table(f"seqat run {summary.flight_dir}", _run_rows(summary, final_only)))
+    if not ortho and (dsm is not None or ortho_options is not None):
+        raise ConfigError("--dsm and --ortho-options go with --ortho")
+    live = None
     if ortho:
-        from pipeline.ortho_run import orthorectify_run
+        from pipeline.ortho_live import open_live_ortho
 
-        o = orthorectify_run(summary.out_dir, progress=progress)
-        _console().print(f"orthos and mosaic: {o.mosaic} ({len(o.images)} images, "
-                         f"surface: {o.dsm_source})")
+        live = open_live_ortho(flight, out, dsm_path=dsm, options_path=ortho_options)
+    with live if live is not None else contextlib.nullcontext():
+        summary = run_flight(flight, out, method=_method(method), final_only=final_only,
+                             options_path=options, threshold=threshold,
+                             initial_images=initial_images, progress=progress,
+                             observations=observations, resume=resume, budget_ms=budget_ms,
+                             listeners=(live,) if live is not None else ())
+    _console().print(_table(f"seqat run {summary.flight_dir}", _run_rows(summary, final_only)))
+    if live is not None:
+        o = live.result()
+        assert o.live is not None
+        _console().print(
+            f"orthos and mosaic (live): {o.mosaic} ({len(o.images)} images, "
+            f"{len(o.live.images_reorthorectified)} orthorectified again at the end; "
+            f"surface: {o.dsm_source}); ortho ms median {o.compute_ms.median_ms:.0f}, "
+            f"image to mosaic latency ms median / max {o.live.latency_ms.median_ms:.0f} / "
+            f"{o.live.latency_ms.max_ms:.0f}")
     if report:
         from pipeline.report import make_report
 

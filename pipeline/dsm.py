@@ -156,7 +156,7 @@ class Dsm:
         return out.reshape(-1).astype(np.float64)
 
     def sample_grid(self, west_m: float, north_m: float, pixel_m: float, rows: int,
-                    cols: int) -> np.ndarray:
+                    cols: int, out: np.ndarray | None = None) -> np.ndarray:
         """Bilinear heights at the cell centres of a north-up grid (one ``cv2.warpAffine``).
 
         Parameters
@@ -165,6 +165,8 @@ class Dsm:
             Outer corner of the grid's top-left cell.
         pixel_m : float
         rows, cols : int
+        out : (rows, cols) float32, optional
+            Written in place (a work array kept by the caller).
 
         Returns
         -------
@@ -180,7 +182,7 @@ class Dsm:
         c0 = (west_m + 0.5 * pixel_m - self.transform.c) / cw - 0.5
         r0 = (self.transform.f - north_m + 0.5 * pixel_m) / ch - 0.5
         M = np.array([[a, 0.0, c0], [0.0, e, r0]], dtype=np.float64)
-        return cv2.warpAffine(self.heights_m, M, (cols, rows),
+        return cv2.warpAffine(self.heights_m, M, (cols, rows), dst=out,
                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                               borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
 

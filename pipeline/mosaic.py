@@ -18,11 +18,13 @@ float32 off-nadir tangent with +inf where empty), written atomically and removed
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import shutil
 import tempfile
 import time
 from collections import OrderedDict
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -53,6 +55,7 @@ class MosaicUpdate:
     tiles_touched: int
     cells_updated: int
     update_ms: float
+    tiles: frozenset[tuple[int, int]] = frozenset()  # (column, row) of each tile touched
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -106,12 +109,14 @@ class MosaicBuilder:
         self._dirty: set[tuple[int, int]] = set()
         self._auto_cache = cache_tiles is None
         self._cache_tiles = CACHE_TILES if cache_tiles is None else max(1, cache_tiles)
-        self._images = 0
+        self._images: set[str] = set()
 
     # ----------------------------------------------------------------------------------------
 
-    def add(self, ortho: OrthoResult) -> MosaicUpdate:
-        """Paste one ortho into the tiles it touches.
+    def add(self, ortho: OrthoResult, *,
+            tiles: frozenset[tuple[int, int]] | None = None) -> MosaicUpdate:
+        """Paste one ortho into the tiles it touches (only into ``tiles`` when given: the
+        recomposition of tiles emptied by :meth:`clear`).
 
         Raises
         ------
@@ -136,9 +141,12 @@ class MosaicBuilder:
             span = ((r.row0 + rows - 1) // T - r.row0 // T + 1) * ((r.col0 + cols - 1) // T
                                                                   - r.col0 // T + 1)
             self._cache_tiles = max(self._cache_tiles, 2 * span)
-        touched = updated = 0
+        touched_keys: set[tuple[int, int]] = set()
+        updated = 0
         for tr in range(r.row0 // T, (r.row0 + rows - 1) // T + 1):
             for tc in range(r.col0 // T, (r.col0 + cols - 1) // T + 1):
+                if tiles is not None and (tc, tr) not in tiles:
+                    continue
                 # Overlap of tile (tc, tr) with the ortho, in ortho and in tile coordinates.
                 g_r0, g_r1 = max(tr * T, r.row0), min((tr + 1) * T, r.row0 + rows)
                 g_c0, g_c1 = max(tc * T, r.col0), min((tc + 1) * T, r.col0 + cols)
@@ -152,11 +160,27 @@ class MosaicBuilder:
                        r.off_nadir[src], feather, ALPHA_OPAQUE[self.dtype])
                 self._tiles.add((tc, tr))
                 self._dirty.add((tc, tr))
-                touched += 1
+                touched_keys.add((tc, tr))
                 updated += int(seen.sum())
-        self._images += 1
-        return MosaicUpdate(image_id=r.image_id, tiles_touched=touched, cells_updated=updated,
-                            update_ms=(time.perf_counter() - t0) * 1e3)
+        self._images.add(r.image_id)
+        return MosaicUpdate(image_id=r.image_id, tiles_touched=len(touched_keys),
+                            cells_updated=updated, update_ms=(time.perf_counter() - t0) * 1e3,
+                            tiles=frozenset(touched_keys))
+
+    def clear(self, tiles: Iterable[tuple[int, int]]) -> None:
+        """Empty these tiles (to recompose them from their images in acquisition order)."""
+        for key in tiles:
+            self._cache.pop(key, None)
+            self._dirty.discard(key)
+            self._tiles.discard(key)
+            if key in self._stored:
+                self._stored.discard(key)
+                self._tile_path(*key).unlink(missing_ok=True)
+
+    def discard(self) -> None:
+        """Drop everything without writing ``mosaic.tif`` (remove the tile store)."""
+        self._cache.clear()
+        shutil.rmtree(self.work_dir, ignore_errors=True)
 
     def finish(self) -> MosaicResult:
         """Write ``mosaic.tif`` (COG with overviews, alpha band) and remove the tile store.
@@ -190,7 +214,7 @@ class MosaicBuilder:
             gtiff_to_cog(full, self.path)
         shutil.rmtree(self.work_dir, ignore_errors=True)
         bounds = (tc0 * T * p, -(tr0 * T + rows) * p, (tc0 * T + cols) * p, -tr0 * T * p)
-        return MosaicResult(path=self.path, images=self._images, tiles=len(self._tiles),
+        return MosaicResult(path=self.path, images=len(self._images), tiles=len(self._tiles),
                             rows=rows, cols=cols, bounds=bounds,
                             finish_s=time.perf_counter() - t0)
 
@@ -233,6 +257,18 @@ class MosaicBuilder:
             raise
         self._stored.add(key)
         self._dirty.discard(key)
+
+
+def tiles_of_bounds(bounds: tuple[float, float, float, float], pixel_m: float) -> (
+        frozenset[tuple[int, int]]):
+    """The ``(column, row)`` of every tile a ``(west, south, east, north)`` window reaches on
+    the global grid of ``pixel_m`` cells (rows grow southwards from northing 0)."""
+    west, south, east, north = bounds
+    c0, c1 = math.floor(west / pixel_m), math.ceil(east / pixel_m)
+    r0, r1 = math.floor(-north / pixel_m), math.ceil(-south / pixel_m)
+    T = TILE_PX
+    return frozenset((tc, tr) for tr in range(r0 // T, (max(r1, r0 + 1) - 1) // T + 1)
+                     for tc in range(c0 // T, (max(c1, c0 + 1) - 1) // T + 1))
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

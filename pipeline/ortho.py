@@ -214,6 +214,13 @@ class OrthoResult:
     warnings: tuple[str, ...] = field(default=())
 
 
+def _checked_eop(image_id: str, eop: FloatArray) -> FloatArray:
+    eop = np.asarray(eop, dtype=np.float64).reshape(-1)
+    if eop.shape != (6,) or not np.all(np.isfinite(eop)):
+        raise InputDataError(f"image {image_id!r}: EOP must be 6 finite numbers, got {eop}")
+    return eop
+
+
 def _nice_pixel(gsd_m: float) -> float:
     digits = PIXEL_SIGNIFICANT_DIGITS - 1 - int(math.floor(math.log10(gsd_m)))
     return round(gsd_m, digits)
@@ -248,6 +255,10 @@ class Orthorectifier:
         self._corrector = PixelCorrector(camera=camera)
         self._pinhole = pinhole_camera(camera)
         self._lut = DistortionTable.for_camera(camera)
+        # An ideal camera (no distortion, square pixels) skips the table: ideal = observed.
+        self._distorted = (any((camera.k1, camera.k2, camera.p1, camera.p2, camera.k3))
+                           or camera.fy_px != camera.fx_px)
+        self._buffers: dict[str, np.ndarray] = {}
         self._pool = ThreadPoolExecutor(max_workers=self.options.threads)
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ortho-cog")
         self._pending: Future[Path] | None = None
@@ -274,7 +285,8 @@ class Orthorectifier:
 
     # ----------------------------------------------------------------------------------------
 
-    def add_image(self, image_id: str, image: np.ndarray, eop: FloatArray) -> OrthoResult:
+    def add_image(self, image_id: str, image: np.ndarray, eop: FloatArray, *,
+                  write: bool = True) -> OrthoResult:
         """Orthorectify one image.
 
         Parameters
@@ -284,6 +296,8 @@ class Orthorectifier:
             RGB (not OpenCV's BGR) or grey, the camera's size.
         eop : (6,) float
             ``[X0_m, Y0_m, Z0_m, omega_rad, phi_rad, kappa_rad]`` (refined EOP).
+        write : bool
+            Write ``ortho/<image>.tif`` (when the orthorectifier writes images at all).
 
         Returns
         -------
@@ -297,18 +311,9 @@ class Orthorectifier:
         """
         t0 = time.perf_counter()
         image = self._check_image(image_id, image)
-        eop = np.asarray(eop, dtype=np.float64).reshape(-1)
-        if eop.shape != (6,) or not np.all(np.isfinite(eop)):
-            raise InputDataError(f"image {image_id!r}: EOP must be 6 finite numbers, got {eop}")
+        eop = _checked_eop(image_id, eop)
         warnings: list[str] = []
-        R = rotation_matrix(eop[3], eop[4], eop[5])
-        axis = -R[:, 2]
-        if axis[2] > -MIN_DEPRESSION_SIN:
-            elevation = math.degrees(math.asin(float(np.clip(axis[2], -1.0, 1.0))))
-            raise InputDataError(
-                f"image {image_id!r}: the viewing axis points {elevation:+.1f} deg from the "
-                f"horizon (omega {math.degrees(eop[3]):.1f}, phi {math.degrees(eop[4]):.1f} deg); "
-                "it must look at least 1 deg below the horizon to be orthorectified")
+        R = self._rotation(image_id, eop)
         z_ground = self._ground_height(image_id, eop)
         height_agl = eop[2] - z_ground
         if self.pixel_m is None:
@@ -325,7 +330,8 @@ class Orthorectifier:
         if rows * cols > max_cells:
             raise InputDataError(f"image {image_id!r}: footprint of {cols} x {rows} cells at "
                                  f"{p:g} m is too large (pixel_m too small for this image?)")
-        Z = self.dsm.sample_grid(col0 * p, -row0 * p, p, rows, cols)
+        Z = self.dsm.sample_grid(col0 * p, -row0 * p, p, rows, cols,
+                                 out=self._buffer("Z", (rows, cols)))
         proj = self._project(eop, R, col0, row0, Z, z_ground, hull)
         off_dsm = sum(proj.off_dsm)
         if off_dsm:
@@ -351,7 +357,7 @@ class Orthorectifier:
         compute_ms = (time.perf_counter() - t0) * 1e3
         path = None
         t1 = time.perf_counter()
-        if self.out_dir is not None and self.options.write_images:
+        if self.out_dir is not None and self.options.write_images and write:
             path = self.out_dir / f"{image_id}.tif"
             self.flush()  # at most one write pending: memory stays bounded
             if self.options.background_writes:
@@ -365,7 +371,64 @@ class Orthorectifier:
                            occlusion_ms=occlusion_ms,
                            warnings=tuple(warnings))
 
+    def ground_window(self, image_id: str, eop: FloatArray) -> tuple[float, float, float, float]:
+        """``(west, south, east, north)`` of the ground an image would cover (what
+        :meth:`add_image` grids before cropping to the cells seen), without orthorectifying.
+
+        Raises
+        ------
+        InputDataError
+            As :meth:`add_image` for the geometry (horizon, below the surface, off the DSM).
+        """
+        eop = _checked_eop(image_id, eop)
+        z_ground = self._ground_height(image_id, eop)
+        _, _, window, _ = self._footprint(image_id, eop, self._rotation(image_id, eop),
+                                          z_ground, eop[2] - z_ground)
+        return window
+
+    def footprint_shift_m(self, image_id: str, eop_a: FloatArray, eop_b: FloatArray) -> float:
+        """How far the ground under an image moves from ``eop_a`` to ``eop_b``, metres.
+
+        The largest horizontal displacement of the ground points of the image's four corners
+        and centre on the plane at the DSM height under the camera (``eop_a``); rays that do
+        not meet the plane count as infinite.
+        """
+        eop_a, eop_b = _checked_eop(image_id, eop_a), _checked_eop(image_id, eop_b)
+        w, h = self.camera.width_px - 1.0, self.camera.height_px - 1.0
+        observed = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h], [w / 2, h / 2]])
+        ideal = self._corrector.ideal_pixels(observed)
+        z = self._ground_height(image_id, eop_a)
+        ground = []
+        for eop in (eop_a, eop_b):
+            rays = rays_world(np.tile(eop, (len(ideal), 1)), ideal, self._pinhole)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = np.where(rays[:, 2] < -MIN_DEPRESSION_SIN, (z - eop[2]) / rays[:, 2], np.inf)
+            ground.append(eop[:2] + t[:, None] * rays[:, :2])
+        shift = np.linalg.norm(ground[1] - ground[0], axis=1)
+        return float(np.max(np.where(np.isfinite(shift), shift, np.inf)))
+
     # ----------------------------------------------------------------------------------------
+
+    def _buffer(self, name: str, shape: tuple[int, ...]) -> np.ndarray:
+        """A float32 work array kept from image to image (never part of a result): a fresh
+        array of this size costs a page fault per 4 kB on first touch, ~20 % of an image."""
+        size = math.prod(shape)
+        buf = self._buffers.get(name)
+        if buf is None or buf.size < size:
+            buf = self._buffers[name] = np.empty(size, np.float32)
+        return buf[:size].reshape(shape)
+
+    def _rotation(self, image_id: str, eop: FloatArray) -> FloatArray:
+        """``R_world_from_cam``; the viewing axis must look at least 1 deg below the horizon."""
+        R = rotation_matrix(eop[3], eop[4], eop[5])
+        axis = -R[:, 2]
+        if axis[2] > -MIN_DEPRESSION_SIN:
+            elevation = math.degrees(math.asin(float(np.clip(axis[2], -1.0, 1.0))))
+            raise InputDataError(
+                f"image {image_id!r}: the viewing axis points {elevation:+.1f} deg from the "
+                f"horizon (omega {math.degrees(eop[3]):.1f}, phi {math.degrees(eop[4]):.1f} deg); "
+                "it must look at least 1 deg below the horizon to be orthorectified")
+        return R
 
     def _check_image(self, image_id: str, image: np.ndarray) -> np.ndarray:
         image = np.asarray(image)
@@ -470,11 +533,12 @@ class Orthorectifier:
         dxy2 = ((dx**2).astype(f32), (dy**2).astype(f32))  # squared horizontal offsets
         ks = OCCLUSION_SUBSAMPLE
         sub_shape = (-(-rows // ks), -(-cols // ks))
-        out = _Projection(uv=np.empty((rows, cols, 2), f32), depth=np.empty((rows, cols), f32),
+        out = _Projection(uv=self._buffer("uv", (rows, cols, 2)),
                           off_nadir=np.empty((rows, cols), f32),
                           seen=np.empty((rows, cols), bool), off_dsm=[],
-                          uv_s=np.empty(sub_shape + (2,), f32), depth_s=np.empty(sub_shape, f32),
-                          seen_s=np.empty(sub_shape, bool), z_s=np.empty(sub_shape, f32))
+                          uv_s=self._buffer("uv_s", sub_shape + (2,)),
+                          depth_s=self._buffer("depth_s", sub_shape),
+                          seen_s=np.empty(sub_shape, bool), z_s=self._buffer("z_s", sub_shape))
         z0, z_fill = f32(eop[2]), f32(z_ground)
         margin = 1.0 if self.options.resampling == "cubic" else 0.0  # kernel inside the image
         lo = (margin, margin)
@@ -485,19 +549,18 @@ class Orthorectifier:
             rs = slice(r0, min(r0 + BLOCK_ROWS, rows))
             # Only the columns the footprint can reach in these rows are projected.
             c_lo, c_hi = _hull_columns(hull, col0, row0 + rs.start, row0 + rs.stop, p, cols)
+            ss = slice(rs.start // ks, -(-rs.stop // ks))
             for part in (slice(0, c_lo), slice(c_hi, cols)):
                 out.seen[rs, part] = False
                 out.uv[rs, part] = OUTSIDE_PX
-                out.depth[rs, part] = np.inf
                 out.off_nadir[rs, part] = np.inf
+                out.depth_s[ss, -(-part.start // ks):-(-part.stop // ks)] = np.inf
             cs = slice(c_lo, c_hi)
             if c_lo < c_hi:
                 self._project_block(out, rs, cs, Z, k_f32, row_terms, col_terms, dxy2,
                                     z0, z_fill, has_holes, lo, hi)
             # Every ks-th cell for the z-buffer, copied while the block is in the cache.
-            ss = slice(rs.start // ks, -(-rs.stop // ks))
             out.uv_s[ss] = out.uv[rs][::ks, ::ks]
-            out.depth_s[ss] = out.depth[rs][::ks, ::ks]
             out.seen_s[ss] = out.seen[rs][::ks, ::ks]
             out.z_s[ss] = Z[rs][::ks, ::ks]
 
@@ -521,7 +584,8 @@ class Orthorectifier:
         depth += col_terms[2, cs]
         behind = depth <= 0
         any_behind = bool(behind.any())
-        uv = np.empty(depth.shape + (2,), f32)
+        uv_obs = out.uv[rs, cs]  # written in place (OpenCV takes the strided view)
+        uv = np.empty(depth.shape + (2,), f32) if self._distorted else uv_obs
         for c in (0, 1):
             num = kz[c] * dz
             num += row_terms[c, rs, None]
@@ -530,17 +594,19 @@ class Orthorectifier:
         if any_behind:
             uv[behind] = OUTSIDE_PX
             depth[behind] = np.nan
-        delta = cv2.remap(lut.table, uv, None, cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_CONSTANT, borderValue=(OUTSIDE_PX,) * 4)
-        uv_obs = cv2.scaleAdd(uv, lut.step_px, delta)
-        seen = cv2.inRange(uv_obs, lo, hi) > 0
+        if self._distorted:
+            delta = cv2.remap(lut.table, uv, None, cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=(OUTSIDE_PX,) * 4)
+            cv2.scaleAdd(uv, lut.step_px, delta, dst=uv_obs)
+        seen = out.seen[rs, cs]
+        np.greater(cv2.inRange(uv_obs, lo, hi), 0, out=seen)
         if no_height is not None:
             out.off_dsm.append(int(np.count_nonzero(seen & no_height)))
             seen &= ~no_height
             uv_obs[~seen] = OUTSIDE_PX
-        out.uv[rs, cs] = uv_obs
-        out.seen[rs, cs] = seen
-        out.depth[rs, cs] = depth
+        ks = OCCLUSION_SUBSAMPLE  # the z-buffer needs the depth of every ks-th cell only
+        out.depth_s[rs.start // ks:-(-rs.stop // ks), -(-cs.start // ks):-(-cs.stop // ks)] = (
+            depth[(-rs.start) % ks::ks, (-cs.start) % ks::ks])
         hdist = np.sqrt(dxy2[0][cs] + dxy2[1][rs, None])
         np.divide(hdist, dz, out=hdist)
         np.negative(hdist, out=out.off_nadir[rs, cs])
@@ -549,15 +615,17 @@ class Orthorectifier:
         """(3, 3) map from ``(X - X0, Y - Y0, Z - Z0)`` to (numerator u, numerator v, depth).
 
         ``depth = -p_z``; ``u = (cx d + f p_x) / d``, ``v = (cy d - f p_y) / d`` with the
-        distortion table's origin and step folded in: ``num_u / d = (u - u0) / step``.
+        distortion table's origin and step folded in: ``num_u / d = (u - u0) / step``
+        (an ideal camera: ``num_u / d = u``).
         """
         lut = self._lut
+        u0, v0, step = (lut.u0, lut.v0, lut.step_px) if self._distorted else (0.0, 0.0, 1.0)
         f, cx, cy = self._pinhole.f_px, self._pinhole.cx_px, self._pinhole.cy_px
         Rt = R.T  # rows: camera axes in world coordinates
-        k = np.vstack([f * Rt[0] - (cx - lut.u0) * Rt[2],
-                       -f * Rt[1] - (cy - lut.v0) * Rt[2],
+        k = np.vstack([f * Rt[0] - (cx - u0) * Rt[2],
+                       -f * Rt[1] - (cy - v0) * Rt[2],
                        -Rt[2]])
-        k[:2] /= lut.step_px
+        k[:2] /= step
         return k
 
     def _project_points(self, k: FloatArray, offsets_m: FloatArray) -> (
@@ -579,6 +647,8 @@ class Orthorectifier:
             np.divide(num_u, depth, out=uv[:, 0])
             np.divide(num_v, depth, out=uv[:, 1])
         uv[~(depth > 0)] = OUTSIDE_PX
+        if not self._distorted:
+            return uv, depth
         n = len(uv)
         # cv2.remap needs maps under 32767 x 32767: lay the points out in rows.
         rows = -(-n // POINTS_PER_ROW)
@@ -715,11 +785,11 @@ class _Projection:
     """Per-cell work arrays of one image (float32 / bool, the ortho grid's shape)."""
 
     uv: np.ndarray  # (rows, cols, 2) observed pixels, OUTSIDE_PX where unseen
-    depth: np.ndarray
     off_nadir: np.ndarray
     seen: np.ndarray
     off_dsm: list[int]
-    # Every OCCLUSION_SUBSAMPLE-th cell in each direction (z-buffer), and the DSM heights there.
+    # Every OCCLUSION_SUBSAMPLE-th cell in each direction (z-buffer): observed pixels, depth
+    # (NaN behind the camera, inf outside the footprint), seen, and the DSM heights there.
     uv_s: np.ndarray
     depth_s: np.ndarray
     seen_s: np.ndarray

@@ -5,14 +5,24 @@
 strip of ``N`` images of a 2456 x 2058 px camera 100 m over a sloped DSM with box buildings,
 orthorectifies each image, updates the mosaic and prints a JSON summary: per-image ortho
 time (projection + occlusion + resampling), COG writing time, mosaic update time, the final
-mosaic write, and the process's peak memory (run it with two flight lengths to see that
-memory does not grow with the flight).
+mosaic write, process CPU time, and the process's peak memory (run it with two flight
+lengths to see that memory does not grow with the flight).
+
+``python -m pipeline.ortho_bench --live MODE --images N --out DIR [--no-write]
+[--rate-hz R]``: the live ortho of ``seqat run --ortho`` (:class:`pipeline.ortho_live.
+LiveOrtho`) behind the Seq-R estimator on the paper strip (``configs/paper_sim.yaml``: the
+same 2456 x 2058 px camera, 200 m, 2 Hz), the frames paced at ``R`` Hz as in flight; each
+image is one decoded JPEG of a synthetic texture, the surface the flat fallback. MODE
+``none`` (no ortho), ``background`` (the worker thread) or ``foreground`` (in the AT loop):
+the AT update times per mode show what the ortho costs the estimator.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import os
 import resource
 import time
 from dataclasses import dataclass
@@ -45,6 +55,12 @@ N_BUILDINGS_PER_100M = 4
 ORIGIN_E, ORIGIN_N = 500000.0, 4090000.0
 #: The DSM starts this far west of the first image.
 DSM_MARGIN_M = 60.0
+#: Live benchmark: the paper strip (its camera is BENCH_CAMERA's size), seed, Seq-R threshold.
+PAPER_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "paper_sim.yaml"
+LIVE_SEED = 1
+LIVE_THRESHOLD = 0.1
+MIN_POINTS = 20
+JPEG_QUALITY = 90
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -65,6 +81,9 @@ class OrthoBench:
     mosaic_px: tuple[int, int]
     peak_rss_strip_mb: float  # peak resident memory before the mosaic is written
     peak_rss_mb: float  # peak resident memory of the whole run
+    cpu_ms_per_image: float  # process CPU time of the strip (all threads) / N
+    load_start: float  # 1-minute load average before and after
+    load_end: float
 
 
 def bench_dsm(length_m: float, seed: int = 0) -> Dsm:
@@ -104,7 +123,8 @@ def run_ortho_bench(n_images: int, out_dir: Path, *, occlusion: bool = True,
                            background_writes=background_writes)
     mosaic = MosaicBuilder(out_dir / "mosaic.tif", BENCH_CRS)
     compute, occlusion_ms, writing, updates, cells = [], [], [], [], []
-    t_strip = time.perf_counter()
+    load = os.getloadavg()[0]
+    t_strip, cpu_strip = time.perf_counter(), time.process_time()
     with Orthorectifier(dsm, BENCH_CAMERA, BENCH_CRS, ortho_dir, options) as ortho:
         for i in range(n_images):
             x = i * SPACING_M  # the strip follows the sloped ground at HEIGHT_M
@@ -119,6 +139,7 @@ def run_ortho_bench(n_images: int, out_dir: Path, *, occlusion: bool = True,
             cells.append(result.raster.shape[0] * result.raster.shape[1])
         pixel_m = float(ortho.pixel_m or 0.0)
     strip_ms = (time.perf_counter() - t_strip) * 1e3 / n_images  # pending write included
+    cpu_ms = (time.process_time() - cpu_strip) * 1e3 / n_images
     rss_strip = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     t0 = time.perf_counter()
     final = mosaic.finish()
@@ -132,7 +153,91 @@ def run_ortho_bench(n_images: int, out_dir: Path, *, occlusion: bool = True,
         mosaic_ms=TimingStats.from_samples(updates), strip_ms_per_image=strip_ms,
         mosaic_finish_s=finish_s,
         mosaic_px=(final.cols, final.rows), peak_rss_strip_mb=rss_strip,
-        peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+        peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        cpu_ms_per_image=cpu_ms, load_start=load, load_end=os.getloadavg()[0])
+
+
+@dataclass(frozen=True, kw_only=True)
+class LiveBench:
+    """Summary of the live benchmark (milliseconds, megabytes)."""
+
+    mode: str  # none | background | foreground
+    worker_nice: int | None  # None: the default
+    images: int
+    rate_hz: float
+    write_images: bool
+    at_update_ms: TimingStats  # SequentialAT.add_frame
+    loop_ms: TimingStats  # AT update + on_image (what the AT loop spends per image)
+    ortho_ms: TimingStats  # compute_ms of the live orthos
+    latency_ms: TimingStats  # AT update -> mosaic
+    queue_ms: TimingStats
+    reorthorectified: int
+    finish_s: float
+    cpu_ms_per_image: float
+    peak_rss_mb: float
+    load_start: float
+    load_end: float
+
+
+def run_live_bench(n_images: int, out_dir: Path, mode: str, *, write: bool = True,
+                   rate_hz: float = 2.0, nice: int | None = None) -> LiveBench:
+    """Seq-R on the paper strip with the live ortho behind it (module docstring)."""
+    from pipeline.bench import _load_sim_config
+    from pipeline.ortho_live import LiveOrtho, LiveOrthoOptions
+    from pipeline.tables import NavTable
+    from seqat.sequential import SequentialAT, SequentialOptions
+    from seqat.simulate import simulate_strip
+
+    if mode not in ("none", "background", "foreground"):
+        raise ValueError(f"mode: none, background or foreground, got {mode!r}")
+    paper = _load_sim_config(PAPER_CONFIG)  # a shorter strip with the paper's point density
+    config = dataclasses.replace(paper, n_images=n_images, n_points=max(
+        MIN_POINTS, round(paper.n_points * n_images / paper.n_images)))
+    flight = simulate_strip(config, LIVE_SEED)
+    cam = flight.camera
+    camera = CameraConfig(model="PINHOLE", width_px=config.width_px, height_px=config.height_px,
+                          fx_px=cam.f_px, fy_px=cam.f_px, cx_px=cam.cx_px, cy_px=cam.cy_px)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    jpeg = out_dir / "texture.jpg"
+    image = cv2.resize(bench_image(), (config.width_px, config.height_px))
+    cv2.imwrite(str(jpeg), cv2.cvtColor(image, cv2.COLOR_RGB2BGR),
+                [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    nav = NavTable(image_ids=flight.image_ids, times_s=flight.times_s, eop=flight.nav_eop)
+    live = None if mode == "none" else LiveOrtho(
+        out_dir, crs=BENCH_CRS, camera=camera, images=dict.fromkeys(flight.image_ids, jpeg),
+        nav=nav, dsm=None, ortho_options=OrthoOptions(write_images=write),
+        options=LiveOrthoOptions(background=mode == "background",
+                                 **({} if nice is None else {"worker_nice": nice})))
+    at = SequentialAT(cam, SequentialOptions(correlation_threshold=LIVE_THRESHOLD))
+    at_ms, loop_ms = [], []
+    load = os.getloadavg()[0]
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    for k, frame in enumerate(flight.frames()):
+        time.sleep(max(0.0, t0 + k / rate_hz - time.perf_counter()))  # the next frame arrives
+        t = time.perf_counter()
+        update = at.add_frame(frame)
+        at_ms.append((time.perf_counter() - t) * 1e3)
+        if live is not None:
+            live.on_image(frame, update, at)
+        loop_ms.append((time.perf_counter() - t) * 1e3)
+    empty = TimingStats.from_samples([])
+    ortho = latency = queue = empty
+    again, finish_s = 0, 0.0
+    if live is not None:
+        with live:
+            live.on_finish(at.solution())
+        summary = live.result()
+        assert summary.live is not None
+        ortho = summary.compute_ms
+        latency, queue = summary.live.latency_ms, summary.live.queue_ms
+        again, finish_s = len(summary.live.images_reorthorectified), summary.live.finish_s
+    return LiveBench(
+        mode=mode, worker_nice=nice, images=n_images, rate_hz=rate_hz, write_images=write,
+        at_update_ms=TimingStats.from_samples(at_ms), loop_ms=TimingStats.from_samples(loop_ms),
+        ortho_ms=ortho, latency_ms=latency, queue_ms=queue, reorthorectified=again,
+        finish_s=finish_s, cpu_ms_per_image=(time.process_time() - cpu0) * 1e3 / n_images,
+        peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        load_start=load, load_end=os.getloadavg()[0])
 
 
 def main() -> None:
@@ -143,10 +248,19 @@ def main() -> None:
     parser.add_argument("--no-occlusion", action="store_true")
     parser.add_argument("--no-write", action="store_true")
     parser.add_argument("--sync-writes", action="store_true")
+    parser.add_argument("--live", choices=("none", "background", "foreground"))
+    parser.add_argument("--rate-hz", type=float, default=2.0)
+    parser.add_argument("--nice", type=int, help="live: worker niceness (default: 10)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    result = run_ortho_bench(args.images, args.out, occlusion=not args.no_occlusion,
-                             write=not args.no_write, background_writes=not args.sync_writes)
+    result: OrthoBench | LiveBench
+    if args.live is not None:
+        result = run_live_bench(args.images, args.out, args.live, write=not args.no_write,
+                                rate_hz=args.rate_hz, nice=args.nice)
+    else:
+        result = run_ortho_bench(args.images, args.out, occlusion=not args.no_occlusion,
+                                 write=not args.no_write,
+                                 background_writes=not args.sync_writes)
     print(json.dumps(to_jsonable(result), indent=1))
 
 

@@ -124,13 +124,17 @@ def write_cog(path: Path | str, data: np.ndarray, *, transform: Affine, crs: pyp
     if data.ndim != 3:
         raise ValueError(f"write_cog needs (bands, rows, cols), got shape {data.shape}")
     count, rows, cols = data.shape
-    profile = {"driver": "COG", "width": cols, "height": rows, "count": count,
+    profile = {"driver": "MEM", "width": cols, "height": rows, "count": count,
                "dtype": data.dtype.name, "crs": rasterio.crs.CRS.from_wkt(crs.to_wkt()),
-               "transform": transform, "nodata": nodata, **cog_options(data.dtype.name)}
+               "transform": transform, "nodata": nodata}
+    # The COG driver does all its work when the dataset closes, and rasterio closes it
+    # holding the GIL (every other Python thread stops for the whole write); GDAL's
+    # CreateCopy from an in-memory dataset runs with the GIL released.
     with atomic_path(path) as tmp, rasterio.Env(GDAL_CACHEMAX=COG_CACHE_MB), \
-            rasterio.open(tmp, "w", **profile) as dst:
-        dst.colorinterp = colorinterp_for(count, alpha)
-        dst.write(data)
+            rasterio.MemoryFile() as memfile, memfile.open(**profile) as mem:
+        mem.colorinterp = colorinterp_for(count, alpha)
+        mem.write(data)
+        rasterio.shutil.copy(mem, tmp, driver="COG", **cog_options(data.dtype.name))
     return path
 
 

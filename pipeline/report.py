@@ -27,6 +27,7 @@ from pipeline.accuracy import Triple, eop_differences, point_differences, rmse
 from pipeline.camera import PixelCorrector, pinhole_camera
 from pipeline.config import load_flight_config
 from pipeline.flight import FLIGHT_YAML, read_ground_points, read_truth
+from pipeline.latency import LatencyTable, latency_table, read_ortho_json
 from pipeline.reference import REFERENCE_DIR, REFERENCE_JSON, read_observations
 from pipeline.robustness import RobustnessSummary, summarise
 from pipeline.store import (
@@ -195,6 +196,7 @@ class Report:
     accuracy: Mapping[str, MethodAccuracy]
     realtime: tuple[RealTime, ...]
     live: LiveOperation | None
+    latency: LatencyTable
     checkpoints: Mapping[str, float | int | None] | None
     checkpoint_reports: tuple[CheckpointReport, ...]
     notes: tuple[str, ...]
@@ -581,8 +583,9 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
         processing_ms_per_image_median=realtime[0].update_ms_median,
         processing_total_s=float(totals.get("wall_s") or float("nan")),
         reference=reference_record, accuracy_against=against, accuracy=accuracy,
-        realtime=realtime, live=live_operation(run.record), checkpoints=checkpoints,
-        checkpoint_reports=tuple(cps),
+        realtime=realtime, live=live_operation(run.record),
+        latency=latency_table(run.record, read_ortho_json(run.path)),
+        checkpoints=checkpoints, checkpoint_reports=tuple(cps),
         notes=tuple(notes), robustness=summarise(run.record))
     extras: dict[str, object] = {
         "errors": errors,

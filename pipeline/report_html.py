@@ -207,6 +207,18 @@ def render_html(report: Report, extras: Mapping[str, object]) -> str:
         parts.append("<p class='note'>Plateau: the first image after which the rms GP σ stays "
                      "within 5 % of its final level — more images stop improving "
                      "precision there.</p>")
+        lat = report.latency
+        ortho_note = {"live": "with the live ortho (seqat run --ortho)",
+                      "after the run": "ortho made after the run: listed, not in end to end",
+                      "none": "no ortho"}[lat.ortho]
+        parts.append(f"<h3>Latency per image, by stage ({html.escape(ortho_note)})</h3>")
+        parts.append(_table(["stage", "images", "median ms", "p95 ms", "max ms"],
+                            [(s.stage, s.images, s.median_ms, s.p95_ms, s.max_ms)
+                             for s in lat.stages], digits=1))
+        parts.append("<p class='note'>End to end: read + tracking + AT update (+ AT update "
+                     "-> mosaic with the live ortho), per image. The live ortho runs on a "
+                     "worker thread while the next image is tracked and adjusted, on the same "
+                     "cores.</p>")
         series = extras.get("series", {})
         assert isinstance(series, Mapping)
         parts.append(_realtime_figure(series, {r.method: r.precision_plateau_index

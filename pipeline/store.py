@@ -608,6 +608,23 @@ def _triple(value: object, key: str, source: Path) -> list[float]:
     return [float(v) for v in value]
 
 
+def read_json_object(path: Path) -> dict[str, object]:
+    """A JSON file holding an object (``run.json``, ``ortho.json``).
+
+    Raises
+    ------
+    InputDataError
+        Unreadable, not JSON, or not an object.
+    """
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise InputDataError(f"{path}: cannot read {path.name}: {err}") from err
+    if not isinstance(doc, dict):
+        raise InputDataError(f"{path}: expected a JSON object")
+    return doc
+
+
 def read_run(out_dir: Path | str) -> RunFolder:
     """Read a run folder written by ``seqat run`` (docs/formats.md, *Output folder*).
 
@@ -622,12 +639,7 @@ def read_run(out_dir: Path | str) -> RunFolder:
     run_path = out / RUN_FILE
     if not run_path.is_file():
         raise InputDataError(f"{run_path}: no such file (is {out} the output of `seqat run`?)")
-    try:
-        doc = json.loads(run_path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise InputDataError(f"{run_path}: cannot read run.json: {err}") from err
-    if not isinstance(doc, dict):
-        raise InputDataError(f"{run_path}: expected a JSON object")
+    doc = read_json_object(run_path)
     try:
         crs = pyproj.CRS.from_wkt(str(_json_field(doc, "crs", run_path)))
     except CRSError as err:

@@ -226,3 +226,9 @@ def test_run_with_ortho_and_report_writes_the_whole_chain(tmp_path: Path) -> Non
     assert report["methods"] == ["direct", "seq-r"]
     run = read_run(out)
     assert report["tie_points"]["count"] == len(run.points)
+    live = json.loads((out / "ortho.json").read_text())["live"]  # the ortho ran image by image
+    assert live["surface_from_image"] is not None  # no lidar: flat plane after the first GPs
+    stages = {s["stage"]: s for s in report["latency"]["stages"]}
+    assert report["latency"]["ortho"] == "live"
+    assert stages["end to end"]["median_ms"] > stages["AT update"]["median_ms"] > 0
+    assert stages["ortho: AT update -> mosaic"]["images"] == 18

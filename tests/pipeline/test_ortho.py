@@ -102,9 +102,10 @@ def box_scene() -> tuple[Scene, np.ndarray]:
     return scene, eop_deg(-6.0, -1.0, 50.0, 2.0, -3.0, 10.0)
 
 
-def test_occluded_ground_is_not_filled_from_the_roof() -> None:
+@pytest.mark.parametrize("distorted", [True, False], ids=["distorted", "ideal-camera"])
+def test_occluded_ground_is_not_filled_from_the_roof(distorted: bool) -> None:
     scene, eop = box_scene()
-    cam = small_camera()
+    cam = small_camera(distorted)  # an ideal camera skips the distortion table
     image = render(scene, cam, eop)
     rasters = {}
     for occlusion in (True, False):

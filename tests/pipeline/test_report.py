@@ -192,3 +192,24 @@ def test_report_shows_the_latency_budget_changes(small_sim_dir: Path, tmp_path: 
     assert changes == [("img_0011", 0.1, 0.2), ("img_0012", 0.2, 0.4), ("img_0013", 0.4, 0.8)]
     html_text = (out / "report.html").read_text()
     assert "<h2>Live operation</h2>" in html_text and "0.1 → 0.2" in html_text
+def test_latency_table_adds_the_live_ortho_to_the_end_to_end_time() -> None:
+    from pipeline.latency import latency_table
+
+    tracking = {"read_ms": 2.0, "detect_ms": 50.0, "match_ms": 30.0, "total_ms": 90.0}
+    record = {"images": [{"image_id": f"i{k}", "update_ms": 10.0 + k, "tracking": tracking}
+                         for k in range(3)]}
+    ortho = {"live": {}, "images": [
+        {"image": f"i{k}", "queue_ms": 1.0, "read_ms": 3.0, "compute_ms": 20.0, "write_ms": 0.0,
+         "mosaic_ms": 5.0, "latency_ms": 30.0 + k, "reortho_ms": None} for k in range(2)]}
+    table = latency_table(record, ortho)
+    stages = {s.stage: s for s in table.stages}
+    assert table.ortho == "live" and "ortho again at the end (not live)" not in stages
+    assert stages["AT update"].median_ms == 11.0 and stages["AT update"].images == 3
+    assert stages["ortho: AT update -> mosaic"].images == 2  # i2 was not orthorectified
+    end = stages["end to end"]
+    assert end.images == 2 and end.max_ms == 2.0 + 90.0 + 11.0 + 31.0
+    post = latency_table(record, {"images": ortho["images"]})
+    names = [s.stage for s in post.stages]
+    assert post.ortho == "after the run" and "ortho: AT update -> mosaic" not in names
+    assert {s.stage: s for s in post.stages}["end to end"].max_ms == 2.0 + 90.0 + 12.0
+    assert latency_table(record, None).ortho == "none"
