@@ -64,14 +64,18 @@ def snoop_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows, sol: Upda
         sel = snooping.select(worst, critical, builder.ids[:, 0], builder.ids[:, 1])[:1]
         observations = [int(q) for q in sel]
         wq = [float(worst[q]) for q in sel]
-    if observations:
-        return Verdict(observations=observations, w=wq, nav_groups=[])  # image blunders first
     t = touched.size
     with np.errstate(divide="ignore"):
         nav_sigma = 1.0 / np.sqrt(builder.w[2 * k:])
-    groups = snooping.nav_groups(v[2 * k:], nav_sigma, np.diagonal(Z)[t : t + EOP_SIZE],
-                                 critical)
-    return Verdict(observations=observations, w=wq, nav_groups=groups)
+    groups = snooping.nav_exceedance(v[2 * k:], nav_sigma, np.diagonal(Z)[t : t + EOP_SIZE],
+                                     critical)
+    # The worst failure first, image point or GPS/INS group, in units of its own critical
+    # value (w² / c² for a point, T / chi² for a group): a 5 m jump then goes before the good
+    # rays it drags over the limit, a blunder before the GPS/INS it distorts.
+    image_excess = (wq[0] / critical) ** 2 if wq else 0.0
+    if groups and groups[0][1] > max(1.0, image_excess):
+        return Verdict(observations=[], w=[], nav_groups=[groups[0][0]])
+    return Verdict(observations=observations, w=wq, nav_groups=[])
 
 
 def add_information(L: FloatArray, touched: np.ndarray, rows: LinearRows) -> FloatArray:

@@ -48,6 +48,7 @@ import scipy.linalg
 from threadpoolctl import ThreadpoolController
 
 from seqat import snooping
+from seqat.errors import EstimationError
 from seqat.geometry import depth, intersect_rays, project, wrap_angle
 from seqat.rows import (
     Factors,
@@ -152,9 +153,6 @@ class SequentialOptions:
         if self.snooping_critical is not None and not self.snooping_critical > 0:
             raise ConfigError(f"snooping_critical: expected a positive number or null, "
                               f"got {self.snooping_critical!r}")
-        if self.snooping_critical is not None and self.min_rays < 3:
-            raise ConfigError(f"min_rays: data snooping (snooping_critical) needs >= 3 so that "
-                              f"a blunder in a new point is detectable, got {self.min_rays}")
         if self.smoothing_lag is not None and self.smoothing_lag < 10:
             raise ConfigError(f"smoothing_lag: expected >= 10 images or null, "
                               f"got {self.smoothing_lag}")
@@ -266,6 +264,8 @@ class SequentialAT:
         self.options = options
         sim_opts = dataclasses.replace(options.sim, min_rays=options.min_rays,
                                        snooping_critical=options.snooping_critical)
+        if options.snooping_critical is not None:  # the initial block's points as births
+            sim_opts = dataclasses.replace(sim_opts, min_ray_angle_deg=options.min_ray_angle_deg)
         # With data snooping the initial block is adjusted once, when complete: refits of its
         # first few images have too little redundancy to tell blunders from good rays, and a
         # wrong early solution would seed the later ones.
@@ -468,6 +468,12 @@ class SequentialAT:
         st = sim.export_state(Covariance.FULL)
         res = st.result
         assert res.full_cofactor is not None
+        try:
+            np.linalg.cholesky(res.full_cofactor)
+        except np.linalg.LinAlgError as err:
+            raise EstimationError(
+                f"the initial simultaneous block ({len(st.image_ids)} images) is singular or "
+                f"ill-conditioned: its cofactor matrix is not positive definite") from err
         self._origin = st.origin
         n = len(st.image_ids)
         keys: list[Key] = [("e", i) for i in range(n)]

@@ -75,6 +75,9 @@ class SimOptions:
     # Baarda's data snooping after each adjustment (w-test critical value; None: off). Needs
     # the full cofactor: meant for the initial stage and blocks of a few hundred images.
     snooping_critical: float | None = None
+    # A new point enters once its rays spread this much (0: any intersection, the paper).
+    # With blunders a small spread lets a bad ray place the point anywhere along the others.
+    min_ray_angle_deg: float = 0.0
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -592,7 +595,10 @@ class SimultaneousAT:
         need = (~known) & (counts >= self.options.min_rays)
         if np.any(need):
             mask = need[op]
-            X, _ = intersect_rays(self._eop_est[oi[mask]], uv[mask], op[mask], n_pts, self.camera)
+            X, spread = intersect_rays(self._eop_est[oi[mask]], uv[mask], op[mask], n_pts,
+                                       self.camera)
+            if self.options.min_ray_angle_deg > 0:
+                X[spread < np.radians(self.options.min_ray_angle_deg)] = np.nan
             gp_init[need] = X[need]
         usable = (counts >= self.options.min_rays) & np.all(np.isfinite(gp_init), axis=1)
         # A new point must lie in front of every camera that sees it (a mismatch intersected

@@ -78,14 +78,16 @@ def select(worst: FloatArray, critical: float, image: np.ndarray,
     return np.asarray(taken, dtype=np.int64)
 
 
-def nav_groups(v: FloatArray, sigma: FloatArray, q: FloatArray, critical: float) -> list[str]:
-    """GPS/INS groups whose test fails: ``v`` residuals, ``sigma`` their standard deviations
-    (inf: no constraint), ``q`` the diagonal of the EOP cofactor after the adjustment.
+def nav_exceedance(v: FloatArray, sigma: FloatArray, q: FloatArray,
+                   critical: float) -> list[tuple[str, float]]:
+    """GPS/INS groups with their test statistic over its critical value, largest first.
 
-    Each group (position, attitude) is tested as a whole, ``T = sum w_i^2`` against the
-    chi-square quantile of the same significance level as the w-test's ``critical`` (Baarda's
-    idea of one level for tests of any dimension; 16.3 for 3 components at 3.29): a 5 m jump
-    under a 0.3 m sigma gives T ~ 800, a missed image blunder nearby rarely reaches it.
+    ``v`` residuals, ``sigma`` their standard deviations (inf: no constraint), ``q`` the
+    diagonal of the EOP cofactor after the adjustment. Each group (position, attitude) is
+    tested as a whole, ``T = sum w_i^2`` against the chi-square quantile of the same
+    significance level as the w-test's ``critical`` (Baarda's idea of one level for tests of
+    any dimension; 16.3 for 3 components at 3.29): a 5 m jump under a 0.3 m sigma gives
+    T ~ 800. A value above 1 fails.
     """
     alpha = 2.0 * scipy.stats.norm.sf(critical)
     out = []
@@ -100,6 +102,10 @@ def nav_groups(v: FloatArray, sigma: FloatArray, q: FloatArray, critical: float)
         if not np.any(testable):
             continue
         w2 = (v[sl][ok] ** 2 / np.maximum(qvv, 1e-30))[testable]
-        if w2.sum() > scipy.stats.chi2.isf(alpha, w2.size):
-            out.append(name)
-    return out
+        out.append((name, float(w2.sum() / scipy.stats.chi2.isf(alpha, w2.size))))
+    return sorted(out, key=lambda g: -g[1])
+
+
+def nav_groups(v: FloatArray, sigma: FloatArray, q: FloatArray, critical: float) -> list[str]:
+    """GPS/INS groups whose test fails (:func:`nav_exceedance` above 1)."""
+    return [name for name, excess in nav_exceedance(v, sigma, q, critical) if excess > 1.0]

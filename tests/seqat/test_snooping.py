@@ -52,9 +52,9 @@ def test_nav_group_test_flags_a_jump_not_noise() -> None:
     assert snooping.nav_groups(jump, free, q, CRITICAL) == []
 
 
-def test_snooping_needs_three_rays() -> None:
-    with pytest.raises(ConfigError, match="min_rays"):
-        SequentialOptions(snooping_critical=CRITICAL, min_rays=2)
+def test_snooping_critical_must_be_positive() -> None:
+    with pytest.raises(ConfigError, match="snooping_critical"):
+        SequentialOptions(snooping_critical=0.0)
 
 
 @pytest.fixture(scope="module")
@@ -135,6 +135,8 @@ def test_gnss_jump_is_flagged_and_dropout_bridged() -> None:
     frames[jump] = dataclasses.replace(frames[jump], nav_eop=nav)
     est = _run(frames, f, snooping_critical=CRITICAL)
     assert (f.image_ids[jump], "position") in est.nav_downweighted
+    # the jump goes first, not the good rays it drags over the limit
+    assert not [r for r in est.rejections if r[0] == f.image_ids[jump]]
     # besides the jump, at most the first fixes after the gap, where the bridged solution
     # has drifted (measured: images 81 and 82)
     assert len([d for d in est.nav_downweighted if d[1] == "position"]) <= 3
