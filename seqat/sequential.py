@@ -553,13 +553,8 @@ class SequentialAT:
                 elif p in self._pending:
                     if keep_rays:
                         with_rays.append(p)  # kept: image j re-enters if p is born
-                        continue
-                    rest = [o for o in self._pending[p] if o[0] != j]
-                    if rest:
-                        self._pending[p] = rest
                     else:
-                        del self._pending[p]
-                        self._forced.discard(p)
+                        self._drop_pending_ray(p, j)
             if with_rays:
                 self._departed_rays.append((j, with_rays))
         for p in changed:
@@ -758,11 +753,9 @@ class SequentialAT:
                 if j == i:
                     rejected_new.add(p)
                 if p in self._pending:  # a ray of a point being born: it stays out
-                    self._pending[p] = [o for o in self._pending[p] if o[0] != j]
+                    self._drop_pending_ray(p, j)
                     if j != i and p in self._img_points.get(j, ()):
                         self._img_points[j].remove(p)
-                    if not self._pending[p]:
-                        del self._pending[p]
             for group in verdict.nav_groups:
                 if group in downweighted:
                     continue  # once per image and group
@@ -897,14 +890,18 @@ class SequentialAT:
             if ("e", j) in self._w.offset:
                 continue  # re-opened: its rays were used then
             for p in points:
-                if p not in self._pending:
-                    continue
-                rest = [o for o in self._pending[p] if o[0] != j]
-                if rest:
-                    self._pending[p] = rest
-                else:
-                    del self._pending[p]
-                    self._forced.discard(p)
+                self._drop_pending_ray(p, j)
+
+    def _drop_pending_ray(self, p: int, j: int) -> None:
+        """Forget image ``j``'s pending ray of point ``p`` (and the point with its last ray)."""
+        if p not in self._pending:
+            return
+        rest = [o for o in self._pending[p] if o[0] != j]
+        if rest:
+            self._pending[p] = rest
+        else:
+            del self._pending[p]
+            self._forced.discard(p)
 
     def _reopen(self, keys: list[Key]) -> None:
         """Bring departed parameters back into the window (docs/algorithm.md, re-opening).
