@@ -679,13 +679,14 @@ class SequentialAT:
         rejected_new: set[int] = set()  # points whose ray in the new image was removed
         downweighted: list[str] = []
         reopened: list[Key] = []
+        held: set[int] = set()  # points whose birth made the update singular (wait)
         rounds = 0
         while True:
             y21_pts = [p for p, _ in seen if p not in rejected_new]
             y21_uv = [uv for p, uv in seen if p not in rejected_new]
             reopen: list[Key] = [("p", p) for p in y21_pts if ("p", p) not in w.offset]
-            ready = [p for p in candidates
-                     if p in self._pending and len(self._pending[p]) >= opts.min_rays]
+            ready = [p for p in candidates if p in self._pending and p not in held
+                     and len(self._pending[p]) >= opts.min_rays]
             born, born_xyz = self._birth(ready, i, init, use_new=init_known)
             reopen += list(dict.fromkeys(
                 ("e", j) for p in born for (j, _, _) in self._pending[p]
@@ -728,10 +729,19 @@ class SequentialAT:
             d1t = np.zeros(touched.size)
             d2 = np.zeros(n2)
             iterations = 0
+            degenerate: list[int] = []
             while True:
                 iterations += 1
                 rows = builder.rows(x1t, x2_0, d1t, d2)
-                sol = solve_update(w.Q, touched, rows)
+                try:
+                    sol = solve_update(w.Q, touched, rows)
+                except EstimationError:
+                    # a point being born that its rays no longer fix (an iterate sent it far
+                    # off): it waits for more rays; anything else is a real failure
+                    degenerate = _degenerate_points(rows, len(born))
+                    if not degenerate:
+                        raise
+                    break
                 d1t, d2 = sol.delta1_touched, sol.delta2
                 # Converged when the rows, linearised where they were, still describe the
                 # image points at the new estimate: re-linearising would move it by less.
@@ -740,6 +750,9 @@ class SequentialAT:
                     < opts.iteration_tolerance_px
                 ):
                     break
+            if degenerate:
+                held.update(born[b] for b in degenerate)
+                continue
             if opts.snooping_critical is None or rounds >= MAX_SNOOPING_ROUNDS:
                 break
             rounds += 1
@@ -1305,6 +1318,18 @@ class SequentialAT:
             ),
             images_left_window=dropped,
         )
+
+
+def _degenerate_points(rows: LinearRows, n_born: int) -> list[int]:
+    """Points being born (index in the update) whose own 3x3 normal block is singular."""
+    D = rows.A22.T @ (rows.w2[:, None] * rows.A22) + rows.A32.T @ (rows.w3[:, None] * rows.A32)
+    out = []
+    for b in range(n_born):
+        sl = slice(EOP_SIZE + GP_SIZE * b, EOP_SIZE + GP_SIZE * (b + 1))
+        ev = np.linalg.eigvalsh(D[sl, sl])
+        if not ev[0] > 1e-9 * max(ev[-1], 1e-300):
+            out.append(b)
+    return out
 
 
 #: A window re-linearisation stops when no parameter moves more than this (m or rad).

@@ -148,3 +148,20 @@ def test_gnss_jump_is_flagged_and_dropout_bridged() -> None:
 
     assert rms(pos[list(gap)]) <= 2.0 * rms(np.r_[pos[5:20], pos[80:95]])
     assert pos[jump] < 1.0  # the jump did not pull the camera (5 m)
+
+
+def test_a_point_its_rays_no_longer_fix_is_held_back() -> None:
+    """The update's singular D is traced to the born point whose own block is singular (its
+    rays no longer fix it); a healthy point is not blamed."""
+    from seqat.sequential import _degenerate_points
+    from seqat.update import LinearRows
+
+    rng = np.random.default_rng(0)
+    m2, n2 = 8, 6 + 2 * 3
+    A22 = rng.normal(size=(m2, n2))
+    A22[:, 9:12] = 0.0  # the second born point: no information
+    A32 = np.zeros((6, n2))
+    A32[:, :6] = np.eye(6)
+    rows = LinearRows(A21=np.zeros((m2, 0)), A22=A22, w2=np.ones(m2), l2=np.zeros(m2),
+                      A32=A32, w3=np.ones(6), l3=np.zeros(6))
+    assert _degenerate_points(rows, 2) == [1]
