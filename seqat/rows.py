@@ -37,6 +37,8 @@ def snoop_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows, sol: Upda
            builder: RowBuilder, d1t: FloatArray, d2: FloatArray, critical: float) -> Verdict:
     """Baarda's w-test on the rows of one update (seed 003 §3.1; docs/algorithm.md).
 
+    ``Q`` is the prior cofactor block of the touched parameters, ``Q[touched, touched]``.
+
     ``w_i = v_i / (sigma_i sqrt(r_i))`` with the residual ``v = l - A d`` of the converged
     update and the redundancy number ``r_i = 1 - (A Q_post A^T)_ii / sigma_i^2``, where
     ``Q_post`` is the cofactor after the update of the parameters the rows touch (Eq. 11-12
@@ -46,7 +48,7 @@ def snoop_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows, sol: Upda
     T = np.linalg.solve(sol.S, sol.P2bar)
     T = 0.5 * (T + T.T)
     Gt = sol.G[touched]
-    Qtt = Q[np.ix_(touched, touched)] - Gt @ T @ Gt.T
+    Qtt = Q - Gt @ T @ Gt.T
     W1t = (rows.A21.T @ (rows.w2[:, None] * rows.A22)) @ sol.D_inv
     Q12 = -Qtt @ W1t
     Q22 = sol.D_inv + W1t.T @ Qtt @ W1t
@@ -216,10 +218,10 @@ def normal_from_factors(Je: FloatArray, Jp: FloatArray, r: FloatArray, w: FloatA
     J = np.concatenate([Je, Jp], axis=2)  # (k, 2, 9)
     wJ = J * w[:, None, None]
     blocks = np.einsum("kri,krj->kij", wJ, J)  # (k, 9, 9)
-    H = np.zeros((n, n))
-    np.add.at(H, (cols[:, :, None], cols[:, None, :]), blocks)
-    g = np.zeros(n)
-    np.add.at(g, cols, np.einsum("kri,kr->ki", wJ, r))
+    # scatter-add by bincount over flat indices: an order of magnitude faster than add.at
+    flat = (cols[:, :, None] * n + cols[:, None, :]).ravel()
+    H = np.bincount(flat, weights=blocks.ravel(), minlength=n * n).reshape(n, n)
+    g = np.bincount(cols.ravel(), weights=np.einsum("kri,kr->ki", wJ, r).ravel(), minlength=n)
     return H, g
 
 

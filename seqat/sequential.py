@@ -50,6 +50,7 @@ from threadpoolctl import ThreadpoolController
 from seqat import snooping
 from seqat.errors import EstimationError
 from seqat.geometry import depth, intersect_rays, project, wrap_angle
+from seqat.information import InformationFactor
 from seqat.rows import (
     Factors,
     RowBuilder,
@@ -76,8 +77,8 @@ from seqat.types import (
     PointEstimate,
     Solution,
 )
-from seqat.update import LinearRows, solve_update, update_cofactor
-from seqat.window import eop_correlations, first_over_threshold
+from seqat.update import LinearRows, solve_update, spd_inverse, update_cofactor
+from seqat.window import correlations_from_columns, first_over_threshold
 
 #: BLAS threads used by an update: the matrices are small (a few hundred), where OpenBLAS's
 #: thread start-up costs milliseconds (measured: 6 ms with 2 threads vs 0.3 ms with 1).
@@ -96,6 +97,9 @@ SCREEN_SIGMAS = 2.0
 MAX_SCREEN_ROUNDS = 5
 #: Data snooping: at most this many reject-and-resolve rounds per image.
 MAX_SNOOPING_ROUNDS = 40
+
+#: Window engines (SequentialOptions.engine).
+ENGINES = ("information", "inverse")
 
 #: Parameter key: (kind, index) with kind "e" (EOP of image index) or "p" (GP index).
 Key = tuple[str, int]
@@ -128,11 +132,18 @@ class SequentialOptions:
     # Baarda's data snooping of each update's rows (w-test, critical value; 3.29 is
     # alpha0 = 0.001 two-sided); None: off (the paper). docs/algorithm.md, "Blunders".
     snooping_critical: float | None = None
+    # "information": the window's information matrix, Cholesky-factorised with its GPs
+    # eliminated after every update (numerically stable, rank checked); "inverse": the
+    # paper's update of the inverse normal matrix (Eq. 10-14). docs/algorithm.md, *Engines*.
+    engine: str = "information"
     sim: SimOptions = SimOptions()
 
     def __post_init__(self) -> None:
         from seqat.errors import ConfigError
 
+        if self.engine not in ENGINES:
+            raise ConfigError(f"engine: expected one of {', '.join(ENGINES)}, "
+                              f"got {self.engine!r}")
         if self.correlation_threshold is not None and not 0 <= self.correlation_threshold <= 1:
             raise ConfigError(
                 f"correlation_threshold: expected a value in [0, 1] or null, "
@@ -201,19 +212,93 @@ class _Departure:
 
 @dataclass(eq=False)
 class Window:
-    """Parameters being updated: estimates, cofactor, and their block layout.
+    """Parameters being updated: estimates, information or cofactor, and their block layout.
 
-    ``L`` is the information matrix ``Q^-1`` of the window, kept only for smoothing (it gives
-    the RTS gain of leaving parameters without inverting ``Q``).
+    Two engines (docs/algorithm.md, *Engines*):
+
+    * ``"information"`` (default): the information matrix ``L`` is the one source of truth.
+      Updates only add ``A^T P A`` to it; the cofactor blocks the update, the window rule and
+      the sigmas need are recovered from its Cholesky factorisation with the GPs eliminated
+      (:class:`seqat.information.InformationFactor`), refactorised after every change.
+    * ``"inverse"``: the paper's inverse normal matrix ``Q``, carried by Eq. 10-14. ``L`` is
+      then kept only for smoothing (the RTS gain of leaving parameters).
+
+    ``coupled`` are the GPs that a marginal or re-opening prior couples to other GPs; the
+    factorisation keeps them with the EOPs and eliminates every other GP by its 3x3 block.
     """
 
     x: FloatArray = field(default_factory=lambda: np.zeros(0))
-    Q: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
     L: FloatArray | None = None
     keys: list[Key] = field(default_factory=list)
     offset: dict[Key, int] = field(default_factory=dict)
+    inverse: bool = False
+    coupled: set[Key] = field(default_factory=set)
+    _Q: FloatArray | None = None
+    _factor: InformationFactor | None = None
+    _diag: FloatArray | None = None
+
+    @property
+    def Q(self) -> FloatArray:
+        """The cofactor matrix (dense; the information engine forms it on request only)."""
+        if self.inverse:
+            assert self._Q is not None
+            return self._Q
+        if self._Q is None:
+            self._Q = self.factor().dense()
+        return self._Q
+
+    @Q.setter
+    def Q(self, value: FloatArray) -> None:
+        if not self.inverse:
+            raise AttributeError("the information engine derives Q from L")
+        self._Q = value
+        self._diag = None
+
+    def changed(self) -> None:
+        """``L`` (information engine) or ``Q`` changed: drop what was derived from it."""
+        self._factor = None
+        self._diag = None
+        if not self.inverse:
+            self._Q = None
+
+    def factor(self) -> InformationFactor:
+        """Factorisation of ``L`` (information engine), cached until :meth:`changed`."""
+        assert self.L is not None
+        if self._factor is None:
+            gp = np.fromiter((self.offset[k] for k in self.keys
+                              if k[0] == "p" and k not in self.coupled), dtype=np.int64)
+            self._factor = InformationFactor(self.L, gp)
+        return self._factor
+
+    def q_columns(self, idx: np.ndarray) -> FloatArray:
+        """``Q[:, idx]``."""
+        if self.inverse:
+            return self.Q[:, idx]
+        return self.factor().columns(idx)
+
+    def q_diagonal(self) -> FloatArray:
+        """``diag(Q)``: every marginal variance (cofactor units)."""
+        if self._diag is None:
+            d = np.diagonal(self.Q).copy() if self.inverse else self.factor().diagonal()
+            if d.size and not np.all(d > 0):
+                bad = [self.keys[int(np.searchsorted(self._offsets(), q, side="right")) - 1]
+                       for q in np.flatnonzero(~(d > 0))[:3]]
+                raise EstimationError(f"the window's cofactor has non-positive variances "
+                                      f"(parameters {bad})")
+            self._diag = d
+        return self._diag
+
+    def q_block(self, idx: np.ndarray) -> FloatArray:
+        """``Q[idx, idx]``."""
+        if self.inverse:
+            return self.Q[np.ix_(idx, idx)].copy()
+        return self.factor().block(idx)
+
+    def _offsets(self) -> np.ndarray:
+        return np.fromiter((self.offset[k] for k in self.keys), dtype=np.int64)
 
     def relayout(self, keys: list[Key]) -> None:
+        self.changed()
         self.keys = keys
         self.offset = {}
         off = 0
@@ -269,6 +354,8 @@ class SequentialAT:
         # With data snooping the initial block is adjusted once, when complete: refits of its
         # first few images have too little redundancy to tell blunders from good rays, and a
         # wrong early solution would seed the later ones.
+        self._inverse = options.engine == "inverse"
+        self._records = options.smoothing  # departure records (RTS smoothing, re-opening)
         self._initial: SimultaneousAT | None = SimultaneousAT(
             camera, sim_opts, refit_every_frame=options.snooping_critical is None)
         self._origin: FloatArray | None = None
@@ -365,7 +452,7 @@ class SequentialAT:
         scale = sigma_scale(self.sigma0, self._redundancy)
         w, origin = self._w, self._origin
         assert origin is not None
-        sd = np.sqrt(np.diagonal(w.Q)) * scale
+        sd = np.sqrt(w.q_diagonal()) * scale
         final = self._smoothed_departed() if smoothed else {}
         eops = []
         for i, iid in enumerate(self._image_ids):
@@ -410,7 +497,7 @@ class SequentialAT:
             return self._initial.solution()
         w, origin = self._w, self._origin
         assert origin is not None
-        sd = np.sqrt(np.diagonal(w.Q)) * sigma_scale(self.sigma0, self._redundancy)
+        sd = np.sqrt(w.q_diagonal()) * sigma_scale(self.sigma0, self._redundancy)
         eops, pts = [], []
         for k in w.keys:
             idx = w.index(k)
@@ -481,11 +568,18 @@ class SequentialAT:
             self._point_index[pid] = len(self._point_ids)
             self._point_ids.append(pid)
         keys += [("p", int(j)) for j in st.selected]
-        self._w.relayout(keys)
-        self._w.x = np.concatenate([res.eop.ravel(), res.gp.ravel()])
-        self._w.Q = res.full_cofactor
-        if self.options.smoothing:
-            self._w.L = np.linalg.inv(res.full_cofactor)
+        w = self._w
+        w.inverse = self._inverse
+        w.relayout(keys)
+        w.x = np.concatenate([res.eop.ravel(), res.gp.ravel()])
+        if self._inverse:
+            w.Q = res.full_cofactor
+        if self.options.smoothing or not self._inverse:
+            # the initial block's normal matrix itself (not the inverse of its cofactor:
+            # inverting that would cost digits and blur the GPs' block-diagonal structure)
+            L = res.full_normal if res.full_normal is not None else np.linalg.inv(
+                res.full_cofactor)
+            w.L = 0.5 * (L + L.T)
         self._window_images.extend(range(n))
         selected = set(int(j) for j in st.selected)
         self._gp_order = [int(j) for j in st.selected]
@@ -512,7 +606,7 @@ class SequentialAT:
             self._factors.add(img, pt, np.asarray(st.obs_uv)[use],
                               np.asarray(st.obs_sigma_px)[use], res.eop[img], res.gp[gp_row],
                               self.camera)
-        self.initial_state = (keys, self._w.x.copy(), self._w.Q.copy())
+        self.initial_state = (keys, self._w.x.copy(), res.full_cofactor.copy())
         self.rejections.extend(sim.rejections)
         self.nav_downweighted.extend(sim.nav_downweighted)
         self._initial = None
@@ -529,12 +623,26 @@ class SequentialAT:
             dtype=np.int64,
             count=len(self._window_images),
         )
-        start = first_over_threshold(eop_correlations(w.Q, offs, int(offs[-1])), thr)
+        # The paper's reference is the last image. On real flights it may be tied to nothing
+        # yet (its points wait for a wider ray spread): its correlations are all zero and the
+        # rule would cut the whole window. Then the newest image that is tied (correlated
+        # over the threshold with another window image) is the reference as well.
+        diag = w.q_diagonal()
+        rho = np.zeros(len(offs))
+        for r in range(len(offs) - 1, -1, -1):
+            o = int(offs[r])
+            rho_r = correlations_from_columns(w.q_columns(o + np.arange(EOP_SIZE)), diag,
+                                              offs, o)
+            rho = np.maximum(rho, rho_r)
+            rho_r[r] = 0.0
+            if np.any(rho_r >= thr):
+                break
+        start = first_over_threshold(rho, thr)
         start = self._hold_pending_rays(start, frame_points)
         if start == 0:
             return 0
         scale = sigma_scale(self.sigma0, self._redundancy)
-        sd = np.sqrt(np.diagonal(w.Q)) * scale
+        sd = np.sqrt(w.q_diagonal()) * scale
         now = len(self._image_ids) - 1
         keep_rays = self._reopen_age > 0
         leaving: set[Key] = set()
@@ -573,18 +681,30 @@ class SequentialAT:
         leave_keys = [k for k in w.keys if k in leaving]
         keep, leave = w.indices(keep_keys), w.indices(leave_keys)
         off = 0
+        frozen = w.q_block(leave) if leave.size else np.zeros((0, 0))
         for k in leave_keys:
             idx = w.index(k)
-            self._frozen_cof[k] = w.Q[np.ix_(idx, idx)].copy()
+            self._frozen_cof[k] = frozen[off : off + idx.size, off : off + idx.size].copy()
             self._departed[k] = (now, len(self._departures), off)
             off += idx.size
         if w.L is not None:
             # E[x_F | x_W] = x_F - L_FF^-1 L_FW (x_W - x_W0): the RTS gain from the information
             # matrix; marginalising F out of L is its Schur complement.
             L_fw = w.L[np.ix_(leave, keep)]
-            cond = np.linalg.inv(w.L[np.ix_(leave, leave)])
+            cond = spd_inverse(w.L[np.ix_(leave, leave)], "information of the leaving "
+                                "parameters")
             gain = -cond @ L_fw
-            w.L = w.L[np.ix_(keep, keep)] + L_fw.T @ gain
+            fill = L_fw.T @ gain
+            L = w.L[np.ix_(keep, keep)] + 0.5 * (fill + fill.T)
+            # GPs the marginal prior now ties to other GPs are no longer eliminable alone
+            support = np.flatnonzero(np.any(L_fw != 0.0, axis=0))
+            gps = {keep_keys[int(np.searchsorted(self._starts(keep_keys), c, side="right")) - 1]
+                   for c in support}
+            gps = {k for k in gps if k[0] == "p"}
+            if len(gps) > 1:
+                w.coupled |= gps
+            w.L = L
+        if w.L is not None and self._records:
             self._departures.append(
                 _Departure(
                     leaving=tuple(leave_keys),
@@ -596,9 +716,25 @@ class SequentialAT:
                     at=now,
                 )
             )
-        w.Q = w.Q[np.ix_(keep, keep)]
+        if self._inverse:
+            w.Q = w.Q[np.ix_(keep, keep)]
+        w.coupled -= leaving
         w.x = w.x[keep]
         w.relayout(keep_keys)
+
+    def _factorise(self, H: FloatArray) -> InformationFactor:
+        """Factorisation of an information matrix laid out as the window (GPs eliminated)."""
+        w = self._w
+        gp = np.fromiter((w.offset[k] for k in w.keys if k[0] == "p" and k not in w.coupled),
+                         dtype=np.int64)
+        return InformationFactor(H, gp)
+
+    @staticmethod
+    def _starts(keys: list[Key]) -> np.ndarray:
+        """Offsets of ``keys`` laid out in that order."""
+        sizes = np.fromiter((EOP_SIZE if k[0] == "e" else GP_SIZE for k in keys),
+                            dtype=np.int64, count=len(keys))
+        return np.cumsum(sizes) - sizes
 
     def _hold_pending_rays(self, start: int, frame_points: set[int]) -> int:
         """Never lose tie rays by waiting: shorten the cut before the first leaving image that
@@ -705,6 +841,7 @@ class SequentialAT:
             touched_keys: list[Key] = [("p", p) for p in y21_pts]
             touched_keys += list(dict.fromkeys(("e", j) for (j, _, _, _) in y12))
             touched = w.indices(touched_keys)
+            Qc = w.Q[:, touched] if self._inverse else w.q_columns(touched)  # Q[:, touched]
             col_of = {}
             c = 0
             for k in touched_keys:
@@ -734,7 +871,7 @@ class SequentialAT:
                 iterations += 1
                 rows = builder.rows(x1t, x2_0, d1t, d2)
                 try:
-                    sol = solve_update(w.Q, touched, rows)
+                    sol = solve_update(Qc, touched, rows, columns=True)
                 except EstimationError:
                     # a point being born that its rays no longer fix (an iterate sent it far
                     # off): it waits for more rays; anything else is a real failure
@@ -743,6 +880,10 @@ class SequentialAT:
                         raise
                     break
                 d1t, d2 = sol.delta1_touched, sol.delta2
+                degenerate = self._unstable_births(born, born_xyz, y12, y22, x1t + d1t,
+                                                   x2_0 + d2, col_of)
+                if degenerate:
+                    break
                 # Converged when the rows, linearised where they were, still describe the
                 # image points at the new estimate: re-linearising would move it by less.
                 if iterations >= opts.max_update_iterations or (
@@ -756,7 +897,7 @@ class SequentialAT:
             if opts.snooping_critical is None or rounds >= MAX_SNOOPING_ROUNDS:
                 break
             rounds += 1
-            verdict = snoop_update(w.Q, touched, rows, sol, builder, d1t, d2,
+            verdict = snoop_update(Qc[touched], touched, rows, sol, builder, d1t, d2,
                                    opts.snooping_critical)
             if not verdict.observations and not set(verdict.nav_groups) - set(downweighted):
                 break
@@ -779,7 +920,8 @@ class SequentialAT:
         if self.recorded is not None:
             self._record(touched_keys, touched, born, i, rows, x1t, x2_0)
         w.x = np.concatenate([w.x + sol.delta1(), x2_0 + sol.delta2])
-        w.Q = update_cofactor(w.Q, touched, rows, sol)
+        if self._inverse:
+            w.Q = update_cofactor(w.Q, touched, rows, sol)
         if w.L is not None:
             w.L = add_information(w.L, touched, rows)
         w.relayout(w.keys + [("e", i)] + [("p", p) for p in born])
@@ -830,6 +972,36 @@ class SequentialAT:
             nav_downweighted=tuple(downweighted),
         )
 
+    def _unstable_births(self, born: list[int], born_xyz: FloatArray,
+                         y12: list[tuple[int, int, FloatArray, float]],
+                         y22: list[tuple[int, FloatArray, float]], x1t: FloatArray,
+                         x2: FloatArray, col_of: dict[Key, int]) -> list[int]:
+        """Points being born (index in the update) that an iterate of the update sent where
+        their rays no longer fix them: behind a camera, or more than
+        :data:`BIRTH_DEPTH_FACTOR` times farther than at birth (seen on a real flight: 1e8 m
+        after a turn, with a singular 3x3 block). They wait for more rays instead of being
+        born into a singular, far-off solution."""
+        if not born:
+            return []
+        E, I = [], []
+        for j, b, _, _ in y12:
+            c = col_of[("e", j)]
+            E.append(x1t[c : c + EOP_SIZE])
+            I.append(b)
+        for b, _, _ in y22:
+            E.append(x2[:EOP_SIZE])
+            I.append(b)
+        E_a, I_a = np.asarray(E).reshape(-1, EOP_SIZE), np.asarray(I, dtype=np.int64)
+        X = x2[EOP_SIZE:].reshape(-1, GP_SIZE)
+        with np.errstate(all="ignore"):
+            d = depth(E_a, X[I_a])
+            d0 = depth(E_a, born_xyz[I_a])
+        bad_ray = ~((d > 0) & (d < BIRTH_DEPTH_FACTOR * np.maximum(d0, 0.0)))
+        bad = np.zeros(len(born), dtype=bool)
+        np.logical_or.at(bad, I_a, bad_ray)
+        bad |= ~np.all(np.isfinite(X), axis=1)
+        return [int(b) for b in np.flatnonzero(bad)]
+
     def _reopenable(self, key: Key, i: int) -> bool:
         left = self._departed.get(key)
         return left is not None and i - left[0] <= self._reopen_age
@@ -853,7 +1025,7 @@ class SequentialAT:
         old = [k for k, (t, _, _) in self._departed.items() if t < cutoff]
         if not old:
             return
-        value = self._smoothed_departed() if self._w.L is not None else {}
+        value = self._smoothed_departed() if self._records else {}
         origin = self._origin
         assert origin is not None
         for k in old:
@@ -946,15 +1118,21 @@ class SequentialAT:
             else:
                 self._gp_count[key[1]] = 0
         C = 0.5 * (C + C.T)
-        QJt = w.Q @ J.T
-        Q = np.empty((n + m, n + m))
-        Q[:n, :n] = w.Q
-        Q[:n, n:] = QJt
-        Q[n:, :n] = QJt.T
-        Q[n:, n:] = J @ QJt + C
-        w.Q = Q
+        if self._inverse:
+            QJt = w.Q @ J.T
+            Q = np.empty((n + m, n + m))
+            Q[:n, :n] = w.Q
+            Q[:n, n:] = QJt
+            Q[n:, :n] = QJt.T
+            Q[n:, n:] = J @ QJt + C
+            w.Q = Q
         if w.L is not None:
-            Ci = np.linalg.inv(C)
+            # the prior ties the re-opened keys to the window keys its chain refers to
+            support = [k for k in w.keys if k[0] == "p" and np.any(J[:, w.index(k)] != 0.0)]
+            gps = set(support) | {k for k in keys if k[0] == "p"}
+            if len(gps) > 1:
+                w.coupled |= gps
+            Ci = spd_inverse(C, "conditional cofactor of the re-opened parameters")
             CiJ = Ci @ J
             L = np.empty((n + m, n + m))
             L[:n, :n] = w.L + J.T @ CiJ
@@ -1116,25 +1294,49 @@ class SequentialAT:
         cols = np.concatenate([e_idx, p_idx], axis=1)  # (k, 9) window columns per factor
         H_old, eta_old = f.information(cols, x.size)
         H_p = L - H_old
+        del H_old
         eta_p = L @ x - eta_old
+
+        def prior(z: FloatArray) -> float:  # the kept information's part of the cost / 2
+            return float(0.5 * z @ H_p @ z - eta_p @ z)
+
+        def solve(H: FloatArray, g: FloatArray) -> FloatArray:
+            if self._inverse:
+                return np.linalg.solve(H, g)
+            return self._factorise(H).solve(g)
+
         xk = x.copy()
         ssr_old_factors = f.linearised_ssr(x[e_idx], x[p_idx])
-        prior_old = 0.5 * x @ H_p @ x - eta_p @ x
+        prior_old = prior(x)
+        Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self.camera)
+        cost = 0.5 * float(np.sum(f.w[:, None] * r**2)) + prior_old
         for _ in range(opts.relinearise_iterations):
-            Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self.camera)
             H, g = normal_from_factors(Je, Jp, r, f.w, cols, x.size)
             H += H_p
             g += eta_p - H_p @ xk
-            delta = np.linalg.solve(H, g)
-            xk += delta
+            delta = solve(H, g)
+            del H
+            # Gauss-Newton with step halving: the window's cost never goes up (a turn's
+            # rows far from linear would otherwise send it off)
+            for _ in range(MAX_STEP_HALVINGS):
+                trial = xk + delta
+                Je_t, Jp_t, r_t = f.evaluate(trial[e_idx], trial[p_idx], self.camera)
+                cost_t = 0.5 * float(np.sum(f.w[:, None] * r_t**2)) + prior(trial)
+                if np.isfinite(cost_t) and cost_t <= cost + 1e-9 * abs(cost):
+                    break
+                delta = 0.5 * delta
+            else:
+                break  # no step lowers the cost: xk is the minimum to rounding
+            xk, cost, Je, Jp, r = trial, cost_t, Je_t, Jp_t, r_t
             if np.max(np.abs(delta)) < RELINEARISE_TOLERANCE:
                 break
-        Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self.camera)
         H, _ = normal_from_factors(Je, Jp, r, f.w, cols, x.size)
         H += H_p
-        prior_new = 0.5 * xk @ H_p @ xk - eta_p @ xk
+        H = 0.5 * (H + H.T)
+        prior_new = prior(xk)
         ssr_new_factors = float(np.sum(f.w[:, None] * r**2))
-        self._ssr += ssr_new_factors - ssr_old_factors + 2.0 * (prior_new - prior_old)
+        self._ssr = max(self._ssr + ssr_new_factors - ssr_old_factors
+                        + 2.0 * (prior_new - prior_old), 0.0)
         dx = xk - x
         eop_keys = [k for k in w.keys if k[0] == "e"]
         ie = w.indices(eop_keys).reshape(-1, EOP_SIZE)
@@ -1142,8 +1344,10 @@ class SequentialAT:
         self._drift_deg = float(np.degrees(np.max(np.abs(dx[ie[:, 3:]]), initial=0.0)))
         w.x = xk
         w.L = H if w.L is not None else None
-        Q = np.linalg.inv(H)
-        w.Q = 0.5 * (Q + Q.T)
+        if self._inverse:
+            Q = np.linalg.inv(H)
+            w.Q = 0.5 * (Q + Q.T)
+        w.changed()
         f.relinearised_at(xk[e_idx], xk[p_idx], Je, Jp, r)
         self._factors.replace(f)
 
@@ -1290,7 +1494,7 @@ class SequentialAT:
         eop[:3] += self._origin  # type: ignore[operator]
         eop[3:] = wrap_angle(eop[3:])
         gp_offs = np.fromiter((w.offset[k] for k in w.keys if k[0] == "p"), dtype=np.int64)
-        var = np.diagonal(w.Q)[gp_offs[:, None] + np.arange(GP_SIZE)] * scale**2
+        var = w.q_diagonal()[gp_offs[:, None] + np.arange(GP_SIZE)] * scale**2
         rms = rms_point_sigma(var)
         n_img = len(self._window_images)
         return ImageUpdate(
@@ -1314,7 +1518,7 @@ class SequentialAT:
             observations_skipped=skipped,
             iterations=iterations,
             eop=EopEstimate(
-                image_id=frame.image_id, eop=eop, sigma=np.sqrt(np.diagonal(w.Q)[idx]) * scale
+                image_id=frame.image_id, eop=eop, sigma=np.sqrt(w.q_diagonal()[idx]) * scale
             ),
             images_left_window=dropped,
         )
@@ -1332,6 +1536,11 @@ def _degenerate_points(rows: LinearRows, n_born: int) -> list[int]:
     return out
 
 
+#: A point being born whose update iterate lies this many times farther from a camera than
+#: its birth intersection (or behind it) is held back (SequentialAT._unstable_births).
+BIRTH_DEPTH_FACTOR = 100.0
+#: A re-linearisation step that raises the window's cost is halved at most this many times.
+MAX_STEP_HALVINGS = 8
 #: A window re-linearisation stops when no parameter moves more than this (m or rad).
 RELINEARISE_TOLERANCE = 1e-7
 #: finish() re-linearises the window when its rows are this far off (pixels).

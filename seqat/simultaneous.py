@@ -132,6 +132,7 @@ class SimResult:
     eop_cofactor: FloatArray | None = None
     gp_cofactor: FloatArray | None = None
     full_cofactor: FloatArray | None = None
+    full_normal: FloatArray | None = None  # its inverse, the normal matrix (Covariance.FULL)
 
 
 @dataclass(eq=False)
@@ -144,6 +145,8 @@ class _Normals:
     Npp_inv: FloatArray  # (m, 3, 3)
     b_p: FloatArray  # (3m,)
     size: int
+    Nee: FloatArray | None = None  # (n, 6, 6) EOP diagonal blocks (nav included)
+    Npp: FloatArray | None = None  # (m, 3, 3)
 
 
 def _eop_residual(nav_eop: FloatArray, eop: FloatArray) -> FloatArray:
@@ -217,6 +220,8 @@ def _linearise(
             Npp_inv=Npp_inv,
             b_p=b_p.ravel(),
             size=N_r.shape[0],
+            Nee=Nee,
+            Npp=Npp,
         ),
         rhs,
         ell,
@@ -292,6 +297,23 @@ def _gp_cofactors(nrm: _Normals, data: BlockData) -> FloatArray:
     Qp = nrm.Npp_inv.copy()
     np.add.at(Qp, pt[o1], contrib)
     return Qp
+
+
+def _full_normal(nrm: _Normals, n: int, m: int) -> FloatArray:
+    """Dense normal matrix over ``[EOPs, GPs]``: its GP-GP part is exactly block diagonal
+    (the sequential information engine eliminates those blocks)."""
+    assert nrm.Nee is not None and nrm.Npp is not None
+    ne = EOP_SIZE * n
+    N = np.zeros((ne + GP_SIZE * m, ne + GP_SIZE * m))
+    for i in range(n):
+        N[EOP_SIZE * i : EOP_SIZE * (i + 1), EOP_SIZE * i : EOP_SIZE * (i + 1)] = nrm.Nee[i]
+    for j in range(m):
+        o = ne + GP_SIZE * j
+        N[o : o + GP_SIZE, o : o + GP_SIZE] = nrm.Npp[j]
+    Nep = nrm.N_ep.toarray()
+    N[:ne, ne:] = Nep
+    N[ne:, :ne] = Nep.T
+    return N
 
 
 def _full_cofactor(nrm: _Normals, n: int, m: int) -> FloatArray:
@@ -401,9 +423,10 @@ def adjust_block(
     redundancy = 2 * img.size - GP_SIZE * m
     sigma0 = float(np.sqrt(ssr / redundancy)) if redundancy > 0 else float("nan")
     rms_px = float(np.sqrt(np.mean(res_img**2))) if img.size else float("nan")
-    eop_cof = gp_cof = full = None
+    eop_cof = gp_cof = full = normal = None
     if covariance is Covariance.FULL:
         full = _full_cofactor(nrm, n, m)
+        normal = _full_normal(nrm, n, m)
         eop_cof = np.stack([full[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] for i in range(n)])
         off = EOP_SIZE * n
         gp_cof = (
@@ -432,6 +455,7 @@ def adjust_block(
         eop_cofactor=eop_cof,
         gp_cofactor=gp_cof,
         full_cofactor=full,
+        full_normal=normal,
     )
 
 

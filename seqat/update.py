@@ -83,7 +83,7 @@ class UpdateSolution:
         return self.G @ self.kappa
 
 
-def _spd_inverse(M: FloatArray, what: str) -> FloatArray:
+def spd_inverse(M: FloatArray, what: str) -> FloatArray:
     """Inverse of a symmetric positive definite matrix, or :class:`EstimationError`."""
     try:
         np.linalg.cholesky(M)  # raises unless positive definite
@@ -97,13 +97,15 @@ def _spd_inverse(M: FloatArray, what: str) -> FloatArray:
     return 0.5 * (inv + inv.T)
 
 
-def solve_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows) -> UpdateSolution:
+def solve_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows, *,
+                 columns: bool = False) -> UpdateSolution:
     """Estimate the corrections of existing and new parameters (Eq. 13-14).
 
     Parameters
     ----------
-    Q : (n1, n1) float
-        Cofactor (inverse normal matrix) of the existing parameters.
+    Q : (n1, n1) float, or (n1, t) with ``columns``
+        Cofactor (inverse normal matrix) of the existing parameters, or only its columns
+        ``Q[:, touched]`` (all the update needs: a factorised engine recovers just these).
     touched : (t,) int
         Indices of the existing parameters that the y2 rows involve.
     rows : LinearRows
@@ -116,11 +118,11 @@ def solve_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows) -> Update
     w2, w3 = rows.w2, rows.w3
     P2A22 = w2[:, None] * A22
     D = A22.T @ P2A22 + A32.T @ (w3[:, None] * A32)  # M22 + L22
-    D_inv = _spd_inverse(D, "(M22 + L22)")
+    D_inv = spd_inverse(D, "(M22 + L22)")
     P2bar = -(P2A22 @ D_inv @ P2A22.T)
     P2bar[np.diag_indices_from(P2bar)] += w2
     P23bar_l3 = -P2A22 @ (D_inv @ (A32.T @ (w3 * rows.l3)))
-    G = Q[:, touched] @ A21.T
+    G = (Q if columns else Q[:, touched]) @ A21.T
     H = A21 @ G[touched]
     m2 = A21.shape[0]
     S = P2bar @ H

@@ -31,11 +31,19 @@ def eop_correlations(Q: FloatArray, eop_offsets: np.ndarray, last_offset: int) -
     (W,) float
         In ``[0, 1]``; the last image's own value is 1.
     """
+    last = last_offset + np.arange(EOP_SIZE)
+    return correlations_from_columns(Q[:, last], np.diagonal(Q), eop_offsets, last_offset)
+
+
+def correlations_from_columns(q_last: FloatArray, q_diag: FloatArray, eop_offsets: np.ndarray,
+                              last_offset: int) -> FloatArray:
+    """:func:`eop_correlations` from the last image's cofactor columns ``Q[:, last]`` (n, 6)
+    and the diagonal of ``Q``: what a factorised engine recovers without forming ``Q``."""
     idx = (eop_offsets[:, None] + np.arange(EOP_SIZE)).ravel()
     last = last_offset + np.arange(EOP_SIZE)
-    sd = np.sqrt(np.diagonal(Q))
-    rho = Q[np.ix_(idx, last)] / (sd[idx, None] * sd[None, last])
-    return np.max(np.abs(rho).reshape(-1, EOP_SIZE * EOP_SIZE), axis=1)
+    sd = np.sqrt(q_diag)
+    rho = q_last[idx] / (sd[idx, None] * sd[None, last])
+    return np.minimum(np.max(np.abs(rho).reshape(-1, EOP_SIZE * EOP_SIZE), axis=1), 1.0)
 
 
 def first_over_threshold(correlations: FloatArray, threshold: float) -> int:

@@ -25,12 +25,14 @@ def _columns(keys: list[tuple[str, int]]) -> list[tuple[str, int, int]]:
     return [(k, i, c) for (k, i) in keys for c in range(6 if k == "e" else 3)]
 
 
+@pytest.mark.parametrize("engine", ["information", "inverse"])
 @pytest.mark.parametrize("iterations", [1, 3])
 def test_seq_f_equals_batch_of_same_linearisation(
-    short_strip: SimulatedFlight, iterations: int
+    short_strip: SimulatedFlight, iterations: int, engine: str
 ) -> None:
     est = _run(
-        short_strip, correlation_threshold=None, initial_images=5, max_update_iterations=iterations
+        short_strip, correlation_threshold=None, initial_images=5, max_update_iterations=iterations,
+        engine=engine
     )
     assert est.initial_state is not None and est.recorded
     keys0, x0, Q0 = est.initial_state

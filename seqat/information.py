@@ -1,0 +1,190 @@
+"""The window's information matrix, factorised with its ground points eliminated (Schur).
+
+The square-root engine of the sequential estimator (docs/algorithm.md, *Engines*) keeps the
+information matrix ``L = N`` of the window as the one source of truth: observations only ever
+*add* ``A^T P A`` to it, and marginalisation replaces it by a Schur complement, so it stays
+symmetric positive (semi)definite by construction. Everything else (the estimate's
+corrections, the cofactor blocks the Seq-R correlation rule and the published sigmas need) is
+taken from a Cholesky factorisation of ``L``, never from an inverse carried from update to
+update.
+
+Ground points (GPs) that no prior couples to another GP have a 3x3 diagonal block and are
+eliminated block by block, as in a bundle adjustment's reduced camera system::
+
+    L = [[L_RR, L_RP],      S = L_RR - L_RP D^-1 L_PR,   D = blockdiag(L_pp)
+         [L_PR, D   ]]
+
+``R`` holds the EOPs and the GPs a marginal prior couples (few); ``S`` is factorised by
+Cholesky (``S = U^T U``). Marginal covariance recovery:
+
+* ``Q_RR = S^-1``, ``Q_PR = -D^-1 L_PR Q_RR``,
+* ``Q_pp = D_p^-1 + D_p^-1 L_pR Q_RR L_Rp D_p^-1`` for each eliminated point.
+
+Rank and conditioning are checked here: a GP block or reduced system that is not positive
+definite raises :class:`RankDeficiency` naming the parameters, instead of producing NaN or
+negative variances downstream.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg
+
+from seqat.errors import EstimationError
+from seqat.types import GP_SIZE, FloatArray
+
+#: A GP block or reduced system whose smallest eigenvalue is below this fraction of its
+#: largest is treated as singular (relative to double precision: 1e-12 leaves four digits).
+RANK_TOLERANCE = 1e-12
+
+
+class RankDeficiency(EstimationError):
+    """The information matrix is singular: ``indices`` are the parameters the data do not
+    determine (GP blocks whose own 3x3 block is singular, or the largest components of the
+    reduced system's weakest eigenvector)."""
+
+    def __init__(self, message: str, indices: np.ndarray, gp_blocks: np.ndarray) -> None:
+        super().__init__(message)
+        self.indices = indices
+        self.gp_blocks = gp_blocks  # offsets of singular eliminated GP blocks
+
+
+class InformationFactor:
+    """Cholesky factorisation of a window information matrix with its GPs eliminated.
+
+    Parameters
+    ----------
+    L : (n, n) float
+        Symmetric positive definite information matrix (only read).
+    eliminate : (np,) int
+        Offsets in ``L`` of the 3x3 GP blocks to eliminate. Each must be coupled to the other
+        eliminated blocks by zeros only (the caller knows the structure; it is not scanned).
+
+    Raises
+    ------
+    RankDeficiency
+    """
+
+    def __init__(self, L: FloatArray, eliminate: np.ndarray) -> None:
+        n = L.shape[0]
+        self.n = n
+        eliminate = np.asarray(eliminate, dtype=np.int64)
+        p_idx = (eliminate[:, None] + np.arange(GP_SIZE)).reshape(-1, GP_SIZE)
+        mask = np.ones(n, dtype=bool)
+        mask[p_idx.ravel()] = False
+        r_idx = np.flatnonzero(mask)
+        self.r_idx, self.p_idx = r_idx, p_idx
+        npt = p_idx.shape[0]
+        D = L[p_idx[:, :, None], p_idx[:, None, :]]  # (np, 3, 3)
+        if npt:
+            ev = np.linalg.eigvalsh(D)
+            bad = ~(ev[:, 0] > RANK_TOLERANCE * np.maximum(ev[:, -1], 1e-300))
+            if np.any(bad):
+                raise RankDeficiency(
+                    f"singular 3x3 ground point information block ({int(bad.sum())} points)",
+                    p_idx[bad].ravel(), eliminate[bad])
+            self.Dinv = np.linalg.inv(D)
+            self.Dinv = 0.5 * (self.Dinv + np.swapaxes(self.Dinv, 1, 2))
+        else:
+            self.Dinv = np.zeros((0, GP_SIZE, GP_SIZE))
+        L_RP = L[np.ix_(r_idx, p_idx.ravel())]  # (r, 3 np)
+        self.L_RP = L_RP
+        r = r_idx.size
+        # B = L_RP D^-1, block by block
+        self.B = np.matmul(L_RP.reshape(r, npt, GP_SIZE).transpose(1, 0, 2),
+                           self.Dinv).transpose(1, 0, 2).reshape(r, GP_SIZE * npt)
+        S = L[np.ix_(r_idx, r_idx)] - self.B @ L_RP.T
+        S = 0.5 * (S + S.T)
+        self._chol(S)
+
+    def _chol(self, S: FloatArray) -> None:
+        r = S.shape[0]
+        if r == 0:
+            self.U = np.zeros((0, 0))
+            return
+        d = np.sqrt(np.abs(np.diagonal(S)))
+        ok = d > 0
+        scale = np.where(ok, 1.0 / np.where(ok, d, 1.0), 1.0)
+        Ss = S * scale[:, None] * scale[None, :]  # unit diagonal: conditioning, not units
+        try:
+            U = scipy.linalg.cholesky(Ss, lower=False, check_finite=True)
+            rcond = (np.min(np.diagonal(U)) / np.max(np.diagonal(U))) ** 2
+        except (np.linalg.LinAlgError, ValueError):
+            rcond = 0.0
+        if not rcond > RANK_TOLERANCE:
+            ev, V = np.linalg.eigh(np.nan_to_num(Ss))
+            weak = V[:, 0]
+            top = np.argsort(-np.abs(weak))[:6]
+            raise RankDeficiency(
+                f"reduced normal matrix ({r}x{r}) is singular or ill-conditioned "
+                f"(eigenvalues of the scaled matrix from {ev[0]:.3g} to {ev[-1]:.3g})",
+                self.r_idx[top], np.zeros(0, dtype=np.int64))
+        # S = diag(d) Ss diag(d) = (U diag(d))^T (U diag(d))
+        self.U = U / scale[None, :]
+        self._Uinv: FloatArray | None = None
+
+    # ------------------------------------------------------------------ solves
+    def _solve_S(self, b: FloatArray) -> FloatArray:
+        if self.U.shape[0] == 0:
+            return b
+        y = scipy.linalg.solve_triangular(self.U, b, trans="T", lower=False,
+                                          check_finite=False)
+        return scipy.linalg.solve_triangular(self.U, y, lower=False, check_finite=False)
+
+    def solve(self, b: FloatArray) -> FloatArray:
+        """``L^-1 b`` for ``b`` of shape (n,) or (n, k)."""
+        vec = b.ndim == 1
+        B2 = b[:, None] if vec else b
+        k = B2.shape[1]
+        npt = self.p_idx.shape[0]
+        bR = B2[self.r_idx]
+        bP = B2[self.p_idx.ravel()]  # (3 np, k)
+        xR = self._solve_S(bR - self.B @ bP)
+        rhsP = (bP - self.L_RP.T @ xR).reshape(npt, GP_SIZE, k)
+        xP = np.matmul(self.Dinv, rhsP).reshape(GP_SIZE * npt, k)
+        out = np.empty((self.n, k))
+        out[self.r_idx] = xR
+        out[self.p_idx.ravel()] = xP
+        return out[:, 0] if vec else out
+
+    def columns(self, idx: np.ndarray) -> FloatArray:
+        """Columns ``Q[:, idx]`` of the cofactor ``Q = L^-1``, (n, len(idx))."""
+        E = np.zeros((self.n, idx.size))
+        E[idx, np.arange(idx.size)] = 1.0
+        return self.solve(E)
+
+    # ------------------------------------------------------------------ marginals
+    def _u_inverse(self) -> FloatArray:
+        if self._Uinv is None:
+            r = self.U.shape[0]
+            self._Uinv = scipy.linalg.solve_triangular(self.U, np.eye(r), lower=False,
+                                                       check_finite=False)
+        return self._Uinv
+
+    def diagonal(self) -> FloatArray:
+        """``diag(Q)``: every marginal variance (cofactor units), all > 0."""
+        out = np.empty(self.n)
+        out[self.r_idx] = self.reduced_diagonal()
+        npt = self.p_idx.shape[0]
+        if npt:
+            Uinv = self._u_inverse()  # Q_RR = Uinv Uinv^T
+            Z = Uinv.T @ self.B  # (r, 3 np): Q_pp = Dinv + Z_p^T Z_p
+            extra = np.einsum("ij,ij->j", Z, Z)
+            out[self.p_idx.ravel()] = np.einsum("pii->pi", self.Dinv).ravel() + extra
+        return out
+
+    def reduced_diagonal(self) -> FloatArray:
+        """``diag(Q_RR)``: marginal variances of the kept (not eliminated) parameters."""
+        if self.U.shape[0] == 0:
+            return np.zeros(0)
+        Uinv = self._u_inverse()
+        return np.einsum("ij,ij->i", Uinv, Uinv)
+
+    def block(self, idx: np.ndarray) -> FloatArray:
+        """``Q[idx, idx]`` (small blocks: a leaving key's frozen cofactor)."""
+        return self.columns(idx)[idx]
+
+    def dense(self) -> FloatArray:
+        """The whole cofactor ``Q = L^-1`` (tests and small windows only)."""
+        Q = self.solve(np.eye(self.n))
+        return 0.5 * (Q + Q.T)
