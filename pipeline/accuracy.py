@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.tables import EopTable, GroundPoints, NavTable, PointTable
+from pipeline.common.tables import EopTable, GroundPoints, NavTable, PointTable
 from seqat.types import FloatArray
 
 Triple = tuple[float, float, float]

@@ -65,7 +65,7 @@ from pipeline.bench_report import (
     rms_of,
     write_figures,
 )
-from pipeline.config import SimulateConfig, load_simulate_config
+from pipeline.simulate.config import SimulateConfig, load_simulate_config
 from seqat.errors import ConfigError
 from seqat.geometry import intersect_rays, wrap_angle
 from seqat.sequential import SequentialAT, SequentialOptions

@@ -39,7 +39,6 @@ import numpy as np
 
 from pipeline.bench import _load_average, _load_sim_config, _machine, _progress
 from pipeline.bench_report import Machine, Triple
-from pipeline.dropout import predict_missing, resect_from_known
 from pipeline.fault_injection import (
     Detection,
     GapStats,
@@ -49,6 +48,7 @@ from pipeline.fault_injection import (
     pick_dropout,
     pick_jump,
 )
+from pipeline.flight.dropout import predict_missing, resect_from_known
 from pipeline.store import to_jsonable
 from seqat.errors import ConfigError, SeqatError
 from seqat.geometry import wrap_angle

@@ -25,17 +25,13 @@ import numpy as np
 import yaml
 
 from pipeline.bench_faults import SIM, FaultBenchOptions, _Case, _Outcome, _Scenario
-from pipeline.config import load_yaml
-from pipeline.csvio import format_csv_line, read_csv
-from pipeline.flight import (
-    FLIGHT_YAML,
-    NAV_GEODETIC_COLUMNS,
-    NAV_PROJECTED_COLUMNS,
-    read_flight,
-    read_truth,
-)
+from pipeline.common.columns import FLIGHT_YAML, NAV_GEODETIC_COLUMNS, OBS_COLUMNS
+from pipeline.common.csvio import format_csv_line, read_csv
+from pipeline.common.strict_yaml import load_yaml
+from pipeline.flight.folder import read_flight, read_truth
+from pipeline.flight.nav_files import NAV_PROJECTED_COLUMNS
 from pipeline.runner import Method, run_flight
-from pipeline.store import OBS_COLUMNS, fmt, read_eop_csv, read_points_csv
+from pipeline.store import fmt, read_eop_csv, read_points_csv
 from seqat.errors import InputDataError
 from seqat.geometry import intersect_rays, project
 from seqat.types import FloatArray

@@ -180,7 +180,7 @@ def simulate(
     seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 0,
 ) -> None:
     """Simulate a flight and write it as a flight folder with truth/."""
-    from pipeline.simulate_io import simulate_to_folder
+    from pipeline.simulate.stage import simulate_to_folder
 
     summary = simulate_to_folder(config, out, seed)
     _console().print(_table("seqat simulate", [

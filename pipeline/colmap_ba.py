@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pipeline.config import CameraConfig
+from pipeline.flight.schema import CameraConfig
 from seqat.cvframe import (
     cv_pose_from_eop,
     eop_covariance_from_tangent,

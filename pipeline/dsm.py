@@ -356,7 +356,7 @@ def _vertical_sub_crs(crs: pyproj.CRS) -> pyproj.CRS | None:
     return None
 
 
-def _linear_unit_factor(crs: pyproj.CRS) -> float:
+def linear_unit_factor(crs: pyproj.CRS) -> float:
     """Metres per unit of the first axis (1 for angular axes)."""
     axis = crs.axis_info[0]
     return float(axis.unit_conversion_factor) if axis.unit_name not in (
@@ -390,7 +390,7 @@ def to_working_crs(cloud: LasCloud, crs: pyproj.CRS) -> tuple[np.ndarray, tuple[
         else:
             tr = pyproj.Transformer.from_crs(cloud.crs, crs, always_xy=True)
             ex, ny = tr.transform(x, y, errcheck=True)
-            factor = _linear_unit_factor(cloud.crs)
+            factor = linear_unit_factor(cloud.crs)
             up = z * factor
             unit = cloud.crs.axis_info[0].unit_name
             warnings.append(f"{cloud.path.name}: CRS {cloud.crs.name!r} declares no vertical "

@@ -21,17 +21,17 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.csvio import check_header
-from pipeline.flight import (
+from pipeline.common.columns import (
+    CHECKPOINT_OBS_FILE,
+    CHECKPOINTS_FILE,
     FLIGHT_YAML,
     IMAGES_DIR,
     NAV_GEODETIC_COLUMNS,
-    NAV_PROJECTED_COLUMNS,
-    OBSERVATION_COLUMNS,
     TRUTH_DIR,
-    read_flight,
 )
-from pipeline.report import CHECKPOINT_OBS_FILE, CHECKPOINTS_FILE
+from pipeline.common.csvio import check_header
+from pipeline.flight.folder import read_flight
+from pipeline.flight.nav_files import NAV_PROJECTED_COLUMNS, OBSERVATION_COLUMNS
 from seqat.errors import ConfigError, InputDataError
 
 #: Images per second of ``seqat feed`` by default (the issue's real frame rate).

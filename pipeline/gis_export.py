@@ -21,9 +21,10 @@ import pyogrio.raw
 import pyproj
 import shapely
 
+from pipeline.common.columns import EOP_COLUMNS
+from pipeline.common.tables import EopTable, PointTable
 from pipeline.raster import atomic_path
-from pipeline.store import EOP_COLUMNS, XYZ
-from pipeline.tables import EopTable, PointTable
+from pipeline.store import XYZ
 from seqat.types import FloatArray
 
 #: Layer names of ``cameras.gpkg``.

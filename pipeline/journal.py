@@ -33,8 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.store import SkippedImage, fsync_dir, to_jsonable
-from pipeline.tracking import HeldImage, TrackerState
+from pipeline.common.atomic import fsync_dir
+from pipeline.flight.inputs import SkippedImage
+from pipeline.store import to_jsonable
+from pipeline.tracking.tracker import HeldImage, TrackerState
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import FloatArray, Frame
 

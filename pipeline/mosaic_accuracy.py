@@ -2,7 +2,7 @@
 
 For each check point (known ground X, Y), a window of the mosaic around it is compared with
 the same ground cells of the source texture (the orthophoto the renderer draped on the
-terrain, :class:`pipeline.render.Texture`) by normalised cross-correlation
+terrain, :class:`pipeline.simulate.render.Texture`) by normalised cross-correlation
 (``cv2.matchTemplate``, peak refined by a parabola): the shift that aligns them is the
 mosaic's planimetric error there. Windows with too few mosaic pixels or a weak peak are left
 out. ASPRS-style RMSE_H follows. (``cv2.phaseCorrelate`` was tried first: its sub-cell
@@ -20,7 +20,7 @@ import numpy as np
 import rasterio
 from rasterio.windows import Window
 
-from pipeline.render import Texture
+from pipeline.simulate.render import Texture
 from seqat.types import FloatArray
 
 #: Side of the compared windows, mosaic cells.

@@ -20,8 +20,8 @@ Per image (all vectorised, no Python loop over pixels):
    ``pixel_m``) so every ortho and the mosaic share it; ``pixel_m`` is the GSD of the first
    image unless given. Heights come from the DSM (bilinear, ``cv2.warpAffine``).
 3. **Collinearity** ``p = R^T (X - X0)`` (docs/conventions.md) and the OpenCV distortion
-   (closed form :func:`pipeline.camera.distort_normalized`, read from a per-camera
-   :class:`pipeline.camera.DistortionTable`) give the observed pixel of every cell; float32
+   (closed form :func:`pipeline.flight.camera.distort_normalized`, read from a per-camera
+   :class:`pipeline.flight.camera.DistortionTable`) give the observed pixel of every cell; float32
    with the projection centre subtracted, in row blocks on a small thread pool, only over the
    columns the footprint reaches.
 4. **Occlusion** (z-buffer): the nearest depth per image bucket from every second cell and
@@ -50,9 +50,9 @@ import pyproj
 from affine import Affine
 from rasterio.transform import from_origin
 
-from pipeline.camera import DistortionTable, PixelCorrector, border_pixels, pinhole_camera
-from pipeline.config import CameraConfig
 from pipeline.dsm import Dsm
+from pipeline.flight.camera import DistortionTable, PixelCorrector, border_pixels, pinhole_camera
+from pipeline.flight.schema import CameraConfig
 from pipeline.raster import write_cog
 from seqat.errors import ConfigError, InputDataError
 from seqat.geometry import rays_world, rotation_matrix
@@ -514,7 +514,7 @@ class Orthorectifier:
         ``v = (cy d - f p_y) / d``: numerators and depth are affine in the cell's offset from
         the projection centre, so each is an outer sum over the grid's rows and columns plus
         a multiple of the height. The distortion is added from the camera's lookup table
-        (:class:`pipeline.camera.DistortionTable`, one ``cv2.remap``). Cells without DSM
+        (:class:`pipeline.flight.camera.DistortionTable`, one ``cv2.remap``). Cells without DSM
         height are projected at ``z_ground`` only to count those inside the image
         (``off_dsm``); they stay unseen.
         In each row block only the columns inside ``hull`` (the footprint's convex hull over

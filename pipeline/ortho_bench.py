@@ -33,8 +33,8 @@ import numpy as np
 import pyproj
 from rasterio.transform import from_origin
 
-from pipeline.config import CameraConfig
 from pipeline.dsm import Dsm
+from pipeline.flight.schema import CameraConfig
 from pipeline.mosaic import MosaicBuilder
 from pipeline.ortho import OrthoOptions, Orthorectifier
 from pipeline.store import TimingStats, to_jsonable
@@ -183,8 +183,8 @@ def run_live_bench(n_images: int, out_dir: Path, mode: str, *, write: bool = Tru
                    rate_hz: float = 2.0, nice: int | None = None) -> LiveBench:
     """Seq-R on the paper strip with the live ortho behind it (module docstring)."""
     from pipeline.bench import _load_sim_config
+    from pipeline.common.tables import NavTable
     from pipeline.ortho_live import LiveOrtho, LiveOrthoOptions
-    from pipeline.tables import NavTable
     from seqat.sequential import SequentialAT, SequentialOptions
     from seqat.simulate import simulate_strip
 

@@ -50,9 +50,11 @@ from pathlib import Path
 import numpy as np
 import pyproj
 
-from pipeline.config import CameraConfig, build_dataclass
+from pipeline.common.strict_yaml import build_dataclass
+from pipeline.common.tables import NavTable
 from pipeline.dsm import Dsm
-from pipeline.flight import read_flight
+from pipeline.flight.folder import read_flight
+from pipeline.flight.schema import CameraConfig
 from pipeline.mosaic import FEATHER_PX, MosaicBuilder, tiles_of_bounds
 from pipeline.ortho import OrthoOptions, Orthorectifier
 from pipeline.ortho_run import (
@@ -71,7 +73,6 @@ from pipeline.ortho_run import (
     parse_out_crs,
 )
 from pipeline.store import TimingStats, eop_table, point_table
-from pipeline.tables import NavTable
 from seqat.errors import ConfigError, InputDataError, SeqatError
 from seqat.types import FloatArray, Frame, ImageUpdate, Solution
 

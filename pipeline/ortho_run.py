@@ -30,14 +30,17 @@ import pyproj
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from pipeline.config import build_dataclass, load_flight_config, load_yaml
+from pipeline.common.atomic import atomic_write_text
+from pipeline.common.columns import EOP_FILE
+from pipeline.common.strict_yaml import build_dataclass, load_yaml
+from pipeline.common.tables import EopTable, PointTable
 from pipeline.dsm import Dsm, DsmOptions, DsmResult, build_dsm, flat_dsm, read_dsm
+from pipeline.flight.schema import load_flight_config
 from pipeline.gis_export import write_cameras_gpkg
 from pipeline.mosaic import FEATHER_PX, MosaicBuilder, MosaicUpdate
 from pipeline.ortho import OrthoOptions, Orthorectifier, OrthoResult
 from pipeline.raster import reproject_cog
-from pipeline.store import EOP_FILE, TimingStats, atomic_write_text, read_eop_csv, to_jsonable
-from pipeline.tables import EopTable, PointTable
+from pipeline.store import TimingStats, read_eop_csv, to_jsonable
 from seqat.errors import ConfigError, InputDataError, SeqatError
 
 #: Outputs inside a run folder.
@@ -103,7 +106,7 @@ def working_crs_for_las(crs: str | None, las_paths: Sequence[Path | str],
     """``--crs`` of ``seqat dsm``: as given (projected, metres), or ``auto`` / None = the WGS 84
     UTM zone of the first file's centre."""
     from pipeline.dsm import read_las
-    from pipeline.navigation import resolve_projected_crs, utm_epsg
+    from pipeline.flight.navigation import resolve_projected_crs, utm_epsg
 
     if crs is not None and crs.strip().lower() != "auto":
         return resolve_projected_crs(crs, "--crs")

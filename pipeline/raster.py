@@ -27,7 +27,7 @@ import rasterio.vrt
 from affine import Affine
 from rasterio.enums import ColorInterp
 
-from pipeline.store import fsync_dir
+from pipeline.common.atomic import fsync_dir
 from seqat.errors import InputDataError
 
 #: Tile size of every COG, pixels (GDAL's COG default).

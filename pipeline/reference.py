@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.camera import PixelCorrector, pinhole_camera
 from pipeline.colmap_ba import (
     CAMERA_ID,
     PriorKind,
@@ -27,18 +26,17 @@ from pipeline.colmap_ba import (
     ReferenceResult,
     adjust_reference,
 )
-from pipeline.config import CameraConfig
-from pipeline.csvio import read_csv
-from pipeline.flight import OBSERVATION_COLUMNS
+from pipeline.common.atomic import atomic_write_text, fsync_dir
+from pipeline.common.columns import EOP_FILE, POINTS_FILE
+from pipeline.common.csvio import read_csv
+from pipeline.flight.camera import PixelCorrector, pinhole_camera
+from pipeline.flight.nav_files import OBSERVATION_COLUMNS
+from pipeline.flight.schema import CameraConfig
 from pipeline.store import (
-    EOP_FILE,
     JSON_INDENT,
-    POINTS_FILE,
     RunFolder,
-    atomic_write_text,
     format_eop_csv,
     format_points_csv,
-    fsync_dir,
     read_run,
     to_jsonable,
 )

@@ -24,24 +24,30 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.accuracy import Triple, eop_differences, point_differences, rmse
-from pipeline.camera import PixelCorrector, pinhole_camera
-from pipeline.config import load_flight_config
-from pipeline.flight import FLIGHT_YAML, read_ground_points, read_truth
+from pipeline.common.atomic import write_files_atomically
+from pipeline.common.columns import (
+    CHECKPOINT_OBS_FILE,
+    CHECKPOINTS_FILE,
+    EOP_FILE,
+    FLIGHT_YAML,
+    POINTS_FILE,
+)
+from pipeline.common.tables import EopTable, PointTable
+from pipeline.flight.camera import PixelCorrector, pinhole_camera
+from pipeline.flight.folder import read_truth
+from pipeline.flight.nav_files import read_ground_points
+from pipeline.flight.schema import load_flight_config
 from pipeline.latency import LatencyTable, latency_table, read_ortho_json
 from pipeline.reference import REFERENCE_DIR, REFERENCE_JSON, read_observations
 from pipeline.robustness import RobustnessSummary, summarise
 from pipeline.store import (
-    EOP_FILE,
     JSON_INDENT,
-    POINTS_FILE,
     RunFolder,
     read_eop_csv,
     read_points_csv,
     read_run,
     to_jsonable,
-    write_files_atomically,
 )
-from pipeline.tables import EopTable, PointTable
 from seqat.errors import InputDataError
 from seqat.geometry import intersect_rays, project, rotation_matrix
 from seqat.types import FloatArray
@@ -51,8 +57,6 @@ REPORT_HTML = "report.html"
 REPORT_JSON = "report.json"
 REPORT_VERSION = 1
 #: Check point files of a flight folder (``checkpoints:`` in flight.yaml names the first).
-CHECKPOINTS_FILE = "checkpoints.csv"
-CHECKPOINT_OBS_FILE = "checkpoint_obs.csv"
 #: ASPRS Edition 2 (2023): fewer check points than this do not support an accuracy statement.
 ASPRS_MIN_CHECKPOINTS = 30
 #: Accuracy classes (cm) offered: Edition 2 allows any X-cm class; these are the common ones.

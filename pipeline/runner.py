@@ -24,8 +24,10 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from pipeline.accuracy import Accuracy, compare_with_truth
 from pipeline.budget import BudgetReport, LatencyBudget
-from pipeline.config import build_dataclass, load_yaml
-from pipeline.flight import FLIGHT_YAML, Truth, read_flight, read_truth
+from pipeline.common.columns import FLIGHT_YAML
+from pipeline.common.strict_yaml import build_dataclass, load_yaml
+from pipeline.flight.folder import Truth, read_flight, read_truth
+from pipeline.flight.inputs import RunInputs, SkippedImage
 from pipeline.journal import (
     Journal,
     JournalContents,
@@ -37,17 +39,15 @@ from pipeline.robustness import RobustnessRecord, robustness_record
 from pipeline.session import Estimator, ImageListener, RunSession
 from pipeline.sources import ImageSource, ObservationSource
 from pipeline.store import (
-    RunInputs,
     RunRecord,
     RunTotals,
-    SkippedImage,
     TimingStats,
     eop_table,
     point_table,
     to_jsonable,
     write_run_outputs,
 )
-from pipeline.tracking import TrackerOptions
+from pipeline.tracking.options import TrackerOptions
 from seqat.errors import ConfigError, InputDataError, SeqatError
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simultaneous import SimOptions, SimultaneousAT

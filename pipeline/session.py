@@ -22,11 +22,12 @@ from typing import Protocol
 import numpy as np
 
 from pipeline.budget import BudgetEvent, LatencyBudget
+from pipeline.common.tables import NavTable
 from pipeline.journal import ImageRecord, Journal
 from pipeline.sources import PreparedFrame
 from pipeline.store import format_observation_lines
-from pipeline.tables import NavTable
-from pipeline.tracking import TrackerOptions, TrackerState
+from pipeline.tracking.options import TrackerOptions
+from pipeline.tracking.tracker import TrackerState
 from seqat.types import Frame, ImageUpdate, Solution
 
 

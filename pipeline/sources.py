@@ -1,9 +1,9 @@
 """Frame sources of ``seqat run``: one :class:`~seqat.types.Frame` per image, in order.
 
 * :class:`ObservationSource`: an observations flight (``observations.csv`` streamed by
-  :class:`pipeline.flight.FrameSource`, checked in a full pass first).
+  :class:`pipeline.flight.folder.FrameSource`, checked in a full pass first).
 * :class:`ImageSource`: an image flight. Each image is read when its turn comes, handed to
-  the streaming tracker (:class:`pipeline.tracking.Tracker`) with its nav EOP, and the
+  the streaming tracker (:class:`pipeline.tracking.tracker.Tracker`) with its nav EOP, and the
   tracker's observations of *that image only* become the frame (no look-ahead). After each
   update the estimator's state is fed back (:meth:`ImageSource.feedback`): its terrain
   height for the tracker's footprint prediction, its window points and EOPs for the
@@ -27,11 +27,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.dropout import PoseResection, resect_from_known
-from pipeline.flight import Flight, ObservationStats
+from pipeline.flight.dropout import PoseResection, resect_from_known
+from pipeline.flight.folder import Flight, ObservationStats
+from pipeline.flight.inputs import SkippedImage
 from pipeline.resection import Resection, resect_attitude
-from pipeline.store import SkippedImage
-from pipeline.tracking import Tracker, TrackerOptions, TrackerState, read_gray_image
+from pipeline.tracking.options import TrackerOptions
+from pipeline.tracking.tracker import Tracker, TrackerState, read_gray_image
 from seqat.geometry import rays_world
 from seqat.types import FloatArray, Frame, ImageUpdate, PinholeCamera
 
@@ -113,7 +114,7 @@ class Initialiser:
     def bridge(self, frame: Frame, *, reject: bool = True) -> tuple[Frame | None, PoseResection,
                                                                     np.ndarray]:
         """A GNSS dropout frame (``inf`` position σ): 6-DoF resection on the known ground
-        points (:func:`pipeline.dropout.resect_pose`) as its ``initial_eop``.
+        points (:func:`pipeline.flight.dropout.resect_pose`) as its ``initial_eop``.
 
         ``reject`` leaves out the observations of known points that disagree with the pose.
 
@@ -249,7 +250,7 @@ class ObservationSource:
 def read_tracker_image(path: Path, tracker: Tracker, width_px: int, height_px: int) -> np.ndarray:
     """An image as 8-bit gray for the tracker: reduced JPEG decode, camera size / factor.
 
-    An image of another size (same aspect ratio, checked by :func:`pipeline.flight.read_flight`)
+    An image of another size (same aspect ratio, checked by :func:`pipeline.flight.folder.read_flight`)
     is resampled to the size the tracker expects.
     """
     factor = tracker.decode_factor

@@ -19,13 +19,10 @@ round-trip to about 1e-15 relative).
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import enum
 import json
 import math
-import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,28 +32,27 @@ import pyproj
 from pyproj.exceptions import CRSError
 
 from pipeline.accuracy import Accuracy
-from pipeline.config import CameraConfig, build_dataclass
-from pipeline.csvio import format_csv_line, read_csv
+from pipeline.common.atomic import atomic_write_text, write_files_atomically
+from pipeline.common.columns import (
+    EOP_COLUMNS,
+    EOP_FILE,
+    NAV_COLUMNS,
+    NAV_FILE,
+    OBS_COLUMNS,
+    OBSERVATIONS_FILE,
+    POINT_COLUMNS,
+    POINTS_FILE,
+    RUN_FILE,
+)
+from pipeline.common.csvio import format_csv_line, read_csv
+from pipeline.common.strict_yaml import build_dataclass
+from pipeline.common.tables import EopTable, NavTable, PointTable
+from pipeline.flight.inputs import RunInputs, SkippedImage
+from pipeline.flight.schema import CameraConfig
 from pipeline.robustness import RobustnessRecord
-from pipeline.tables import EopTable, NavTable, PointTable
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import EopEstimate, ImageUpdate, PointEstimate, Solution
 
-#: Columns of the output ``eop.csv``.
-EOP_COLUMNS = ("image", "x_m", "y_m", "z_m", "omega_deg", "phi_deg", "kappa_deg",
-               "sx_m", "sy_m", "sz_m", "somega_deg", "sphi_deg", "skappa_deg")
-#: Columns of the output ``points.csv``.
-POINT_COLUMNS = ("point", "x_m", "y_m", "z_m", "sx_m", "sy_m", "sz_m", "n_obs")
-#: File names inside a run's output folder.
-EOP_FILE = "eop.csv"
-POINTS_FILE = "points.csv"
-RUN_FILE = "run.json"
-NAV_FILE = "nav.csv"
-OBSERVATIONS_FILE = "observations.csv"
-#: Columns of a projected ``nav.csv`` (flight input and run output).
-NAV_COLUMNS = ("image", "time_s", "x_m", "y_m", "z_m", "omega_deg", "phi_deg", "kappa_deg")
-#: Columns of ``observations.csv`` (flight input and run output).
-OBS_COLUMNS = ("image", "point", "x_px", "y_px")
 #: Version of the ``run.json`` layout (bumped on incompatible changes).
 RUN_JSON_VERSION = 1
 #: Percentiles of the per-image update time reported in ``run.json``.
@@ -70,102 +66,6 @@ XYZ = 3
 def fmt(value: float) -> str:
     """Shortest decimal text that reads back as the same float64 (``nan`` for NaN)."""
     return repr(float(value))
-
-
-# --------------------------------------------------------------------------------------------
-# Atomic writing
-# --------------------------------------------------------------------------------------------
-
-
-def _file_mode() -> int:
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
-
-
-def _write_temp(folder: Path, name: str, text: str) -> Path:
-    """Write ``text`` to a new temporary file in ``folder`` and fsync it."""
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as handle:
-            handle.write(text)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.chmod(tmp, _file_mode())
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    return Path(tmp)
-
-
-def fsync_dir(folder: Path) -> None:
-    """Make a rename inside ``folder`` durable (no-op where directories cannot be opened)."""
-    with contextlib.suppress(OSError):
-        fd = os.open(folder, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
-def atomic_write_text(path: Path | str, text: str) -> None:
-    """Replace ``path`` by ``text`` atomically (temp file in the same folder, fsync, rename)."""
-    path = Path(path)
-    tmp = _write_temp(path.parent, path.name, text)
-    try:
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    fsync_dir(path.parent)
-
-
-def write_files_atomically(out_dir: Path | str, files: Mapping[str, str]) -> tuple[Path, ...]:
-    """Publish several text files into ``out_dir`` together.
-
-    All files are first written to temporary files in ``out_dir``; only when every one is on
-    disk are they renamed into place. On failure the temporary files are removed, and so are
-    the folders this call created.
-
-    Parameters
-    ----------
-    out_dir : Path or str
-        Created (with parents) if absent.
-    files : Mapping[str, str]
-        File name -> text.
-
-    Returns
-    -------
-    tuple[Path, ...]
-        The written paths, in the order of ``files``.
-    """
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise InputDataError(f"{out}: exists and is not a folder")
-    created: list[Path] = []
-    probe = out
-    while not probe.exists():
-        created.append(probe)
-        probe = probe.parent
-    out.mkdir(parents=True, exist_ok=True)
-    temps: dict[str, Path] = {}
-    try:
-        for name, text in files.items():
-            temps[name] = _write_temp(out, name, text)
-        for name, tmp in temps.items():
-            os.replace(tmp, out / name)
-    except BaseException:
-        for tmp in temps.values():
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp)
-        for folder in created:  # deepest first; only empty folders go
-            with contextlib.suppress(OSError):
-                folder.rmdir()
-        raise
-    fsync_dir(out)
-    return tuple(out / name for name in files)
 
 
 # --------------------------------------------------------------------------------------------
@@ -327,52 +227,6 @@ class RunTotals:
     accuracy: Accuracy | None = None
     latency_ms: TimingStats | None = None  # end to end per image (watch mode)
     journal_ms: TimingStats | None = None  # journaling each new image (state file + record)
-
-
-@dataclass(frozen=True, kw_only=True)
-class SkippedImage:
-    """An image left out of a run, and why (``run.json`` ``skipped``)."""
-
-    image: str
-    reason: str
-
-
-@dataclass(frozen=True, kw_only=True, eq=False)
-class RunInputs:
-    """What the estimator was given: the self-contained part of a run folder.
-
-    Attributes
-    ----------
-    crs : pyproj.CRS
-        Working CRS (projected, metres).
-    camera : CameraConfig
-        Camera of the observed (full-resolution) pixels.
-    camera_approximate : bool
-        ``True`` when the camera comes from EXIF (focal length and sensor size), not from a
-        calibration.
-    nav : NavTable
-        GPS/INS exterior orientations in the working CRS (direct georeferencing), in
-        acquisition order; only the images of the run.
-    nav_sigma : (6,) float
-        A priori σ of ``[X, Y, Z]`` (m) and ``[omega, phi, kappa]`` (rad).
-    sigma_image_px : float
-    images_dir : Path or None
-        Folder of the flight's images (image flights), else ``None``.
-    skipped : tuple[SkippedImage, ...]
-        Images of the flight left out of the run.
-    warnings : tuple[str, ...]
-        One line each (e.g. an image of another size, a height of unknown kind).
-    """
-
-    crs: pyproj.CRS
-    camera: CameraConfig
-    camera_approximate: bool
-    nav: NavTable
-    nav_sigma: np.ndarray
-    sigma_image_px: float
-    images_dir: Path | None = None
-    skipped: tuple[SkippedImage, ...] = ()
-    warnings: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -660,7 +514,9 @@ def read_run(out_dir: Path | str) -> RunFolder:
         _triple(sig.get("position_m"), "nav_sigma.position_m", run_path),
         np.radians(_triple(sig.get("attitude_deg"), "nav_sigma.attitude_deg", run_path))])
     images_dir = doc.get("images_dir")
-    from pipeline.flight import read_nav_projected  # flight imports store: no cycle at load
+    from pipeline.flight.nav_files import (
+        read_nav_projected,  # flight imports store: no cycle at load
+    )
     inputs = RunInputs(
         crs=crs, camera=camera, camera_approximate=approximate,
         nav=read_nav_projected(out / NAV_FILE, allow_missing=True), nav_sigma=nav_sigma,

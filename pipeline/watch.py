@@ -38,37 +38,41 @@ import pyproj
 from rich.console import Console
 from rich.text import Text
 
-from pipeline.camera import PixelCorrector, pinhole_camera
-from pipeline.config import CameraConfig, FlightConfig, build_dataclass, load_flight_config
-from pipeline.csvio import CsvTail
-from pipeline.flight import (
-    FLIGHT_YAML,
-    NAV_GEODETIC_COLUMNS,
-    NAV_PROJECTED_COLUMNS,
-    OBSERVATION_COLUMNS,
+from pipeline.common.columns import FLIGHT_YAML, NAV_GEODETIC_COLUMNS
+from pipeline.common.csvio import CsvTail
+from pipeline.common.strict_yaml import build_dataclass
+from pipeline.common.tables import NavTable
+from pipeline.flight.camera import PixelCorrector, pinhole_camera
+from pipeline.flight.folder import (
     Flight,
-    NavRowChecker,
     camera_from_exif,
     check_image_size,
-    check_lat_lon,
     geodetic_nav_eop,
     observation_row,
     read_truth,
 )
-from pipeline.image_metadata import (
+from pipeline.flight.image_metadata import (
     ImageMetadata,
     check_jpeg_complete,
     found_tags,
     read_image_metadata,
     require_position,
 )
-from pipeline.navigation import (
+from pipeline.flight.inputs import SkippedImage
+from pipeline.flight.nav_files import (
+    NAV_PROJECTED_COLUMNS,
+    OBSERVATION_COLUMNS,
+    NavRowChecker,
+    check_lat_lon,
+)
+from pipeline.flight.navigation import (
     IMAGE_SUFFIXES,
     MIN_IMAGES,
     geodetic_to_eop,
     resolve_projected_crs,
     resolve_working_crs,
 )
+from pipeline.flight.schema import CameraConfig, FlightConfig, load_flight_config
 from pipeline.runner import (
     EstimatorConfig,
     Method,
@@ -84,8 +88,7 @@ from pipeline.runner import (
 )
 from pipeline.session import ImageListener, ImageLive, RunSession
 from pipeline.sources import ImageSource, ObservationSource, PreparedFrame
-from pipeline.store import SkippedImage, to_jsonable
-from pipeline.tables import NavTable
+from pipeline.store import to_jsonable
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import FloatArray, Frame, ImageUpdate
 

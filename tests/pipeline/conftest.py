@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.simulate_io import write_simulated_flight
+from pipeline.simulate.folder import write_simulated_flight
 from seqat.simulate import SimulatedFlight, simulate_strip
 
 from .sample_flight import FLIGHT_FILES, SIM_CRS, SIM_SEED, SMALL_SIM, FlightMaker

@@ -5,8 +5,13 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from pipeline.camera import DistortionTable, PixelCorrector, distort_normalized, pinhole_camera
-from pipeline.config import CameraConfig
+from pipeline.flight.camera import (
+    DistortionTable,
+    PixelCorrector,
+    distort_normalized,
+    pinhole_camera,
+)
+from pipeline.flight.schema import CameraConfig
 
 #: Agreement required between undistorted and exact ideal pixels.
 UNDISTORT_TOL_PX = 1e-8

@@ -11,14 +11,9 @@ from typing import Literal
 import numpy as np
 import pytest
 
-from pipeline.config import (
-    CameraConfig,
-    FlightConfig,
-    build_dataclass,
-    load_flight_config,
-    load_simulate_config,
-    load_yaml,
-)
+from pipeline.common.strict_yaml import build_dataclass, load_yaml
+from pipeline.flight.schema import CameraConfig, FlightConfig, load_flight_config
+from pipeline.simulate.config import load_simulate_config
 from seqat.errors import ConfigError
 from seqat.simulate import StripSimConfig
 from seqat.types import FloatArray

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.flight import read_flight
+from pipeline.flight.folder import read_flight
 from seqat.geometry import project, rotation_matrix
 from seqat.types import PinholeCamera
 

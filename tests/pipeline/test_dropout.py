@@ -11,8 +11,8 @@ import pytest
 from typer.testing import CliRunner
 
 from pipeline.cli import app
-from pipeline.dropout import MIN_POINTS, predict_missing, resect_pose
-from pipeline.flight import read_flight, read_truth
+from pipeline.flight.dropout import MIN_POINTS, predict_missing, resect_pose
+from pipeline.flight.folder import read_flight, read_truth
 from pipeline.reference import run_reference
 from pipeline.report import make_report
 from pipeline.runner import run_flight

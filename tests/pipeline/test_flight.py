@@ -10,7 +10,7 @@ from pyproj.exceptions import CRSError
 from typer.testing import CliRunner
 
 from pipeline.cli import app
-from pipeline.flight import read_flight, read_truth
+from pipeline.flight.folder import read_flight, read_truth
 from seqat.errors import ConfigError, InputDataError, SeqatError
 from seqat.simulate import SimulatedFlight
 

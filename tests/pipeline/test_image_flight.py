@@ -13,8 +13,8 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from pipeline.cli import app
-from pipeline.flight import read_flight
-from pipeline.navigation import geodetic_to_eop, read_image_folder_nav
+from pipeline.flight.folder import read_flight
+from pipeline.flight.navigation import geodetic_to_eop, read_image_folder_nav
 from pipeline.resection import resect_attitude
 from pipeline.runner import Method, run_flight
 from pipeline.store import read_eop_csv, read_run
@@ -172,7 +172,7 @@ def test_lever_arm_is_applied_in_the_body_frame(yaw_deg: float, east: float,
 
     crs = pyproj.CRS.from_epsg(32617)  # central meridian -81
     args = ([-81.0], [41.0], [300.0], [[0.0, 0.0, yaw_deg]], ["body"], ["ellipsoidal"], crs)
-    from pipeline.navigation import BoresightConfig
+    from pipeline.flight.navigation import BoresightConfig
 
     base = geodetic_to_eop(*args, BoresightConfig())
     moved = geodetic_to_eop(*args, BoresightConfig(), np.array([1.0, 0.0, 0.0]))

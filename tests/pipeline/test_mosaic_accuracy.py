@@ -12,7 +12,7 @@ from rasterio.transform import from_origin
 
 from pipeline.mosaic_accuracy import mosaic_shifts
 from pipeline.raster import write_cog
-from pipeline.render import Texture, affine_texture_map
+from pipeline.simulate.render import Texture, affine_texture_map
 
 CRS = pyproj.CRS.from_epsg(32610)
 X0, Y0, PIXEL = 500000.0, 4877000.0, 0.25  # texture: pixel (0, 0) centred at (X0, Y0)

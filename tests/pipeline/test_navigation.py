@@ -1,4 +1,4 @@
-"""pipeline.image_metadata and pipeline.navigation: EXIF/XMP reading, CRS, attitude -> OPK."""
+"""pipeline.flight.image_metadata and pipeline.flight.navigation: EXIF/XMP reading, CRS, attitude -> OPK."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pyproj
 import pytest
 from PIL import ExifTags, Image
 
-from pipeline.image_metadata import read_image_metadata, require_position
-from pipeline.navigation import (
+from pipeline.flight.image_metadata import read_image_metadata, require_position
+from pipeline.flight.navigation import (
     BoresightConfig,
     GeodeticToProjected,
     grid_convergence_rad,
@@ -248,7 +248,7 @@ def test_grid_convergence_sign_east_of_central_meridian() -> None:
 
 
 def test_gimbal_nadir_matches_body_nadir() -> None:
-    from pipeline.navigation import mount_for
+    from pipeline.flight.navigation import mount_for
 
     yaw = math.radians(30.0)
     gimbal = world_from_cam(0.0, -math.pi / 2, yaw, mount_for("gimbal", BoresightConfig()), 0.0)

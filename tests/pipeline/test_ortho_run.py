@@ -15,19 +15,19 @@ import rasterio
 from typer.testing import CliRunner
 
 from pipeline.cli import app
+from pipeline.common.tables import NavTable
 from pipeline.dsm import DSM_NODATA
+from pipeline.flight.inputs import RunInputs
 from pipeline.ortho import OrthoOptions
 from pipeline.ortho_run import orthorectify_run
 from pipeline.raster import cog_problems, write_cog
 from pipeline.store import (
-    RunInputs,
     RunRecord,
     RunTotals,
     TimingStats,
     format_observation_lines,
     write_run_outputs,
 )
-from pipeline.tables import NavTable
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import EopEstimate, PointEstimate, Solution
 

@@ -25,7 +25,7 @@ from pipeline.colmap_ba import (
     eop_from_rigid,
     rigid_from_eop,
 )
-from pipeline.config import CameraConfig
+from pipeline.flight.schema import CameraConfig
 from pipeline.reference import (
     COLMAP_MODEL_DIR,
     REFERENCE_DIR,

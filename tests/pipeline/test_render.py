@@ -7,9 +7,9 @@ import time
 import numpy as np
 import pytest
 
-from pipeline.camera import PixelCorrector, pinhole_camera
-from pipeline.config import CameraConfig
-from pipeline.render import (
+from pipeline.flight.camera import PixelCorrector, pinhole_camera
+from pipeline.flight.schema import CameraConfig
+from pipeline.simulate.render import (
     HeightField,
     Renderer,
     Scene,

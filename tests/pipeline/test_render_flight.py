@@ -10,20 +10,21 @@ import numpy as np
 import pyproj
 import pytest
 
-from pipeline.camera import PixelCorrector, pinhole_camera
-from pipeline.config import (
-    CameraConfig,
+from pipeline.dsm import read_las, to_working_crs
+from pipeline.flight.camera import PixelCorrector, pinhole_camera
+from pipeline.flight.folder import read_flight, read_truth
+from pipeline.flight.nav_files import read_ground_points
+from pipeline.flight.navigation import BoresightConfig, geodetic_to_eop
+from pipeline.flight.schema import CameraConfig
+from pipeline.reference import read_observations
+from pipeline.simulate.config import (
     FlightPlanConfig,
     RenderSimulateConfig,
     RenderSourceConfig,
     load_simulate_config,
 )
-from pipeline.dsm import read_las, to_working_crs
-from pipeline.flight import read_flight, read_ground_points, read_truth
-from pipeline.navigation import BoresightConfig, geodetic_to_eop
-from pipeline.reference import read_observations
-from pipeline.render_flight import geodetic_nav, plan_poses
-from pipeline.simulate_io import simulate_to_folder
+from pipeline.simulate.rendered import geodetic_nav, plan_poses
+from pipeline.simulate.stage import simulate_to_folder
 from seqat.errors import ConfigError, InputDataError
 from seqat.geometry import project
 
@@ -233,8 +234,8 @@ def test_cli_simulate_rendered(sources: Path, tmp_path: Path) -> None:
 
 @pytest.mark.shared
 def test_autzen_scene_renders_texture_everywhere(shared_data: Path) -> None:
-    from pipeline.render import Renderer
-    from pipeline.render_scene import load_scene
+    from pipeline.simulate.render import Renderer
+    from pipeline.simulate.render_scene import load_scene
 
     autzen = shared_data / "autzen"
     wkt = pyproj.CRS((autzen / "autzen-srs.wkt").read_text())

@@ -10,14 +10,13 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from pipeline.camera import pinhole_camera
 from pipeline.cli import app
-from pipeline.flight import read_truth
+from pipeline.common.columns import CHECKPOINT_OBS_FILE, CHECKPOINTS_FILE
+from pipeline.flight.camera import pinhole_camera
+from pipeline.flight.folder import read_truth
 from pipeline.reference import run_reference
 from pipeline.report import (
     ASPRS_MIN_CHECKPOINTS,
-    CHECKPOINT_OBS_FILE,
-    CHECKPOINTS_FILE,
     REPORT_HTML,
     REPORT_JSON,
     asprs_table,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pipeline import runner
-from pipeline.flight import read_flight, read_truth
+from pipeline.flight.folder import read_flight, read_truth
 from pipeline.runner import (
     EstimatorConfig,
     Method,

@@ -8,10 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import simulate_io
-from pipeline.config import load_flight_config
-from pipeline.flight import read_flight
-from pipeline.simulate_io import simulate_to_folder, write_simulated_flight
+from pipeline.flight.folder import read_flight
+from pipeline.flight.schema import load_flight_config
+from pipeline.simulate import folder as simulate_io
+from pipeline.simulate.folder import write_simulated_flight
+from pipeline.simulate.stage import simulate_to_folder
 from seqat.errors import InputDataError
 from seqat.simulate import SimulatedFlight
 
@@ -89,14 +90,14 @@ def test_failure_midway_keeps_previous_flight(small_sim: SimulatedFlight, tmp_pa
     out = tmp_path / "flight"
     write_simulated_flight(small_sim, SIM_CRS, out)
     before = (out / "observations.csv").read_text()
-    real_write = simulate_io._write
+    real_write = simulate_io.write_synced
 
     def failing_write(path: Path, text: str) -> None:
         if path.name == "points.csv":
             raise OSError(28, "No space left on device")
         real_write(path, text)
 
-    monkeypatch.setattr(simulate_io, "_write", failing_write)
+    monkeypatch.setattr(simulate_io, "write_synced", failing_write)
     with pytest.raises(OSError, match="No space left"):
         write_simulated_flight(small_sim, "EPSG:32633", out)
     assert (out / "observations.csv").read_text() == before

@@ -11,25 +11,25 @@ import pyproj
 import pytest
 
 from pipeline import store
-from pipeline.config import CameraConfig
+from pipeline.common import atomic
+from pipeline.common.atomic import atomic_write_text, write_files_atomically
+from pipeline.common.columns import EOP_COLUMNS
+from pipeline.common.tables import NavTable
+from pipeline.flight.inputs import RunInputs, SkippedImage
+from pipeline.flight.schema import CameraConfig
 from pipeline.store import (
-    RunInputs,
     RunRecord,
     RunTotals,
-    SkippedImage,
     TimingStats,
-    atomic_write_text,
     format_observation_lines,
     format_run_json,
     read_eop_csv,
     read_points_csv,
     read_run,
     write_eop_csv,
-    write_files_atomically,
     write_points_csv,
     write_run_outputs,
 )
-from pipeline.tables import NavTable
 from seqat.errors import InputDataError
 from seqat.types import EopEstimate, ImageUpdate, PointEstimate, Solution
 
@@ -69,7 +69,7 @@ def test_eop_csv_round_trip(tmp_path: Path) -> None:
     np.testing.assert_allclose(table.sigma, np.array([e.sigma for e in eops]), rtol=0,
                                atol=ROUND_TRIP_TOL)
     assert np.all(np.isnan(table.sigma[1]))
-    assert path.read_text().splitlines()[0] == ",".join(store.EOP_COLUMNS)
+    assert path.read_text().splitlines()[0] == ",".join(EOP_COLUMNS)
 
 
 def test_points_csv_round_trip(tmp_path: Path) -> None:
@@ -198,7 +198,7 @@ def test_failed_publish_leaves_no_folder_and_no_temp_files(tmp_path: Path,
             raise OSError(28, "No space left on device")
         real_replace(src, dst)
 
-    monkeypatch.setattr(store.os, "replace", failing_replace)
+    monkeypatch.setattr(atomic.os, "replace", failing_replace)
     with pytest.raises(OSError, match="No space left"):
         write_files_atomically(tmp_path / "new" / "run", {"a.csv": "x\n", "b.csv": "y\n"})
     assert list(tmp_path.iterdir()) == []  # the folders it created are gone again

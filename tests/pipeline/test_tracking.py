@@ -1,4 +1,4 @@
-"""Streaming tracker (pipeline/tracking.py) on synthetic nadir views of a textured flat ground.
+"""Streaming tracker (pipeline/tracking/tracker.py) on synthetic nadir views of a textured flat ground.
 
 Each view is an exact homography of a 2000 x 2000 px ground texture (0.1 m per texel, Z = 0):
 the four texture corners are projected with :func:`seqat.geometry.project` and
@@ -15,8 +15,10 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.config import CameraConfig, build_dataclass
-from pipeline.tracking import TrackedImage, Tracker, TrackerOptions, read_gray_image
+from pipeline.common.strict_yaml import build_dataclass
+from pipeline.flight.schema import CameraConfig
+from pipeline.tracking.options import TrackerOptions
+from pipeline.tracking.tracker import TrackedImage, Tracker, read_gray_image
 from seqat.errors import ConfigError, InputDataError
 from seqat.geometry import project
 from seqat.types import Frame, PinholeCamera

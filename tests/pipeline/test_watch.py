@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from pipeline.config import load_flight_config
-from pipeline.csvio import CsvTail
+from pipeline.common.columns import FLIGHT_YAML, NAV_GEODETIC_COLUMNS
+from pipeline.common.csvio import CsvTail
 from pipeline.feed import feed_flight
-from pipeline.flight import FLIGHT_YAML, NAV_GEODETIC_COLUMNS
+from pipeline.flight.schema import load_flight_config
 from pipeline.session import ImageLive
 from pipeline.watch import Arrival, GrowingFlight, ImageWatcher, WatchOptions, watch_flight
 from seqat.errors import InputDataError

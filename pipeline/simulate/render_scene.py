@@ -30,7 +30,7 @@ from pipeline.dsm import (
     remove_outliers,
     to_working_crs,
 )
-from pipeline.render import HeightField, Scene, Texture, TextureMap
+from pipeline.simulate.render import HeightField, Scene, Texture, TextureMap
 from seqat.errors import InputDataError
 
 #: World file suffixes tried beside a texture image, in order.

@@ -6,8 +6,8 @@ mount, so ``R_world_from_cam = R_ENU_FROM_NED · R_ned_from_body(roll, pitch, ya
 R_body_from_cam`` (docs/conventions.md, *Navigation attitude*). The navigation is the truth
 plus white noise and a random-walk bias, written as a *geodetic* ``nav.csv`` of the GPS
 antenna (the camera minus the lever arm turned into the world) with the true heading
-``yaw = yaw_grid + γ``; :func:`pipeline.navigation.geodetic_to_eop` inverts this exactly
-(tests/pipeline/test_render_flight.py). Images are rendered by :mod:`pipeline.render`.
+``yaw = yaw_grid + γ``; :func:`pipeline.flight.navigation.geodetic_to_eop` inverts this exactly
+(tests/pipeline/test_render_flight.py). Images are rendered by :mod:`pipeline.simulate.render`.
 
 Folder (docs/formats.md, *Rendered flights*): ``flight.yaml``, ``nav.csv``, ``images/``,
 ``lidar/surface.laz`` (source CRS and units), ``checkpoints.csv`` + ``checkpoint_obs.csv``,
@@ -27,12 +27,21 @@ import numpy as np
 import pyproj
 import yaml
 
-from pipeline.camera import PixelCorrector, pinhole_camera
-from pipeline.config import CameraConfig, RenderSimulateConfig
-from pipeline.csvio import format_csv_line
-from pipeline.dsm import _linear_unit_factor, parse_crs
-from pipeline.flight import FLIGHT_YAML, GROUND_POINT_COLUMNS, NAV_GEODETIC_COLUMNS, TRUTH_DIR
-from pipeline.navigation import (
+from pipeline.common.atomic import building_folder, write_synced
+from pipeline.common.columns import (
+    CHECKPOINT_OBS_FILE,
+    CHECKPOINTS_FILE,
+    FLIGHT_YAML,
+    GROUND_POINT_COLUMNS,
+    IMAGES_DIR,
+    NAV_FILE,
+    NAV_GEODETIC_COLUMNS,
+    TRUTH_DIR,
+)
+from pipeline.common.csvio import format_csv_line
+from pipeline.dsm import linear_unit_factor, parse_crs
+from pipeline.flight.camera import PixelCorrector, pinhole_camera
+from pipeline.flight.navigation import (
     R_ENU_FROM_NED,
     WGS84_3D,
     BoresightConfig,
@@ -40,20 +49,18 @@ from pipeline.navigation import (
     grid_convergence_rad,
     resolve_projected_crs,
 )
-from pipeline.render import HeightField, Renderer, Scene, cast_rays, finish_image
-from pipeline.render_scene import las_center_m, load_scene
-from pipeline.simulate_io import _write, building_folder, check_replaceable
+from pipeline.flight.schema import CameraConfig
+from pipeline.simulate.config import RenderSimulateConfig
+from pipeline.simulate.folder import check_replaceable
+from pipeline.simulate.render import HeightField, Renderer, Scene, cast_rays, finish_image
+from pipeline.simulate.render_scene import las_center_m, load_scene
 from pipeline.store import fmt, format_nav_csv, format_observation_lines
 from seqat.errors import ConfigError, InputDataError
 from seqat.geometry import angles_from_rotation, project
 from seqat.types import FloatArray
 
-IMAGES_DIR = "images"
 LIDAR_DIR = "lidar"
 LIDAR_FILE = "surface.laz"
-NAV_FILE = "nav.csv"
-CHECKPOINTS_FILE = "checkpoints.csv"
-CHECKPOINT_OBS_FILE = "checkpoint_obs.csv"
 #: Sinusoids summed per wandering angle (periods wander_period_s · PERIOD_FACTORS).
 PERIOD_FACTORS = (1.0, 0.61, 0.37)
 #: Margin around the camera positions covered by the surface grid, beyond the footprint (m).
@@ -165,7 +172,7 @@ def geodetic_nav(flight: PlannedFlight, crs: pyproj.CRS, lever_arm_m: FloatArray
 
     The fix is the GPS antenna, ``X_cam - R_world_from_body · lever_arm`` plus the position
     error (world axes); the attitude is the body's plus the error, with the true heading
-    ``yaw_grid + γ`` (γ at the fix). :func:`pipeline.navigation.geodetic_to_eop` with the same
+    ``yaw_grid + γ`` (γ at the fix). :func:`pipeline.flight.navigation.geodetic_to_eop` with the same
     lever arm gives back the camera EOP exactly when the errors are zero.
 
     Returns
@@ -238,7 +245,7 @@ def write_lidar(path: Path, surface: HeightField, bounds_m: tuple[float, float, 
     y = rng.uniform(south, north, n)
     z = surface.sample(x, y) + rng.normal(0.0, sigma_m, n)
     tx, ty = pyproj.Transformer.from_crs(crs, las_crs, always_xy=True).transform(x, y)
-    tz = z / _linear_unit_factor(las_crs)
+    tz = z / linear_unit_factor(las_crs)
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.offsets = np.floor([tx.min(), ty.min(), tz.min()])
     header.scales = np.array([LAS_SCALE, LAS_SCALE, LAS_SCALE])
@@ -358,29 +365,29 @@ def render_to_folder(config: RenderSimulateConfig, config_dir: Path, out_dir: Pa
                              [cv2.IMWRITE_JPEG_QUALITY, config.output.jpeg_quality])
             if not ok:
                 raise OSError(f"{tmp / IMAGES_DIR / image_id}.jpg: cannot write the image")
-        _write(tmp / FLIGHT_YAML, _flight_yaml(config, sigma_pos, sigma_att))
+        write_synced(tmp / FLIGHT_YAML, _flight_yaml(config, sigma_pos, sigma_att))
         lines = [format_csv_line(NAV_GEODETIC_COLUMNS)]
         lines += [format_csv_line([iid, fmt(t), *(fmt(v) for v in row)])
                   for iid, t, row in zip(flight.image_ids, flight.times_s, nav_rows, strict=True)]
-        _write(tmp / NAV_FILE, "".join(lines))
+        write_synced(tmp / NAV_FILE, "".join(lines))
         (tmp / LIDAR_DIR).mkdir()
         lidar_crs = las_crs if las_crs is not None else _las_file_crs(las_paths[0])
         write_lidar(tmp / LIDAR_DIR / LIDAR_FILE, scene.surface, _covered(flight, fw, fh), crs,
                     lidar_crs, config.output.lidar_density_per_m2, config.output.lidar_sigma_m,
                     rng)
         points_csv = _points_csv([cp_ids[int(j)] for j in keep], checkpoints[keep])
-        _write(tmp / CHECKPOINTS_FILE, points_csv)
+        write_synced(tmp / CHECKPOINTS_FILE, points_csv)
         obs_text = format_csv_line(("image", "point", "x_px", "y_px"))
         for i, image_id in enumerate(flight.image_ids):
             rows = [(cp_ids[j], uv) for r, j, uv in cp_obs if r == i and j in cp_ids]
             if rows:
                 obs_text += format_observation_lines(image_id, [p for p, _ in rows],
                                                      np.array([uv for _, uv in rows]))
-        _write(tmp / CHECKPOINT_OBS_FILE, obs_text)
+        write_synced(tmp / CHECKPOINT_OBS_FILE, obs_text)
         (tmp / TRUTH_DIR).mkdir()
-        _write(tmp / TRUTH_DIR / "eop.csv", format_nav_csv(flight.image_ids, flight.times_s,
+        write_synced(tmp / TRUTH_DIR / "eop.csv", format_nav_csv(flight.image_ids, flight.times_s,
                                                            flight.eop))
-        _write(tmp / TRUTH_DIR / "points.csv", points_csv)
+        write_synced(tmp / TRUTH_DIR / "points.csv", points_csv)
     base = config.plan.speed_m_s / config.plan.frame_rate_hz
     return RenderSummary(
         out_dir=out, crs=config.crs, seed=seed, n_images=n, n_points=len(keep),

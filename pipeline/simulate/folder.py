@@ -7,52 +7,32 @@ itself a flight folder (has ``flight.yaml``); anything else is refused.
 
 from __future__ import annotations
 
-import contextlib
-import math
-import os
-import shutil
-import tempfile
-from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-from pipeline.config import RenderSimulateConfig, load_simulate_config
-from pipeline.csvio import format_csv_line
-from pipeline.flight import (
+from pipeline.common.atomic import building_folder, write_synced
+from pipeline.common.columns import (
     FLIGHT_YAML,
     GROUND_POINT_COLUMNS,
-    OBSERVATION_COLUMNS,
+    NAV_FILE,
+    OBSERVATIONS_FILE,
     TRUTH_DIR,
-    resolve_projected_crs,
 )
-from pipeline.store import fmt, format_nav_csv, fsync_dir
+from pipeline.common.csvio import format_csv_line
+from pipeline.flight.folder import resolve_projected_crs
+from pipeline.flight.nav_files import OBSERVATION_COLUMNS
+from pipeline.store import fmt, format_nav_csv
 from seqat.errors import InputDataError
-from seqat.simulate import SimulatedFlight, simulate_strip
+from seqat.simulate import SimulatedFlight
 from seqat.types import FloatArray
 
 #: File names written into a simulated flight folder.
-NAV_FILE = "nav.csv"
-OBSERVATIONS_FILE = "observations.csv"
 #: Sigmas in flight.yaml are rounded to this many significant digits (hides deg<->rad noise).
 SIGMA_SIGNIFICANT_DIGITS = 12
 #: Components of a position or attitude sigma.
 AXES = 3
-
-
-@dataclass(frozen=True, kw_only=True)
-class SimulateSummary:
-    """What ``seqat simulate`` wrote."""
-
-    out_dir: Path
-    crs: str
-    seed: int
-    n_images: int
-    n_points: int
-    n_observations: int
-    duration_s: float
 
 
 def _round_sig(value: float) -> float:
@@ -107,11 +87,6 @@ def _points_csv(ids: tuple[str, ...], xyz_m: FloatArray) -> str:
     return "".join(lines)
 
 
-def _write(path: Path, text: str) -> None:
-    with open(path, "w", encoding="utf-8", newline="") as handle:
-        handle.write(text)
-        handle.flush()
-        os.fsync(handle.fileno())
 
 
 def check_replaceable(out_dir: Path) -> None:
@@ -156,91 +131,11 @@ def write_simulated_flight(flight: SimulatedFlight, crs: str, out_dir: Path | st
     resolve_projected_crs(crs, "crs")
     check_replaceable(out)
     with building_folder(out) as tmp:
-        _write(tmp / FLIGHT_YAML, _flight_yaml(flight, crs))
-        _write(tmp / NAV_FILE, format_nav_csv(flight.image_ids, flight.times_s, flight.nav_eop))
-        _write(tmp / OBSERVATIONS_FILE, _observations_csv(flight))
+        write_synced(tmp / FLIGHT_YAML, _flight_yaml(flight, crs))
+        write_synced(tmp / NAV_FILE, format_nav_csv(flight.image_ids, flight.times_s, flight.nav_eop))
+        write_synced(tmp / OBSERVATIONS_FILE, _observations_csv(flight))
         (tmp / TRUTH_DIR).mkdir()
-        _write(tmp / TRUTH_DIR / "eop.csv", format_nav_csv(flight.image_ids, flight.times_s,
+        write_synced(tmp / TRUTH_DIR / "eop.csv", format_nav_csv(flight.image_ids, flight.times_s,
                                                      flight.truth_eop))
-        _write(tmp / TRUTH_DIR / "points.csv", _points_csv(flight.point_ids, flight.truth_xyz))
+        write_synced(tmp / TRUTH_DIR / "points.csv", _points_csv(flight.point_ids, flight.truth_xyz))
     return out
-
-
-@contextlib.contextmanager
-def building_folder(out: Path) -> Iterator[Path]:
-    """Build a folder in a temporary sibling and publish it as ``out`` atomically.
-
-    Yields the temporary folder (mode as a new folder gets under the umask). When the block
-    succeeds, every sub-folder and the folder are fsynced and it replaces ``out`` (a
-    previous ``out`` is moved aside first and removed after); when it fails, the temporary
-    folder is removed and a previous ``out`` is put back.
-    """
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
-    old: Path | None = None
-    try:
-        os.chmod(tmp, 0o777 & ~_umask())
-        yield tmp
-        for sub in tmp.iterdir():
-            if sub.is_dir():
-                fsync_dir(sub)
-        fsync_dir(tmp)
-        if out.exists():
-            old = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.old-"))
-            os.replace(out, old / out.name)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if old is not None and (old / out.name).exists() and not out.exists():
-            os.replace(old / out.name, out)  # put the previous folder back
-        raise
-    finally:
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    fsync_dir(out.parent)
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def simulate_to_folder(config_path: Path | str, out_dir: Path | str, seed: int) -> SimulateSummary:
-    """The ``seqat simulate`` stage: read a simulation config, simulate, write the folder.
-
-    Parameters
-    ----------
-    config_path : Path or str
-        ``configs/*_sim.yaml`` (:class:`pipeline.config.SimulateConfig`).
-    out_dir : Path or str
-    seed : int
-        Random seed; the same config and seed give the same flight.
-
-    Raises
-    ------
-    ConfigError
-        Bad config.
-    InputDataError
-        Unusable CRS or an output folder that cannot be replaced (checked before simulating).
-    """
-    config = load_simulate_config(config_path)
-    if isinstance(config, RenderSimulateConfig):
-        from pipeline.render_flight import render_to_folder  # imports this module
-
-        rendered = render_to_folder(config, Path(config_path).parent, out_dir, seed)
-        return SimulateSummary(out_dir=rendered.out_dir, crs=rendered.crs, seed=seed,
-                               n_images=rendered.n_images, n_points=rendered.n_points,
-                               n_observations=rendered.n_observations,
-                               duration_s=rendered.duration_s)
-    resolve_projected_crs(config.crs, f"{config_path}")
-    out = Path(out_dir)
-    check_replaceable(out)
-    flight = simulate_strip(config.simulation, seed)
-    write_simulated_flight(flight, config.crs, out)
-    times = np.asarray(flight.times_s, dtype=np.float64)
-    duration = float(times[-1] - times[0]) if times.size else math.nan
-    return SimulateSummary(out_dir=out, crs=config.crs, seed=seed,
-                           n_images=len(flight.image_ids), n_points=len(flight.point_ids),
-                           n_observations=int(np.asarray(flight.obs_image).size),
-                           duration_s=duration)

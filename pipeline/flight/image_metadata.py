@@ -4,7 +4,7 @@
 flight folder*) into a frozen :class:`ImageMetadata`; missing values are ``None``. Errors name
 the file and what was found. Pillow reads EXIF; the XMP packet is parsed with
 ``xml.etree.ElementTree``. Converting positions and attitudes to the working CRS is
-:mod:`pipeline.navigation`.
+:mod:`pipeline.flight.navigation`.
 """
 
 from __future__ import annotations

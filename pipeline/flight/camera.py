@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pipeline.config import CameraConfig
+from pipeline.flight.schema import CameraConfig
 from seqat.types import FloatArray, PinholeCamera
 
 #: Iterations of OpenCV's iterative undistortion (its default of 5 leaves ~1e-5 px errors).

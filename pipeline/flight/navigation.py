@@ -8,7 +8,7 @@
   camera->world rotation of docs/conventions.md (*Navigation attitude*, where the derivation
   is written out) through the boresight mount and the grid convergence.
 * :func:`read_image_folder_nav` does all of it for a folder of JPEGs
-  (:mod:`pipeline.image_metadata`); not yet wired into the runner.
+  (:mod:`pipeline.flight.image_metadata`); not yet wired into the runner.
 """
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ import numpy as np
 import pyproj
 from pyproj.exceptions import CRSError, ProjError
 
-from pipeline.image_metadata import (
+from pipeline.common.tables import NavTable
+from pipeline.flight.image_metadata import (
     AttitudeFrame,
     HeightKind,
     ImageMetadata,
@@ -30,7 +31,6 @@ from pipeline.image_metadata import (
     read_image_metadata,
     require_position,
 )
-from pipeline.tables import NavTable
 from seqat.errors import ConfigError, InputDataError
 from seqat.geometry import angles_from_rotation
 from seqat.types import FloatArray
@@ -334,7 +334,7 @@ def opk_from_attitude(roll_rad: float, pitch_rad: float, yaw_rad: float,
 
 
 def mount_for(frame: AttitudeFrame, boresight: BoresightConfig) -> FloatArray:
-    """``R_body_from_cam`` for an attitude kind (:mod:`pipeline.image_metadata`).
+    """``R_body_from_cam`` for an attitude kind (:mod:`pipeline.flight.image_metadata`).
 
     ``body``: the configured boresight. ``gimbal``: the forward mount (gimbal angles are
     the camera's own; the boresight does not apply). ``camera`` (Pix4D ``Camera:``

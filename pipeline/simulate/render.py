@@ -3,7 +3,7 @@
 A :class:`Scene` is a height field (:class:`HeightField`, bilinear between cell centres, in the
 working CRS, metres) and a texture (:class:`Texture`, an image with a map from working-CRS
 coordinates to texture pixels). :class:`Renderer` renders the *observed* image of an OpenCV
-camera: every observed pixel is undistorted once per camera (:class:`pipeline.camera.
+camera: every observed pixel is undistorted once per camera (:class:`pipeline.flight.camera.
 PixelCorrector`, ``cv2.undistortPoints``) into an ideal pinhole ray, the ray is rotated into
 the world for each pose, marched down from above the highest terrain in steps of at most
 ``MARCH_STEP_CELLS`` cells until it first passes below the surface (first hit = visibility),
@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pipeline.camera import PixelCorrector
-from pipeline.config import CameraConfig
+from pipeline.flight.camera import PixelCorrector
+from pipeline.flight.schema import CameraConfig
 from seqat.geometry import rotation_matrix
 from seqat.types import FloatArray
 
