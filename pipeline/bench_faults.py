@@ -6,13 +6,13 @@ Three cases, each with several seeds:
 * ``block`` — a simulated block of three serpentine strips (:data:`BLOCK`);
 * ``rendered`` — the rendered sample flight (``sample_data/autzen_rendered``): one clean
   ``seqat run`` tracks its tie points, then every variant replays that ``observations.csv``
-  (faults written into a copy of the flight folder) through :func:`pipeline.runner.run_flight`,
+  (faults written into a copy of the flight folder) through :func:`pipeline.run.runner.run_flight`,
   so data snooping, the dropout bridge and ``run.json`` are measured end to end.
 
 Faults (:mod:`pipeline.fault_injection`): tie-point blunders on 5 % and 20 % of the
 observations (10-100 px, random direction); one GNSS position jump of 5 m; one 30 s dropout
 (the images' whole nav is missing: ``inf`` σ, start value from the past, 6-DoF resection on
-the estimator's window as in :mod:`pipeline.sources`).
+the estimator's window as in :mod:`pipeline.run.sources`).
 
 Variants per fault: Seq-R (ρ ≥ 0.1, RTS-smoothed final solution) with data snooping on
 (``snooping_critical``, ``min_rays`` 3) and off (the defaults), and for blunders the
@@ -39,6 +39,7 @@ import numpy as np
 
 from pipeline.bench import _load_average, _load_sim_config, _machine, _progress
 from pipeline.bench_report import Machine, Triple
+from pipeline.common.rmse import rmse
 from pipeline.fault_injection import (
     Detection,
     GapStats,
@@ -49,7 +50,7 @@ from pipeline.fault_injection import (
     pick_jump,
 )
 from pipeline.flight.dropout import predict_missing, resect_from_known
-from pipeline.store import to_jsonable
+from pipeline.run.store import to_jsonable
 from seqat.errors import ConfigError, SeqatError
 from seqat.geometry import wrap_angle
 from seqat.sequential import SequentialAT, SequentialOptions
@@ -312,13 +313,6 @@ def _outcome(est: SequentialAT, updates: Sequence[ImageUpdate], image_ids: Seque
 
 
 # ---------------------------------------------------------------------------- scoring
-def _rms_axes(d: FloatArray) -> Triple:
-    if d.shape[0] == 0:
-        return (math.nan, math.nan, math.nan)
-    r = np.sqrt(np.mean(d**2, axis=0))
-    return (float(r[0]), float(r[1]), float(r[2]))
-
-
 def _pct(a: FloatArray, q: float) -> float:
     return float(np.percentile(a, q)) if a.size else math.nan
 
@@ -351,8 +345,8 @@ def _score(case: _Case, seed: int, sc: _Scenario, out: _Outcome, options: FaultB
     return FaultRun(
         case=case.name, seed=seed, fault=sc.fault, variant=sc.variant,
         n_images=int(est.sum()), n_points=int(out.point_index.size),
-        pos_rmse_m=_rms_axes(d[est, :3]), att_rmse_deg=_rms_axes(d[est, 3:]),
-        gp_rmse_m=_rms_axes(gp_d),
+        pos_rmse_m=rmse(d[est, :3]), att_rmse_deg=rmse(d[est, 3:]),
+        gp_rmse_m=rmse(gp_d),
         gp_outliers=int(np.count_nonzero(np.linalg.norm(gp_d, axis=1) > options.gp_outlier_m)),
         sigma0=out.sigma0, update_ms_median=_pct(ms, 50), update_ms_p95=_pct(ms, 95),
         update_ms_max=float(ms.max()) if ms.size else math.nan,

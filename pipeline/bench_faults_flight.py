@@ -1,5 +1,5 @@
 """The rendered case of ``seqat bench faults``: faults written into a flight folder and
-replayed through ``seqat run`` (:func:`pipeline.runner.run_flight`).
+replayed through ``seqat run`` (:func:`pipeline.run.runner.run_flight`).
 
 Once per benchmark the flight's images are tracked by a clean run (pipeline defaults); its
 ``observations.csv`` is the input of every variant. A variant writes an observations flight
@@ -30,8 +30,8 @@ from pipeline.common.csvio import format_csv_line, read_csv
 from pipeline.common.strict_yaml import load_yaml
 from pipeline.flight.folder import read_flight, read_truth
 from pipeline.flight.nav_files import NAV_PROJECTED_COLUMNS
-from pipeline.runner import Method, run_flight
-from pipeline.store import fmt, read_eop_csv, read_points_csv
+from pipeline.run.runner import Method, run_flight
+from pipeline.run.store import fmt, read_eop_csv, read_points_csv
 from seqat.errors import InputDataError
 from seqat.geometry import intersect_rays, project
 from seqat.types import FloatArray

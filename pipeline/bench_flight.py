@@ -29,8 +29,8 @@ from pipeline.common.atomic import atomic_write_text
 from pipeline.common.columns import OBS_COLUMNS
 from pipeline.common.csvio import read_csv  # noqa: E402
 from pipeline.report import image_residuals_px  # noqa: E402
-from pipeline.runner import Method, run_flight  # noqa: E402
-from pipeline.store import read_run, to_jsonable  # noqa: E402
+from pipeline.run.runner import Method, run_flight  # noqa: E402
+from pipeline.run.store import read_run, to_jsonable  # noqa: E402
 from seqat.types import FloatArray  # noqa: E402
 
 

@@ -34,7 +34,7 @@ from rich.progress import (  # noqa: E402
 from pipeline.bench import _load_average, _machine  # noqa: E402
 from pipeline.bench_report import Machine  # noqa: E402
 from pipeline.common.atomic import atomic_write_text
-from pipeline.store import to_jsonable  # noqa: E402
+from pipeline.run.store import to_jsonable  # noqa: E402
 from seqat.sequential import SequentialAT, SequentialOptions  # noqa: E402
 from seqat.simulate import StripSimConfig, simulate_strip  # noqa: E402
 from seqat.types import EopEstimate, PointEstimate  # noqa: E402

@@ -13,7 +13,7 @@ of ``seqat run FLIGHT --out OUT --ortho`` (FLIGHT rendered by ``seqat simulate C
   ``source.cell_m`` cell of the source clouds, gaps filled, :func:`pipeline.simulate.render_scene.
   lidar_surface`) at the DSM's valid cell centres: mean, RMSE, median and 95th percentile
   of the absolute difference;
-* **latency** per image by stage (:mod:`pipeline.latency`).
+* **latency** per image by stage (:mod:`pipeline.run.latency`).
 
 Prints the summary as JSON (and writes it to ``--json``).
 """
@@ -34,14 +34,14 @@ from pipeline.common.atomic import atomic_write_text
 from pipeline.common.columns import EOP_FILE, NAV_FILE, OBSERVATIONS_FILE, POINTS_FILE, RUN_FILE
 from pipeline.dsm import parse_crs, read_dsm
 from pipeline.flight.nav_files import read_ground_points
-from pipeline.latency import LatencyTable, latency_table, read_ortho_json
 from pipeline.mosaic_accuracy import mosaic_shifts
 from pipeline.ortho import OrthoOptions
 from pipeline.ortho_run import DSM_FILE, MOSAIC_FILE, REFERENCE_DIR, orthorectify_run
 from pipeline.report import find_checkpoints
+from pipeline.run.latency import LatencyTable, latency_table, read_ortho_json
+from pipeline.run.store import RunFolder, format_eop_csv, read_run, to_jsonable
 from pipeline.simulate.config import RenderSimulateConfig, load_simulate_config
 from pipeline.simulate.render_scene import lidar_surface, read_texture
-from pipeline.store import RunFolder, format_eop_csv, read_run, to_jsonable
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import EopEstimate
 

@@ -26,7 +26,7 @@ from rich.table import Table
 from seqat.errors import SeqatError
 
 if TYPE_CHECKING:
-    from pipeline.runner import Method, RunSummary
+    from pipeline.run.runner import Method, RunSummary
 
 #: Exit code for bad input or configuration (also click's usage errors).
 EXIT_BAD_INPUT = 2
@@ -242,7 +242,7 @@ def run(
 ) -> None:
     """Adjust a flight folder and write eop.csv, points.csv, run.json, nav.csv and
     observations.csv."""
-    from pipeline.runner import run_flight
+    from pipeline.run.runner import run_flight
     from seqat.errors import ConfigError
 
     if not ortho and (dsm is not None or ortho_options is not None):
@@ -276,7 +276,7 @@ def run(
 
 
 def _method(method: str) -> Method:
-    from pipeline.runner import Method
+    from pipeline.run.runner import Method
     from seqat.errors import ConfigError
 
     try:
@@ -310,7 +310,7 @@ def watch(
 ) -> None:
     """Georeference images as they appear in a growing flight folder; one line per image.
     Ctrl-C or --idle-timeout-s stops and publishes the results (as seqat run)."""
-    from pipeline.watch import WatchOptions, watch_flight
+    from pipeline.run.watch import WatchOptions, watch_flight
 
     summary = watch_flight(flight, out, method=_method(method), options_path=options,
                            threshold=threshold, initial_images=initial_images,
@@ -334,7 +334,7 @@ def feed(
 ) -> None:
     """Copy a flight into a folder image by image at the camera's rate (for seqat watch),
     with the partial-file convention (name.jpg.part, then renamed)."""
-    from pipeline.feed import feed_flight
+    from pipeline.run.feed import feed_flight
 
     s = feed_flight(src, dst, rate_hz=rate, limit=limit, delay_s=delay_s)
     _console().print(f"fed {s.images} images in {s.duration_s:.1f} s (at most "
@@ -473,8 +473,8 @@ def reference(
         "--robust-loss", help="trivial (off), huber, cauchy or soft_l1.")] = "trivial",
 ) -> None:
     """COLMAP bundle adjustment of a run's observations with GPS/INS priors: OUT/reference/."""
-    from pipeline.colmap_ba import PriorKind, ReferenceOptions, RobustLoss
-    from pipeline.reference import run_reference
+    from pipeline.reference.colmap_ba import PriorKind, ReferenceOptions, RobustLoss
+    from pipeline.reference.stage import run_reference
     from seqat.errors import ConfigError
 
     for flag, value, kind in (("--prior", prior, PriorKind),

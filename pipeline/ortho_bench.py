@@ -37,7 +37,7 @@ from pipeline.dsm import Dsm
 from pipeline.flight.schema import CameraConfig
 from pipeline.mosaic import MosaicBuilder
 from pipeline.ortho import OrthoOptions, Orthorectifier
-from pipeline.store import TimingStats, to_jsonable
+from pipeline.run.store import TimingStats, to_jsonable
 
 #: The benchmark camera: 2456 x 2058 px (5 Mpx machine-vision sensor), f = 3000 px.
 BENCH_CAMERA = CameraConfig(model="OPENCV", width_px=2456, height_px=2058, fx_px=3000.0,

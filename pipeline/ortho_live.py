@@ -1,6 +1,6 @@
 """Live orthorectification of ``seqat run --ortho``: each image as soon as it is georeferenced.
 
-:class:`LiveOrtho` is an :class:`pipeline.runner.ImageListener`. After each AT update it hands
+:class:`LiveOrtho` is an :class:`pipeline.run.runner.ImageListener`. After each AT update it hands
 the image and its EOP of that moment (``update.eop``) to one worker thread, which reads the
 image, orthorectifies it (:class:`pipeline.ortho.Orthorectifier`, ``ortho/<image>.tif``) and
 pastes it into the tiles of the growing mosaic it touches (:class:`pipeline.mosaic.
@@ -72,7 +72,7 @@ from pipeline.ortho_run import (
     ortho_mosaic_options,
     parse_out_crs,
 )
-from pipeline.store import TimingStats, eop_table, point_table
+from pipeline.run.store import TimingStats, eop_table, point_table
 from seqat.errors import ConfigError, InputDataError, SeqatError
 from seqat.types import FloatArray, Frame, ImageUpdate, Solution
 

@@ -1,6 +1,6 @@
 """Stage functions of ``seqat dsm`` and ``seqat ortho``: files in, files out.
 
-:func:`orthorectify_run` reads a run folder (:func:`pipeline.store.read_run`), picks the EOPs
+:func:`orthorectify_run` reads a run folder (:func:`pipeline.run.store.read_run`), picks the EOPs
 (Seq-R ``eop.csv`` or ``reference/eop.csv``) and the surface, streams every image through
 :class:`pipeline.ortho.Orthorectifier` and :class:`pipeline.mosaic.MosaicBuilder` and writes
 
@@ -40,7 +40,7 @@ from pipeline.gis_export import write_cameras_gpkg
 from pipeline.mosaic import FEATHER_PX, MosaicBuilder, MosaicUpdate
 from pipeline.ortho import OrthoOptions, Orthorectifier, OrthoResult
 from pipeline.raster import reproject_cog
-from pipeline.store import TimingStats, read_eop_csv, to_jsonable
+from pipeline.run.store import TimingStats, read_eop_csv, to_jsonable
 from seqat.errors import ConfigError, InputDataError, SeqatError
 
 #: Outputs inside a run folder.
@@ -423,7 +423,7 @@ def orthorectify_run(out_dir: Path | str, *, dsm_path: Path | str | None = None,
         An image that cannot be orthorectified (missing file, EOP above the horizon, outside
         the DSM) is skipped with a warning; when none can be, the error is raised.
     """
-    from pipeline.store import read_run
+    from pipeline.run.store import read_run
 
     t0 = time.perf_counter()
     run_dir = Path(out_dir)

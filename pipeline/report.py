@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.accuracy import Triple, eop_differences, point_differences, rmse
 from pipeline.common.atomic import write_files_atomically
 from pipeline.common.columns import (
     CHECKPOINT_OBS_FILE,
@@ -32,15 +31,17 @@ from pipeline.common.columns import (
     FLIGHT_YAML,
     POINTS_FILE,
 )
+from pipeline.common.rmse import Triple, rmse
 from pipeline.common.tables import EopTable, PointTable
 from pipeline.flight.camera import PixelCorrector, pinhole_camera
 from pipeline.flight.folder import read_truth
 from pipeline.flight.nav_files import read_ground_points
 from pipeline.flight.schema import load_flight_config
-from pipeline.latency import LatencyTable, latency_table, read_ortho_json
-from pipeline.reference import REFERENCE_DIR, REFERENCE_JSON, read_observations
-from pipeline.robustness import RobustnessSummary, summarise
-from pipeline.store import (
+from pipeline.reference.stage import REFERENCE_DIR, REFERENCE_JSON, read_observations
+from pipeline.run.accuracy import eop_differences, point_differences
+from pipeline.run.latency import LatencyTable, latency_table, read_ortho_json
+from pipeline.run.robustness import RobustnessSummary, summarise
+from pipeline.run.store import (
     JSON_INDENT,
     RunFolder,
     read_eop_csv,

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pipeline.report import DIRECT, REFERENCE, CheckpointReport, LiveOperation, Report
-from pipeline.robustness import robustness_rows
+from pipeline.run.robustness import robustness_rows
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

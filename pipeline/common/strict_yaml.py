@@ -11,7 +11,7 @@ arrays where the field is annotated so, and rejecting unknown keys and wrong typ
 The config classes live with their stage: :class:`pipeline.flight.schema.FlightConfig`
 (``flight.yaml`` of a flight folder), :class:`pipeline.simulate.config.SimulateConfig`
 (``configs/*_sim.yaml``); the estimator options of ``seqat run`` are built by
-:mod:`pipeline.runner` with the same loader.
+:mod:`pipeline.run.runner` with the same loader.
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ from pipeline.common.columns import (
 from pipeline.common.csvio import format_csv_line
 from pipeline.flight.folder import resolve_projected_crs
 from pipeline.flight.nav_files import OBSERVATION_COLUMNS
-from pipeline.store import fmt, format_nav_csv
+from pipeline.run.store import fmt, format_nav_csv
 from seqat.errors import InputDataError
 from seqat.simulate import SimulatedFlight
 from seqat.types import FloatArray

@@ -50,11 +50,11 @@ from pipeline.flight.navigation import (
     resolve_projected_crs,
 )
 from pipeline.flight.schema import CameraConfig
+from pipeline.run.store import fmt, format_nav_csv, format_observation_lines
 from pipeline.simulate.config import RenderSimulateConfig
 from pipeline.simulate.folder import check_replaceable
 from pipeline.simulate.render import HeightField, Renderer, Scene, cast_rays, finish_image
 from pipeline.simulate.render_scene import las_center_m, load_scene
-from pipeline.store import fmt, format_nav_csv, format_observation_lines
 from seqat.errors import ConfigError, InputDataError
 from seqat.geometry import angles_from_rotation, project
 from seqat.types import FloatArray

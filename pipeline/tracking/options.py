@@ -70,7 +70,7 @@ class TrackerOptions:
     resection_threshold_deg : float
         RANSAC threshold (angle between an image ray and the direction from the GPS position
         to its point) of the resection that gives each new image its initial attitude
-        (:mod:`pipeline.resection`).
+        (:mod:`pipeline.run.resection`).
     """
 
     detector: Literal["sift", "orb"] = "sift"

@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from pipeline import runner
 from pipeline.cli import app
-from pipeline.store import read_eop_csv
+from pipeline.run import runner
+from pipeline.run.store import read_eop_csv
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 

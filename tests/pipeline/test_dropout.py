@@ -13,10 +13,10 @@ from typer.testing import CliRunner
 from pipeline.cli import app
 from pipeline.flight.dropout import MIN_POINTS, predict_missing, resect_pose
 from pipeline.flight.folder import read_flight, read_truth
-from pipeline.reference import run_reference
+from pipeline.reference.stage import run_reference
 from pipeline.report import make_report
-from pipeline.runner import run_flight
-from pipeline.store import read_eop_csv, read_run
+from pipeline.run.runner import run_flight
+from pipeline.run.store import read_eop_csv, read_run
 from seqat.cvframe import cv_pose_from_eop
 from seqat.simulate import SimulatedFlight
 

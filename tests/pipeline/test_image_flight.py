@@ -15,9 +15,9 @@ from typer.testing import CliRunner
 from pipeline.cli import app
 from pipeline.flight.folder import read_flight
 from pipeline.flight.navigation import geodetic_to_eop, read_image_folder_nav
-from pipeline.resection import resect_attitude
-from pipeline.runner import Method, run_flight
-from pipeline.store import read_eop_csv, read_run
+from pipeline.run.resection import resect_attitude
+from pipeline.run.runner import Method, run_flight
+from pipeline.run.store import read_eop_csv, read_run
 from seqat.errors import InputDataError
 from seqat.geometry import project, rotation_matrix
 from seqat.types import PinholeCamera

@@ -19,7 +19,7 @@ from pipeline.dsm import read_dsm
 from pipeline.ortho import OrthoOptions
 from pipeline.ortho_live import LiveOrtho, LiveOrthoOptions
 from pipeline.ortho_run import image_files, orthorectify_run
-from pipeline.store import read_run
+from pipeline.run.store import read_run
 from seqat.errors import ConfigError
 from seqat.types import EopEstimate, PointEstimate, Solution
 

@@ -21,7 +21,7 @@ from pipeline.flight.inputs import RunInputs
 from pipeline.ortho import OrthoOptions
 from pipeline.ortho_run import orthorectify_run
 from pipeline.raster import cog_problems, write_cog
-from pipeline.store import (
+from pipeline.run.store import (
     RunRecord,
     RunTotals,
     TimingStats,

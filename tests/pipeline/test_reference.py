@@ -12,7 +12,8 @@ import pytest
 from typer.testing import CliRunner
 
 from pipeline.cli import app
-from pipeline.colmap_ba import (
+from pipeline.flight.schema import CameraConfig
+from pipeline.reference.colmap_ba import (
     COLMAP_PIXEL_OFFSET,
     OBS_RESIDUALS,
     POSE_PRIOR_RESIDUALS,
@@ -25,16 +26,15 @@ from pipeline.colmap_ba import (
     eop_from_rigid,
     rigid_from_eop,
 )
-from pipeline.flight.schema import CameraConfig
-from pipeline.reference import (
+from pipeline.reference.stage import (
     COLMAP_MODEL_DIR,
     REFERENCE_DIR,
     REFERENCE_JSON,
     check_prior_geometry,
     run_reference,
 )
-from pipeline.runner import Method, run_flight
-from pipeline.store import read_eop_csv, read_points_csv
+from pipeline.run.runner import Method, run_flight
+from pipeline.run.store import read_eop_csv, read_points_csv
 from seqat.cvframe import cv_pose_from_eop, pose_prior_covariance
 from seqat.errors import EstimationError
 from seqat.geometry import project, rotation_matrix

@@ -16,7 +16,7 @@ from pipeline.flight.folder import read_flight, read_truth
 from pipeline.flight.nav_files import read_ground_points
 from pipeline.flight.navigation import BoresightConfig, geodetic_to_eop
 from pipeline.flight.schema import CameraConfig
-from pipeline.reference import read_observations
+from pipeline.reference.stage import read_observations
 from pipeline.simulate.config import (
     FlightPlanConfig,
     RenderSimulateConfig,

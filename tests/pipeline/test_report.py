@@ -14,7 +14,7 @@ from pipeline.cli import app
 from pipeline.common.columns import CHECKPOINT_OBS_FILE, CHECKPOINTS_FILE
 from pipeline.flight.camera import pinhole_camera
 from pipeline.flight.folder import read_truth
-from pipeline.reference import run_reference
+from pipeline.reference.stage import run_reference
 from pipeline.report import (
     ASPRS_MIN_CHECKPOINTS,
     REPORT_HTML,
@@ -23,8 +23,8 @@ from pipeline.report import (
     make_report,
     precision_plateau,
 )
-from pipeline.runner import Method, run_flight
-from pipeline.store import read_eop_csv, read_run
+from pipeline.run.runner import Method, run_flight
+from pipeline.run.store import read_eop_csv, read_run
 from seqat.geometry import depth, project
 
 #: Check point residuals are recovered exactly (pixels projected from the adjusted EOPs).
@@ -192,7 +192,7 @@ def test_report_shows_the_latency_budget_changes(small_sim_dir: Path, tmp_path: 
     html_text = (out / "report.html").read_text()
     assert "<h2>Live operation</h2>" in html_text and "0.1 → 0.2" in html_text
 def test_latency_table_adds_the_live_ortho_to_the_end_to_end_time() -> None:
-    from pipeline.latency import latency_table
+    from pipeline.run.latency import latency_table
 
     tracking = {"read_ms": 2.0, "detect_ms": 50.0, "match_ms": 30.0, "total_ms": 90.0}
     record = {"images": [{"image_id": f"i{k}", "update_ms": 10.0 + k, "tracking": tracking}

@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from pipeline import journal as journal_module
 from pipeline.cli import app
-from pipeline.journal import JOURNAL_DIR, JOURNAL_FILE, read_journal
-from pipeline.runner import run_flight
+from pipeline.run import journal as journal_module
+from pipeline.run.journal import JOURNAL_DIR, JOURNAL_FILE, read_journal
+from pipeline.run.runner import run_flight
 from seqat.errors import InputDataError
 from seqat.types import Frame, ImageUpdate, Solution
 

@@ -8,16 +8,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import runner
 from pipeline.flight.folder import read_flight, read_truth
-from pipeline.runner import (
+from pipeline.run import runner
+from pipeline.run.runner import (
     EstimatorConfig,
     Method,
     estimator_options,
     load_estimator_config,
     run_flight,
 )
-from pipeline.store import read_eop_csv, read_points_csv
+from pipeline.run.store import read_eop_csv, read_points_csv
 from seqat.errors import ConfigError, EstimationError
 from seqat.sequential import SequentialOptions
 from seqat.simultaneous import SimOptions

@@ -10,14 +10,14 @@ import numpy as np
 import pyproj
 import pytest
 
-from pipeline import store
 from pipeline.common import atomic
 from pipeline.common.atomic import atomic_write_text, write_files_atomically
 from pipeline.common.columns import EOP_COLUMNS
 from pipeline.common.tables import NavTable
 from pipeline.flight.inputs import RunInputs, SkippedImage
 from pipeline.flight.schema import CameraConfig
-from pipeline.store import (
+from pipeline.run import store
+from pipeline.run.store import (
     RunRecord,
     RunTotals,
     TimingStats,

@@ -1,7 +1,7 @@
 """``seqat watch`` and ``seqat feed``: a growing flight folder adjusted as a batch run would.
 
-Flights are fed by :func:`pipeline.feed.feed_flight` in a thread (fast, the partial-file
-convention) while :func:`pipeline.watch.watch_flight` runs; the published results must equal
+Flights are fed by :func:`pipeline.run.feed.feed_flight` in a thread (fast, the partial-file
+convention) while :func:`pipeline.run.watch.watch_flight` runs; the published results must equal
 ``seqat run``'s bit for bit. Completeness rules are tested on their own with explicit clocks.
 """
 
@@ -19,10 +19,10 @@ from rich.console import Console
 
 from pipeline.common.columns import FLIGHT_YAML, NAV_GEODETIC_COLUMNS
 from pipeline.common.csvio import CsvTail
-from pipeline.feed import feed_flight
 from pipeline.flight.schema import load_flight_config
-from pipeline.session import ImageLive
-from pipeline.watch import Arrival, GrowingFlight, ImageWatcher, WatchOptions, watch_flight
+from pipeline.run.feed import feed_flight
+from pipeline.run.session import ImageLive
+from pipeline.run.watch import Arrival, GrowingFlight, ImageWatcher, WatchOptions, watch_flight
 from seqat.errors import InputDataError
 from seqat.types import ImageUpdate
 

@@ -30,7 +30,7 @@ import numpy as np
 from pipeline.flight.dropout import PoseResection, resect_from_known
 from pipeline.flight.folder import Flight, ObservationStats
 from pipeline.flight.inputs import SkippedImage
-from pipeline.resection import Resection, resect_attitude
+from pipeline.run.resection import Resection, resect_attitude
 from pipeline.tracking.options import TrackerOptions
 from pipeline.tracking.tracker import Tracker, TrackerState, read_gray_image
 from seqat.geometry import rays_world
@@ -46,7 +46,7 @@ class Initialiser:
     After every update (:meth:`feedback`) it keeps the estimator's current ground points and
     EOPs (Seq-R/Seq-F: the window's, O(window); Sim: all) and the median ground height; for
     each new frame (:meth:`resect`) it resects the attitude at the GPS position
-    (:func:`pipeline.resection.resect_attitude`) on the known ground points plus the tie
+    (:func:`pipeline.run.resection.resect_attitude`) on the known ground points plus the tie
     points seen once before, placed where that earlier image's ray meets the terrain plane
     ``Z = ground_z``: along a strip with 50-60 % overlap most tracks have two rays, so
     without them few images could be resected. Their relief errors (a degree or two) are
@@ -190,7 +190,25 @@ def _not_bridged(image_id: str, resection: PoseResection) -> SkippedImage:
                                                f"{resection.reason}")
 
 
-class ObservationSource:
+class _InitialisedSource:
+    """What both frame sources share: the :class:`Initialiser` their frames go through."""
+
+    _init: Initialiser
+
+    def replay(self, frame: Frame) -> None:
+        """A journaled frame goes to the estimator again (:meth:`Initialiser.record`)."""
+        self._init.record(frame)
+
+    def feedback(self, update: ImageUpdate, estimator: object) -> None:
+        """Take the estimator's state after an update (:meth:`Initialiser.feedback`)."""
+        self._init.feedback(update, estimator)
+
+    def tracker_state(self) -> TrackerState | None:
+        """The tracker after the last image (``None``: no tracker)."""
+        return None
+
+
+class ObservationSource(_InitialisedSource):
     """Frames of an observations flight (validate in one streaming pass first)."""
 
     tracking_options: TrackerOptions | None = None
@@ -235,17 +253,6 @@ class ObservationSource:
         return PreparedFrame(frame=frame, time_s=time_s, observed_px=observed_px,
                              prep_ms=(time.perf_counter() - t0) * 1e3, ready_s=ready_s)
 
-    def replay(self, frame: Frame) -> None:
-        """A journaled frame goes to the estimator again (:meth:`Initialiser.record`)."""
-        self._init.record(frame)
-
-    def feedback(self, update: ImageUpdate, estimator: object) -> None:
-        """Take the estimator's state after an update (:meth:`Initialiser.feedback`)."""
-        self._init.feedback(update, estimator)
-
-    def tracker_state(self) -> TrackerState | None:
-        return None
-
 
 def read_tracker_image(path: Path, tracker: Tracker, width_px: int, height_px: int) -> np.ndarray:
     """An image as 8-bit gray for the tracker: reduced JPEG decode, camera size / factor.
@@ -262,7 +269,7 @@ def read_tracker_image(path: Path, tracker: Tracker, width_px: int, height_px: i
     return image
 
 
-class ImageSource:
+class ImageSource(_InitialisedSource):
     """Frames of an image flight: read, track, emit the image's observations.
 
     Parameters
@@ -338,14 +345,6 @@ class ImageSource:
         return PreparedFrame(frame=frame, time_s=time_s, observed_px=observed[keep],
                              tracking=stats, rejected=rejected,
                              prep_ms=(time.perf_counter() - t0) * 1e3, ready_s=ready_s)
-
-    def replay(self, frame: Frame) -> None:
-        """A journaled frame goes to the estimator again (:meth:`Initialiser.record`)."""
-        self._init.record(frame)
-
-    def feedback(self, update: ImageUpdate, estimator: object) -> None:
-        """Take the estimator's state after an update (:meth:`Initialiser.feedback`)."""
-        self._init.feedback(update, estimator)
 
     def tracker_state(self) -> TrackerState | None:
         """The tracker after the last image (journaled after every image)."""

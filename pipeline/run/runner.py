@@ -3,10 +3,10 @@
 The stage: validate the whole input first (flight.yaml, CRS, nav, one pass over
 observations.csv, truth) so bad input fails before any computation and nothing is written;
 then feed frames one at a time in acquisition order to the estimator (Seq-R, Seq-F or Sim)
-through a :class:`~pipeline.session.RunSession` (the per-image path ``seqat watch`` shares:
+through a :class:`~pipeline.run.session.RunSession` (the per-image path ``seqat watch`` shares:
 update, feedback, listeners, latency budget, journal), and publish ``eop.csv``,
-``points.csv`` and ``run.json`` together (:func:`pipeline.store.write_run_outputs`).
-``--resume`` replays the journal of an interrupted run first (:mod:`pipeline.journal`).
+``points.csv`` and ``run.json`` together (:func:`pipeline.run.store.write_run_outputs`).
+``--resume`` replays the journal of an interrupted run first (:mod:`pipeline.run.journal`).
 """
 
 from __future__ import annotations
@@ -22,23 +22,23 @@ from pathlib import Path
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from pipeline.accuracy import Accuracy, compare_with_truth
-from pipeline.budget import BudgetReport, LatencyBudget
 from pipeline.common.columns import FLIGHT_YAML
 from pipeline.common.strict_yaml import build_dataclass, load_yaml
 from pipeline.flight.folder import Truth, read_flight, read_truth
 from pipeline.flight.inputs import RunInputs, SkippedImage
-from pipeline.journal import (
+from pipeline.run.accuracy import Accuracy, compare_with_truth
+from pipeline.run.budget import BudgetReport, LatencyBudget
+from pipeline.run.journal import (
     Journal,
     JournalContents,
     check_fingerprint,
     read_journal,
     replay_checks,
 )
-from pipeline.robustness import RobustnessRecord, robustness_record
-from pipeline.session import Estimator, ImageListener, RunSession
-from pipeline.sources import ImageSource, ObservationSource
-from pipeline.store import (
+from pipeline.run.robustness import RobustnessRecord, robustness_record
+from pipeline.run.session import Estimator, ImageListener, RunSession
+from pipeline.run.sources import ImageSource, ObservationSource
+from pipeline.run.store import (
     RunRecord,
     RunTotals,
     TimingStats,
@@ -138,7 +138,7 @@ def make_estimator(method: Method, camera: PinholeCamera, options: SequentialOpt
 
 @dataclass(frozen=True, kw_only=True)
 class RunSummary:
-    """Typed result of :func:`run_flight` and :func:`pipeline.watch.watch_flight`.
+    """Typed result of :func:`run_flight` and :func:`pipeline.run.watch.watch_flight`.
 
     Attributes
     ----------
@@ -314,7 +314,7 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     out_dir : Path or str
         Output folder; created if absent, existing ``eop.csv``, ``points.csv`` and
         ``run.json`` are replaced only when the run succeeds. ``OUT/journal/`` records every
-        image as it is adjusted (:mod:`pipeline.journal`).
+        image as it is adjusted (:mod:`pipeline.run.journal`).
     method : Method
     final_only : bool
         Sim only: buffer the frames and adjust once at the end.
@@ -336,7 +336,7 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
         results equal an uninterrupted run's. Without a journal the run starts afresh.
     budget_ms : float or None
         Latency budget per image (Seq-R): over it, the window threshold tightens
-        (:class:`pipeline.budget.LatencyBudget`).
+        (:class:`pipeline.run.budget.LatencyBudget`).
 
     Returns
     -------

@@ -12,7 +12,7 @@ inputs completed since the last one (docs/formats.md, *Watched flights*):
   appended before the nav row.
 
 Images are adjusted in acquisition order (nav-file order; for nav in EXIF, the order in
-which they complete) through the same :class:`~pipeline.session.RunSession` as ``seqat run``,
+which they complete) through the same :class:`~pipeline.run.session.RunSession` as ``seqat run``,
 with its journal, latency budget and listeners. An image waits for its nav row (and a nav row
 for its image) up to ``wait_timeout_s``, then it is skipped with a reason. Each image prints
 one line: latency (input complete -> estimate), window, σ0, σ of the new camera position,
@@ -73,7 +73,7 @@ from pipeline.flight.navigation import (
     resolve_working_crs,
 )
 from pipeline.flight.schema import CameraConfig, FlightConfig, load_flight_config
-from pipeline.runner import (
+from pipeline.run.runner import (
     EstimatorConfig,
     Method,
     RunSummary,
@@ -86,9 +86,9 @@ from pipeline.runner import (
     replay_journal,
     run_fingerprint,
 )
-from pipeline.session import ImageListener, ImageLive, RunSession
-from pipeline.sources import ImageSource, ObservationSource, PreparedFrame
-from pipeline.store import to_jsonable
+from pipeline.run.session import ImageListener, ImageLive, RunSession
+from pipeline.run.sources import ImageSource, ObservationSource, PreparedFrame
+from pipeline.run.store import to_jsonable
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import FloatArray, Frame, ImageUpdate
 
@@ -516,7 +516,7 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
     out_dir : Path or str
         Run folder, as ``seqat run`` writes it (``OUT/journal/`` after every image).
     method, options_path, threshold, initial_images, budget_ms, resume, listeners
-        As :func:`pipeline.runner.run_flight`.
+        As :func:`pipeline.run.runner.run_flight`.
     watch : WatchOptions
     console : Console or None
         Where the per-image lines go (default: stderr).

@@ -1,6 +1,6 @@
 """COLMAP bundle adjustment of a run's observations with GPS/INS priors (pycolmap + Ceres).
 
-The algorithm of the reference stage (``pipeline/reference.py``).
+The algorithm of the reference stage (``pipeline/reference/stage.py``).
 
 The run's observations become a :class:`pycolmap.Reconstruction` (one ``OPENCV`` camera, the
 images with their poses as COLMAP's ``cam_from_world``, every tie point seen in at least two

@@ -1,6 +1,6 @@
 """One run's per-image path, shared by ``seqat run`` and ``seqat watch``.
 
-:class:`RunSession` takes one :class:`~pipeline.sources.PreparedFrame` at a time
+:class:`RunSession` takes one :class:`~pipeline.run.sources.PreparedFrame` at a time
 (:meth:`RunSession.add`): the Seq-R threshold of the latency budget, the estimator's update,
 the feedback to the source (initial values and terrain height for the next image), the
 listeners (live ortho, ...), the budget's decision for the next image, and the journal
@@ -21,11 +21,11 @@ from typing import Protocol
 
 import numpy as np
 
-from pipeline.budget import BudgetEvent, LatencyBudget
 from pipeline.common.tables import NavTable
-from pipeline.journal import ImageRecord, Journal
-from pipeline.sources import PreparedFrame
-from pipeline.store import format_observation_lines
+from pipeline.run.budget import BudgetEvent, LatencyBudget
+from pipeline.run.journal import ImageRecord, Journal
+from pipeline.run.sources import PreparedFrame
+from pipeline.run.store import format_observation_lines
 from pipeline.tracking.options import TrackerOptions
 from pipeline.tracking.tracker import TrackerState
 from seqat.types import Frame, ImageUpdate, Solution
@@ -54,7 +54,7 @@ class ImageListener(Protocol):
 
 
 class FrameFeedback(Protocol):
-    """What the session needs from a frame source (:mod:`pipeline.sources`)."""
+    """What the session needs from a frame source (:mod:`pipeline.run.sources`)."""
 
     tracking_options: TrackerOptions | None
 

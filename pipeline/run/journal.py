@@ -35,7 +35,7 @@ import numpy as np
 
 from pipeline.common.atomic import fsync_dir
 from pipeline.flight.inputs import SkippedImage
-from pipeline.store import to_jsonable
+from pipeline.run.store import to_jsonable
 from pipeline.tracking.tracker import HeldImage, TrackerState
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import FloatArray, Frame

@@ -31,7 +31,6 @@ import numpy as np
 import pyproj
 from pyproj.exceptions import CRSError
 
-from pipeline.accuracy import Accuracy
 from pipeline.common.atomic import atomic_write_text, write_files_atomically
 from pipeline.common.columns import (
     EOP_COLUMNS,
@@ -49,7 +48,8 @@ from pipeline.common.strict_yaml import build_dataclass
 from pipeline.common.tables import EopTable, NavTable, PointTable
 from pipeline.flight.inputs import RunInputs, SkippedImage
 from pipeline.flight.schema import CameraConfig
-from pipeline.robustness import RobustnessRecord
+from pipeline.run.accuracy import Accuracy
+from pipeline.run.robustness import RobustnessRecord
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import EopEstimate, ImageUpdate, PointEstimate, Solution
 
@@ -254,17 +254,17 @@ class RunRecord:
         Per-image tracker statistics (image flights; empty otherwise), stored in
         ``images[i].tracking``.
     live : tuple[object, ...]
-        Per-image timings and counts (:class:`pipeline.session.ImageLive`), stored in
+        Per-image timings and counts (:class:`pipeline.run.session.ImageLive`), stored in
         ``images[i].live``.
     latency_budget : object or None
         ``--budget-ms``: the budget and its threshold changes
-        (:class:`pipeline.budget.BudgetReport`).
+        (:class:`pipeline.run.budget.BudgetReport`).
     mode : str
         ``run`` or ``watch``.
     replayed : int
         Images replayed from the journal (``--resume``).
     robustness : RobustnessRecord or None
-        Data snooping and GNSS dropouts (:mod:`pipeline.robustness`).
+        Data snooping and GNSS dropouts (:mod:`pipeline.run.robustness`).
     """
 
     method: str

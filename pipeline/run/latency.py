@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.store import TimingStats, read_json_object
+from pipeline.run.store import TimingStats, read_json_object
 
 #: ``ortho.json`` of a run folder (pipeline.ortho_run.ORTHO_JSON; not imported: no cycle).
 ORTHO_JSON = "ortho.json"

@@ -6,11 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.common.rmse import Triple, rmse
 from pipeline.common.tables import EopTable, GroundPoints, NavTable, PointTable
 from seqat.types import FloatArray
-
-Triple = tuple[float, float, float]
-_NAN3: Triple = (float("nan"), float("nan"), float("nan"))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -38,14 +36,6 @@ class Accuracy:
     gp_rmse_m: Triple
     nav_pos_rmse_m: Triple
     nav_att_rmse_deg: Triple
-
-
-def rmse(diff: FloatArray) -> Triple:
-    """Per-column root-mean-square of ``(k, 3)`` differences (NaN triple when ``k == 0``)."""
-    if diff.shape[0] == 0:
-        return _NAN3
-    r = np.sqrt(np.mean(diff**2, axis=0))
-    return (float(r[0]), float(r[1]), float(r[2]))
 
 
 def eop_differences(ids: tuple[str, ...], eop: FloatArray, ref_ids: tuple[str, ...],

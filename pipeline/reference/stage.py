@@ -1,7 +1,7 @@
 """``seqat reference OUT``: the COLMAP reference of a run, written to ``OUT/reference/``.
 
 Reads the run folder (nav = priors, observed pixels, the run's estimates as initial values),
-adjusts with :func:`pipeline.colmap_ba.adjust_reference` (COLMAP's Ceres bundle adjuster
+adjusts with :func:`pipeline.reference.colmap_ba.adjust_reference` (COLMAP's Ceres bundle adjuster
 under Sim's stochastic model) and publishes ``OUT/reference/`` whole: ``colmap/`` (the COLMAP
 model, binary and text, world coordinates), ``eop.csv`` and ``points.csv`` (our formats) and
 ``reference.json`` (docs/formats.md).
@@ -10,15 +10,18 @@ model, binary and text, world coordinates), ``eop.csv`` and ``points.csv`` (our 
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from pipeline.colmap_ba import (
+from pipeline.common.atomic import atomic_write_text, building_folder
+from pipeline.common.columns import EOP_FILE, POINTS_FILE
+from pipeline.common.csvio import read_csv
+from pipeline.flight.camera import PixelCorrector, pinhole_camera
+from pipeline.flight.nav_files import OBSERVATION_COLUMNS
+from pipeline.flight.schema import CameraConfig
+from pipeline.reference.colmap_ba import (
     CAMERA_ID,
     PriorKind,
     ReferenceInput,
@@ -26,13 +29,7 @@ from pipeline.colmap_ba import (
     ReferenceResult,
     adjust_reference,
 )
-from pipeline.common.atomic import atomic_write_text, fsync_dir
-from pipeline.common.columns import EOP_FILE, POINTS_FILE
-from pipeline.common.csvio import read_csv
-from pipeline.flight.camera import PixelCorrector, pinhole_camera
-from pipeline.flight.nav_files import OBSERVATION_COLUMNS
-from pipeline.flight.schema import CameraConfig
-from pipeline.store import (
+from pipeline.run.store import (
     JSON_INDENT,
     RunFolder,
     format_eop_csv,
@@ -218,9 +215,7 @@ def write_reference(out_dir: Path, result: ReferenceResult, record: ReferenceRec
         The reference folder.
     """
     target = out_dir / REFERENCE_DIR
-    tmp = Path(tempfile.mkdtemp(dir=out_dir, prefix=f".{REFERENCE_DIR}.tmp-"))
-    old: Path | None = None
-    try:
+    with building_folder(target) as tmp:
         model = tmp / COLMAP_MODEL_DIR
         model.mkdir()
         result.reconstruction.write_binary(str(model))
@@ -230,20 +225,6 @@ def write_reference(out_dir: Path, result: ReferenceResult, record: ReferenceRec
         doc = to_jsonable(record)
         atomic_write_text(tmp / REFERENCE_JSON,
                           json.dumps(doc, indent=JSON_INDENT, allow_nan=False) + "\n")
-        fsync_dir(model)
-        if target.exists():
-            old = Path(tempfile.mkdtemp(dir=out_dir, prefix=f".{REFERENCE_DIR}.old-"))
-            os.replace(target, old / REFERENCE_DIR)
-        os.replace(tmp, target)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if old is not None and (old / REFERENCE_DIR).exists() and not target.exists():
-            os.replace(old / REFERENCE_DIR, target)
-        raise
-    finally:
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    fsync_dir(out_dir)
     return target
 
 
