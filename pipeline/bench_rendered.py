@@ -31,12 +31,19 @@ import numpy as np
 import rasterio
 
 from pipeline.common.atomic import atomic_write_text
-from pipeline.common.columns import EOP_FILE, NAV_FILE, OBSERVATIONS_FILE, POINTS_FILE, RUN_FILE
-from pipeline.dsm import parse_crs, read_dsm
+from pipeline.common.columns import (
+    EOP_FILE,
+    NAV_FILE,
+    OBSERVATIONS_FILE,
+    POINTS_FILE,
+    REFERENCE_DIR,
+    RUN_FILE,
+)
 from pipeline.flight.nav_files import read_ground_points
 from pipeline.mosaic_accuracy import mosaic_shifts
-from pipeline.ortho import OrthoOptions
-from pipeline.ortho_run import DSM_FILE, MOSAIC_FILE, REFERENCE_DIR, orthorectify_run
+from pipeline.ortho.base import OrthoOptions
+from pipeline.ortho.dsm import parse_crs, read_dsm
+from pipeline.ortho.stage import DSM_FILE, MOSAIC_FILE, orthorectify_run
 from pipeline.report import find_checkpoints
 from pipeline.run.latency import LatencyTable, latency_table, read_ortho_json
 from pipeline.run.store import RunFolder, format_eop_csv, read_run, to_jsonable

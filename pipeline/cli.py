@@ -249,7 +249,7 @@ def run(
         raise ConfigError("--dsm and --ortho-options go with --ortho")
     live = None
     if ortho:
-        from pipeline.ortho_live import open_live_ortho
+        from pipeline.ortho.live import open_live_ortho
 
         live = open_live_ortho(flight, out, dsm_path=dsm, options_path=ortho_options)
     with live if live is not None else contextlib.nullcontext():
@@ -543,7 +543,7 @@ def dsm(
         "--options", help="Options YAML (section dsm:).")] = None,
 ) -> None:
     """Grid LiDAR points into a DSM (highest return per cell) written as a COG."""
-    from pipeline.ortho_run import make_dsm
+    from pipeline.ortho.dsm_stage import make_dsm
 
     r = make_dsm(las, out, crs=crs, las_crs=las_crs, cell_m=cell_m, options_path=options)
     rows = [
@@ -573,7 +573,7 @@ def ortho(
         "--progress/--no-progress", help="Progress bar on a terminal.")] = True,
 ) -> None:
     """Orthorectify a run's images; write ortho/*.tif, mosaic.tif and cameras.gpkg."""
-    from pipeline.ortho_run import load_stage_options, orthorectify_run
+    from pipeline.ortho.stage import load_stage_options, orthorectify_run
     from seqat.errors import ConfigError
 
     if eop not in ("seq-r", "reference"):

@@ -9,7 +9,7 @@ mosaic write, process CPU time, and the process's peak memory (run it with two f
 lengths to see that memory does not grow with the flight).
 
 ``python -m pipeline.ortho_bench --live MODE --images N --out DIR [--no-write]
-[--rate-hz R]``: the live ortho of ``seqat run --ortho`` (:class:`pipeline.ortho_live.
+[--rate-hz R]``: the live ortho of ``seqat run --ortho`` (:class:`pipeline.ortho.live.
 LiveOrtho`) behind the Seq-R estimator on the paper strip (``configs/paper_sim.yaml``: the
 same 2456 x 2058 px camera, 200 m, 2 Hz), the frames paced at ``R`` Hz as in flight; each
 image is one decoded JPEG of a synthetic texture, the surface the flat fallback. MODE
@@ -33,10 +33,11 @@ import numpy as np
 import pyproj
 from rasterio.transform import from_origin
 
-from pipeline.dsm import Dsm
 from pipeline.flight.schema import CameraConfig
-from pipeline.mosaic import MosaicBuilder
-from pipeline.ortho import OrthoOptions, Orthorectifier
+from pipeline.ortho.base import OrthoOptions
+from pipeline.ortho.dsm import Dsm
+from pipeline.ortho.mosaic import MosaicBuilder
+from pipeline.ortho.orthorectifier import Orthorectifier
 from pipeline.run.store import TimingStats, to_jsonable
 
 #: The benchmark camera: 2456 x 2058 px (5 Mpx machine-vision sensor), f = 3000 px.
@@ -184,7 +185,7 @@ def run_live_bench(n_images: int, out_dir: Path, mode: str, *, write: bool = Tru
     """Seq-R on the paper strip with the live ortho behind it (module docstring)."""
     from pipeline.bench import _load_sim_config
     from pipeline.common.tables import NavTable
-    from pipeline.ortho_live import LiveOrtho, LiveOrthoOptions
+    from pipeline.ortho.live import LiveOrtho, LiveOrthoOptions
     from seqat.sequential import SequentialAT, SequentialOptions
     from seqat.simulate import simulate_strip
 

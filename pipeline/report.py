@@ -30,6 +30,7 @@ from pipeline.common.columns import (
     EOP_FILE,
     FLIGHT_YAML,
     POINTS_FILE,
+    REFERENCE_DIR,
 )
 from pipeline.common.rmse import Triple, rmse
 from pipeline.common.tables import EopTable, PointTable
@@ -37,7 +38,7 @@ from pipeline.flight.camera import PixelCorrector, pinhole_camera
 from pipeline.flight.folder import read_truth
 from pipeline.flight.nav_files import read_ground_points
 from pipeline.flight.schema import load_flight_config
-from pipeline.reference.stage import REFERENCE_DIR, REFERENCE_JSON, read_observations
+from pipeline.reference.stage import REFERENCE_JSON, read_observations
 from pipeline.run.accuracy import eop_differences, point_differences
 from pipeline.run.latency import LatencyTable, latency_table, read_ortho_json
 from pipeline.run.robustness import RobustnessSummary, summarise

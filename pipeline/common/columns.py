@@ -29,3 +29,5 @@ GROUND_POINT_COLUMNS = ("point", "x_m", "y_m", "z_m")
 #: Check points of a flight folder (known ground coordinates) and their image observations.
 CHECKPOINTS_FILE = "checkpoints.csv"
 CHECKPOINT_OBS_FILE = "checkpoint_obs.csv"
+#: The COLMAP reference of a run, inside its run folder (``seqat reference``).
+REFERENCE_DIR = "reference"

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.common.atomic import atomic_write_text, building_folder
-from pipeline.common.columns import EOP_FILE, POINTS_FILE
+from pipeline.common.columns import EOP_FILE, POINTS_FILE, REFERENCE_DIR
 from pipeline.common.csvio import read_csv
 from pipeline.flight.camera import PixelCorrector, pinhole_camera
 from pipeline.flight.nav_files import OBSERVATION_COLUMNS
@@ -41,8 +41,6 @@ from seqat.errors import EstimationError
 from seqat.geometry import intersect_rays
 from seqat.types import EopEstimate, FloatArray, PointEstimate
 
-#: Sub-folder of a run folder holding the reference.
-REFERENCE_DIR = "reference"
 #: COLMAP model inside it (binary and text files side by side).
 COLMAP_MODEL_DIR = "colmap"
 #: The reference's own record.

@@ -29,7 +29,7 @@ import numpy as np
 
 from pipeline.run.store import TimingStats, read_json_object
 
-#: ``ortho.json`` of a run folder (pipeline.ortho_run.ORTHO_JSON; not imported: no cycle).
+#: ``ortho.json`` of a run folder (pipeline.ortho.stage.ORTHO_JSON; not imported: no cycle).
 ORTHO_JSON = "ortho.json"
 
 

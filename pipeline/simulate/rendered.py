@@ -39,7 +39,6 @@ from pipeline.common.columns import (
     TRUTH_DIR,
 )
 from pipeline.common.csvio import format_csv_line
-from pipeline.dsm import linear_unit_factor, parse_crs
 from pipeline.flight.camera import PixelCorrector, pinhole_camera
 from pipeline.flight.navigation import (
     R_ENU_FROM_NED,
@@ -50,6 +49,7 @@ from pipeline.flight.navigation import (
     resolve_projected_crs,
 )
 from pipeline.flight.schema import CameraConfig
+from pipeline.ortho.dsm import linear_unit_factor, parse_crs
 from pipeline.run.store import fmt, format_nav_csv, format_observation_lines
 from pipeline.simulate.config import RenderSimulateConfig
 from pipeline.simulate.folder import check_replaceable

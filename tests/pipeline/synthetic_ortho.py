@@ -13,9 +13,9 @@ import numpy as np
 import pyproj
 from rasterio.transform import from_origin
 
-from pipeline.dsm import Dsm
 from pipeline.flight.camera import PixelCorrector, pinhole_camera
 from pipeline.flight.schema import CameraConfig
+from pipeline.ortho.dsm import Dsm
 from seqat.geometry import rays_world
 
 #: Working CRS of the synthetic scenes (UTM 52N, where the simulated strips live).

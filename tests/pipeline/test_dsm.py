@@ -12,7 +12,7 @@ import rasterio
 from typer.testing import CliRunner
 
 from pipeline.cli import app
-from pipeline.dsm import (
+from pipeline.ortho.dsm import (
     DSM_NODATA,
     Dsm,
     DsmOptions,
@@ -22,7 +22,7 @@ from pipeline.dsm import (
     read_dsm,
     read_las,
 )
-from pipeline.raster import cog_problems
+from pipeline.ortho.raster import cog_problems
 from seqat.errors import InputDataError
 
 #: Working CRS of the synthetic clouds: UTM 10N (Oregon, where Autzen is).
@@ -244,7 +244,7 @@ def test_autzen_las_gives_a_dsm_in_metres(shared_data: Path, tmp_path: Path) -> 
 
 def test_sparse_cloud_gets_a_larger_cell() -> None:
     """2 points per cell on average: 10 000 points over 200 m x 100 m -> cell 2 m."""
-    from pipeline.dsm import DsmOptions, density_cell_m
+    from pipeline.ortho.dsm import DsmOptions, density_cell_m
 
     rng = np.random.default_rng(2)
     xyz = np.column_stack([rng.uniform(0, 200, 10_000), rng.uniform(0, 100, 10_000),

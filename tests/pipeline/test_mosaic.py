@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 import rasterio
 
-from pipeline.mosaic import TILE_PX, MosaicBuilder
-from pipeline.ortho import OrthoOptions, Orthorectifier, OrthoResult
-from pipeline.raster import cog_problems
+from pipeline.ortho.base import OrthoOptions, OrthoResult
+from pipeline.ortho.mosaic import TILE_PX, MosaicBuilder
+from pipeline.ortho.orthorectifier import Orthorectifier
+from pipeline.ortho.raster import cog_problems
 from seqat.errors import InputDataError
 
 from .synthetic_ortho import CRS, E0_M, N0_M, Scene, render, small_camera, texture

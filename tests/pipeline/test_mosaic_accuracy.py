@@ -11,7 +11,7 @@ import pytest
 from rasterio.transform import from_origin
 
 from pipeline.mosaic_accuracy import mosaic_shifts
-from pipeline.raster import write_cog
+from pipeline.ortho.raster import write_cog
 from pipeline.simulate.render import Texture, affine_texture_map
 
 CRS = pyproj.CRS.from_epsg(32610)

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 import rasterio
 
-from pipeline.ortho import OrthoOptions, OrthoRaster, Orthorectifier
-from pipeline.raster import cog_problems
+from pipeline.ortho.base import OrthoOptions, OrthoRaster
+from pipeline.ortho.orthorectifier import Orthorectifier
+from pipeline.ortho.raster import cog_problems
 from seqat.errors import InputDataError
 
 from .synthetic_ortho import (

@@ -15,10 +15,10 @@ import rasterio
 from typer.testing import CliRunner
 
 from pipeline.cli import app
-from pipeline.dsm import read_dsm
-from pipeline.ortho import OrthoOptions
-from pipeline.ortho_live import LiveOrtho, LiveOrthoOptions
-from pipeline.ortho_run import image_files, orthorectify_run
+from pipeline.ortho.base import OrthoOptions
+from pipeline.ortho.dsm import read_dsm
+from pipeline.ortho.live import LiveOrtho, LiveOrthoOptions
+from pipeline.ortho.stage import image_files, orthorectify_run
 from pipeline.run.store import read_run
 from seqat.errors import ConfigError
 from seqat.types import EopEstimate, PointEstimate, Solution
@@ -196,7 +196,7 @@ def test_cli_run_ortho_flags(tmp_path: Path, small_sim_dir: Path) -> None:
 
 @pytest.mark.skipif(not hasattr(os, "setpriority"), reason="per-thread priority: Linux")
 def test_the_worker_thread_runs_nicer_than_the_at_loop() -> None:
-    from pipeline.ortho_live import _lower_priority
+    from pipeline.ortho.live import _lower_priority
 
     seen: list[int] = []
 

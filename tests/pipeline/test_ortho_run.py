@@ -16,11 +16,11 @@ from typer.testing import CliRunner
 
 from pipeline.cli import app
 from pipeline.common.tables import NavTable
-from pipeline.dsm import DSM_NODATA
 from pipeline.flight.inputs import RunInputs
-from pipeline.ortho import OrthoOptions
-from pipeline.ortho_run import orthorectify_run
-from pipeline.raster import cog_problems, write_cog
+from pipeline.ortho.base import OrthoOptions
+from pipeline.ortho.dsm import DSM_NODATA
+from pipeline.ortho.raster import cog_problems, write_cog
+from pipeline.ortho.stage import orthorectify_run
 from pipeline.run.store import (
     RunRecord,
     RunTotals,

@@ -12,7 +12,7 @@ import rasterio
 from rasterio.enums import Resampling
 from rasterio.transform import from_origin
 
-from pipeline.raster import cog_problems, reproject_cog, write_cog
+from pipeline.ortho.raster import cog_problems, reproject_cog, write_cog
 from seqat.errors import InputDataError
 
 CRS = pyproj.CRS.from_epsg(32652)

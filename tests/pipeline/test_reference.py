@@ -12,6 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from pipeline.cli import app
+from pipeline.common.columns import REFERENCE_DIR
 from pipeline.flight.schema import CameraConfig
 from pipeline.reference.colmap_ba import (
     COLMAP_PIXEL_OFFSET,
@@ -28,7 +29,6 @@ from pipeline.reference.colmap_ba import (
 )
 from pipeline.reference.stage import (
     COLMAP_MODEL_DIR,
-    REFERENCE_DIR,
     REFERENCE_JSON,
     check_prior_geometry,
     run_reference,

@@ -10,12 +10,12 @@ import numpy as np
 import pyproj
 import pytest
 
-from pipeline.dsm import read_las, to_working_crs
 from pipeline.flight.camera import PixelCorrector, pinhole_camera
 from pipeline.flight.folder import read_flight, read_truth
 from pipeline.flight.nav_files import read_ground_points
 from pipeline.flight.navigation import BoresightConfig, geodetic_to_eop
 from pipeline.flight.schema import CameraConfig
+from pipeline.ortho.dsm import read_las, to_working_crs
 from pipeline.reference.stage import read_observations
 from pipeline.simulate.config import (
     FlightPlanConfig,

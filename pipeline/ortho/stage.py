@@ -2,7 +2,7 @@
 
 :func:`orthorectify_run` reads a run folder (:func:`pipeline.run.store.read_run`), picks the EOPs
 (Seq-R ``eop.csv`` or ``reference/eop.csv``) and the surface, streams every image through
-:class:`pipeline.ortho.Orthorectifier` and :class:`pipeline.mosaic.MosaicBuilder` and writes
+:class:`pipeline.ortho.orthorectifier.Orthorectifier` and :class:`pipeline.ortho.mosaic.MosaicBuilder` and writes
 
 * ``OUT/ortho/<image>.tif`` — one COG per image,
 * ``OUT/mosaic.tif`` — the mosaic COG,
@@ -31,15 +31,16 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from pipeline.common.atomic import atomic_write_text
-from pipeline.common.columns import EOP_FILE
+from pipeline.common.columns import EOP_FILE, REFERENCE_DIR
 from pipeline.common.strict_yaml import build_dataclass, load_yaml
 from pipeline.common.tables import EopTable, PointTable
-from pipeline.dsm import Dsm, DsmOptions, DsmResult, build_dsm, flat_dsm, read_dsm
 from pipeline.flight.schema import load_flight_config
-from pipeline.gis_export import write_cameras_gpkg
-from pipeline.mosaic import FEATHER_PX, MosaicBuilder, MosaicUpdate
-from pipeline.ortho import OrthoOptions, Orthorectifier, OrthoResult
-from pipeline.raster import reproject_cog
+from pipeline.ortho.base import OrthoOptions, OrthoResult
+from pipeline.ortho.dsm import Dsm, DsmOptions, build_dsm, flat_dsm, read_dsm
+from pipeline.ortho.gis_export import write_cameras_gpkg
+from pipeline.ortho.mosaic import FEATHER_PX, MosaicBuilder, MosaicUpdate
+from pipeline.ortho.orthorectifier import Orthorectifier
+from pipeline.ortho.raster import reproject_cog
 from pipeline.run.store import TimingStats, read_eop_csv, to_jsonable
 from seqat.errors import ConfigError, InputDataError, SeqatError
 
@@ -49,7 +50,6 @@ ORTHO_DIR = "ortho"
 MOSAIC_FILE = "mosaic.tif"
 CAMERAS_GPKG = "cameras.gpkg"
 ORTHO_JSON = "ortho.json"
-REFERENCE_DIR = "reference"
 #: Image file suffixes looked for in the images folder (any case).
 IMAGE_SUFFIXES = (".jpg", ".jpeg")
 #: Suffixes of a DSM GeoTIFF given as the flight's ``lidar:``.
@@ -101,40 +101,6 @@ class _MosaicOptions:
     feather_px: int = FEATHER_PX
 
 
-def working_crs_for_las(crs: str | None, las_paths: Sequence[Path | str],
-                        las_crs: pyproj.CRS | None) -> pyproj.CRS:
-    """``--crs`` of ``seqat dsm``: as given (projected, metres), or ``auto`` / None = the WGS 84
-    UTM zone of the first file's centre."""
-    from pipeline.dsm import read_las
-    from pipeline.flight.navigation import resolve_projected_crs, utm_epsg
-
-    if crs is not None and crs.strip().lower() != "auto":
-        return resolve_projected_crs(crs, "--crs")
-    cloud = read_las(las_paths[0], las_crs)
-    centre = cloud.xyz[:, :2].mean(axis=0)
-    to_geo = pyproj.Transformer.from_crs(cloud.crs, "EPSG:4326", always_xy=True)
-    lon, lat = to_geo.transform(centre[0], centre[1])
-    return pyproj.CRS.from_epsg(utm_epsg(lon, lat))
-
-
-def make_dsm(las_paths: Sequence[Path | str], out_path: Path | str, *, crs: str | None = None,
-             las_crs: str | None = None, cell_m: float | None = None,
-             options_path: Path | str | None = None) -> DsmResult:
-    """``seqat dsm``: parse the CRS options and build the DSM COG."""
-    from pipeline.dsm import parse_las_crs
-
-    options, _, _ = load_stage_options(options_path)
-    if cell_m is not None:
-        options = DsmOptions(cell_m=cell_m, outlier_neighbors=options.outlier_neighbors,
-                             outlier_std_ratio=options.outlier_std_ratio,
-                             fill_max_hole_m2=options.fill_max_hole_m2)
-    source_crs = parse_las_crs(las_crs) if las_crs is not None else None
-    if not las_paths:
-        raise InputDataError("dsm: no LAS/LAZ file given")
-    working = working_crs_for_las(crs, las_paths, source_crs)
-    return build_dsm(las_paths, out_path, crs=working, las_crs=source_crs, options=options)
-
-
 # --------------------------------------------------------------------------------------------
 # seqat ortho
 # --------------------------------------------------------------------------------------------
@@ -145,8 +111,8 @@ class ImageOrtho:
     """One image's line in ``ortho.json``.
 
     ``read_ms`` is the colour decode of the image; ``compute_ms``, ``write_ms`` as in
-    :class:`pipeline.ortho.OrthoResult`; ``mosaic_ms`` the mosaic update. Live runs
-    (``seqat run --ortho``, :mod:`pipeline.ortho_live`) add ``eop`` (``live``: the ortho was
+    :class:`pipeline.ortho.base.OrthoResult`; ``mosaic_ms`` the mosaic update. Live runs
+    (``seqat run --ortho``, :mod:`pipeline.ortho.live`) add ``eop`` (``live``: the ortho was
     made with the estimate at the image's own update and kept; ``final``: made again at the
     end with the final EOP), ``shift_px`` (how far the final EOP moves the footprint, ortho
     pixels), ``queue_ms`` (waiting for the ortho worker), ``latency_ms`` (from the end of

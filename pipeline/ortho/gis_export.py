@@ -23,7 +23,7 @@ import shapely
 
 from pipeline.common.columns import EOP_COLUMNS
 from pipeline.common.tables import EopTable, PointTable
-from pipeline.raster import atomic_path
+from pipeline.ortho.raster import atomic_path
 from pipeline.run.store import XYZ
 from seqat.types import FloatArray
 

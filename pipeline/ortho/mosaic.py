@@ -1,6 +1,6 @@
 """Streaming mosaic of orthos, kept in tiles on disk (``mosaic.tif``).
 
-:class:`MosaicBuilder` receives one :class:`pipeline.ortho.OrthoResult` at a time and updates
+:class:`MosaicBuilder` receives one :class:`pipeline.ortho.base.OrthoResult` at a time and updates
 only the tiles of the global grid it touches; nothing but those tiles is in memory, so memory
 stays flat however long the flight. Per cell the mosaic keeps the image that sees it **most
 nadir** (smallest tangent of the off-nadir angle; for images at one height this is the nearest
@@ -35,8 +35,8 @@ import rasterio
 from rasterio.transform import from_origin
 from rasterio.windows import Window
 
-from pipeline.ortho import ALPHA_OPAQUE, OrthoResult
-from pipeline.raster import COG_BLOCK_PX, atomic_path, colorinterp_for, gtiff_to_cog
+from pipeline.ortho.base import ALPHA_OPAQUE, OrthoResult
+from pipeline.ortho.raster import COG_BLOCK_PX, atomic_path, colorinterp_for, gtiff_to_cog
 from seqat.errors import ConfigError, InputDataError
 
 #: Mosaic tile size, cells (= the COG block size, so tiles map to whole blocks).

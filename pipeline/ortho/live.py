@@ -2,8 +2,8 @@
 
 :class:`LiveOrtho` is an :class:`pipeline.run.runner.ImageListener`. After each AT update it hands
 the image and its EOP of that moment (``update.eop``) to one worker thread, which reads the
-image, orthorectifies it (:class:`pipeline.ortho.Orthorectifier`, ``ortho/<image>.tif``) and
-pastes it into the tiles of the growing mosaic it touches (:class:`pipeline.mosaic.
+image, orthorectifies it (:class:`pipeline.ortho.orthorectifier.Orthorectifier`, ``ortho/<image>.tif``) and
+pastes it into the tiles of the growing mosaic it touches (:class:`pipeline.ortho.mosaic.
 MosaicBuilder`), while the runner goes on with the next image's tracking and update. At the
 end (``on_finish``, with the final solution):
 
@@ -11,7 +11,7 @@ end (``on_finish``, with the final solution):
    moves its footprint by more than ``reortho_shift_px`` ortho pixels (default 0.5): the
    largest horizontal displacement of the ground points of the image's corners and centre on
    the plane at the DSM height under the camera
-   (:meth:`pipeline.ortho.Orthorectifier.footprint_shift_m`). Below that the live ortho
+   (:meth:`pipeline.ortho.orthorectifier.Orthorectifier.footprint_shift_m`). Below that the live ortho
    differs from a new one by less than half a pixel and is kept. Images that could not be
    orthorectified live are tried again with their final EOP.
 2. **Mosaic.** The tiles a re-orthorectified image touches (with its live and its final EOP)
@@ -20,10 +20,10 @@ end (``on_finish``, with the final solution):
    so the mosaic is the one a post-run ``seqat ortho`` builds from the EOPs each image was
    kept with. With no image re-orthorectified the live mosaic is final as it is.
 3. The mosaic COG, ``cameras.gpkg`` (final EOPs) and ``ortho.json`` are written as
-   :func:`pipeline.ortho_run.orthorectify_run` writes them (:func:`pipeline.ortho_run.
+   :func:`pipeline.ortho.stage.orthorectify_run` writes them (:func:`pipeline.ortho.stage.
    finish_ortho`), with the live statistics (``live``).
 
-Surface, chosen at the start by the rules of ``seqat ortho`` (:func:`pipeline.ortho_run.
+Surface, chosen at the start by the rules of ``seqat ortho`` (:func:`pipeline.ortho.stage.
 find_dsm`: ``--dsm``, ``OUT/dsm.tif``, the flight's ``lidar:``). Without one the fallback is
 a flat plane at the mean height of the estimator's ground points after the first update
 that has any (Seq-R: the initial simultaneous window), under the whole nav's footprint;
@@ -52,12 +52,13 @@ import pyproj
 
 from pipeline.common.strict_yaml import build_dataclass
 from pipeline.common.tables import NavTable
-from pipeline.dsm import Dsm
 from pipeline.flight.folder import read_flight
 from pipeline.flight.schema import CameraConfig
-from pipeline.mosaic import FEATHER_PX, MosaicBuilder, tiles_of_bounds
-from pipeline.ortho import OrthoOptions, Orthorectifier
-from pipeline.ortho_run import (
+from pipeline.ortho.base import OrthoOptions
+from pipeline.ortho.dsm import Dsm
+from pipeline.ortho.mosaic import FEATHER_PX, MosaicBuilder, tiles_of_bounds
+from pipeline.ortho.orthorectifier import Orthorectifier
+from pipeline.ortho.stage import (
     MOSAIC_FILE,
     ORTHO_DIR,
     ImageOrtho,
@@ -446,7 +447,7 @@ def open_live_ortho(flight_dir: Path | str, out_dir: Path | str, *,
                     options_path: Path | str | None = None) -> LiveOrtho:
     """``seqat run --ortho [--dsm D] [--ortho-options FILE]``: the live ortho of a flight.
 
-    The options file has the sections ``ortho:`` (:class:`pipeline.ortho.OrthoOptions`),
+    The options file has the sections ``ortho:`` (:class:`pipeline.ortho.base.OrthoOptions`),
     ``mosaic: {feather_px: N}`` and ``live:`` (:class:`LiveOrthoOptions`), all optional.
     """
     ortho, feather_px, live = OrthoOptions(), FEATHER_PX, LiveOrthoOptions()

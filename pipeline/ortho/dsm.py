@@ -4,7 +4,7 @@ Stage function :func:`build_dsm` (``seqat dsm``): read LAS/LAZ files with laspy 
 lazrs) in the CRS the file declares or the one given, transform to the working CRS with pyproj,
 remove outliers with open3d's statistical filter, keep the **highest return per cell**, fill
 small holes by inverse-distance interpolation (GDAL's ``FillNodata``), leave large gaps as
-nodata and write a float32 COG in metres (:mod:`pipeline.raster`).
+nodata and write a float32 COG in metres (:mod:`pipeline.ortho.raster`).
 
 :class:`Dsm` is the in-memory surface the orthorectifier samples: read from a GeoTIFF
 (:func:`read_dsm`, reprojected to the working CRS if needed) or a flat plane
@@ -37,7 +37,7 @@ from pyproj.exceptions import CRSError, ProjError
 from rasterio.transform import from_origin
 from scipy import ndimage
 
-from pipeline.raster import write_cog
+from pipeline.ortho.raster import write_cog
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import FloatArray
 
