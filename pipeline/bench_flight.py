@@ -28,7 +28,7 @@ from pipeline.bench_report import Machine  # noqa: E402
 from pipeline.common.atomic import atomic_write_text
 from pipeline.common.columns import OBS_COLUMNS
 from pipeline.common.csvio import read_csv  # noqa: E402
-from pipeline.report import image_residuals_px  # noqa: E402
+from pipeline.report.model import image_residuals_px  # noqa: E402
 from pipeline.run.runner import Method, run_flight  # noqa: E402
 from pipeline.run.store import read_run, to_jsonable  # noqa: E402
 from seqat.types import FloatArray  # noqa: E402
@@ -113,7 +113,7 @@ def _tracks(obs_path: Path) -> tuple[Counter[str], int]:
 
 def _residuals(out: Path) -> tuple[float, float]:
     """RMS and median image residual (px, full resolution) of a run
-    (:func:`pipeline.report.image_residuals_px`)."""
+    (:func:`pipeline.report.model.image_residuals_px`)."""
     res = image_residuals_px(read_run(out))
     if res.size == 0:
         return math.nan, math.nan

@@ -44,7 +44,7 @@ from pipeline.mosaic_accuracy import mosaic_shifts
 from pipeline.ortho.base import OrthoOptions
 from pipeline.ortho.dsm import parse_crs, read_dsm
 from pipeline.ortho.stage import DSM_FILE, MOSAIC_FILE, orthorectify_run
-from pipeline.report import find_checkpoints
+from pipeline.report.model import find_checkpoints
 from pipeline.run.latency import LatencyTable, latency_table, read_ortho_json
 from pipeline.run.store import RunFolder, format_eop_csv, read_run, to_jsonable
 from pipeline.simulate.config import RenderSimulateConfig, load_simulate_config

@@ -269,7 +269,7 @@ def run(
             f"image to mosaic latency ms median / max {o.live.latency_ms.median_ms:.0f} / "
             f"{o.live.latency_ms.max_ms:.0f}")
     if report:
-        from pipeline.report import make_report
+        from pipeline.report.stage import make_report
 
         r = make_report(summary.out_dir)
         _console().print("report: " + ", ".join(str(f) for f in r.files))
@@ -510,7 +510,7 @@ def report(
     = None,
 ) -> None:
     """Flight report: OUT/report.html (figures embedded) and OUT/report.json."""
-    from pipeline.report import make_report
+    from pipeline.report.stage import make_report
 
     summary = make_report(out, compare or ())
     rep = summary.report

@@ -14,7 +14,7 @@ from pipeline.cli import app
 from pipeline.flight.dropout import MIN_POINTS, predict_missing, resect_pose
 from pipeline.flight.folder import read_flight, read_truth
 from pipeline.reference.stage import run_reference
-from pipeline.report import make_report
+from pipeline.report.stage import make_report
 from pipeline.run.runner import run_flight
 from pipeline.run.store import read_eop_csv, read_run
 from seqat.cvframe import cv_pose_from_eop

@@ -15,14 +15,14 @@ from pipeline.common.columns import CHECKPOINT_OBS_FILE, CHECKPOINTS_FILE
 from pipeline.flight.camera import pinhole_camera
 from pipeline.flight.folder import read_truth
 from pipeline.reference.stage import run_reference
-from pipeline.report import (
+from pipeline.report.model import (
     ASPRS_MIN_CHECKPOINTS,
     REPORT_HTML,
     REPORT_JSON,
     asprs_table,
-    make_report,
     precision_plateau,
 )
+from pipeline.report.stage import make_report
 from pipeline.run.runner import Method, run_flight
 from pipeline.run.store import read_eop_csv, read_run
 from seqat.geometry import depth, project

@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.common.atomic import write_files_atomically
 from pipeline.common.columns import (
     CHECKPOINT_OBS_FILE,
     CHECKPOINTS_FILE,
@@ -58,7 +57,6 @@ from seqat.types import FloatArray
 REPORT_HTML = "report.html"
 REPORT_JSON = "report.json"
 REPORT_VERSION = 1
-#: Check point files of a flight folder (``checkpoints:`` in flight.yaml names the first).
 #: ASPRS Edition 2 (2023): fewer check points than this do not support an accuracy statement.
 ASPRS_MIN_CHECKPOINTS = 30
 #: Accuracy classes (cm) offered: Edition 2 allows any X-cm class; these are the common ones.
@@ -486,19 +484,6 @@ def checkpoint_report(method: str, eop: EopTable, run: RunFolder, known_path: Pa
                                                   if not k))
 
 
-# --------------------------------------------------------------------------------------------
-# The stage
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, kw_only=True)
-class ReportSummary:
-    """Typed result of :func:`make_report` (what ``seqat report`` prints)."""
-
-    files: tuple[Path, ...]
-    report: Report
-
-
 def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tuple[
         Report, dict[str, object]]:
     """Gather the numbers of the report (no file is written).
@@ -603,28 +588,3 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
 def format_report_json(report: Report) -> str:
     """Text of ``report.json`` (strict JSON, non-finite numbers as ``null``)."""
     return json.dumps(to_jsonable(report), indent=JSON_INDENT, allow_nan=False) + "\n"
-
-
-def make_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> ReportSummary:
-    """Write ``OUT/report.html`` and ``OUT/report.json`` together.
-
-    Parameters
-    ----------
-    out_dir : Path or str
-        The run folder.
-    compare : sequence of Path or str
-        Other run folders of the same flight (other methods).
-
-    Raises
-    ------
-    InputDataError
-        Not a run folder, a ``--compare`` run of another flight, malformed check points.
-    """
-    from pipeline.report_html import render_html
-
-    report, extras = build_report(out_dir, compare)
-    files = write_files_atomically(out_dir, {
-        REPORT_JSON: format_report_json(report),
-        REPORT_HTML: render_html(report, extras),
-    })
-    return ReportSummary(files=files, report=report)

@@ -1,6 +1,6 @@
 """Rendering of the flight report: matplotlib figures embedded as base64 PNG in one HTML file.
 
-The numbers come from :func:`pipeline.report.build_report`; nothing here computes accuracy.
+The numbers come from :func:`pipeline.report.model.build_report`; nothing here computes accuracy.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pipeline.report import DIRECT, REFERENCE, CheckpointReport, LiveOperation, Report
+from pipeline.report.model import DIRECT, REFERENCE, CheckpointReport, LiveOperation, Report
 from pipeline.run.robustness import robustness_rows
 
 if TYPE_CHECKING:
