@@ -365,7 +365,7 @@ def bench(
     """Compare direct georeferencing, Seq-R, Seq-F and Sim on simulated flights, or, for an
     image flight folder, Seq-R (tracking) with Sim and Seq-F on the same tie points.
     ``seqat bench faults``: seeded blunders, a GNSS jump and a dropout (docs/benchmarks.md)."""
-    from pipeline.bench import run_bench
+    from pipeline.bench.strip import run_bench
 
     if str(config) == "long":
         _long_bench(out)
@@ -395,7 +395,7 @@ def bench(
 
 
 def _long_bench(out: Path) -> None:
-    from pipeline.bench_long import run_long_bench
+    from pipeline.bench.long import run_long_bench
 
     b = run_long_bench(out)
     rows = []
@@ -413,8 +413,9 @@ FAULTS_BENCH = "faults"
 
 def _faults_bench(out: Path, seeds: list[int] | None, cases: list[str] | None,
                   strip_config: Path, rendered: Path) -> None:
-    from pipeline.bench_faults import CASES, run_fault_bench
-    from pipeline.bench_faults_report import summary_rows
+    from pipeline.bench.faults.cases import CASES
+    from pipeline.bench.faults.report import summary_rows
+    from pipeline.bench.faults.suite import run_fault_bench
 
     report = run_fault_bench(out, seeds=tuple(seeds or (1, 2, 3)), cases=tuple(cases or CASES),
                              strip_config=strip_config, rendered_flight=rendered)
@@ -429,7 +430,7 @@ def _faults_bench(out: Path, seeds: list[int] | None, cases: list[str] | None,
 
 
 def _flight_bench(flight: Path, out: Path) -> None:
-    from pipeline.bench_flight import run_flight_bench
+    from pipeline.bench.flight import run_flight_bench
 
     b = run_flight_bench(flight, out)
 

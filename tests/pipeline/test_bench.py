@@ -8,12 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.bench import _load_sim_config, run_bench
-from pipeline.bench_report import (
-    PNG_SIGNATURE,
-    TARGET_GP_DIFF_STD_M,
-    BenchReport,
-)
+from pipeline.bench.common import load_sim_config
+from pipeline.bench.report import PNG_SIGNATURE, TARGET_GP_DIFF_STD_M, BenchReport
+from pipeline.bench.strip import run_bench
 from seqat.errors import ConfigError
 
 #: A 20 s strip with the paper's camera: long enough for a sequential stage after the
@@ -137,6 +134,6 @@ def test_config_unknown_key_names_file_and_key(tmp_path: Path) -> None:
     config = tmp_path / "bad_sim.yaml"
     config.write_text(TINY_CONFIG + "  n_imagez: 3\n", encoding="utf-8")
     with pytest.raises(ConfigError, match=r"bad_sim\.yaml.*n_imagez"):
-        _load_sim_config(config)
+        load_sim_config(config)
     with pytest.raises(ConfigError):
         run_bench(config, tmp_path / "out", progress=False)

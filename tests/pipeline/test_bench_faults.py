@@ -9,15 +9,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.bench_faults import FaultBenchOptions, run_fault_bench
-from pipeline.bench_faults_flight import enu_offset_to_geodetic
-from pipeline.fault_injection import (
+from pipeline.bench.faults.cases import FaultBenchOptions
+from pipeline.bench.faults.flight import enu_offset_to_geodetic
+from pipeline.bench.faults.injection import (
     detection,
     gap_stats,
     inject_blunders,
     pick_dropout,
     pick_jump,
 )
+from pipeline.bench.faults.suite import run_fault_bench
 from seqat.errors import ConfigError
 
 #: A 20 s strip with the paper's camera (the bench's tiny case: ~30 runs in a few seconds).
@@ -158,7 +159,7 @@ def test_cli_bench_faults_bad_case_exits_2(tmp_path: Path) -> None:
 
 
 def test_faults_json_renders_the_same_tables_again(tiny_faults: tuple[dict, Path]) -> None:  # type: ignore[type-arg]
-    from pipeline.bench_faults_report import render_fault_markdown, report_from_json
+    from pipeline.bench.faults.report import render_fault_markdown, report_from_json
 
     doc, out = tiny_faults
     again = render_fault_markdown(report_from_json(doc))

@@ -6,7 +6,7 @@ import csv
 import json
 from pathlib import Path
 
-from pipeline.bench_long import SAMPLES, run_long_bench
+from pipeline.bench.long import SAMPLES, run_long_bench
 
 
 def test_long_bench_streams_final_parameters(tmp_path: Path) -> None:

@@ -85,7 +85,7 @@ def test_debug_shows_traceback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, 
 def test_bench_passes_config_out_seeds_and_thresholds(tmp_path: Path,
                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     calls: list[tuple[object, ...]] = []
-    fake = types.ModuleType("pipeline.bench")
+    fake = types.ModuleType("pipeline.bench.strip")
 
     def run_bench(config_path: Path, out_dir: Path, *, seeds: tuple[int, ...] = (1,),
                   thresholds: tuple[float, ...] = (0.1,)) -> types.SimpleNamespace:
@@ -95,7 +95,7 @@ def test_bench_passes_config_out_seeds_and_thresholds(tmp_path: Path,
         return types.SimpleNamespace(checks=(check,))
 
     fake.run_bench = run_bench  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "pipeline.bench", fake)
+    monkeypatch.setitem(sys.modules, "pipeline.bench.strip", fake)
     config = REPO_ROOT / "configs" / "paper_sim.yaml"
     result = CliRunner().invoke(app, ["bench", str(config), "--out", str(tmp_path / "b"),
                                       "--seed", "3", "--seed", "4", "--threshold", "0.05"])

@@ -199,7 +199,7 @@ def test_resection_recovers_the_rotation_despite_outliers() -> None:
 
 
 def test_flight_bench_compares_methods_on_the_same_tie_points(tmp_path: Path) -> None:
-    from pipeline.bench_flight import run_flight_bench
+    from pipeline.bench.flight import run_flight_bench
 
     b = run_flight_bench(MINI, tmp_path)
     doc = json.loads((tmp_path / "bench_flight.json").read_text())

@@ -10,7 +10,7 @@ import pyproj
 import pytest
 from rasterio.transform import from_origin
 
-from pipeline.mosaic_accuracy import mosaic_shifts
+from pipeline.bench.mosaic_accuracy import mosaic_shifts
 from pipeline.ortho.raster import write_cog
 from pipeline.simulate.render import Texture, affine_texture_map
 

@@ -9,7 +9,7 @@ Three cases, each with several seeds:
   (faults written into a copy of the flight folder) through :func:`pipeline.run.runner.run_flight`,
   so data snooping, the dropout bridge and ``run.json`` are measured end to end.
 
-Faults (:mod:`pipeline.fault_injection`): tie-point blunders on 5 % and 20 % of the
+Faults (:mod:`pipeline.bench.faults.injection`): tie-point blunders on 5 % and 20 % of the
 observations (10-100 px, random direction); one GNSS position jump of 5 m; one 30 s dropout
 (the images' whole nav is missing: ``inf`` σ, start value from the past, 6-DoF resection on
 the estimator's window as in :mod:`pipeline.run.sources`).
@@ -20,7 +20,7 @@ Variants per fault: Seq-R (ρ ≥ 0.1, RTS-smoothed final solution) with data sn
 truth: EOP and GP RMSE, GPs off by more than :attr:`FaultBenchOptions.gp_outlier_m`,
 precision / recall of the rejections, whether the jump was flagged, dropout cameras' errors
 against their neighbours', sequential update times. Outputs: ``faults.json`` (every number),
-``faults.md`` (tables, :mod:`pipeline.bench_faults_report`).
+``faults.md`` (tables, :mod:`pipeline.bench.faults.report`).
 """
 
 from __future__ import annotations
@@ -32,23 +32,36 @@ import math
 import time
 import traceback
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from pipeline.bench import _load_average, _load_sim_config, _machine, _progress
-from pipeline.bench_report import Machine, Triple
-from pipeline.common.rmse import rmse
-from pipeline.fault_injection import (
-    Detection,
-    GapStats,
+from pipeline.bench.common import load_average, load_sim_config, machine, progress_bars
+from pipeline.bench.faults.cases import (
+    BLOCK,
+    CASES,
+    OFF,
+    ON,
+    ORACLE,
+    SIM,
+    Case,
+    FaultBenchOptions,
+    FaultBenchReport,
+    FaultRun,
+    FaultSetup,
+    Outcome,
+    Scenario,
+)
+from pipeline.bench.faults.flight import FolderCase
+from pipeline.bench.faults.injection import (
     detection,
     gap_stats,
     inject_blunders,
     pick_dropout,
     pick_jump,
 )
+from pipeline.bench.faults.report import render_fault_markdown
+from pipeline.common.rmse import rmse
 from pipeline.flight.dropout import predict_missing, resect_from_known
 from pipeline.run.store import to_jsonable
 from seqat.errors import ConfigError, SeqatError
@@ -57,149 +70,6 @@ from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
 from seqat.simultaneous import SimOptions, SimultaneousAT
 from seqat.types import EOP_SIZE, FloatArray, ImageUpdate
-
-#: The cases, in report order.
-CASES = ("strip", "block", "rendered")
-#: The simulated block: three serpentine strips of 80 images (40 s each, 20 s turns).
-BLOCK = StripSimConfig(strips=3, n_images=80, n_points=400)
-#: Variant names (SIM: the simultaneous adjustment of the same dropout, for reference).
-OFF, ON, ORACLE, SIM = "snooping off", "snooping on", "oracle", "Sim"
-
-
-@dataclass(frozen=True, kw_only=True)
-class FaultBenchOptions:
-    """What is injected and how runs are configured (defaults: issue 7)."""
-
-    blunder_fractions: tuple[float, ...] = (0.05, 0.20)
-    blunder_min_px: float = 10.0
-    blunder_max_px: float = 100.0
-    jump_m: float = 5.0
-    dropout_s: float = 30.0
-    snooping_critical: float = 3.29  # alpha0 = 0.001, two-sided
-    min_rays: int = 3  # with snooping on: a blunder in a new point is detectable
-    threshold: float = 0.1  # Seq-R correlation threshold
-    neighbours: int = 15  # images on each side of the dropout compared with it
-    gp_outlier_m: float = 1.0  # a GP off by more than this (3D) counts as an outlier
-    strip_images: int | None = None  # None: the strip config's own n_images
-    rendered_initial_images: int = 4  # 12 images: the default 10 would leave 2 sequential
-
-
-@dataclass(frozen=True, kw_only=True)
-class FaultSetup:
-    """The faults injected in one case and seed (image ids, counts)."""
-
-    case: str
-    seed: int
-    n_images: int
-    n_observations: int
-    blunders: tuple[int, ...]  # per fraction of FaultBenchOptions.blunder_fractions
-    jump_image: str
-    jump_offset_m: Triple
-    dropout_images: tuple[str, ...]
-    dropout_span_s: float  # first to last dropout image
-
-
-@dataclass(frozen=True, kw_only=True)
-class FaultRun:
-    """One run of one case, seed, fault and variant, scored against truth.
-
-    RMSEs are per axis over the images / points estimated; ``gp_outliers`` counts GPs off by
-    more than the options' ``gp_outlier_m``; ``rejected`` counts observations removed by
-    data snooping; timings are the sequential stage's ``update_ms``. ``error`` is set (and
-    the numbers are NaN) when the run failed.
-    """
-
-    case: str
-    seed: int
-    fault: str
-    variant: str
-    n_images: int
-    n_points: int
-    pos_rmse_m: Triple
-    att_rmse_deg: Triple
-    gp_rmse_m: Triple
-    gp_outliers: int
-    sigma0: float
-    update_ms_median: float
-    update_ms_p95: float
-    update_ms_max: float
-    rejected: int
-    nav_downweighted: tuple[str, ...]
-    detection: Detection | None
-    detection_testable: Detection | None  # blunders of points with >= min_rays observations
-    jump_flagged: bool | None
-    jump_error_m: float  # 3D position error of the jump image
-    dropout_position: GapStats | None  # 3D position error, metres
-    dropout_attitude: GapStats | None  # largest attitude error, degrees
-    skipped: int  # dropout images that could not be resected
-    run_s: float
-    error: str = ""
-
-
-@dataclass(frozen=True, kw_only=True)
-class FaultBenchReport:
-    """Everything ``faults.json`` holds."""
-
-    date: str
-    runtime_s: float
-    machine: Machine
-    options: FaultBenchOptions
-    strip_config: str
-    rendered_flight: str
-    cases: tuple[str, ...]
-    seeds: tuple[int, ...]
-    setups: tuple[FaultSetup, ...]
-    runs: tuple[FaultRun, ...]
-
-
-# ---------------------------------------------------------------------------- scenarios
-@dataclass(frozen=True, kw_only=True, eq=False)
-class _Scenario:
-    """One run's input: observations (pixels, kept rows), nav jump, dropout, snooping."""
-
-    fault: str
-    variant: str
-    uv_px: FloatArray  # (k, 2) observed pixels after injection
-    keep: np.ndarray  # (k,) bool: rows given to the estimator
-    injected: frozenset[tuple[int, int]]  # (image index, point index) of blunders
-    jump: tuple[int, FloatArray] | None = None
-    gap: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    snooping: bool = False
-
-
-@dataclass(frozen=True, kw_only=True, eq=False)
-class _Outcome:
-    """What a run gives back, in the case's image and point numbering."""
-
-    eop: FloatArray  # (n, 6) world, NaN for images not estimated
-    point_index: np.ndarray  # (m,) int, points estimated
-    xyz_m: FloatArray  # (m, 3)
-    sigma0: float
-    sequential_ms: FloatArray
-    rejections: frozenset[tuple[int, int]]
-    nav_downweighted: tuple[tuple[int, str], ...]
-    skipped: int
-
-
-class _Case:
-    """A flight with truth whose runs take a scenario (interface of the two kinds)."""
-
-    name: str
-    image_ids: tuple[str, ...]
-    point_ids: tuple[str, ...]
-    times_s: FloatArray
-    truth_eop: FloatArray
-    truth_xyz: dict[int, FloatArray]  # point index -> truth (rendered: see _FolderCase)
-    obs_image: np.ndarray
-    obs_point: np.ndarray
-    obs_uv: FloatArray
-    width_px: int
-    height_px: int
-    first_sequential: int
-
-    def run(self, sc: _Scenario, options: FaultBenchOptions,
-            tick: Callable[[], None]) -> _Outcome:
-        raise NotImplementedError
 
 
 def _snooping_options(options: FaultBenchOptions, snooping: bool,
@@ -213,7 +83,7 @@ def _snooping_options(options: FaultBenchOptions, snooping: bool,
                                min_rays=options.min_rays)
 
 
-class _SimCase(_Case):
+class _SimCase(Case):
     """A simulated flight streamed through :class:`SequentialAT` in memory."""
 
     def __init__(self, name: str, flight: SimulatedFlight) -> None:
@@ -225,10 +95,10 @@ class _SimCase(_Case):
             flight.obs_uv)
         self.width_px, self.height_px = flight.camera.width_px, flight.camera.height_px
         self.first_sequential = SequentialOptions().initial_images
-        self._last: _Outcome | None = None  # the previous run (start values of SIM)
+        self._last: Outcome | None = None  # the previous run (start values of SIM)
 
-    def run(self, sc: _Scenario, options: FaultBenchOptions,
-            tick: Callable[[], None]) -> _Outcome:
+    def run(self, sc: Scenario, options: FaultBenchOptions,
+            tick: Callable[[], None]) -> Outcome:
         if sc.variant == SIM:
             return self._run_sim(sc, tick)
         f = self.flight
@@ -266,7 +136,7 @@ class _SimCase(_Case):
         self._last = out
         return out
 
-    def _run_sim(self, sc: _Scenario, tick: Callable[[], None]) -> _Outcome:
+    def _run_sim(self, sc: Scenario, tick: Callable[[], None]) -> Outcome:
         """Sim (one adjustment at the end) of the dropout the previous run had: the same
         images (those it could not resect are left out), its final EOPs as start values."""
         f, last = self.flight, self._last
@@ -289,7 +159,7 @@ class _SimCase(_Case):
         eop = np.full((len(self.image_ids), EOP_SIZE), np.nan)
         for e in sol.eops:
             eop[img[e.image_id]] = e.eop
-        return _Outcome(eop=eop, point_index=np.asarray([pts[p.point_id] for p in sol.points],
+        return Outcome(eop=eop, point_index=np.asarray([pts[p.point_id] for p in sol.points],
                                                         dtype=np.int64),
                         xyz_m=np.asarray([p.xyz_m for p in sol.points]).reshape(-1, 3),
                         sigma0=sol.sigma0, sequential_ms=np.zeros(0), rejections=frozenset(),
@@ -297,14 +167,14 @@ class _SimCase(_Case):
 
 
 def _outcome(est: SequentialAT, updates: Sequence[ImageUpdate], image_ids: Sequence[str],
-             point_ids: Sequence[str], skipped: int) -> _Outcome:
+             point_ids: Sequence[str], skipped: int) -> Outcome:
     sol = est.solution()
     img = {iid: i for i, iid in enumerate(image_ids)}
     pts = {pid: j for j, pid in enumerate(point_ids)}
     eop = np.full((len(image_ids), EOP_SIZE), np.nan)
     for e in sol.eops:
         eop[img[e.image_id]] = e.eop
-    return _Outcome(
+    return Outcome(
         eop=eop, point_index=np.asarray([pts[p.point_id] for p in sol.points], dtype=np.int64),
         xyz_m=np.asarray([p.xyz_m for p in sol.points]).reshape(-1, 3), sigma0=sol.sigma0,
         sequential_ms=np.asarray([u.update_ms for u in updates if u.stage == "sequential"]),
@@ -317,7 +187,7 @@ def _pct(a: FloatArray, q: float) -> float:
     return float(np.percentile(a, q)) if a.size else math.nan
 
 
-def _score(case: _Case, seed: int, sc: _Scenario, out: _Outcome, options: FaultBenchOptions,
+def _score(case: Case, seed: int, sc: Scenario, out: Outcome, options: FaultBenchOptions,
            min_rays: int, run_s: float) -> FaultRun:
     d = out.eop - case.truth_eop
     d[:, 3:] = np.degrees(wrap_angle(d[:, 3:]))
@@ -356,7 +226,7 @@ def _score(case: _Case, seed: int, sc: _Scenario, out: _Outcome, options: FaultB
         dropout_position=gap_p, dropout_attitude=gap_a, skipped=out.skipped, run_s=run_s)
 
 
-def _failed(case: _Case, seed: int, sc: _Scenario, err: Exception, run_s: float) -> FaultRun:
+def _failed(case: Case, seed: int, sc: Scenario, err: Exception, run_s: float) -> FaultRun:
     nan3 = (math.nan, math.nan, math.nan)
     tb = traceback.extract_tb(err.__traceback__)
     where = next((f"{Path(fr.filename).name}:{fr.lineno}" for fr in reversed(tb)
@@ -383,8 +253,8 @@ def fault_label(kind: str, options: FaultBenchOptions, fraction: float = 0.0) ->
     return "clean"
 
 
-def scenarios(case: _Case, seed: int, options: FaultBenchOptions,
-              first: int) -> tuple[FaultSetup, list[_Scenario]]:
+def scenarios(case: Case, seed: int, options: FaultBenchOptions,
+              first: int) -> tuple[FaultSetup, list[Scenario]]:
     """The faults of one case and seed and the runs that measure them.
 
     Each fault has its own random stream (``SeedSequence([seed, case, fault])``), so adding a
@@ -398,7 +268,7 @@ def scenarios(case: _Case, seed: int, options: FaultBenchOptions,
         return np.random.default_rng(np.random.SeedSequence([seed, ci, fault]))
 
     all_rows = np.ones(k, dtype=bool)
-    out = [_Scenario(fault="clean", variant=v, uv_px=case.obs_uv, keep=all_rows,
+    out = [Scenario(fault="clean", variant=v, uv_px=case.obs_uv, keep=all_rows,
                      injected=frozenset(), snooping=s) for v, s in ((OFF, False), (ON, True))]
     counts = []
     for f_i, frac in enumerate(options.blunder_fractions):
@@ -410,18 +280,18 @@ def scenarios(case: _Case, seed: int, options: FaultBenchOptions,
         clean = all_rows.copy()
         clean[b.index] = False
         label = fault_label("blunders", options, frac)
-        out += [_Scenario(fault=label, variant=ORACLE, uv_px=case.obs_uv, keep=clean,
+        out += [Scenario(fault=label, variant=ORACLE, uv_px=case.obs_uv, keep=clean,
                           injected=frozenset()),
-                _Scenario(fault=label, variant=ON, uv_px=b.uv_px, keep=all_rows, injected=bad,
+                Scenario(fault=label, variant=ON, uv_px=b.uv_px, keep=all_rows, injected=bad,
                           snooping=True),
-                _Scenario(fault=label, variant=OFF, uv_px=b.uv_px, keep=all_rows, injected=bad)]
+                Scenario(fault=label, variant=OFF, uv_px=b.uv_px, keep=all_rows, injected=bad)]
     j, offset = pick_jump(n, first + 1, rng(1), options.jump_m,
                           last_margin=max(1, min(5, n // 10)))
     gap = pick_dropout(case.times_s, first, options.dropout_s, rng(2))
     for kind, extra in (("jump", {"jump": (j, offset)}), ("dropout", {"gap": gap})):
         for v, s in ((ON, True), (OFF, False), (SIM, False)) if kind == "dropout" else (
                 (ON, True), (OFF, False)):
-            out.append(_Scenario(fault=fault_label(kind, options), variant=v,
+            out.append(Scenario(fault=fault_label(kind, options), variant=v,
                                  uv_px=case.obs_uv, keep=all_rows, injected=frozenset(),
                                  snooping=s, **extra))  # type: ignore[arg-type]
     setup = FaultSetup(case=case.name, seed=seed, n_images=n, n_observations=k,
@@ -435,7 +305,7 @@ def scenarios(case: _Case, seed: int, options: FaultBenchOptions,
 
 # ---------------------------------------------------------------------------- driver
 def _strip_config(path: Path, options: FaultBenchOptions) -> StripSimConfig:
-    cfg = _load_sim_config(path)
+    cfg = load_sim_config(path)
     if options.strip_images is not None:
         cfg = dataclasses.replace(cfg, n_images=options.strip_images,
                                   n_points=max(2, round(cfg.n_points * options.strip_images
@@ -447,7 +317,7 @@ def run_fault_bench(out_dir: Path, *, seeds: Sequence[int] = (1, 2, 3),
                     cases: Sequence[str] = CASES,
                     strip_config: Path = Path("configs/paper_sim.yaml"),
                     rendered_flight: Path = Path("sample_data/autzen_rendered"),
-                    options: FaultBenchOptions = FaultBenchOptions(),
+                    options: FaultBenchOptions = FaultBenchOptions(),  # noqa: B008 - frozen
                     progress: bool = True,
                     block_config: StripSimConfig = BLOCK) -> FaultBenchReport:
     """Run the fault benchmark; write ``faults.json`` and ``faults.md`` to ``out_dir``.
@@ -474,9 +344,6 @@ def run_fault_bench(out_dir: Path, *, seeds: Sequence[int] = (1, 2, 3),
     ConfigError
         No seed, an unknown case, a bad strip config or a missing flight folder.
     """
-    from pipeline.bench_faults_flight import FolderCase
-    from pipeline.bench_faults_report import render_fault_markdown
-
     if not seeds:
         raise ConfigError("bench faults: at least one --seed is needed")
     unknown = [c for c in cases if c not in CASES]
@@ -488,14 +355,14 @@ def run_fault_bench(out_dir: Path, *, seeds: Sequence[int] = (1, 2, 3),
     if "rendered" in cases and not (Path(rendered_flight) / "truth").is_dir():
         raise ConfigError(f"bench faults: {rendered_flight}: not a flight folder with truth/ "
                           "(--rendered)")
-    t_start, load_start = time.perf_counter(), _load_average()
+    t_start, load_start = time.perf_counter(), load_average()
     setups: list[FaultSetup] = []
     runs: list[FaultRun] = []
     folder_case: FolderCase | None = None
-    with _progress(progress) as bar:
+    with progress_bars(progress) as bar:
         for name in [c for c in CASES if c in cases]:
             for seed in seeds:
-                case: _Case
+                case: Case
                 if name == "rendered":
                     if folder_case is None:
                         folder_case = FolderCase(Path(rendered_flight), out_dir / "rendered")
@@ -524,7 +391,7 @@ def run_fault_bench(out_dir: Path, *, seeds: Sequence[int] = (1, 2, 3),
                                        time.perf_counter() - t0))
     report = FaultBenchReport(
         date=datetime.datetime.now(datetime.UTC).date().isoformat(),
-        runtime_s=time.perf_counter() - t_start, machine=_machine(load_start), options=options,
+        runtime_s=time.perf_counter() - t_start, machine=machine(load_start), options=options,
         strip_config=str(strip_config), rendered_flight=str(rendered_flight),
         cases=tuple(c for c in CASES if c in cases), seeds=tuple(seeds),
         setups=tuple(setups), runs=tuple(runs))

@@ -1,4 +1,4 @@
-"""Typed report of the benchmark (:mod:`pipeline.bench`) and its rendering: figures, markdown.
+"""Typed report of the benchmark (:mod:`pipeline.bench.strip`) and its rendering: figures, markdown.
 
 The report types are frozen dataclasses serialised to ``bench.json``; :func:`write_figures`
 draws seed 000's Figures 4-11 (matplotlib, Agg) and :func:`render_markdown` writes ``bench.md``

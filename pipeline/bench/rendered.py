@@ -1,10 +1,10 @@
 """Products of a rendered flight against its truth (docs/benchmarks.md, issues 5 and 6).
 
-``python -m pipeline.bench_rendered OUT --config CONFIG.yaml [--json FILE]`` on the run folder
+``python -m pipeline.bench.rendered OUT --config CONFIG.yaml [--json FILE]`` on the run folder
 of ``seqat run FLIGHT --out OUT --ortho`` (FLIGHT rendered by ``seqat simulate CONFIG.yaml``):
 
 * **mosaic check points**: the planimetric error of ``OUT/mosaic.tif`` at the flight's check
-  points, measured against the texture the renderer draped (:func:`pipeline.mosaic_accuracy.
+  points, measured against the texture the renderer draped (:func:`pipeline.bench.mosaic_accuracy.
   mosaic_shifts`), as RMSE_x, RMSE_y, RMSE_H (ASPRS 2023) and in ground pixels; the same for
   a mosaic made with the GPS/INS EOPs (direct georeferencing) and, when ``OUT/reference/``
   exists, with the COLMAP reference's, both by ``seqat ortho`` on a copy of the run folder
@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import rasterio
 
+from pipeline.bench.mosaic_accuracy import mosaic_shifts
 from pipeline.common.atomic import atomic_write_text
 from pipeline.common.columns import (
     EOP_FILE,
@@ -40,7 +41,6 @@ from pipeline.common.columns import (
     RUN_FILE,
 )
 from pipeline.flight.nav_files import read_ground_points
-from pipeline.mosaic_accuracy import mosaic_shifts
 from pipeline.ortho.base import OrthoOptions
 from pipeline.ortho.dsm import parse_crs, read_dsm
 from pipeline.ortho.stage import DSM_FILE, MOSAIC_FILE, orthorectify_run

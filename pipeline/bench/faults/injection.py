@@ -1,6 +1,6 @@
 """Seeded faults for the robustness benchmark (issue 7) and how they are scored.
 
-Pure numpy, no I/O: :mod:`pipeline.bench_faults` applies them to simulated flights and to
+Pure numpy, no I/O: :mod:`pipeline.bench.faults.suite` applies them to simulated flights and to
 the observations and nav of a flight folder.
 
 * :func:`inject_blunders` — gross errors of 10-100 px in a random direction on an exact

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from pipeline.bench_faults import SIM, FaultBenchOptions, _Case, _Outcome, _Scenario
+from pipeline.bench.faults.cases import SIM, Case, FaultBenchOptions, Outcome, Scenario
 from pipeline.common.columns import FLIGHT_YAML, NAV_GEODETIC_COLUMNS, OBS_COLUMNS
 from pipeline.common.csvio import format_csv_line, read_csv
 from pipeline.common.strict_yaml import load_yaml
@@ -58,7 +58,7 @@ def enu_offset_to_geodetic(lat_deg: float, de_m: float, dn_m: float) -> tuple[fl
             math.degrees(de_m / (normal * math.cos(math.radians(lat_deg)))))
 
 
-class FolderCase(_Case):
+class FolderCase(Case):
     """A flight folder with ``truth/``, tracked once and replayed with faults."""
 
     def __init__(self, flight_dir: Path, work_dir: Path) -> None:
@@ -121,7 +121,7 @@ class FolderCase(_Case):
         doc["observations"] = "observations.csv"
         return yaml.safe_dump(doc, sort_keys=False)
 
-    def _nav_csv(self, sc: _Scenario) -> str:
+    def _nav_csv(self, sc: Scenario) -> str:
         lines = [format_csv_line(self._nav_columns)]
         gap = {int(i) for i in sc.gap}
         for i, row in enumerate(self._nav_rows):
@@ -142,7 +142,7 @@ class FolderCase(_Case):
             lines.append(format_csv_line([values[c] for c in self._nav_columns]))
         return "".join(lines)
 
-    def _observations_csv(self, sc: _Scenario) -> str:
+    def _observations_csv(self, sc: Scenario) -> str:
         lines = [format_csv_line(OBS_COLUMNS)]
         for q in np.flatnonzero(sc.keep):
             lines.append(format_csv_line([self.image_ids[self.obs_image[q]],
@@ -150,7 +150,7 @@ class FolderCase(_Case):
                                           fmt(sc.uv_px[q, 0]), fmt(sc.uv_px[q, 1])]))
         return "".join(lines)
 
-    def _options_yaml(self, sc: _Scenario, options: FaultBenchOptions) -> str:
+    def _options_yaml(self, sc: Scenario, options: FaultBenchOptions) -> str:
         seq: dict[str, object] = {"correlation_threshold": options.threshold,
                                   "initial_images": options.rendered_initial_images}
         if sc.snooping:
@@ -158,8 +158,8 @@ class FolderCase(_Case):
         return yaml.safe_dump({"sequential": seq}, sort_keys=False)
 
     # ------------------------------------------------------------------ running
-    def run(self, sc: _Scenario, options: FaultBenchOptions,
-            tick: Callable[[], None]) -> _Outcome:
+    def run(self, sc: Scenario, options: FaultBenchOptions,
+            tick: Callable[[], None]) -> Outcome:
         self._count += 1
         slug = f"{self._count:03d}_{sc.fault}_{sc.variant}".replace(" ", "_").replace("%", "pc")
         folder, out = self._work / "flights" / slug, self._work / "runs" / slug
@@ -175,7 +175,7 @@ class FolderCase(_Case):
             tick()
         return self._outcome(out, sc)
 
-    def _outcome(self, out: Path, sc: _Scenario) -> _Outcome:
+    def _outcome(self, out: Path, sc: Scenario) -> Outcome:
         img = {iid: i for i, iid in enumerate(self.image_ids)}
         pts = {pid: j for j, pid in enumerate(self.point_ids)}
         eops = read_eop_csv(out / "eop.csv")
@@ -188,7 +188,7 @@ class FolderCase(_Case):
         ms: FloatArray = np.asarray([u["update_ms"] for u in record["images"]
                                      if u["stage"] in ("sequential", "sim")], dtype=np.float64)
         sigma0 = record["totals"].get("sigma0")
-        return _Outcome(
+        return Outcome(
             eop=eop, point_index=np.asarray([pts[p] for p in points.point_ids], dtype=np.int64),
             xyz_m=points.xyz_m, sigma0=math.nan if sigma0 is None else float(sigma0),
             sequential_ms=ms,

@@ -23,8 +23,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from pipeline.bench import _load_average, _machine  # noqa: E402
-from pipeline.bench_report import Machine  # noqa: E402
+from pipeline.bench.common import load_average, machine  # noqa: E402
+from pipeline.bench.report import Machine  # noqa: E402
 from pipeline.common.atomic import atomic_write_text
 from pipeline.common.columns import OBS_COLUMNS
 from pipeline.common.csvio import read_csv  # noqa: E402
@@ -141,7 +141,7 @@ def _plot(path: Path, ids: list[str], parts: dict[str, list[float]]) -> None:
 def run_flight_bench(flight: Path | str, out: Path | str) -> FlightBench:
     """Run the real-flight benchmark (Seq-R tracking, Sim and Seq-F replays) into ``out``."""
     flight, out = Path(flight), Path(out)
-    load = _load_average()
+    load = load_average()
     runs = {m: out / m.value for m in (Method.SEQ_R, Method.SIM, Method.SEQ_F)}
     run_flight(flight, runs[Method.SEQ_R], method=Method.SEQ_R, progress=True)
     obs = runs[Method.SEQ_R] / "observations.csv"
@@ -166,7 +166,7 @@ def run_flight_bench(flight: Path | str, out: Path | str) -> FlightBench:
     residuals = {m: _residuals(runs[m]) for m in runs}
     opts = record.get("tracking_options") or {}  # type: ignore[union-attr]
     bench = FlightBench(
-        flight=str(flight), date=time.strftime("%Y-%m-%d"), machine=_machine(load),
+        flight=str(flight), date=time.strftime("%Y-%m-%d"), machine=machine(load),
         images=len(seq_r.eop), skipped=len(seq_r.inputs.skipped),
         images_with_verified_pair=sum(1 for t in tracking if t["pairs_matched"] > 0),
         tracks=int(lengths.size), track_length_median=float(np.median(lengths)),

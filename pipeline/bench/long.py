@@ -31,8 +31,8 @@ from rich.progress import (  # noqa: E402
     TimeElapsedColumn,
 )
 
-from pipeline.bench import _load_average, _machine  # noqa: E402
-from pipeline.bench_report import Machine  # noqa: E402
+from pipeline.bench.common import load_average, machine  # noqa: E402
+from pipeline.bench.report import Machine  # noqa: E402
 from pipeline.common.atomic import atomic_write_text
 from pipeline.run.store import to_jsonable  # noqa: E402
 from seqat.sequential import SequentialAT, SequentialOptions  # noqa: E402
@@ -136,7 +136,7 @@ def run_long_bench(out: Path | str, *, images: int = 10_000, lag: int = 200, see
     """Stream a long strip through Seq-R with and without a smoothing lag; see the module."""
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    load_start = _load_average()
+    load_start = load_average()
     config = StripSimConfig(n_images=images, n_points=int(round(images * POINTS_PER_IMAGE)))
     console = Console(stderr=True)
     variants = []
@@ -146,7 +146,7 @@ def run_long_bench(out: Path | str, *, images: int = 10_000, lag: int = 200, see
         variants.append(_run(f"seq-r, lag {lag}", config, seed, lag, out_dir, progress))
         if compare_full:
             variants.append(_run("seq-r, no lag", config, seed, None, out_dir, progress))
-    bench = LongBench(machine=_machine(load_start), images=images,
+    bench = LongBench(machine=machine(load_start), images=images,
                       points=config.n_points, variants=tuple(variants))
     atomic_write_text(out_dir / "bench_long.json",
                       json.dumps(to_jsonable(dataclasses.asdict(bench)), indent=2))

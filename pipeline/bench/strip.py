@@ -15,9 +15,9 @@ seq-f : the same without a window cut.
 sim : :class:`seqat.simultaneous.SimultaneousAT` refitting the whole block after every image
     (or, with ``sim_every_frame=False``, after every ``sim_refit_every``-th image).
 
-Outputs in ``out_dir``: ``bench.json`` (:class:`~pipeline.bench_report.BenchReport`),
+Outputs in ``out_dir``: ``bench.json`` (:class:`~pipeline.bench.report.BenchReport`),
 ``bench.md`` (tables with the paper's values and computed PASS/FAIL against the targets) and
-``figures/*.png`` (both rendered by :mod:`pipeline.bench_report`).
+``figures/*.png`` (both rendered by :mod:`pipeline.bench.report`).
 """
 
 from __future__ import annotations
@@ -28,19 +28,15 @@ import enum
 import functools
 import json
 import math
-import os
-import platform
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import scipy
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from pipeline.bench_report import (
+from pipeline.bench.common import load_average, load_sim_config, machine, progress_bars
+from pipeline.bench.report import (
     INITIAL_STAGE,
     SEQUENTIAL,
     TARGET_GP_DIFF_STD_M,
@@ -53,7 +49,6 @@ from pipeline.bench_report import (
     Check,
     Curve,
     DiffVsSim,
-    Machine,
     Method,
     MethodRun,
     SeedResult,
@@ -65,11 +60,10 @@ from pipeline.bench_report import (
     rms_of,
     write_figures,
 )
-from pipeline.simulate.config import SimulateConfig, load_simulate_config
 from seqat.errors import ConfigError
 from seqat.geometry import intersect_rays, wrap_angle
 from seqat.sequential import SequentialAT, SequentialOptions
-from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
+from seqat.simulate import SimulatedFlight, simulate_strip
 from seqat.simultaneous import Covariance, SimOptions, SimultaneousAT
 from seqat.types import FloatArray, ImageUpdate, Solution
 
@@ -84,17 +78,6 @@ DIRECT_MIN_RAY_ANGLE_DEG = SequentialOptions().min_ray_angle_deg
 _NAN3: Triple = (math.nan, math.nan, math.nan)
 #: The nine RMSE components compared with Sim, in Accuracy's order.
 RMSE_COMPONENTS = ("X", "Y", "Z", "ω", "φ", "κ", "GP X", "GP Y", "GP Z")
-
-
-# ---------------------------------------------------------------------------- config
-def _load_sim_config(path: Path) -> StripSimConfig:
-    """``simulation:`` section of a ``kind: observations`` config (strict: unknown keys are
-    :class:`~seqat.errors.ConfigError` naming the file and the key)."""
-    config = load_simulate_config(path)
-    if not isinstance(config, SimulateConfig):
-        raise ConfigError(f"{path}: kind: the benchmark needs kind: observations, got "
-                          f"{config.kind!r}")
-    return config.simulation
 
 
 # ---------------------------------------------------------------------------- metrics
@@ -561,31 +544,6 @@ def _checks(results: Sequence[SeedResult], summary: Sequence[MethodRun]) -> tupl
     return tuple(checks)
 
 
-def _load_average() -> float:
-    return os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
-
-
-def _machine(load_start: float) -> Machine:
-    model = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text(encoding="utf-8").splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return Machine(
-        platform=platform.platform(),
-        python=platform.python_version(),
-        numpy=np.__version__,
-        scipy=scipy.__version__,
-        cpu_count=os.cpu_count() or 0,
-        cpu_model=model,
-        load_average_1m=load_start,
-        load_average_1m_end=_load_average(),
-    )
-
-
 # ---------------------------------------------------------------------------- JSON
 def _jsonable(obj: object) -> object:
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
@@ -606,19 +564,6 @@ def _jsonable(obj: object) -> object:
 
 
 # ---------------------------------------------------------------------------- driver
-@contextmanager
-def _progress(enabled: bool) -> Iterator[Progress]:
-    with Progress(
-        TextColumn("{task.description:<28}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        disable=not enabled,
-        transient=False,
-    ) as p:
-        yield p
-
-
 def run_bench(
     config_path: Path,
     out_dir: Path,
@@ -666,10 +611,10 @@ def run_bench(
             f"bench: sim_refit_every and curve_every must be >= 1, got "
             f"{sim_refit_every}, {curve_every}"
         )
-    cfg = _load_sim_config(Path(config_path))
+    cfg = load_sim_config(Path(config_path))
     out_dir = Path(out_dir)
     t_start = time.perf_counter()
-    load_start = _load_average()
+    load_start = load_average()
     sim_mode = (
         "refit after every image"
         if sim_every_frame
@@ -678,7 +623,7 @@ def run_bench(
     variants: list[float | None] = [*thresholds, None]
     results: list[SeedResult] = []
     curves: tuple[Curve, ...] = ()
-    with _progress(progress) as bar:
+    with progress_bars(progress) as bar:
         for s_i, seed in enumerate(seeds):
             flight = simulate_strip(cfg, seed)
             n = len(flight.image_ids)
@@ -734,7 +679,7 @@ def run_bench(
         sim_mode=sim_mode,
         date=datetime.datetime.now(datetime.UTC).date().isoformat(),
         runtime_s=time.perf_counter() - t_start,
-        machine=_machine(load_start),
+        machine=machine(load_start),
         results=tuple(results),
         summary=summary,
         checks=checks,

@@ -1,6 +1,6 @@
 """Timing of the ortho stage at full camera size (docs/benchmarks.md, *Orthorectification*).
 
-``python -m pipeline.ortho_bench --images N --out DIR [--no-occlusion] [--no-write]
+``python -m pipeline.bench.ortho --images N --out DIR [--no-occlusion] [--no-write]
 [--sync-writes]`` flies a
 strip of ``N`` images of a 2456 x 2058 px camera 100 m over a sloped DSM with box buildings,
 orthorectifies each image, updates the mosaic and prints a JSON summary: per-image ortho
@@ -8,7 +8,7 @@ time (projection + occlusion + resampling), COG writing time, mosaic update time
 mosaic write, process CPU time, and the process's peak memory (run it with two flight
 lengths to see that memory does not grow with the flight).
 
-``python -m pipeline.ortho_bench --live MODE --images N --out DIR [--no-write]
+``python -m pipeline.bench.ortho --live MODE --images N --out DIR [--no-write]
 [--rate-hz R]``: the live ortho of ``seqat run --ortho`` (:class:`pipeline.ortho.live.
 LiveOrtho`) behind the Seq-R estimator on the paper strip (``configs/paper_sim.yaml``: the
 same 2456 x 2058 px camera, 200 m, 2 Hz), the frames paced at ``R`` Hz as in flight; each
@@ -183,7 +183,7 @@ class LiveBench:
 def run_live_bench(n_images: int, out_dir: Path, mode: str, *, write: bool = True,
                    rate_hz: float = 2.0, nice: int | None = None) -> LiveBench:
     """Seq-R on the paper strip with the live ortho behind it (module docstring)."""
-    from pipeline.bench import _load_sim_config
+    from pipeline.bench.common import load_sim_config
     from pipeline.common.tables import NavTable
     from pipeline.ortho.live import LiveOrtho, LiveOrthoOptions
     from seqat.sequential import SequentialAT, SequentialOptions
@@ -191,7 +191,7 @@ def run_live_bench(n_images: int, out_dir: Path, mode: str, *, write: bool = Tru
 
     if mode not in ("none", "background", "foreground"):
         raise ValueError(f"mode: none, background or foreground, got {mode!r}")
-    paper = _load_sim_config(PAPER_CONFIG)  # a shorter strip with the paper's point density
+    paper = load_sim_config(PAPER_CONFIG)  # a shorter strip with the paper's point density
     config = dataclasses.replace(paper, n_images=n_images, n_points=max(
         MIN_POINTS, round(paper.n_points * n_images / paper.n_images)))
     flight = simulate_strip(config, LIVE_SEED)

@@ -15,7 +15,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from pipeline.bench_faults import OFF, ON, ORACLE, SIM, FaultBenchReport, FaultRun
+from pipeline.bench.faults.cases import OFF, ON, ORACLE, SIM, FaultBenchReport, FaultRun
 
 #: Rows of a case in this order of faults' first word and variants.
 VARIANT_ORDER = (ORACLE, ON, OFF, SIM)
