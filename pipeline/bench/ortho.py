@@ -25,6 +25,7 @@ import json
 import os
 import resource
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -241,9 +242,11 @@ def run_live_bench(n_images: int, out_dir: Path, mode: str, *, write: bool = Tru
         load_start=load, load_end=os.getloadavg()[0])
 
 
-def main() -> None:
-    """Command-line entry: print the benchmark summary as JSON."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: Sequence[str] | None = None) -> None:
+    """Command-line entry (``seqat bench ortho ARGS``, or ``python -m`` on ``sys.argv``): print
+    the benchmark summary as JSON."""
+    parser = argparse.ArgumentParser(prog=None if argv is None else "seqat bench ortho",
+                                     description=__doc__.splitlines()[0])
     parser.add_argument("--images", type=int, default=20)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--no-occlusion", action="store_true")
@@ -252,7 +255,7 @@ def main() -> None:
     parser.add_argument("--live", choices=("none", "background", "foreground"))
     parser.add_argument("--rate-hz", type=float, default=2.0)
     parser.add_argument("--nice", type=int, help="live: worker niceness (default: 10)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     result: OrthoBench | LiveBench
     if args.live is not None:

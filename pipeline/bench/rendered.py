@@ -24,6 +24,7 @@ import argparse
 import json
 import math
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -180,13 +181,15 @@ def run_rendered_bench(run_dir: Path | str, config_path: Path | str) -> Rendered
                          latency=latency_table(run.record, read_ortho_json(run_dir)))
 
 
-def main() -> None:
-    """Command-line entry: print (and write) the summary as JSON."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: Sequence[str] | None = None) -> None:
+    """Command-line entry (``seqat bench rendered ARGS``, or ``python -m`` on ``sys.argv``):
+    print (and write) the summary as JSON."""
+    parser = argparse.ArgumentParser(prog=None if argv is None else "seqat bench rendered",
+                                     description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path)
     parser.add_argument("--config", type=Path, required=True)
     parser.add_argument("--json", type=Path)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     text = json.dumps(to_jsonable(run_rendered_bench(args.run, args.config)), indent=1,
                       allow_nan=False) + "\n"
     if args.json is not None:

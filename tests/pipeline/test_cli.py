@@ -103,3 +103,28 @@ def test_bench_passes_config_out_seeds_and_thresholds(tmp_path: Path,
     assert calls == [(config, tmp_path / "b", (3, 4), (0.05,))]
     assert "median update time" in result.output and "PASS" in result.output
     assert "≤ 2 ms" in result.output
+
+
+@pytest.mark.parametrize(("name", "args", "forwarded"), [
+    ("rendered", ["RUN", "--config", "c.yaml", "--json", "s.json"],
+     ["RUN", "--config", "c.yaml", "--json", "s.json"]),
+    ("ortho", ["--images", "3", "--no-occlusion", "--out", "o"],
+     ["--out", "o", "--images", "3", "--no-occlusion"]),
+])
+def test_bench_reaches_the_module_benchmarks(name: str, args: list[str], forwarded: list[str],
+                                             tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+                                             ) -> None:
+    calls: list[list[str]] = []
+    fake = types.ModuleType(f"pipeline.bench.{name}")
+    fake.main = lambda argv: calls.append(list(argv))  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, f"pipeline.bench.{name}", fake)
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(app, ["bench", name, *args])
+    assert result.exit_code == 0, result.output
+    assert calls == [forwarded]
+
+
+def test_bench_rejects_unknown_options(tmp_path: Path) -> None:
+    config = REPO_ROOT / "configs" / "paper_sim.yaml"
+    result = CliRunner().invoke(app, ["bench", str(config), "--bogus"])
+    assert result.exit_code == 2
