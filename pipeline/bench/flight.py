@@ -31,6 +31,7 @@ from pipeline.common.csvio import read_csv  # noqa: E402
 from pipeline.report.model import image_residuals_px  # noqa: E402
 from pipeline.run.runner import Method, run_flight  # noqa: E402
 from pipeline.run.store import read_run, to_jsonable  # noqa: E402
+from seqat.geometry import wrap_angle
 from seqat.types import FloatArray  # noqa: E402
 
 
@@ -95,7 +96,7 @@ class FlightBench:
 
 def _difference(a: FloatArray, b: FloatArray) -> Difference:
     d = a - b
-    d[:, 3:] = np.degrees((d[:, 3:] + np.pi) % (2 * np.pi) - np.pi)
+    d[:, 3:] = np.degrees(wrap_angle(d[:, 3:]))
     rms = np.sqrt(np.mean(d**2, axis=0))
     mx = np.max(np.abs(d), axis=0)
     return Difference(pos_rms_m=tuple(rms[:3]), pos_max_m=tuple(mx[:3]),  # type: ignore[arg-type]

@@ -1,20 +1,20 @@
 """Timing of the ortho stage at full camera size (docs/benchmarks.md, *Orthorectification*).
 
-``python -m pipeline.bench.ortho --images N --out DIR [--no-occlusion] [--no-write]
-[--sync-writes]`` flies a
-strip of ``N`` images of a 2456 x 2058 px camera 100 m over a sloped DSM with box buildings,
+``seqat bench ortho --images N --out DIR [--no-occlusion] [--no-write] [--sync-writes]``
+(or ``python -m pipeline.bench.ortho`` with the same arguments) flies a strip of ``N``
+images of a 2456 x 2058 px camera 100 m over a sloped DSM with box buildings,
 orthorectifies each image, updates the mosaic and prints a JSON summary: per-image ortho
 time (projection + occlusion + resampling), COG writing time, mosaic update time, the final
 mosaic write, process CPU time, and the process's peak memory (run it with two flight
 lengths to see that memory does not grow with the flight).
 
-``python -m pipeline.bench.ortho --live MODE --images N --out DIR [--no-write]
-[--rate-hz R]``: the live ortho of ``seqat run --ortho`` (:class:`pipeline.ortho.live.
-LiveOrtho`) behind the Seq-R estimator on the paper strip (``configs/paper_sim.yaml``: the
-same 2456 x 2058 px camera, 200 m, 2 Hz), the frames paced at ``R`` Hz as in flight; each
-image is one decoded JPEG of a synthetic texture, the surface the flat fallback. MODE
-``none`` (no ortho), ``background`` (the worker thread) or ``foreground`` (in the AT loop):
-the AT update times per mode show what the ortho costs the estimator.
+``seqat bench ortho --live MODE --images N --out DIR [--no-write] [--rate-hz R]``: the live
+ortho of ``seqat run --ortho`` (:class:`pipeline.ortho.live.LiveOrtho`) behind the Seq-R
+estimator on the paper strip (``configs/paper_sim.yaml``: the same 2456 x 2058 px camera, 200
+m, 2 Hz), the frames paced at ``R`` Hz as in flight; each image is one decoded JPEG of a
+synthetic texture, the surface the flat fallback. MODE ``none`` (no ortho), ``background`` (the
+worker thread) or ``foreground`` (in the AT loop): the AT update times per mode show what the
+ortho costs the estimator.
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """Products of a rendered flight against its truth (docs/benchmarks.md, issues 5 and 6).
 
-``python -m pipeline.bench.rendered OUT --config CONFIG.yaml [--json FILE]`` on the run folder
+``seqat bench rendered OUT --config CONFIG.yaml [--json FILE]`` (or ``python -m
+pipeline.bench.rendered`` with the same arguments) on the run folder
 of ``seqat run FLIGHT --out OUT --ortho`` (FLIGHT rendered by ``seqat simulate CONFIG.yaml``):
 
 * **mosaic check points**: the planimetric error of ``OUT/mosaic.tif`` at the flight's check

@@ -1,1 +1,2 @@
-"""Flight folders in: ``flight.yaml`` schema, folder reader, navigation, EXIF/XMP, camera, dropouts."""
+"""Flight folders in: ``flight.yaml`` schema, folder reader, navigation, EXIF/XMP, camera,
+dropouts."""

@@ -153,7 +153,8 @@ class FlightConfig:
 
 
 def load_flight_config(path: Path | str) -> FlightConfig:
-    """Read and validate a ``flight.yaml`` (structure and types; CRS: :mod:`pipeline.flight.folder`)."""
+    """Read and validate a ``flight.yaml`` (structure and types; CRS:
+    :mod:`pipeline.flight.folder`)."""
     return build_dataclass(FlightConfig, load_yaml(path), str(path))
 
 

@@ -1,4 +1,5 @@
-"""Options, constants and raster types of the orthorectifier (:mod:`pipeline.ortho.orthorectifier`)."""
+"""Options, constants and raster types of the orthorectifier
+(:mod:`pipeline.ortho.orthorectifier`)."""
 
 from __future__ import annotations
 

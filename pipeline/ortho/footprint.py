@@ -15,7 +15,8 @@ from seqat.types import FloatArray
 
 
 class FootprintMixin:
-    """Footprint of an image on the DSM (part of :class:`~pipeline.ortho.orthorectifier.Orthorectifier`)."""
+    """Footprint of an image on the DSM (part of
+    :class:`~pipeline.ortho.orthorectifier.Orthorectifier`)."""
 
     def _ground_height(self, image_id: str, eop: FloatArray) -> float:
         """DSM height under the camera (the median of the DSM when that cell is empty)."""

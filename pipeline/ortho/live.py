@@ -2,7 +2,8 @@
 
 :class:`LiveOrtho` is an :class:`pipeline.run.runner.ImageListener`. After each AT update it hands
 the image and its EOP of that moment (``update.eop``) to one worker thread, which reads the
-image, orthorectifies it (:class:`pipeline.ortho.orthorectifier.Orthorectifier`, ``ortho/<image>.tif``) and
+image, orthorectifies it (:class:`pipeline.ortho.orthorectifier.Orthorectifier`,
+``ortho/<image>.tif``) and
 pastes it into the tiles of the growing mosaic it touches (:class:`pipeline.ortho.mosaic.
 MosaicBuilder`), while the runner goes on with the next image's tracking and update. At the
 end (``on_finish``, with the final solution):
@@ -11,8 +12,8 @@ end (``on_finish``, with the final solution):
    moves its footprint by more than ``reortho_shift_px`` ortho pixels (default 0.5): the
    largest horizontal displacement of the ground points of the image's corners and centre on
    the plane at the DSM height under the camera
-   (:meth:`pipeline.ortho.orthorectifier.Orthorectifier.footprint_shift_m`). Below that the live ortho
-   differs from a new one by less than half a pixel and is kept. Images that could not be
+   (:meth:`pipeline.ortho.orthorectifier.Orthorectifier.footprint_shift_m`). Below that the live
+   ortho differs from a new one by less than half a pixel and is kept. Images that could not be
    orthorectified live are tried again with their final EOP.
 2. **Mosaic.** The tiles a re-orthorectified image touches (with its live and its final EOP)
    are emptied and recomposed from every image touching them, in acquisition order (images

@@ -1,4 +1,5 @@
-"""Occlusion of the orthorectifier: a z-buffer of DSM cells and facades hides what the camera cannot see."""
+"""Occlusion of the orthorectifier: a z-buffer of DSM cells and facades hides what the camera
+cannot see."""
 
 from __future__ import annotations
 

@@ -56,7 +56,8 @@ def _hull_columns(hull: FloatArray, col0: int, grow0: int, grow1: int, pixel_m: 
 
 
 class ProjectionMixin:
-    """DSM cells -> image pixels (part of :class:`~pipeline.ortho.orthorectifier.Orthorectifier`)."""
+    """DSM cells -> image pixels (part of
+    :class:`~pipeline.ortho.orthorectifier.Orthorectifier`)."""
 
     def _project(self, eop: FloatArray, R: FloatArray, col0: int, row0: int, Z: np.ndarray,
                  z_ground: float, hull: FloatArray) -> Projection:

@@ -1,8 +1,10 @@
-"""Stage functions of ``seqat dsm`` and ``seqat ortho``: files in, files out.
+"""Stage function of ``seqat ortho``: files in, files out (``seqat dsm``:
+:mod:`pipeline.ortho.dsm_stage`; both read the ``--options`` file of :func:`load_stage_options`).
 
 :func:`orthorectify_run` reads a run folder (:func:`pipeline.run.store.read_run`), picks the EOPs
 (Seq-R ``eop.csv`` or ``reference/eop.csv``) and the surface, streams every image through
-:class:`pipeline.ortho.orthorectifier.Orthorectifier` and :class:`pipeline.ortho.mosaic.MosaicBuilder` and writes
+:class:`pipeline.ortho.orthorectifier.Orthorectifier` and
+:class:`pipeline.ortho.mosaic.MosaicBuilder` and writes
 
 * ``OUT/ortho/<image>.tif`` — one COG per image,
 * ``OUT/mosaic.tif`` — the mosaic COG,
@@ -63,7 +65,7 @@ EopSource = Literal["seq-r", "reference"]
 
 
 # --------------------------------------------------------------------------------------------
-# seqat dsm
+# Stage options (seqat dsm and seqat ortho)
 # --------------------------------------------------------------------------------------------
 
 

@@ -8,6 +8,7 @@ import numpy as np
 
 from pipeline.common.rmse import Triple, rmse
 from pipeline.common.tables import EopTable, GroundPoints, NavTable, PointTable
+from seqat.geometry import wrap_angle
 from seqat.types import FloatArray
 
 
@@ -64,7 +65,7 @@ def eop_differences(ids: tuple[str, ...], eop: FloatArray, ref_ids: tuple[str, .
     ref_rows = np.asarray([j for _, j in pairs], dtype=np.int64)
     d = np.asarray(eop, dtype=np.float64)[rows] - np.asarray(ref_eop, dtype=np.float64)[ref_rows]
     d = d.reshape(-1, 6)
-    return rows, d[:, :3], np.degrees((d[:, 3:] + np.pi) % (2 * np.pi) - np.pi)
+    return rows, d[:, :3], np.degrees(wrap_angle(d[:, 3:]))
 
 
 def point_differences(ids: tuple[str, ...], xyz: FloatArray, ref_ids: tuple[str, ...],

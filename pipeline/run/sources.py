@@ -257,8 +257,8 @@ class ObservationSource(_InitialisedSource):
 def read_tracker_image(path: Path, tracker: Tracker, width_px: int, height_px: int) -> np.ndarray:
     """An image as 8-bit gray for the tracker: reduced JPEG decode, camera size / factor.
 
-    An image of another size (same aspect ratio, checked by :func:`pipeline.flight.folder.read_flight`)
-    is resampled to the size the tracker expects.
+    An image of another size (same aspect ratio, checked by
+    :func:`pipeline.flight.folder.read_flight`) is resampled to the size the tracker expects.
     """
     factor = tracker.decode_factor
     image = read_gray_image(path, factor)

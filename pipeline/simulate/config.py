@@ -31,7 +31,8 @@ class SimulateConfig:
     simulation: StripSimConfig = StripSimConfig()
 
 
-#: ``kind`` of a simulation config: images rendered over real terrain (pipeline/simulate/rendered.py).
+#: ``kind`` of a simulation config: images rendered over real terrain
+#: (pipeline/simulate/rendered.py).
 SIM_KIND_RENDERED = "rendered"
 
 

@@ -132,10 +132,12 @@ def write_simulated_flight(flight: SimulatedFlight, crs: str, out_dir: Path | st
     check_replaceable(out)
     with building_folder(out) as tmp:
         write_synced(tmp / FLIGHT_YAML, _flight_yaml(flight, crs))
-        write_synced(tmp / NAV_FILE, format_nav_csv(flight.image_ids, flight.times_s, flight.nav_eop))
+        write_synced(tmp / NAV_FILE,
+                     format_nav_csv(flight.image_ids, flight.times_s, flight.nav_eop))
         write_synced(tmp / OBSERVATIONS_FILE, _observations_csv(flight))
         (tmp / TRUTH_DIR).mkdir()
         write_synced(tmp / TRUTH_DIR / "eop.csv", format_nav_csv(flight.image_ids, flight.times_s,
                                                      flight.truth_eop))
-        write_synced(tmp / TRUTH_DIR / "points.csv", _points_csv(flight.point_ids, flight.truth_xyz))
+        write_synced(tmp / TRUTH_DIR / "points.csv",
+                     _points_csv(flight.point_ids, flight.truth_xyz))
     return out

@@ -4,8 +4,9 @@ The texture keeps its own CRS (for Autzen, Oregon Lambert in international feet,
 ``autzen-srs.wkt``, which pyproj finds equal to EPSG:2994 up to axis order:
 tests/pipeline/test_render_flight.py); hit points of the working CRS are mapped into it with
 a pyproj transformer and the world file. The surface is the highest LiDAR point per cell of
-the working CRS (:func:`pipeline.ortho.dsm.grid_highest` after :func:`pipeline.ortho.dsm.to_working_crs`
-and open3d's outlier removal); empty cells are interpolated linearly between the filled
+the working CRS (:func:`pipeline.ortho.dsm.grid_highest` after
+:func:`pipeline.ortho.dsm.to_working_crs` and open3d's outlier removal); empty cells are
+interpolated linearly between the filled
 cells around them (Delaunay of the gaps' rims, scipy) and, outside their hull, take the
 nearest filled cell. LiDAR without a vertical datum has its heights converted to metres and
 taken as heights of the working CRS (as ``seqat dsm`` does), so the simulated world is

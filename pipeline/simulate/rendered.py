@@ -172,8 +172,8 @@ def geodetic_nav(flight: PlannedFlight, crs: pyproj.CRS, lever_arm_m: FloatArray
 
     The fix is the GPS antenna, ``X_cam - R_world_from_body · lever_arm`` plus the position
     error (world axes); the attitude is the body's plus the error, with the true heading
-    ``yaw_grid + γ`` (γ at the fix). :func:`pipeline.flight.navigation.geodetic_to_eop` with the same
-    lever arm gives back the camera EOP exactly when the errors are zero.
+    ``yaw_grid + γ`` (γ at the fix). :func:`pipeline.flight.navigation.geodetic_to_eop` with the
+    same lever arm gives back the camera EOP exactly when the errors are zero.
 
     Returns
     -------

@@ -1,8 +1,8 @@
 """Synthetic scenes for the ortho tests: known ground texture, surfaces and cameras.
 
 An image is rendered by casting the ray of every observed pixel (undistorted with
-:class:`pipeline.flight.camera.PixelCorrector`) onto a surface with an analytic intersection (a plane
-``Z = a + b X + c Y``, optionally with a box building) and reading the ground texture there.
+:class:`pipeline.flight.camera.PixelCorrector`) onto a surface with an analytic intersection (a
+plane ``Z = a + b X + c Y``, optionally with a box building) and reading the ground texture there.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""pipeline.flight.image_metadata and pipeline.flight.navigation: EXIF/XMP reading, CRS, attitude -> OPK."""
+"""pipeline.flight.image_metadata and pipeline.flight.navigation: EXIF/XMP reading, CRS, attitude
+-> OPK."""
 
 from __future__ import annotations
 

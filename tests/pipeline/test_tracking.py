@@ -1,4 +1,5 @@
-"""Streaming tracker (pipeline/tracking/tracker.py) on synthetic nadir views of a textured flat ground.
+"""Streaming tracker (pipeline/tracking/tracker.py) on synthetic nadir views of a textured flat
+ground.
 
 Each view is an exact homography of a 2000 x 2000 px ground texture (0.1 m per texel, Z = 0):
 the four texture corners are projected with :func:`seqat.geometry.project` and
