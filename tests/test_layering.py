@@ -31,6 +31,21 @@ def _modules(package: str) -> dict[str, Path]:
 
 
 PIPELINE = _modules("pipeline")
+
+#: What each subpackage of pipeline may import (docs/architecture.md, *Packages*).
+ALLOWED: dict[str, set[str]] = {
+    "common": set(),
+    "tracking": {"common"},
+    "flight": {"common", "tracking"},
+    "run": {"common", "tracking", "flight"},
+    "reference": {"common", "flight", "run"},
+    "ortho": {"common", "flight", "run"},
+    "simulate": {"common", "flight", "run", "ortho"},
+    "report": {"common", "flight", "run", "reference"},
+    "bench": {"common", "flight", "run", "ortho", "simulate", "report"},
+    "cli": {"common", "tracking", "flight", "run", "reference", "ortho", "simulate", "report",
+            "bench"},
+}
 SEQAT = _modules("seqat")
 
 
@@ -133,6 +148,17 @@ def test_every_pipeline_import_resolves_in_this_tree() -> None:
 @pytest.mark.parametrize("collapse", [False, True], ids=["modules", "subpackages"])
 def test_no_import_cycles_in_pipeline(collapse: bool) -> None:
     assert _cycles(_graph(collapse)) == []
+
+
+def test_subpackages_import_only_what_the_architecture_allows() -> None:
+    def short(unit: str) -> str:
+        return unit.removeprefix("pipeline.")
+
+    graph = {short(k): {short(t) for t in v} for k, v in _graph(True).items()}
+    units = {u for u in graph if u != "pipeline"}
+    assert units == set(ALLOWED)  # every module lives in one of the subpackages
+    bad = {u: sorted(graph[u] - ALLOWED[u]) for u in units if graph[u] - ALLOWED[u]}
+    assert bad == {}
 
 
 def test_no_private_names_imported_across_modules() -> None:
