@@ -107,7 +107,6 @@ def write_files_atomically(out_dir: Path | str, files: Mapping[str, str]) -> tup
     return tuple(out / name for name in files)
 
 
-
 def write_synced(path: Path, text: str) -> None:
     """Write ``text`` to a new file ``path`` and fsync it (inside a folder built by
     :func:`building_folder`, which publishes the whole folder atomically)."""

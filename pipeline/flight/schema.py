@@ -151,7 +151,6 @@ class FlightConfig:
             raise ConfigError("crs: expected a CRS such as 'EPSG:32652', got an empty string")
 
 
-
 def load_flight_config(path: Path | str) -> FlightConfig:
     """Read and validate a ``flight.yaml`` (structure and types; CRS:
     :mod:`pipeline.flight.folder`)."""

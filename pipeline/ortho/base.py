@@ -35,7 +35,6 @@ PIXEL_SIGNIFICANT_DIGITS = 3
 ALPHA_OPAQUE = {np.dtype(np.uint8): 255, np.dtype(np.uint16): 65535}
 
 
-
 @dataclass(frozen=True, kw_only=True)
 class OrthoOptions:
     """Options of the orthorectifier.

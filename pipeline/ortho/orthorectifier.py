@@ -78,8 +78,6 @@ def _nice_pixel(gsd_m: float) -> float:
     return round(gsd_m, digits)
 
 
-
-
 class Orthorectifier(FootprintMixin, ProjectionMixin, OcclusionMixin):
     """Streaming orthorectification: one image in, one ortho COG out.
 

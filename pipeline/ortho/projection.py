@@ -28,8 +28,6 @@ class Projection:
     z_s: np.ndarray
 
 
-
-
 def _hull_columns(hull: FloatArray, col0: int, grow0: int, grow1: int, pixel_m: float,
                   cols: int) -> tuple[int, int]:
     """Columns ``[c_lo, c_hi)`` of the grid that the convex polygon ``hull`` reaches in the
@@ -51,8 +49,6 @@ def _hull_columns(hull: FloatArray, col0: int, grow0: int, grow1: int, pixel_m: 
     c_lo = int(math.floor(x.min() / pixel_m)) - col0 - 1
     c_hi = int(math.ceil(x.max() / pixel_m)) - col0 + 1
     return max(c_lo, 0), min(max(c_hi, 0), cols)
-
-
 
 
 class ProjectionMixin:

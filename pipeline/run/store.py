@@ -9,8 +9,10 @@ nothing else.
 
 Every file is written atomically: a temporary file in the same folder, ``fsync``, then
 ``os.replace`` (and an ``fsync`` of the folder), so a reader never sees a half-written file and
-a failed run leaves the previous results untouched. :func:`write_files_atomically` publishes a
-set of files together and removes the output folder again if it created it and failed.
+a failed run leaves the previous results untouched (:mod:`pipeline.common.atomic`;
+:func:`~pipeline.common.atomic.write_files_atomically` publishes a set of files together and
+removes the output folder again if it created it and failed). Column schemas and file names:
+:mod:`pipeline.common.columns`.
 
 Numbers are written with Python's shortest round-trip representation (``repr``): reading a
 file back gives the written float64 values exactly (angles pass through degrees, so they

@@ -87,8 +87,6 @@ def _points_csv(ids: tuple[str, ...], xyz_m: FloatArray) -> str:
     return "".join(lines)
 
 
-
-
 def check_replaceable(out_dir: Path) -> None:
     """Refuse to replace anything but an absent or empty folder or an earlier flight folder.
 

@@ -124,7 +124,7 @@ def test_bench_reaches_the_module_benchmarks(name: str, args: list[str], forward
     assert calls == [forwarded]
 
 
-def test_bench_rejects_unknown_options(tmp_path: Path) -> None:
+def test_bench_rejects_unknown_options() -> None:
     config = REPO_ROOT / "configs" / "paper_sim.yaml"
     result = CliRunner().invoke(app, ["bench", str(config), "--bogus"])
     assert result.exit_code == 2
