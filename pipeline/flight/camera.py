@@ -109,7 +109,7 @@ def distort_normalized(xn: np.ndarray, yn: np.ndarray, camera: CameraConfig) -> 
     ``xd = xn radial + 2 p1 xn yn + p2 (r2 + 2 xn^2)``,
     ``yd = yn radial + p1 (r2 + 2 yn^2) + 2 p2 xn yn``, ``u = fx xd + cx``, ``v = fy yd + cy``
     (OpenCV's ``projectPoints`` model with ``k4..k6 = s1..s4 = 0``; pinned against it and
-    against :meth:`PixelCorrector.ideal_pixels` by tests/pipeline/test_camera.py).
+    against :meth:`PixelCorrector.ideal_pixels` by tests/pipeline/flight/test_camera.py).
 
     Parameters
     ----------
@@ -165,7 +165,7 @@ class DistortionTable:
     of the image plus ``LUT_MARGIN_PX``; outside it the caller's border value applies (the
     orthorectifier's lies far outside any image, so such cells are unseen: the polynomial may
     fold back there). The OpenCV polynomial is smooth: bilinear interpolation over
-    ``LUT_STEP_PX`` adds < 0.01 px (tests/pipeline/test_camera.py).
+    ``LUT_STEP_PX`` adds < 0.01 px (tests/pipeline/flight/test_camera.py).
     """
 
     table: np.ndarray  # (nv, nu, 2) float32

@@ -189,7 +189,7 @@ def grid_convergence_rad(crs: pyproj.CRS, lon_deg: float, lat_deg: float) -> flo
     pyproj's ``meridian_convergence`` (``Proj.get_factors``): positive east of a transverse
     Mercator central meridian in the northern hemisphere, where true north points to the
     *west* of grid north. The grid azimuth of a direction is its true azimuth minus this
-    angle (pinned by tests/pipeline/test_navigation.py).
+    angle (pinned by tests/pipeline/flight/test_navigation.py).
     """
     horizontal = _horizontal(crs)
     factors = pyproj.Proj(horizontal).get_factors(lon_deg, lat_deg)

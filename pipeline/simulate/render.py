@@ -11,7 +11,7 @@ and the crossing is refined by bisection on the bilinear surface. The colour is 
 sampled bilinearly at the hit point (``cv2.remap``). Mild vignetting and noise are added by
 :func:`finish_image`.
 
-Exactness (tests/pipeline/test_render.py): projecting a ground point with the true EOP
+Exactness (tests/pipeline/simulate/test_render.py): projecting a ground point with the true EOP
 (``seqat.geometry.project`` + distortion) lands on the rendered feature within 0.5 px.
 """
 

@@ -2,8 +2,8 @@
 
 The texture keeps its own CRS (for Autzen, Oregon Lambert in international feet, the WKT
 ``autzen-srs.wkt``, which pyproj finds equal to EPSG:2994 up to axis order:
-tests/pipeline/test_render_flight.py); hit points of the working CRS are mapped into it with
-a pyproj transformer and the world file. The surface is the highest LiDAR point per cell of
+tests/pipeline/simulate/test_render_flight.py); hit points of the working CRS are mapped into
+it with a pyproj transformer and the world file. The surface is the highest LiDAR point per cell of
 the working CRS (:func:`pipeline.ortho.dsm.grid_highest` after
 :func:`pipeline.ortho.dsm.to_working_crs` and open3d's outlier removal); empty cells are
 interpolated linearly between the filled

@@ -7,7 +7,8 @@ R_body_from_cam`` (docs/conventions.md, *Navigation attitude*). The navigation i
 plus white noise and a random-walk bias, written as a *geodetic* ``nav.csv`` of the GPS
 antenna (the camera minus the lever arm turned into the world) with the true heading
 ``yaw = yaw_grid + γ``; :func:`pipeline.flight.navigation.geodetic_to_eop` inverts this exactly
-(tests/pipeline/test_render_flight.py). Images are rendered by :mod:`pipeline.simulate.render`.
+(tests/pipeline/simulate/test_render_flight.py). Images are rendered by
+:mod:`pipeline.simulate.render`.
 
 Folder (docs/formats.md, *Rendered flights*): ``flight.yaml``, ``nav.csv``, ``images/``,
 ``lidar/surface.laz`` (source CRS and units), ``checkpoints.csv`` + ``checkpoint_obs.csv``,

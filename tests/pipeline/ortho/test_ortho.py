@@ -15,7 +15,7 @@ from pipeline.ortho.orthorectifier import Orthorectifier
 from pipeline.ortho.raster import cog_problems
 from seqat.errors import InputDataError
 
-from .synthetic_ortho import (
+from ..synthetic_ortho import (
     CRS,
     E0_M,
     N0_M,

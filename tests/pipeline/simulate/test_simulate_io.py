@@ -16,7 +16,7 @@ from pipeline.simulate.stage import simulate_to_folder
 from seqat.errors import InputDataError
 from seqat.simulate import SimulatedFlight
 
-from .sample_flight import SIM_CRS
+from ..sample_flight import SIM_CRS
 
 #: Tolerance of angles after degrees <-> radians (radians) and of sigmas in flight.yaml.
 ANGLE_TOL_RAD = 1e-15

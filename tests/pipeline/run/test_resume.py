@@ -28,7 +28,7 @@ from pipeline.run.runner import run_flight
 from seqat.errors import InputDataError
 from seqat.types import Frame, ImageUpdate, Solution
 
-from .sample_runs import AUTZEN, REPO_ROOT, STRIP, assert_same_results
+from ..sample_runs import AUTZEN, REPO_ROOT, STRIP, assert_same_results
 
 #: Seed of the kill points.
 KILL_SEED = 2026

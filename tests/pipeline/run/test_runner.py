@@ -23,7 +23,7 @@ from seqat.sequential import SequentialOptions
 from seqat.simultaneous import SimOptions
 from seqat.types import Frame, ImageUpdate, PinholeCamera, Solution
 
-from .sample_flight import FlightMaker
+from ..sample_flight import FlightMaker
 
 
 def rms(a: np.ndarray) -> float:

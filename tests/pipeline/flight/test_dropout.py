@@ -20,7 +20,7 @@ from pipeline.run.store import read_eop_csv, read_run
 from seqat.cvframe import cv_pose_from_eop
 from seqat.simulate import SimulatedFlight
 
-from .conftest import REPO_ROOT
+from ..conftest import REPO_ROOT
 
 STRIP = REPO_ROOT / "sample_data" / "strip_demo"
 RENDERED = REPO_ROOT / "sample_data" / "autzen_rendered"

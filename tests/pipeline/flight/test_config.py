@@ -18,7 +18,7 @@ from seqat.errors import ConfigError
 from seqat.simulate import StripSimConfig
 from seqat.types import FloatArray
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
+REPO_ROOT = Path(__file__).resolve().parents[3]
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -13,7 +13,7 @@ from pipeline.cli import app
 from pipeline.run import runner
 from pipeline.run.store import read_eop_csv
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
+REPO_ROOT = Path(__file__).resolve().parents[3]
 
 
 def test_simulate_then_run(tmp_path: Path) -> None:

@@ -31,7 +31,7 @@ from pipeline.run.store import (
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import EopEstimate, PointEstimate, Solution
 
-from .synthetic_ortho import CRS, E0_M, N0_M, TEXTURE_MAX, Scene, render, small_camera, texture
+from ..synthetic_ortho import CRS, E0_M, N0_M, TEXTURE_MAX, Scene, render, small_camera, texture
 
 #: Nadir points of the strip (metres east of E0), 52 m high over the plane at 12 m.
 STRIP_EAST_M = (-15.0, 0.0, 15.0)

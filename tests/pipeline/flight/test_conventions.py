@@ -10,7 +10,7 @@ from pipeline.flight.folder import read_flight
 from seqat.geometry import project, rotation_matrix
 from seqat.types import PinholeCamera
 
-from .sample_flight import FlightMaker
+from ..sample_flight import FlightMaker
 
 CAMERA = PinholeCamera(f_px=1000.0, cx_px=319.5, cy_px=239.5, width_px=640, height_px=480)
 #: A nadir camera 100 m above the origin.

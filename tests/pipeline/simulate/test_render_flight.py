@@ -205,7 +205,7 @@ def test_autzen_wkt_is_epsg_2994(shared_data: Path) -> None:
 @pytest.mark.parametrize(("name", "n_images"), [("autzen_sample.yaml", 12),
                                                 ("autzen_block.yaml", 100)])
 def test_autzen_configs_plan_the_documented_block(name: str, n_images: int) -> None:
-    config = load_simulate_config(Path(__file__).resolve().parents[2] / "configs" / name)
+    config = load_simulate_config(Path(__file__).resolve().parents[3] / "configs" / name)
     assert isinstance(config, RenderSimulateConfig)
     plan, cam = config.plan, config.camera
     flight = plan_poses(config, (0.0, 0.0), 0.0, np.random.default_rng(0))

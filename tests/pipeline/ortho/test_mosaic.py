@@ -15,7 +15,7 @@ from pipeline.ortho.orthorectifier import Orthorectifier
 from pipeline.ortho.raster import cog_problems
 from seqat.errors import InputDataError
 
-from .synthetic_ortho import CRS, E0_M, N0_M, Scene, render, small_camera, texture
+from ..synthetic_ortho import CRS, E0_M, N0_M, Scene, render, small_camera, texture
 
 PIXEL_M = 0.1
 #: Brightness offset of every second image (uint16 units): tells the images apart in the mosaic.

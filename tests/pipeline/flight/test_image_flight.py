@@ -22,7 +22,7 @@ from seqat.errors import InputDataError
 from seqat.geometry import project, rotation_matrix
 from seqat.types import PinholeCamera
 
-from .conftest import REPO_ROOT
+from ..conftest import REPO_ROOT
 
 MINI = REPO_ROOT / "sample_data" / "seneca_mini"
 #: EXIF of the Seneca images: 4.3 mm, 16393.44 px/inch at ExifImageWidth 4000 px.
@@ -135,7 +135,7 @@ def test_nav_rows_without_images_and_images_without_rows_are_skipped(tmp_path: P
     paths = _copy_images(tmp_path, 4)
     rows = _rows_from_exif(paths)
     _geodetic_nav(tmp_path, rows[:3] + [rows[3].replace(paths[3].stem, "IMG_9999")],
-                  "  dropout: skip\n")  # bridge (default): tests/pipeline/test_dropout.py
+                  "  dropout: skip\n")  # bridge (default): tests/pipeline/flight/test_dropout.py
     flight = read_flight(tmp_path)
     reasons = {s.image: s.reason for s in flight.skipped}
     assert "listed in nav.csv but no IMG_9999.jpg" in reasons["IMG_9999"]

@@ -14,7 +14,7 @@ from pipeline.flight.folder import read_flight, read_truth
 from seqat.errors import ConfigError, InputDataError, SeqatError
 from seqat.simulate import SimulatedFlight
 
-from .sample_flight import FLIGHT_FILES, FlightMaker
+from ..sample_flight import FLIGHT_FILES, FlightMaker
 
 #: Tolerance of values that went through a degrees <-> radians conversion (radians).
 ANGLE_TOL_RAD = 1e-15

@@ -26,7 +26,7 @@ from pipeline.run.watch import Arrival, GrowingFlight, ImageWatcher, WatchOption
 from seqat.errors import InputDataError
 from seqat.types import ImageUpdate
 
-from .sample_runs import AUTZEN, STRIP, assert_same_results
+from ..sample_runs import AUTZEN, STRIP, assert_same_results
 
 #: Feeding rate of the tests (images per second): faster than real time.
 FAST_RATE_HZ = 100.0
