@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.simulate_io import write_simulated_flight
+from pipeline.simulate.folder import write_simulated_flight
 from seqat.simulate import SimulatedFlight, simulate_strip
 
 from .sample_flight import FLIGHT_FILES, SIM_CRS, SIM_SEED, SMALL_SIM, FlightMaker
@@ -83,7 +83,7 @@ def small_sim_dir(small_sim: SimulatedFlight, tmp_path_factory: pytest.TempPathF
 @pytest.fixture(scope="session")
 def strip_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """``seqat run`` of ``sample_data/strip_demo`` (Seq-R; read-only for the tests)."""
-    from pipeline.runner import run_flight
+    from pipeline.run.runner import run_flight
 
     out = tmp_path_factory.mktemp("strip_run") / "out"
     run_flight(STRIP, out, progress=False)
@@ -93,7 +93,7 @@ def strip_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="session")
 def autzen_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """``seqat run`` of ``sample_data/autzen_rendered`` (Seq-R; read-only for the tests)."""
-    from pipeline.runner import run_flight
+    from pipeline.run.runner import run_flight
 
     out = tmp_path_factory.mktemp("autzen_run") / "out"
     run_flight(AUTZEN, out, progress=False)

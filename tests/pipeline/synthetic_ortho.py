@@ -1,8 +1,8 @@
 """Synthetic scenes for the ortho tests: known ground texture, surfaces and cameras.
 
 An image is rendered by casting the ray of every observed pixel (undistorted with
-:class:`pipeline.camera.PixelCorrector`) onto a surface with an analytic intersection (a plane
-``Z = a + b X + c Y``, optionally with a box building) and reading the ground texture there.
+:class:`pipeline.flight.camera.PixelCorrector`) onto a surface with an analytic intersection (a
+plane ``Z = a + b X + c Y``, optionally with a box building) and reading the ground texture there.
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ import numpy as np
 import pyproj
 from rasterio.transform import from_origin
 
-from pipeline.camera import PixelCorrector, pinhole_camera
-from pipeline.config import CameraConfig
-from pipeline.dsm import Dsm
+from pipeline.flight.camera import PixelCorrector, pinhole_camera
+from pipeline.flight.schema import CameraConfig
+from pipeline.ortho.dsm import Dsm
 from seqat.geometry import rays_world
 
 #: Working CRS of the synthetic scenes (UTM 52N, where the simulated strips live).

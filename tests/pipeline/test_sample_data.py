@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.flight import read_flight, read_truth
-from pipeline.simulate_io import simulate_to_folder
+from pipeline.flight.folder import read_flight, read_truth
+from pipeline.simulate.stage import simulate_to_folder
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "sample_data" / "strip_demo"

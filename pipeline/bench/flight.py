@@ -1,0 +1,192 @@
+"""``seqat bench FLIGHT``: the real-flight benchmark of an image flight (issue 3).
+
+One Seq-R run tracks the images; Sim and Seq-F then replay the *same* tie points
+(``--observations``), so the three estimators are compared on one set of observations.
+Reported: tracks (count, lengths), image residuals, σ0, per-image latency (read, detect,
+match, AT) and the differences Seq-R − Sim and Seq-F − Sim of the camera positions and
+attitudes. Written to ``OUT/bench_flight.json`` and ``OUT/latency.png``; the numbers go to
+docs/benchmarks.md by hand (with the machine and the date, as every benchmark there).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from pipeline.bench.common import load_average, machine  # noqa: E402
+from pipeline.bench.report import Machine  # noqa: E402
+from pipeline.common.atomic import atomic_write_text
+from pipeline.common.columns import OBS_COLUMNS
+from pipeline.common.csvio import read_csv  # noqa: E402
+from pipeline.report.model import image_residuals_px  # noqa: E402
+from pipeline.run.runner import Method, run_flight  # noqa: E402
+from pipeline.run.store import read_run, to_jsonable  # noqa: E402
+from seqat.geometry import wrap_angle
+from seqat.types import FloatArray  # noqa: E402
+
+
+@dataclass(frozen=True, kw_only=True)
+class Stats:
+    """Median, 95th percentile and maximum of a per-image quantity."""
+
+    median: float
+    p95: float
+    max: float
+
+    @classmethod
+    def of(cls, values: list[float] | FloatArray) -> Stats:
+        v = np.asarray(values, dtype=np.float64)
+        v = v[np.isfinite(v)]
+        if v.size == 0:
+            return cls(median=math.nan, p95=math.nan, max=math.nan)
+        return cls(median=float(np.median(v)), p95=float(np.percentile(v, 95)),
+                   max=float(v.max()))
+
+
+@dataclass(frozen=True, kw_only=True)
+class Difference:
+    """RMS and maximum per component of ``a - b`` over the common images."""
+
+    pos_rms_m: tuple[float, float, float]
+    pos_max_m: tuple[float, float, float]
+    att_rms_deg: tuple[float, float, float]
+    att_max_deg: tuple[float, float, float]
+
+
+@dataclass(frozen=True, kw_only=True)
+class FlightBench:
+    """Everything ``bench_flight.json`` holds."""
+
+    flight: str
+    date: str
+    machine: Machine
+    images: int
+    images_with_verified_pair: int
+    skipped: int
+    tracks: int  # tie points with >= 2 rays
+    track_length_median: float
+    track_length_mean: float
+    track_length_histogram: dict[int, int]
+    observations: int
+    working_width_px: int
+    image_width_px: int
+    rms_residual_px: dict[str, float]  # full resolution, per method, every observation
+    median_residual_px: dict[str, float]  # of the point's image distance
+    sigma0: dict[str, float]
+    read_ms: Stats
+    detect_ms: Stats
+    match_ms: Stats
+    tracking_ms: Stats  # detect + match + resection bookkeeping
+    at_ms: Stats  # Seq-R update
+    latency_ms: Stats  # read + tracking + AT, per image
+    seq_r_minus_sim: Difference
+    seq_f_minus_sim: Difference
+    nav_minus_sim: Difference
+
+
+def _difference(a: FloatArray, b: FloatArray) -> Difference:
+    d = a - b
+    d[:, 3:] = np.degrees(wrap_angle(d[:, 3:]))
+    rms = np.sqrt(np.mean(d**2, axis=0))
+    mx = np.max(np.abs(d), axis=0)
+    return Difference(pos_rms_m=tuple(rms[:3]), pos_max_m=tuple(mx[:3]),  # type: ignore[arg-type]
+                      att_rms_deg=tuple(rms[3:]), att_max_deg=tuple(mx[3:]))  # type: ignore[arg-type]
+
+
+def _tracks(obs_path: Path) -> tuple[Counter[str], int]:
+    counts: Counter[str] = Counter()
+    n = 0
+    for row in read_csv(obs_path, OBS_COLUMNS):
+        counts[row.ident("point")] += 1
+        n += 1
+    return counts, n
+
+
+def _residuals(out: Path) -> tuple[float, float]:
+    """RMS and median image residual (px, full resolution) of a run
+    (:func:`pipeline.report.model.image_residuals_px`)."""
+    res = image_residuals_px(read_run(out))
+    if res.size == 0:
+        return math.nan, math.nan
+    return float(np.sqrt(np.mean(res**2))), float(np.median(np.hypot(res[:, 0], res[:, 1])))
+
+
+def _plot(path: Path, ids: list[str], parts: dict[str, list[float]]) -> None:
+    fig, ax = plt.subplots(figsize=(9, 3.5))
+    bottom = np.zeros(len(ids))
+    for label, values in parts.items():
+        v = np.asarray(values, dtype=np.float64)
+        ax.bar(np.arange(len(ids)), v, bottom=bottom, label=label)
+        bottom += v
+    ax.set_xlabel("image (acquisition order)")
+    ax.set_ylabel("ms")
+    ax.set_title("Per-image latency: read + detect + match + AT (Seq-R)")
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+
+
+def run_flight_bench(flight: Path | str, out: Path | str) -> FlightBench:
+    """Run the real-flight benchmark (Seq-R tracking, Sim and Seq-F replays) into ``out``."""
+    flight, out = Path(flight), Path(out)
+    load = load_average()
+    runs = {m: out / m.value for m in (Method.SEQ_R, Method.SIM, Method.SEQ_F)}
+    run_flight(flight, runs[Method.SEQ_R], method=Method.SEQ_R, progress=True)
+    obs = runs[Method.SEQ_R] / "observations.csv"
+    for m in (Method.SIM, Method.SEQ_F):
+        run_flight(flight, runs[m], method=m, observations=obs, progress=True)
+    seq_r, sim, seq_f = (read_run(runs[m]) for m in (Method.SEQ_R, Method.SIM, Method.SEQ_F))
+    record = seq_r.record
+    images = record["images"]  # type: ignore[index]
+    tracking = [im["tracking"] for im in images]  # type: ignore[index]
+    counts, n_obs = _tracks(obs)
+    lengths = np.array([c for c in counts.values() if c >= 2])
+    read_ms = [float(t.get("read_ms", math.nan)) for t in tracking]
+    detect = [float(t["detect_ms"]) for t in tracking]
+    match = [float(t["match_ms"]) for t in tracking]
+    total = [float(t["total_ms"]) for t in tracking]
+    at = [float(im["update_ms"]) for im in images]  # type: ignore[index]
+    latency = [r + t + a for r, t, a in zip(read_ms, total, at, strict=True)]
+    _plot(out / "latency.png", list(seq_r.eop.image_ids),
+          {"read": read_ms, "detect": detect, "match": match,
+           "other tracking": [t - d - m for t, d, m in zip(total, detect, match, strict=True)],
+           "AT update": at})
+    residuals = {m: _residuals(runs[m]) for m in runs}
+    opts = record.get("tracking_options") or {}  # type: ignore[union-attr]
+    bench = FlightBench(
+        flight=str(flight), date=time.strftime("%Y-%m-%d"), machine=machine(load),
+        images=len(seq_r.eop), skipped=len(seq_r.inputs.skipped),
+        images_with_verified_pair=sum(1 for t in tracking if t["pairs_matched"] > 0),
+        tracks=int(lengths.size), track_length_median=float(np.median(lengths)),
+        track_length_mean=float(np.mean(lengths)),
+        track_length_histogram={int(k): int(v) for k, v in
+                                sorted(Counter(lengths.tolist()).items())},
+        observations=n_obs, working_width_px=int(opts.get("working_width_px", 0)),
+        image_width_px=seq_r.camera.width_px,
+        rms_residual_px={m.value: residuals[m][0] for m in runs},
+        median_residual_px={m.value: residuals[m][1] for m in runs},
+        sigma0={r.method: float(r.record["totals"]["sigma0"])  # type: ignore[index]
+                for r in (seq_r, sim, seq_f)},
+        read_ms=Stats.of(read_ms), detect_ms=Stats.of(detect), match_ms=Stats.of(match),
+        tracking_ms=Stats.of(total), at_ms=Stats.of(at), latency_ms=Stats.of(latency),
+        seq_r_minus_sim=_difference(seq_r.eop.eop, sim.eop.eop),
+        seq_f_minus_sim=_difference(seq_f.eop.eop, sim.eop.eop),
+        nav_minus_sim=_difference(seq_r.nav.eop, sim.eop.eop),
+    )
+    doc = {"version": 1, **to_jsonable(bench)}  # type: ignore[dict-item]
+    atomic_write_text(out / "bench_flight.json",
+                      json.dumps(doc, indent=1, allow_nan=False) + "\n")
+    return bench

@@ -1,0 +1,172 @@
+"""``seqat bench``: every benchmark (docs/benchmarks.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.table import Table
+
+from pipeline.cli.common import DEGREE_FORMAT, METRE_FORMAT, console, fmt, guarded, table
+
+app = typer.Typer()
+
+#: ``seqat bench faults``: the fault benchmark instead of a config.
+FAULTS_BENCH = "faults"
+#: ``seqat bench rendered RUN --config CONFIG.yaml [--json FILE]``: products of a rendered
+#: flight against its truth (:mod:`pipeline.bench.rendered`; its own arguments follow).
+RENDERED_BENCH = "rendered"
+#: ``seqat bench ortho --out DIR [--images N] [--no-occlusion] [--no-write] [--sync-writes]
+#: [--live MODE] [--rate-hz R] [--nice N]``: timing of the ortho stage
+#: (:mod:`pipeline.bench.ortho`; its own arguments follow).
+ORTHO_BENCH = "ortho"
+
+
+def _passes_arguments(config: Path) -> bool:
+    """Only the rendered and ortho benchmarks take arguments of their own."""
+    return not config.exists() and str(config) in (RENDERED_BENCH, ORTHO_BENCH)
+
+
+@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def bench(
+    ctx: typer.Context,
+    config: Annotated[Path, typer.Argument(
+        help="Simulation config (configs/*_sim.yaml), an image flight folder, or 'long' "
+             "(memory and time along a 10,000-image strip); 'faults' (seeded faults), "
+             "'rendered RUN --config CONFIG.yaml' (a rendered flight's products against its "
+             "truth) or 'ortho' (timing of the ortho stage; see docs/benchmarks.md).")],
+    out: Annotated[Path, typer.Option("--out", help="Benchmark output folder.")] = Path(
+        "out/bench"),
+    seed: Annotated[list[int] | None, typer.Option(
+        "--seed", help="Seed of one simulated flight (repeat for several).")] = None,
+    threshold: Annotated[list[float] | None, typer.Option(
+        "--threshold", help="Seq-R correlation threshold (repeat for several).")] = None,
+    case: Annotated[list[str] | None, typer.Option(
+        "--case", help="bench faults: strip, block or rendered (repeat; default all).")] = None,
+    strip_config: Annotated[Path, typer.Option(
+        "--strip-config", help="bench faults: config of the strip case.")] = Path(
+        "configs/paper_sim.yaml"),
+    rendered: Annotated[Path, typer.Option(
+        "--rendered", help="bench faults: flight folder (with truth/) of the rendered case.")]
+    = Path("sample_data/autzen_rendered"),
+) -> None:
+    """Compare direct georeferencing, Seq-R, Seq-F and Sim on simulated flights, or, for an
+    image flight folder, Seq-R (tracking) with Sim and Seq-F on the same tie points.
+    ``seqat bench faults``: seeded blunders, a GNSS jump and a dropout; ``seqat bench rendered``
+    and ``seqat bench ortho`` take the arguments of their modules (docs/benchmarks.md)."""
+    if ctx.args and not _passes_arguments(config):
+        first = ctx.args[0]
+        ctx.fail(f"No such option: {first}" if first.startswith("-") else
+                 f"Got unexpected extra argument ({' '.join(ctx.args)})")
+    _bench(ctx=ctx, config=config, out=out, seed=seed, threshold=threshold, case=case,
+           strip_config=strip_config, rendered=rendered)
+
+
+@guarded
+def _bench(*, ctx: typer.Context, config: Path, out: Path, seed: list[int] | None,
+           threshold: list[float] | None, case: list[str] | None, strip_config: Path,
+           rendered: Path) -> None:
+    """The body of :func:`bench` under the exit-code contract."""
+    from pipeline.bench.strip import run_bench
+
+    name = str(config) if not config.exists() else None
+    if name == RENDERED_BENCH:
+        from pipeline.bench.rendered import main as rendered_main
+
+        rendered_main(ctx.args)
+        return
+    if name == ORTHO_BENCH:
+        from pipeline.bench.ortho import main as ortho_main
+
+        ortho_main(["--out", str(out), *ctx.args])
+        return
+    if str(config) == "long":
+        _long_bench(out)
+        return
+    if str(config) == FAULTS_BENCH and not config.exists():
+        _faults_bench(out, seed, case, strip_config, rendered)
+        return
+    if config.is_dir():
+        _flight_bench(config, out)
+        return
+
+    kwargs: dict[str, tuple[int, ...] | tuple[float, ...]] = {}
+    if seed:
+        kwargs["seeds"] = tuple(seed)
+    if threshold:
+        kwargs["thresholds"] = tuple(threshold)
+    report = run_bench(config, out, **kwargs)  # type: ignore[arg-type]
+    table = Table(title="seqat bench: targets", title_justify="left")
+    for col in ("method", "check", "value", "target", "result"):
+        table.add_column(col)
+    for c in report.checks:
+        bound = f"within ±{c.target:g}" if c.two_sided else f"≤ {c.target:g}"
+        table.add_row(c.label, c.name, f"{c.value:.4g} {c.unit}", f"{bound} {c.unit}",
+                      "PASS" if c.passed else "FAIL")
+    console().print(table)
+    console().print(f"benchmark written to {out}")
+
+
+def _long_bench(out: Path) -> None:
+    from pipeline.bench.long import run_long_bench
+
+    b = run_long_bench(out)
+    rows = []
+    for v in b.variants:
+        first, last = v.samples[0], v.samples[-1]
+        rows.append((v.name, f"RSS {first.rss_mb:.0f} -> {last.rss_mb:.0f} MB "
+                             f"({v.rss_growth_kb_per_image:.1f} KB/image), update ms "
+                             f"{first.median_update_ms:.2f} -> {last.median_update_ms:.2f}, "
+                             f"{v.wall_s:.0f} s"))
+    rows.append(("written", str(out)))
+    console().print(table(f"seqat bench long ({b.images} images)", rows))
+def _faults_bench(out: Path, seeds: list[int] | None, cases: list[str] | None,
+                  strip_config: Path, rendered: Path) -> None:
+    from pipeline.bench.faults.cases import CASES
+    from pipeline.bench.faults.report import summary_rows
+    from pipeline.bench.faults.suite import run_fault_bench
+
+    report = run_fault_bench(out, seeds=tuple(seeds or (1, 2, 3)), cases=tuple(cases or CASES),
+                             strip_config=strip_config, rendered_flight=rendered)
+    table = Table(title="seqat bench faults (mean over seeds)", title_justify="left")
+    header, rows = summary_rows(report)
+    for col in header:
+        table.add_column(col)
+    for row in rows:
+        table.add_row(*row)
+    console().print(table)
+    console().print(f"benchmark written to {out / 'faults.json'} and {out / 'faults.md'}")
+
+
+def _flight_bench(flight: Path, out: Path) -> None:
+    from pipeline.bench.flight import run_flight_bench
+
+    b = run_flight_bench(flight, out)
+
+    def stats(s: object) -> str:
+        return f"{s.median:.0f} / {s.p95:.0f} / {s.max:.0f}"  # type: ignore[attr-defined]
+
+    def diff(d: object) -> str:
+        return (f"{fmt(d.pos_rms_m, METRE_FORMAT)} m, "  # type: ignore[attr-defined]
+                f"{fmt(d.att_rms_deg, DEGREE_FORMAT)} deg")  # type: ignore[attr-defined]
+
+    rows = [
+        ("images (with a verified pair) / skipped",
+         f"{b.images} ({b.images_with_verified_pair}) / {b.skipped}"),
+        ("tracks >= 2 rays, length median / mean",
+         f"{b.tracks}, {b.track_length_median:g} / {b.track_length_mean:.2f}"),
+        ("residual px rms, median (seq-r / sim / seq-f)",
+         " / ".join(f"{b.rms_residual_px[m]:.2f}, {b.median_residual_px[m]:.2f}"
+                    for m in ("seq-r", "sim", "seq-f"))),
+        ("sigma0 (seq-r / sim / seq-f)",
+         " / ".join(f"{b.sigma0[m]:.3f}" for m in ("seq-r", "sim", "seq-f"))),
+        ("read / detect / match ms (median, p95, max)",
+         f"{stats(b.read_ms)}; {stats(b.detect_ms)}; {stats(b.match_ms)}"),
+        ("AT ms, latency ms (median, p95, max)", f"{stats(b.at_ms)}; {stats(b.latency_ms)}"),
+        ("Seq-R - Sim rms", diff(b.seq_r_minus_sim)),
+        ("Seq-F - Sim rms", diff(b.seq_f_minus_sim)),
+        ("nav - Sim rms", diff(b.nav_minus_sim)),
+        ("written", str(out)),
+    ]
+    console().print(table(f"seqat bench {flight}", rows))

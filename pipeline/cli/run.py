@@ -1,0 +1,162 @@
+"""``seqat run``, ``seqat watch`` and ``seqat feed``."""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
+import typer
+
+from pipeline.cli.common import console, guarded, run_rows, table
+
+if TYPE_CHECKING:
+    from pipeline.run.runner import Method
+
+
+app = typer.Typer()
+
+MethodOption = Annotated[str, typer.Option("--method", help="seq-r, seq-f or sim.")]
+ThresholdOption = Annotated[float | None, typer.Option(
+    "--threshold", help="seq-r: EOP correlation threshold in [0, 1].")]
+InitialImagesOption = Annotated[int | None, typer.Option(
+    "--initial-images", help="Images of the initial simultaneous stage.")]
+EstimatorOptionsFile = Annotated[Path | None, typer.Option(
+    "--options", help="Estimator options YAML (sections sequential:, sim:).")]
+BudgetOption = Annotated[float | None, typer.Option(
+    "--budget-ms", help="seq-r: processing budget per image (tracking + update), ms; over it "
+    "the window threshold tightens.")]
+
+
+@app.command()
+@guarded
+def run(
+    flight: Annotated[Path, typer.Argument(help="Flight folder.")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")],
+    method: MethodOption = "seq-r",
+    final_only: Annotated[bool, typer.Option(
+        "--final-only", help="sim: adjust once after the last image.")] = False,
+    threshold: ThresholdOption = None,
+    initial_images: InitialImagesOption = None,
+    options: EstimatorOptionsFile = None,
+    progress: Annotated[bool, typer.Option(
+        "--progress/--no-progress", help="Progress bar on a terminal.")] = True,
+    observations: Annotated[Path | None, typer.Option(
+        "--observations", help="Image points to use instead of the flight's own or of "
+        "tracking (e.g. OUT/observations.csv of an earlier run).")] = None,
+    ortho: Annotated[bool, typer.Option(
+        "--ortho", help="Orthorectify each image as soon as it is georeferenced and build "
+        "the mosaic live (ortho/, mosaic.tif, cameras.gpkg, ortho.json).")] = False,
+    dsm: Annotated[Path | None, typer.Option(
+        "--dsm", help="--ortho: DSM GeoTIFF (default: OUT/dsm.tif, the flight's lidar, else a "
+        "flat plane).")] = None,
+    ortho_options: Annotated[Path | None, typer.Option(
+        "--ortho-options", help="--ortho: options YAML (sections ortho:, mosaic:, live:).")]
+    = None,
+    report: Annotated[bool, typer.Option(
+        "--report", help="Then write OUT/report.html and report.json (as seqat report).")]
+    = False,
+    resume: Annotated[bool, typer.Option(
+        "--resume", help="Continue an interrupted run from OUT/journal/ (same results as an "
+        "uninterrupted run).")] = False,
+    budget_ms: BudgetOption = None,
+) -> None:
+    """Adjust a flight folder and write eop.csv, points.csv, run.json, nav.csv and
+    observations.csv."""
+    from pipeline.run.runner import run_flight
+    from seqat.errors import ConfigError
+
+    if not ortho and (dsm is not None or ortho_options is not None):
+        raise ConfigError("--dsm and --ortho-options go with --ortho")
+    live = None
+    if ortho:
+        from pipeline.ortho.live import open_live_ortho
+
+        live = open_live_ortho(flight, out, dsm_path=dsm, options_path=ortho_options)
+    with live if live is not None else contextlib.nullcontext():
+        summary = run_flight(flight, out, method=_method(method), final_only=final_only,
+                             options_path=options, threshold=threshold,
+                             initial_images=initial_images, progress=progress,
+                             observations=observations, resume=resume, budget_ms=budget_ms,
+                             listeners=(live,) if live is not None else ())
+    console().print(table(f"seqat run {summary.flight_dir}", run_rows(summary, final_only)))
+    if live is not None:
+        o = live.result()
+        assert o.live is not None
+        console().print(
+            f"orthos and mosaic (live): {o.mosaic} ({len(o.images)} images, "
+            f"{len(o.live.images_reorthorectified)} orthorectified again at the end; "
+            f"surface: {o.dsm_source}); ortho ms median {o.compute_ms.median_ms:.0f}, "
+            f"image to mosaic latency ms median / max {o.live.latency_ms.median_ms:.0f} / "
+            f"{o.live.latency_ms.max_ms:.0f}")
+    if report:
+        from pipeline.report.stage import make_report
+
+        r = make_report(summary.out_dir)
+        console().print("report: " + ", ".join(str(f) for f in r.files))
+
+
+def _method(method: str) -> Method:
+    from pipeline.run.runner import Method
+    from seqat.errors import ConfigError
+
+    try:
+        return Method(method)
+    except ValueError as err:
+        raise ConfigError(f"--method: expected one of "
+                          f"{', '.join(m.value for m in Method)}, got {method!r}") from err
+
+
+@app.command()
+@guarded
+def watch(
+    flight: Annotated[Path, typer.Argument(help="Flight folder being written (flight.yaml "
+                                           "present).")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")],
+    method: MethodOption = "seq-r",
+    threshold: ThresholdOption = None,
+    initial_images: InitialImagesOption = None,
+    options: EstimatorOptionsFile = None,
+    budget_ms: BudgetOption = None,
+    idle_timeout_s: Annotated[float | None, typer.Option(
+        "--idle-timeout-s", "--idle-timeout", help="Stop after this many seconds without new "
+        "input (default: until Ctrl-C).")] = None,
+    wait_timeout_s: Annotated[float, typer.Option(
+        "--wait-timeout-s", help="Seconds an image waits for its nav row (or a nav row for "
+        "its image) before it is skipped.")] = 10.0,
+    poll_s: Annotated[float, typer.Option("--poll-s", help="Seconds between polls.")] = 0.05,
+    resume: Annotated[bool, typer.Option(
+        "--resume", help="Continue from OUT/journal/ (after a crash or an earlier stop).")]
+    = False,
+) -> None:
+    """Georeference images as they appear in a growing flight folder; one line per image.
+    Ctrl-C or --idle-timeout-s stops and publishes the results (as seqat run)."""
+    from pipeline.run.watch import WatchOptions, watch_flight
+
+    summary = watch_flight(flight, out, method=_method(method), options_path=options,
+                           threshold=threshold, initial_images=initial_images,
+                           budget_ms=budget_ms, resume=resume,
+                           watch=WatchOptions(idle_timeout_s=idle_timeout_s,
+                                              wait_timeout_s=wait_timeout_s, poll_s=poll_s))
+    rows = [("stopped", summary.stopped), *run_rows(summary)]
+    console().print(table(f"seqat watch {summary.flight_dir}", rows))
+
+
+@app.command()
+@guarded
+def feed(
+    src: Annotated[Path, typer.Argument(help="Flight folder to replay.")],
+    dst: Annotated[Path, typer.Argument(help="Folder to write (absent or empty).")],
+    rate: Annotated[float, typer.Option("--rate", help="Images per second.")] = 2.0,
+    limit: Annotated[int | None, typer.Option("--limit", help="Only the first N images.")]
+    = None,
+    delay_s: Annotated[float, typer.Option(
+        "--delay-s", help="Seconds between writing flight.yaml and the first image.")] = 0.0,
+) -> None:
+    """Copy a flight into a folder image by image at the camera's rate (for seqat watch),
+    with the partial-file convention (name.jpg.part, then renamed)."""
+    from pipeline.run.feed import feed_flight
+
+    s = feed_flight(src, dst, rate_hz=rate, limit=limit, delay_s=delay_s)
+    console().print(f"fed {s.images} images in {s.duration_s:.1f} s (at most "
+                     f"{s.late_s * 1e3:.0f} ms late)")

@@ -1,0 +1,2 @@
+"""Flight folders in: ``flight.yaml`` schema, folder reader, navigation, EXIF/XMP, camera,
+dropouts."""

@@ -1,0 +1,192 @@
+"""From the ``flight.yaml`` camera to seqat's ideal pinhole camera, and back.
+
+seqat works with an ideal pinhole camera with square pixels (:class:`seqat.types.PinholeCamera`).
+A ``PINHOLE`` camera maps 1:1 (``f_px = fx_px = fy_px``). For an ``OPENCV`` camera, observed
+pixels are mapped to *ideal pixels* with ``cv2.undistortPoints`` using the new camera matrix
+``P = [[fx, 0, cx], [0, fx, cy], [0, 0, 1]]``: this is ``P = K`` when ``fx = fy``, and
+otherwise also rescales ``v`` so that the ideal camera has square pixels with ``f_px = fx``.
+The way back (ideal -> observed, :func:`distort_normalized`, used by the orthorectifier) applies
+the OpenCV model in closed form, vectorised over whole grids.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from pipeline.flight.schema import CameraConfig
+from seqat.types import FloatArray, PinholeCamera
+
+#: Iterations of OpenCV's iterative undistortion (its default of 5 leaves ~1e-5 px errors).
+UNDISTORT_MAX_ITERATIONS = 100
+#: Convergence threshold of the iterative undistortion, normalised image units.
+UNDISTORT_EPS = 1e-14
+#: Default number of samples per image edge of :func:`border_pixels`.
+BORDER_SAMPLES_PER_EDGE = 16
+#: Distortion lookup table: node spacing and margin around the image's ideal pixels (px),
+#: border samples per edge used to find that range. Outside it cells are not projected (the
+#: distortion polynomial may fold back far outside the field of view).
+LUT_STEP_PX = 4.0
+LUT_MARGIN_PX = 8.0
+LUT_BORDER_SAMPLES = 64
+
+
+def pinhole_camera(camera: CameraConfig) -> PinholeCamera:
+    """The ideal pinhole camera seqat uses for ``camera`` (``f_px = fx_px``)."""
+    return PinholeCamera(f_px=camera.fx_px, cx_px=camera.cx_px, cy_px=camera.cy_px,
+                         width_px=camera.width_px, height_px=camera.height_px)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class PixelCorrector:
+    """Maps observed pixels of a configured camera to ideal pinhole pixels.
+
+    Parameters
+    ----------
+    camera : CameraConfig
+    """
+
+    camera: CameraConfig
+
+    @property
+    def is_identity(self) -> bool:
+        """True when observed pixels already are ideal pixels (no distortion, square pixels)."""
+        return not self.camera.has_distortion and self.camera.fx_px == self.camera.fy_px
+
+    def ideal_pixels(self, uv_px: FloatArray) -> FloatArray:
+        """Remove lens distortion (and pixel aspect) from observed pixel coordinates.
+
+        Parameters
+        ----------
+        uv_px : (k, 2) float
+            Observed OpenCV pixels (u right, v down, origin at the centre of the top-left pixel).
+
+        Returns
+        -------
+        (k, 2) float
+            Pixels of the ideal camera :func:`pinhole_camera`.
+        """
+        uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
+        if self.is_identity or uv.shape[0] == 0:
+            return uv.copy()
+        cam = self.camera
+        K = np.array([[cam.fx_px, 0.0, cam.cx_px], [0.0, cam.fy_px, cam.cy_px], [0.0, 0.0, 1.0]])
+        P = np.array([[cam.fx_px, 0.0, cam.cx_px], [0.0, cam.fx_px, cam.cy_px], [0.0, 0.0, 1.0]])
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, UNDISTORT_MAX_ITERATIONS,
+                    UNDISTORT_EPS)
+        out = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, cam.distortion, P=P, criteria=criteria)
+        return np.asarray(out, dtype=np.float64).reshape(-1, 2)
+
+    def observed_pixels(self, uv_px: FloatArray) -> FloatArray:
+        """Add lens distortion (and pixel aspect) to ideal pixels: inverse of :meth:`ideal_pixels`.
+
+        Parameters
+        ----------
+        uv_px : (k, 2) float
+            Ideal pinhole pixels (:func:`pinhole_camera`).
+
+        Returns
+        -------
+        (k, 2) float
+            Observed OpenCV pixels.
+        """
+        uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
+        cam = self.camera
+        xn = (uv[:, 0] - cam.cx_px) / cam.fx_px
+        yn = (uv[:, 1] - cam.cy_px) / cam.fx_px
+        u, v = distort_normalized(xn, yn, cam)
+        return np.column_stack([u, v])
+
+
+def distort_normalized(xn: np.ndarray, yn: np.ndarray, camera: CameraConfig) -> (
+        tuple[np.ndarray, np.ndarray]):
+    """OpenCV projection of normalised camera coordinates to observed pixels.
+
+    ``r2 = xn^2 + yn^2``, ``radial = 1 + k1 r2 + k2 r2^2 + k3 r2^3``,
+    ``xd = xn radial + 2 p1 xn yn + p2 (r2 + 2 xn^2)``,
+    ``yd = yn radial + p1 (r2 + 2 yn^2) + 2 p2 xn yn``, ``u = fx xd + cx``, ``v = fy yd + cy``
+    (OpenCV's ``projectPoints`` model with ``k4..k6 = s1..s4 = 0``; pinned against it and
+    against :meth:`PixelCorrector.ideal_pixels` by tests/pipeline/flight/test_camera.py).
+
+    Parameters
+    ----------
+    xn, yn : array of float32 or float64 (any shape)
+        Normalised coordinates in the OpenCV camera frame ``(x, -y, -z)``:
+        ``xn = x_cv / z_cv``, ``yn = y_cv / z_cv``.
+    camera : CameraConfig
+
+    Returns
+    -------
+    u_px, v_px : arrays of the input shape and dtype
+        Observed OpenCV pixels. Valid only within the image's field of view: far outside
+        it the polynomial may fold back (callers bound ``r2``).
+    """
+    dtype = np.result_type(xn, yn)
+    c = {name: dtype.type(getattr(camera, name)) for name in (
+        "fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2")}
+    if not camera.has_distortion:
+        return c["fx_px"] * xn + c["cx_px"], c["fy_px"] * yn + c["cy_px"]
+    r2 = xn * xn + yn * yn
+    radial = 1 + r2 * (c["k1"] + r2 * (c["k2"] + r2 * c["k3"]))
+    xy2 = 2 * xn * yn
+    xd = xn * radial + c["p1"] * xy2 + c["p2"] * (r2 + 2 * xn * xn)
+    yd = yn * radial + c["p1"] * (r2 + 2 * yn * yn) + c["p2"] * xy2
+    return c["fx_px"] * xd + c["cx_px"], c["fy_px"] * yd + c["cy_px"]
+
+
+def border_pixels(width_px: int, height_px: int, n: int = BORDER_SAMPLES_PER_EDGE) -> (
+        FloatArray):
+    """Observed pixels along the image border, clockwise from the top-left corner.
+
+    Returns
+    -------
+    (4 n, 2) float
+        On the outer pixel edges (``-0.5`` and ``size - 0.5``).
+    """
+    w, h = width_px - 0.5, height_px - 0.5
+    t = np.linspace(0.0, 1.0, n, endpoint=False)
+    top = np.column_stack([-0.5 + t * (w + 0.5), np.full(n, -0.5)])
+    right = np.column_stack([np.full(n, w), -0.5 + t * (h + 0.5)])
+    bottom = np.column_stack([w - t * (w + 0.5), np.full(n, h)])
+    left = np.column_stack([np.full(n, -0.5), h - t * (h + 0.5)])
+    return np.vstack([top, right, bottom, left])
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class DistortionTable:
+    """Ideal -> observed pixels as a table, read with ``cv2.remap`` (bilinear).
+
+    ``table[j, i] = observed(u0 + i step, v0 + j step) - (i step, j step)``: for ideal pixels
+    ``(u, v)`` the observed ones are ``step * ((u - u0) / step, (v - v0) / step) + table``
+    interpolated there (``cv2.remap(table, (u - u0) / step, ...)``). Covers the ideal pixels
+    of the image plus ``LUT_MARGIN_PX``; outside it the caller's border value applies (the
+    orthorectifier's lies far outside any image, so such cells are unseen: the polynomial may
+    fold back there). The OpenCV polynomial is smooth: bilinear interpolation over
+    ``LUT_STEP_PX`` adds < 0.01 px (tests/pipeline/flight/test_camera.py).
+    """
+
+    table: np.ndarray  # (nv, nu, 2) float32
+    u0: float
+    v0: float
+    step_px: float
+
+    @classmethod
+    def for_camera(cls, camera: CameraConfig) -> DistortionTable:
+        """The table of ``camera`` (closed-form :func:`distort_normalized` at every node)."""
+        corrector = PixelCorrector(camera=camera)
+        ideal = corrector.ideal_pixels(border_pixels(camera.width_px, camera.height_px,
+                                                     LUT_BORDER_SAMPLES))
+        u0 = math.floor(ideal[:, 0].min()) - LUT_MARGIN_PX
+        v0 = math.floor(ideal[:, 1].min()) - LUT_MARGIN_PX
+        nu = int(math.ceil((ideal[:, 0].max() + LUT_MARGIN_PX - u0) / LUT_STEP_PX)) + 2
+        nv = int(math.ceil((ideal[:, 1].max() + LUT_MARGIN_PX - v0) / LUT_STEP_PX)) + 2
+        gu = np.arange(nu) * LUT_STEP_PX
+        gv = np.arange(nv) * LUT_STEP_PX
+        U, V = np.meshgrid(u0 + gu, v0 + gv)
+        uo, vo = distort_normalized((U - camera.cx_px) / camera.fx_px,
+                                    (V - camera.cy_px) / camera.fx_px, camera)
+        table = np.stack([uo - gu[None, :], vo - gv[:, None]], axis=-1).astype(np.float32)
+        return cls(table=table, u0=float(u0), v0=float(v0), step_px=float(LUT_STEP_PX))

@@ -1,0 +1,609 @@
+"""Flight folders: ``flight.yaml`` + navigation + observations or images.
+
+:func:`read_flight` validates the configuration and the CRS and reads the navigation fully
+(one small row per image). :class:`FrameSource` then streams ``observations.csv`` and yields
+one :class:`seqat.types.Frame` per image in acquisition order (nav order), holding only the
+rows of the current image: the same loop serves a batch run and, later, a growing folder.
+
+Every problem with the input raises :class:`~seqat.errors.InputDataError` (or
+:class:`~seqat.errors.ConfigError` for ``flight.yaml``) with ``path:line:`` and the field and
+value. File formats: docs/formats.md.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pyproj
+
+from pipeline.common.columns import FLIGHT_YAML, IMAGES_DIR, TRUTH_DIR
+from pipeline.common.csvio import CsvRow, read_csv
+from pipeline.common.tables import GroundPoints, NavTable
+from pipeline.flight.camera import PixelCorrector, pinhole_camera
+from pipeline.flight.dropout import dropout_sigma, predict_missing
+from pipeline.flight.image_metadata import (
+    HeightKind,
+    ImageMetadata,
+    found_tags,
+    read_image_metadata,
+)
+from pipeline.flight.inputs import RunInputs, SkippedImage
+from pipeline.flight.nav_files import (
+    OBSERVATION_COLUMNS,
+    read_ground_points,
+    read_nav_geodetic,
+    read_nav_projected,
+)
+from pipeline.flight.navigation import (
+    MIN_IMAGES,
+    geodetic_to_eop,
+    image_files,
+    read_image_folder_nav,
+    resolve_projected_crs,
+    resolve_working_crs,
+)
+from pipeline.flight.schema import CameraConfig, FlightConfig, NavConfig, load_flight_config
+from seqat.errors import ConfigError, InputDataError
+from seqat.types import FloatArray, Frame, PinholeCamera
+
+#: Diagonal of a 36 x 24 mm frame: 35 mm-equivalent focal lengths refer to it.
+FULL_FRAME_DIAGONAL_MM = 43.2666
+#: Relative aspect-ratio difference still taken as "the same camera, resized".
+ASPECT_TOLERANCE = 2e-3
+#: Half a pixel: observed pixel centres lie in ``[-0.5, width - 0.5]`` (OpenCV convention).
+HALF_PIXEL = 0.5
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Flight:
+    """A validated flight folder: navigation read, images or observations located.
+
+    Attributes
+    ----------
+    path : Path
+        The flight folder.
+    config : FlightConfig
+        ``flight.yaml`` (defaults for a bare folder of images).
+    crs : pyproj.CRS
+        Projected, metre axes; ``x_m`` is the easting and ``y_m`` the northing whatever the
+        CRS's own axis order.
+    camera_config : CameraConfig
+        Camera of the observed pixels (full-resolution images).
+    camera_approximate : bool
+        The camera comes from EXIF, not from ``flight.yaml``.
+    camera : PinholeCamera
+        Ideal camera of the frames (distortion removed).
+    corrector : PixelCorrector
+        Observed -> ideal pixels.
+    nav : NavTable
+        GPS/INS EOPs in the working CRS, acquisition order, usable images only; NaN for the
+        position or attitude of a GNSS dropout (``nav.dropout: bridge``).
+    nav_sigma : (6,) float
+        A priori σ, metres and radians.
+    observations_path : Path or None
+        ``observations.csv`` (observations flights); ``None`` for image flights.
+    images_dir : Path or None
+    image_paths : tuple[Path, ...]
+        One per ``nav`` row (image flights), else empty.
+    skipped : tuple[SkippedImage, ...]
+        Images of the flight left out, with the reason.
+    warnings : tuple[str, ...]
+    """
+
+    path: Path
+    config: FlightConfig
+    crs: pyproj.CRS
+    camera_config: CameraConfig
+    camera_approximate: bool
+    camera: PinholeCamera
+    corrector: PixelCorrector
+    nav: NavTable
+    nav_sigma: FloatArray
+    observations_path: Path | None
+    images_dir: Path | None = None
+    image_paths: tuple[Path, ...] = ()
+    skipped: tuple[SkippedImage, ...] = ()
+    warnings: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        # start values of dropout components, from earlier rows only (pipeline.flight.dropout)
+        object.__setattr__(self, "_nav_start", predict_missing(self.nav.eop, self.nav.times_s))
+
+    def frame_nav(self, row: int) -> tuple[FloatArray, FloatArray]:
+        """The ``nav_eop`` and ``nav_sigma`` of the frame of nav row ``row``.
+
+        A dropout's missing components get ``inf`` σ (no constraint) and a start value
+        predicted from the earlier rows (:func:`pipeline.flight.dropout.predict_missing`).
+        """
+        missing = np.isnan(self.nav.eop[row])
+        start: FloatArray = self._nav_start[row]  # type: ignore[attr-defined]
+        return start, dropout_sigma(self.nav_sigma, missing)
+
+    def is_dropout(self, row: int) -> bool:
+        """Whether nav row ``row`` misses its position or attitude (a GNSS dropout)."""
+        return bool(np.isnan(self.nav.eop[row]).any())
+
+    @property
+    def kind(self) -> Literal["observations", "images"]:
+        """``observations`` (precomputed image points) or ``images`` (tie points tracked)."""
+        return "observations" if self.observations_path is not None else "images"
+
+    def frames(self) -> FrameSource:
+        """The observations of an observations flight as a lazy stream of frames."""
+        if self.observations_path is None:
+            raise ConfigError(f"{self.path}: an image flight has no observations file; its "
+                              "frames come from the tracker (pipeline.tracking.tracker)")
+        return FrameSource(self)
+
+    def inputs(self) -> RunInputs:
+        """What the estimator is given, for the run folder (:class:`RunInputs`)."""
+        return RunInputs(crs=self.crs, camera=self.camera_config,
+                         camera_approximate=self.camera_approximate, nav=self.nav,
+                         nav_sigma=self.nav_sigma, sigma_image_px=self.config.sigma_image_px,
+                         images_dir=self.images_dir, skipped=self.skipped,
+                         warnings=self.warnings)
+
+
+def _in_folder(folder: Path, name: str) -> Path:
+    path = Path(name)
+    return path if path.is_absolute() else folder / path
+
+
+def _bare_image_folder(folder: Path) -> FlightConfig:
+    """Defaults for a folder of images without ``flight.yaml`` (nav from the images)."""
+    for sub in (".", IMAGES_DIR):
+        candidate = folder / sub
+        if candidate.is_dir() and image_files(candidate):
+            return FlightConfig(images=sub, nav=NavConfig(source="images"))
+    raise InputDataError(f"{folder / FLIGHT_YAML}: no such file, and no JPEG images in "
+                         f"{folder} or {folder / IMAGES_DIR} (a flight folder needs "
+                         f"{FLIGHT_YAML} or images)")
+
+
+def camera_from_exif(meta: ImageMetadata) -> CameraConfig:
+    """An approximate pinhole camera from EXIF focal length and sensor size.
+
+    ``f_px = FocalLength [mm] · FocalPlaneXResolution [px/mm] · width / ExifImageWidth``
+    (the focal-plane resolution refers to the camera's original width, which resized files
+    keep in ``ExifImageWidth``), else ``f_px = FocalLengthIn35mmFilm / 43.27 mm · diagonal
+    [px]``. Principal point at the image centre, no distortion.
+
+    Raises
+    ------
+    InputDataError
+        Neither is in the file.
+    """
+    w, h = meta.width_px, meta.height_px
+    if meta.focal_mm and meta.focal_plane_px_per_mm:
+        scale = w / meta.exif_width_px if meta.exif_width_px else 1.0
+        f_px = meta.focal_mm * meta.focal_plane_px_per_mm * scale
+    elif meta.focal_35mm:
+        f_px = meta.focal_35mm / FULL_FRAME_DIAGONAL_MM * math.hypot(w, h)
+    else:
+        raise InputDataError(
+            f"{meta.path.name}: no camera in {FLIGHT_YAML} and EXIF has neither FocalLength "
+            f"with FocalPlaneXResolution nor FocalLengthIn35mmFilm (found: {found_tags(meta)}); "
+            f"give camera: in {FLIGHT_YAML}")
+    return CameraConfig(model="PINHOLE", width_px=w, height_px=h, fx_px=f_px, fy_px=f_px,
+                        cx_px=(w - 1) / 2.0, cy_px=(h - 1) / 2.0)
+
+
+def geodetic_nav_eop(config: FlightConfig, crs: pyproj.CRS, lat_lon_h: FloatArray,
+                     roll_pitch_yaw_deg: FloatArray) -> FloatArray:
+    """EOPs ``(n, 6)`` of geodetic ``nav.csv`` rows (``nav.height``, boresight, lever arm)."""
+    lat, lon, h = np.asarray(lat_lon_h, dtype=np.float64).reshape(-1, 3).T
+    n = len(lat)
+    kind: HeightKind = "orthometric" if config.nav.height == "egm96" else "ellipsoidal"
+    return geodetic_to_eop(lon, lat, h, roll_pitch_yaw_deg, ["body"] * n, [kind] * n, crs,
+                           config.nav.boresight, np.asarray(config.nav.lever_arm_m))
+def _fill_from_previous(values: FloatArray) -> FloatArray:
+    """Rows with NaN take the previous complete row (before the first: the first complete)."""
+    out = values.copy()
+    ok = np.flatnonzero(np.all(np.isfinite(values), axis=1))
+    for i in np.flatnonzero(~np.all(np.isfinite(values), axis=1)):
+        before = ok[ok < i]
+        out[i] = values[before[-1] if before.size else ok[0]] if ok.size else 0.0
+    return out
+
+
+def _geodetic_file_nav(path: Path, config: FlightConfig, source: str) -> tuple[pyproj.CRS,
+                                                                              NavTable]:
+    geo = read_nav_geodetic(path, allow_missing=True)  # nav.dropout: skip drops them later
+    missing = np.isnan(np.column_stack([geo.lat_lon_h, geo.roll_pitch_yaw_deg]))
+    # A dropout row is converted with the previous fix and attitude (the grid convergence
+    # and the lever arm need them), then its missing groups are set back to NaN.
+    lat_lon_h = _fill_from_previous(geo.lat_lon_h)
+    first = int(np.flatnonzero(~missing[:, 0])[0])
+    crs = resolve_working_crs(config.crs, float(lat_lon_h[first, 1]),
+                              float(lat_lon_h[first, 0]), source=source)
+    eop = geodetic_nav_eop(config, crs, lat_lon_h, _fill_from_previous(geo.roll_pitch_yaw_deg))
+    eop[missing] = np.nan
+    return crs, NavTable(image_ids=geo.image_ids, times_s=geo.times_s, eop=eop)
+
+
+def _dropout_reason(image: str, missing: np.ndarray, source: str) -> str:
+    what = " and ".join(name for name, sl in (("position", slice(0, 3)),
+                                             ("attitude", slice(3, 6))) if missing[sl].any())
+    return f"{image}: GNSS dropout (no {what} in {source}; nav.dropout: skip)"
+
+
+def _skip_dropouts(nav: NavTable, skipped: list[SkippedImage], source: str) -> NavTable:
+    """``nav.dropout: skip``: leave out the rows with a missing group."""
+    missing = np.isnan(nav.eop)
+    keep = ~missing.any(axis=1)
+    for i in np.flatnonzero(~keep):
+        skipped.append(SkippedImage(image=nav.image_ids[i],
+                                    reason=_dropout_reason(nav.image_ids[i], missing[i], source)))
+    return NavTable(image_ids=tuple(np.asarray(nav.image_ids)[keep]), times_s=nav.times_s[keep],
+                    eop=nav.eop[keep])
+
+
+def _insert_rows(nav: NavTable, images: list[str]) -> NavTable:
+    """Add dropout rows (all NaN) for images without a ``nav.csv`` row.
+
+    Each goes after the last nav image whose id sorts before it (file names follow the
+    acquisition order); its time is interpolated between its neighbours' (after the last:
+    the median interval on), a placeholder that only keeps the times increasing.
+    """
+    if not images:
+        return nav
+    order = list(nav.image_ids)
+    for image in sorted(images):
+        pos = 0
+        for k, other in enumerate(order):
+            if other < image:
+                pos = k + 1
+        order.insert(pos, image)
+    row_of = nav.index()
+    eop = np.full((len(order), 6), np.nan)
+    times = np.full(len(order), np.nan)
+    for k, image in enumerate(order):
+        if image in row_of:
+            eop[k], times[k] = nav.eop[row_of[image]], nav.times_s[row_of[image]]
+    known = np.flatnonzero(np.isfinite(times))
+    step = float(np.median(np.diff(nav.times_s))) if len(nav) > 1 else 1.0
+    for k in np.flatnonzero(np.isnan(times)):
+        before, after = known[known < k], known[known > k]
+        if before.size and after.size:
+            a, b = before[-1], after[0]
+            times[k] = times[a] + (times[b] - times[a]) * (k - a) / (b - a)
+        elif before.size:
+            times[k] = times[before[-1]] + step * (k - before[-1])
+        else:
+            times[k] = times[after[0]] - step * (after[0] - k)
+    return NavTable(image_ids=tuple(order), times_s=times, eop=eop)
+
+
+def read_flight(flight_dir: Path | str) -> Flight:
+    """Open and validate a flight folder (docs/formats.md, *Flight folder*).
+
+    Three kinds: observations (``observations:`` given), images with a ``nav.csv``
+    (``images:`` given, ``nav.source: file``, projected or geodetic), images with the
+    navigation in their metadata (``nav.source: images``, or a bare folder of JPEGs without
+    ``flight.yaml``). For image flights, unusable images (truncated, no GPS, listed in
+    ``nav.csv`` but missing, of another aspect ratio, ...) are skipped and listed in
+    :attr:`Flight.skipped`; the run goes on with the others.
+
+    Raises
+    ------
+    InputDataError
+        Missing folder or file, unknown or unsuitable CRS, bad ``nav.csv``, too few usable
+        images.
+    ConfigError
+        Bad ``flight.yaml``.
+    """
+    folder = Path(flight_dir)
+    yaml_path = folder / FLIGHT_YAML
+    if not folder.is_dir():
+        raise InputDataError(f"{folder}: no such flight folder")
+    warnings: list[str] = []
+    if yaml_path.is_file():
+        config = load_flight_config(yaml_path)
+    else:
+        config = _bare_image_folder(folder)
+    source = str(yaml_path)
+    if config.observations is None and config.images is None:
+        raise ConfigError(f"{source}: give observations: (image points) or images: (a folder "
+                          "of images to track)")
+    images_dir = _in_folder(folder, config.images) if config.images is not None else None
+    if images_dir is not None and not images_dir.is_dir():
+        raise InputDataError(f"{images_dir}: no such image folder (images in {source})")
+    skipped: list[SkippedImage] = []
+    metas: dict[str, ImageMetadata] = {}
+    bridge = config.nav.dropout == "bridge"
+    if config.nav.source == "images":
+        if images_dir is None:
+            raise ConfigError(f"{source}: nav.source: 'images' needs images: (a folder)")
+        folder_nav = read_image_folder_nav(images_dir, config.crs, config.nav.boresight,
+                                           np.asarray(config.nav.lever_arm_m), skip_bad=True,
+                                           dropout=bridge)
+        crs, nav = folder_nav.crs, folder_nav.to_nav_table()
+        skipped += [SkippedImage(image=i, reason=r) for i, r in folder_nav.skipped]
+        warnings += folder_nav.warnings
+        metas = {r.image: r.metadata for r in folder_nav.records}
+    else:
+        nav_path = _in_folder(folder, config.nav.file)
+        if config.nav.frame == "geodetic":
+            crs, nav = _geodetic_file_nav(nav_path, config, source)
+        else:
+            crs = resolve_projected_crs(config.crs, source)
+            nav = read_nav_projected(nav_path, allow_missing=True)
+    obs_path = None
+    if config.observations is not None:
+        obs_path = _in_folder(folder, config.observations)
+        if not obs_path.is_file():
+            raise InputDataError(f"{obs_path}: no such file (observations in {source})")
+    elif images_dir is not None and config.nav.source == "file":
+        metas, no_row = _image_metadata_for_nav(images_dir, nav, skipped, bridge=bridge)
+        nav = _insert_rows(nav, no_row)
+    if not bridge:
+        nav = _skip_dropouts(nav, skipped, config.nav.file if config.nav.source == "file"
+                             else "the image metadata")
+    camera_config, approximate = config.camera, False
+    if camera_config is None:
+        if not metas:
+            raise ConfigError(f"{source}: camera: required for an observations flight")
+        camera_config, approximate = camera_from_exif(next(iter(metas.values()))), True
+    if obs_path is None:
+        nav = _check_sizes(nav, metas, camera_config, skipped, warnings)
+    if len(nav) < MIN_IMAGES:
+        raise InputDataError(f"{folder}: {len(nav)} usable image(s); at least {MIN_IMAGES} are "
+                             f"needed (skipped: {'; '.join(s.reason for s in skipped)})")
+    paths = tuple(metas[i].path for i in nav.image_ids) if obs_path is None else ()
+    return Flight(path=folder, config=config, crs=crs, camera_config=camera_config,
+                  camera_approximate=approximate, camera=pinhole_camera(camera_config),
+                  corrector=PixelCorrector(camera=camera_config), nav=nav,
+                  nav_sigma=config.nav.sigma_eop, observations_path=obs_path,
+                  images_dir=images_dir, image_paths=paths, skipped=tuple(skipped),
+                  warnings=tuple(warnings))
+
+
+def _image_metadata_for_nav(images_dir: Path, nav: NavTable, skipped: list[SkippedImage], *,
+                            bridge: bool = False) -> tuple[dict[str, ImageMetadata], list[str]]:
+    """Metadata of the image of each nav row; unreadable or missing ones go to ``skipped``.
+
+    Images without a nav row are skipped, or with ``bridge`` returned as dropouts (second
+    value; their metadata is in the first).
+    """
+    files = {p.stem: p for p in image_files(images_dir)}
+    metas: dict[str, ImageMetadata] = {}
+    for image in nav.image_ids:
+        path = files.pop(image, None)
+        if path is None:
+            skipped.append(SkippedImage(image=image, reason=f"{image}: listed in nav.csv but "
+                                        f"no {image}.jpg in {images_dir}"))
+            continue
+        try:
+            metas[image] = read_image_metadata(path)
+        except InputDataError as err:
+            skipped.append(SkippedImage(image=image, reason=str(err)))
+    no_row: list[str] = []
+    for stem, path in files.items():
+        if not bridge:
+            skipped.append(SkippedImage(image=stem, reason=f"{path.name}: no row in nav.csv"))
+            continue
+        try:
+            metas[stem] = read_image_metadata(path)
+            no_row.append(stem)
+        except InputDataError as err:
+            skipped.append(SkippedImage(image=stem, reason=str(err)))
+    return metas, no_row
+
+
+def _check_sizes(nav: NavTable, metas: dict[str, ImageMetadata], camera: CameraConfig,
+                 skipped: list[SkippedImage], warnings: list[str]) -> NavTable:
+    """Keep the nav rows of images that can be read at the camera's size.
+
+    An image of another size with the same aspect ratio is resampled to the camera size
+    when read (warning); one of another aspect ratio is skipped.
+    """
+    keep = []
+    for row, image in enumerate(nav.image_ids):
+        meta = metas.get(image)
+        if meta is None:
+            continue
+        skip, warning = check_image_size(meta, camera)
+        if warning is not None:
+            warnings.append(warning)
+        if skip is not None:
+            skipped.append(SkippedImage(image=image, reason=skip))
+            continue
+        keep.append(row)
+    return NavTable(image_ids=tuple(nav.image_ids[i] for i in keep), times_s=nav.times_s[keep],
+                    eop=nav.eop[keep])
+
+
+def check_image_size(meta: ImageMetadata, camera: CameraConfig) -> tuple[str | None, str | None]:
+    """``(reason to skip, warning)`` of an image's size against the camera's.
+
+    Another size with the same aspect ratio is resampled when read (warning); another aspect
+    ratio is skipped.
+    """
+    w, h = meta.width_px, meta.height_px
+    if (w, h) == (camera.width_px, camera.height_px):
+        return None, None
+    if abs(w * camera.height_px - h * camera.width_px) <= ASPECT_TOLERANCE * w * h:
+        return None, (f"{meta.path.name}: size {w} x {h} px differs from the camera's "
+                      f"{camera.width_px} x {camera.height_px} px; resampled to it "
+                      "(same aspect ratio)")
+    return (f"{meta.path.name}: size {w} x {h} px has another aspect ratio than the camera's "
+            f"{camera.width_px} x {camera.height_px} px"), None
+
+
+@dataclass(frozen=True, kw_only=True)
+class ObservationStats:
+    """Counts from a full pass over ``observations.csv``."""
+
+    n_observations: int
+    n_points: int
+    n_images_observed: int
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class _Group:
+    """The contiguous observation rows of one image."""
+
+    image_id: str
+    nav_row: int
+    point_ids: tuple[str, ...]
+    uv_px: FloatArray  # (k, 2) observed pixels
+
+
+class FrameSource:
+    """Lazy stream of :class:`Frame` objects in acquisition order.
+
+    Iterating reads ``observations.csv`` once, keeping only the current image's rows (plus
+    the set of finished image ids, to detect non-contiguous rows). Images of ``nav.csv``
+    without observations give frames with no image points. Validation errors surface when
+    the offending row is reached; call :meth:`validate` for a full check first.
+
+    Parameters
+    ----------
+    flight : Flight
+    """
+
+    def __init__(self, flight: Flight) -> None:
+        self._flight = flight
+        self._nav_index = flight.nav.index()
+        self._nav_sigma = flight.nav_sigma
+
+    def __len__(self) -> int:
+        return len(self._flight.nav)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for frame, _ in self.with_observed():
+            yield frame
+
+    def with_observed(self) -> Iterator[tuple[Frame, FloatArray]]:
+        """Frames together with their observed (distorted) pixels, ``(k, 2)``."""
+        next_row = 0
+        empty = np.zeros((0, 2))
+        for group in self._groups():
+            while next_row < group.nav_row:
+                yield self._frame(next_row, (), empty), empty
+                next_row += 1
+            uv = self._flight.corrector.ideal_pixels(group.uv_px)
+            yield self._frame(group.nav_row, group.point_ids, uv), group.uv_px
+            next_row = group.nav_row + 1
+        while next_row < len(self._flight.nav):
+            yield self._frame(next_row, (), empty), empty
+            next_row += 1
+
+    def validate(self) -> ObservationStats:
+        """Read the whole observations file once, raising on the first problem.
+
+        Returns
+        -------
+        ObservationStats
+        """
+        n_obs, n_images = 0, 0
+        points: set[str] = set()
+        for group in self._groups():
+            n_obs += len(group.point_ids)
+            n_images += 1
+            points.update(group.point_ids)
+        return ObservationStats(n_observations=n_obs, n_points=len(points),
+                                n_images_observed=n_images)
+
+    def _frame(self, row: int, point_ids: tuple[str, ...], uv_px: FloatArray) -> Frame:
+        nav_eop, nav_sigma = self._flight.frame_nav(row)
+        return Frame(image_id=self._flight.nav.image_ids[row], nav_eop=nav_eop,
+                     nav_sigma=nav_sigma, point_ids=point_ids, uv_px=uv_px,
+                     sigma_px=self._flight.config.sigma_image_px)
+
+    def _groups(self) -> Iterator[_Group]:
+        """Contiguous per-image groups of ``observations.csv``, validated, in nav order."""
+        cam = self._flight.camera_config
+        done: dict[str, int] = {}  # finished image -> last line of its rows
+        current: str | None = None
+        current_row = -1
+        point_line: dict[str, int] = {}
+        uvs: list[tuple[float, float]] = []
+        last_line = 0
+        nav_name = self._flight.config.nav.file
+        left_out = {s.image for s in self._flight.skipped}  # nav.dropout: skip
+        assert self._flight.observations_path is not None
+        for row in read_csv(self._flight.observations_path, OBSERVATION_COLUMNS):
+            image = row.ident("image")
+            if image in left_out and image not in self._nav_index:
+                continue
+            if image != current:
+                if current is not None:
+                    yield _Group(image_id=current, nav_row=current_row,
+                                 point_ids=tuple(point_line), uv_px=np.asarray(uvs))
+                    done[current] = last_line
+                if image in done:
+                    raise row.error(f"rows of image {image!r} are not contiguous (its earlier "
+                                    f"rows end at line {done[image]}); group rows by image")
+                nav_row = self._nav_index.get(image)
+                if nav_row is None:
+                    raise row.error(f"field 'image': unknown image {image!r} (not in "
+                                    f"{nav_name})")
+                if nav_row < current_row:
+                    raise row.error(f"image {image!r} comes after image {current!r} but was "
+                                    f"acquired before it ({nav_name}); rows must follow the "
+                                    "acquisition order")
+                current, current_row = image, nav_row
+                point_line, uvs = {}, []
+            point, u, v = observation_row(row, image, point_line, cam)
+            uvs.append((u, v))
+            last_line = row.line
+        if current is not None:
+            yield _Group(image_id=current, nav_row=current_row, point_ids=tuple(point_line),
+                         uv_px=np.asarray(uvs))
+
+
+def observation_row(row: CsvRow, image: str, point_line: dict[str, int],
+                    camera: CameraConfig) -> tuple[str, float, float]:
+    """Point id and pixel of an ``observations.csv`` row of ``image``, checked.
+
+    ``point_line`` (point -> line) holds the image's earlier rows; the row is added to it.
+
+    Raises
+    ------
+    InputDataError
+        A point observed twice in the image, a pixel outside the image.
+    """
+    point = row.ident("point")
+    if point in point_line:
+        raise row.error(f"duplicate observation of point {point!r} in image {image!r} "
+                        f"(first at line {point_line[point]})")
+    u, v = row.number("x_px"), row.number("y_px")
+    if not (-HALF_PIXEL <= u <= camera.width_px - HALF_PIXEL
+            and -HALF_PIXEL <= v <= camera.height_px - HALF_PIXEL):
+        raise row.error(f"pixel ({u!r}, {v!r}) of point {point!r} lies outside the "
+                        f"{camera.width_px} x {camera.height_px} px image")
+    point_line[point] = row.line
+    return point, u, v
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Truth:
+    """Exact truth of a simulated flight (``truth/eop.csv``, ``truth/points.csv``)."""
+
+    eop: NavTable
+    points: GroundPoints
+
+
+def read_truth(flight_dir: Path | str) -> Truth | None:
+    """Read the ``truth/`` folder of a simulated flight.
+
+    Returns
+    -------
+    Truth or None
+        ``None`` when the flight has no ``truth/`` folder (real flights).
+
+    Raises
+    ------
+    InputDataError
+        ``truth/`` exists but a file is missing or malformed.
+    """
+    truth_dir = Path(flight_dir) / TRUTH_DIR
+    if not truth_dir.is_dir():
+        return None
+    return Truth(eop=read_nav_projected(truth_dir / "eop.csv"),
+                 points=read_ground_points(truth_dir / "points.csv"))

@@ -1,0 +1,159 @@
+"""``flight.yaml`` of a flight folder: the camera, navigation and flight config classes.
+
+Loaded with the strict loader of :mod:`pipeline.common.strict_yaml`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from pipeline.common.strict_yaml import build_dataclass, load_yaml
+from pipeline.flight.navigation import BoresightConfig
+from pipeline.tracking.options import TrackerOptions
+from seqat.errors import ConfigError
+from seqat.types import FloatArray
+
+#: Number of components of a position or attitude sigma given as a list.
+AXES = 3
+
+SigmaTriple = float | tuple[float, float, float]
+
+
+def _triple(value: SigmaTriple, name: str) -> tuple[float, float, float]:
+    """Expand a scalar-or-3-list sigma and check every component is positive and finite."""
+    trip = (value,) * AXES if isinstance(value, int | float) else tuple(value)
+    if len(trip) != AXES or not all(math.isfinite(v) and v > 0 for v in trip):
+        raise ConfigError(f"{name}: expected a positive number or a list of {AXES} positive "
+                          f"numbers, got {value!r}")
+    return (float(trip[0]), float(trip[1]), float(trip[2]))
+
+
+@dataclass(frozen=True, kw_only=True)
+class CameraConfig:
+    """``camera:`` section of ``flight.yaml`` (OpenCV pixel convention, docs/conventions.md).
+
+    ``model: PINHOLE`` is an ideal camera with square pixels (``fx_px == fy_px``) and no
+    distortion; ``model: OPENCV`` adds the OpenCV distortion ``k1 k2 p1 p2 k3``, removed by
+    :mod:`pipeline.flight.camera` before image points reach seqat.
+    """
+
+    model: Literal["PINHOLE", "OPENCV"]
+    width_px: int
+    height_px: int
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    k3: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("width_px", "height_px"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"{name}: expected a positive integer, got {getattr(self, name)}")
+        for name in ("fx_px", "fy_px"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name}: expected a positive number, got {getattr(self, name)}")
+        if self.model == "PINHOLE":
+            if self.fx_px != self.fy_px:
+                raise ConfigError(
+                    f"fy_px: a PINHOLE camera has square pixels, fx_px = fy_px, got "
+                    f"{self.fx_px!r} and {self.fy_px!r} (use model: OPENCV)")
+            if self.has_distortion:
+                raise ConfigError("a PINHOLE camera has no distortion, got non-zero "
+                                  "k1 k2 p1 p2 k3 (use model: OPENCV)")
+
+    @property
+    def distortion(self) -> FloatArray:
+        """(5,) OpenCV distortion coefficients ``[k1, k2, p1, p2, k3]``."""
+        return np.array([self.k1, self.k2, self.p1, self.p2, self.k3], dtype=np.float64)
+
+    @property
+    def has_distortion(self) -> bool:
+        return bool(np.any(self.distortion != 0.0))
+
+
+#: Default a priori σ of GPS positions (x, y, z), metres: a consumer GNSS receiver.
+DEFAULT_SIGMA_POSITION_M = (3.0, 3.0, 5.0)
+#: Default a priori σ of INS attitudes (omega, phi, kappa), degrees: a low-grade autopilot
+#: IMU whose "heading" may be the GPS course (on Seneca the adjusted kappa differs from it by
+#: +12 deg on one heading and -20 deg on the reverse one: the wind's crab angle; roll and
+#: pitch differ by 4-5 deg rms).
+DEFAULT_SIGMA_ATTITUDE_DEG = (5.0, 5.0, 15.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class NavConfig:
+    """``nav:`` section of ``flight.yaml``: where the GPS/INS comes from and its precision.
+
+    ``source: file`` reads ``file`` (``frame: projected`` or ``geodetic``); ``source: images``
+    reads each image's EXIF/XMP (docs/formats.md). ``height`` is the height kind of a
+    geodetic ``nav.csv`` (``ellipsoidal`` WGS 84 or ``egm96`` orthometric). ``boresight`` and
+    ``lever_arm_m`` (GPS antenna -> camera, body axes x forward, y right, z down, metres) apply
+    to geodetic attitudes and positions only. ``dropout`` is what becomes of an image
+    without a GNSS fix (empty or ``nan`` position fields, no ``nav.csv`` row, no GPS in its
+    EXIF): ``bridge`` (default) sends it to the estimator without a position constraint,
+    resected on the known ground points; ``skip`` leaves it out (docs/formats.md).
+    """
+
+    source: Literal["file", "images"] = "file"
+    file: str = "nav.csv"
+    frame: Literal["projected", "geodetic"] = "projected"
+    height: Literal["ellipsoidal", "egm96"] = "ellipsoidal"
+    sigma_position_m: SigmaTriple = DEFAULT_SIGMA_POSITION_M
+    sigma_attitude_deg: SigmaTriple = DEFAULT_SIGMA_ATTITUDE_DEG
+    boresight: BoresightConfig = BoresightConfig()
+    lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    dropout: Literal["bridge", "skip"] = "bridge"
+
+    def __post_init__(self) -> None:
+        _triple(self.sigma_position_m, "sigma_position_m")
+        _triple(self.sigma_attitude_deg, "sigma_attitude_deg")
+
+    @property
+    def sigma_eop(self) -> FloatArray:
+        """(6,) standard deviations of ``[X, Y, Z]`` (metres) and ``[omega, phi, kappa]`` (rad)."""
+        pos = _triple(self.sigma_position_m, "sigma_position_m")
+        att = _triple(self.sigma_attitude_deg, "sigma_attitude_deg")
+        return np.concatenate([np.asarray(pos), np.radians(att)])
+
+
+@dataclass(frozen=True, kw_only=True)
+class FlightConfig:
+    """``flight.yaml`` of a flight folder (docs/formats.md).
+
+    File names are relative to the flight folder (absolute paths are allowed).
+    """
+
+    crs: str = "auto"
+    camera: CameraConfig | None = None
+    nav: NavConfig = NavConfig()
+    sigma_image_px: float = 1.0
+    observations: str | None = None
+    images: str | None = None
+    checkpoints: str | None = None
+    lidar: str | tuple[str, ...] | None = None
+    tracking: TrackerOptions = TrackerOptions()
+
+    def __post_init__(self) -> None:
+        if not self.sigma_image_px > 0:
+            raise ConfigError(f"sigma_image_px: expected a positive number, "
+                              f"got {self.sigma_image_px!r}")
+        if not self.crs.strip():
+            raise ConfigError("crs: expected a CRS such as 'EPSG:32652', got an empty string")
+
+
+def load_flight_config(path: Path | str) -> FlightConfig:
+    """Read and validate a ``flight.yaml`` (structure and types; CRS:
+    :mod:`pipeline.flight.folder`)."""
+    return build_dataclass(FlightConfig, load_yaml(path), str(path))
+
+

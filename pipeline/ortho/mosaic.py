@@ -1,0 +1,311 @@
+"""Streaming mosaic of orthos, kept in tiles on disk (``mosaic.tif``).
+
+:class:`MosaicBuilder` receives one :class:`pipeline.ortho.base.OrthoResult` at a time and updates
+only the tiles of the global grid it touches; nothing but those tiles is in memory, so memory
+stays flat however long the flight. Per cell the mosaic keeps the image that sees it **most
+nadir** (smallest tangent of the off-nadir angle; for images at one height this is the nearest
+nadir point, so seamlines are the perpendicular bisectors between nadir points); across a
+seamline the two images are blended linearly over ``feather_px`` cells. ``finish()`` writes
+the tiles into a tiled GeoTIFF and converts it into the ``mosaic.tif`` COG with overviews
+(GDAL reads it block by block).
+
+Tiles: the most recently used ``cache_tiles`` stay in memory (consecutive images share most
+of their tiles); older ones go to the tile store ``<work_dir>/<col>_<row>.npz`` (bands, alpha,
+float32 off-nadir tangent with +inf where empty), written atomically and removed by
+``finish()``. Memory is bounded by the cache, whatever the flight's length.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import shutil
+import tempfile
+import time
+from collections import OrderedDict
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pyproj
+import rasterio
+from rasterio.transform import from_origin
+from rasterio.windows import Window
+
+from pipeline.ortho.base import ALPHA_OPAQUE, OrthoResult
+from pipeline.ortho.raster import COG_BLOCK_PX, atomic_path, colorinterp_for, gtiff_to_cog
+from seqat.errors import ConfigError, InputDataError
+
+#: Mosaic tile size, cells (= the COG block size, so tiles map to whole blocks).
+TILE_PX = COG_BLOCK_PX
+#: Default seamline feather width, cells.
+FEATHER_PX = 8
+#: Tiles kept in memory (about 2 MB each for RGB): more than one image's footprint.
+CACHE_TILES = 48
+
+
+@dataclass(frozen=True, kw_only=True)
+class MosaicUpdate:
+    """What :meth:`MosaicBuilder.add` reports."""
+
+    image_id: str
+    tiles_touched: int
+    cells_updated: int
+    update_ms: float
+    tiles: frozenset[tuple[int, int]] = frozenset()  # (column, row) of each tile touched
+
+
+@dataclass(frozen=True, kw_only=True)
+class MosaicResult:
+    """What :meth:`MosaicBuilder.finish` reports."""
+
+    path: Path
+    images: int
+    tiles: int
+    rows: int
+    cols: int
+    bounds: tuple[float, float, float, float]
+    finish_s: float
+
+
+class MosaicBuilder:
+    """Growing mosaic on the global ortho grid.
+
+    Parameters
+    ----------
+    path : Path
+        The ``mosaic.tif`` written by :meth:`finish`.
+    crs : pyproj.CRS
+    feather_px : int
+        Width of the blend across seamlines, cells (0: hard seams).
+    work_dir : Path, optional
+        Tile store (default: ``.<name>.tiles`` beside ``path``); emptied first.
+    cache_tiles : int, optional
+        Tiles held in memory. Default: ``CACHE_TILES``, raised to twice the tiles of the
+        largest ortho so far (bounded by the image size, not by the flight's length, and
+        consecutive images never thrash the tile store).
+    """
+
+    def __init__(self, path: Path | str, crs: pyproj.CRS, *, feather_px: int = FEATHER_PX,
+                 work_dir: Path | None = None, cache_tiles: int | None = None) -> None:
+        if feather_px < 0:
+            raise ConfigError(f"feather_px: expected >= 0, got {feather_px}")
+        self.path = Path(path)
+        self.crs = crs
+        self.feather_px = feather_px
+        self.work_dir = work_dir or self.path.parent / f".{self.path.name}.tiles"
+        if self.work_dir.exists():
+            shutil.rmtree(self.work_dir)
+        self.work_dir.mkdir(parents=True)
+        self.pixel_m: float | None = None
+        self.bands: int | None = None
+        self.dtype: np.dtype | None = None
+        self._tiles: set[tuple[int, int]] = set()  # every tile holding data
+        self._stored: set[tuple[int, int]] = set()  # tiles in the tile store
+        self._cache: OrderedDict[tuple[int, int], _Tile] = OrderedDict()
+        self._dirty: set[tuple[int, int]] = set()
+        self._auto_cache = cache_tiles is None
+        self._cache_tiles = CACHE_TILES if cache_tiles is None else max(1, cache_tiles)
+        self._images: set[str] = set()
+
+    # ----------------------------------------------------------------------------------------
+
+    def add(self, ortho: OrthoResult, *,
+            tiles: frozenset[tuple[int, int]] | None = None) -> MosaicUpdate:
+        """Paste one ortho into the tiles it touches (only into ``tiles`` when given: the
+        recomposition of tiles emptied by :meth:`clear`).
+
+        Raises
+        ------
+        InputDataError
+            Its pixel size, band count or type differs from the first ortho's.
+        """
+        t0 = time.perf_counter()
+        r = ortho.raster
+        if self.pixel_m is None:
+            self.pixel_m, self.bands, self.dtype = r.pixel_m, r.pixels.shape[2], r.pixels.dtype
+        elif (r.pixel_m, r.pixels.shape[2], r.pixels.dtype) != (self.pixel_m, self.bands,
+                                                                 self.dtype):
+            raise InputDataError(
+                f"image {r.image_id!r}: ortho of {r.pixels.shape[2]} {r.pixels.dtype} band(s) at "
+                f"{r.pixel_m:g} m does not match the mosaic ({self.bands} {self.dtype} at "
+                f"{self.pixel_m:g} m)")
+        feather = (2.0 * self.feather_px * r.pixel_m / r.height_agl_m if self.feather_px
+                   else 0.0)
+        rows, cols = r.shape
+        T = TILE_PX
+        if self._auto_cache:
+            span = ((r.row0 + rows - 1) // T - r.row0 // T + 1) * ((r.col0 + cols - 1) // T
+                                                                  - r.col0 // T + 1)
+            self._cache_tiles = max(self._cache_tiles, 2 * span)
+        touched_keys: set[tuple[int, int]] = set()
+        updated = 0
+        for tr in range(r.row0 // T, (r.row0 + rows - 1) // T + 1):
+            for tc in range(r.col0 // T, (r.col0 + cols - 1) // T + 1):
+                if tiles is not None and (tc, tr) not in tiles:
+                    continue
+                # Overlap of tile (tc, tr) with the ortho, in ortho and in tile coordinates.
+                g_r0, g_r1 = max(tr * T, r.row0), min((tr + 1) * T, r.row0 + rows)
+                g_c0, g_c1 = max(tc * T, r.col0), min((tc + 1) * T, r.col0 + cols)
+                src = (slice(g_r0 - r.row0, g_r1 - r.row0), slice(g_c0 - r.col0, g_c1 - r.col0))
+                seen = r.seen[src]
+                if not seen.any():
+                    continue
+                dst = (slice(g_r0 - tr * T, g_r1 - tr * T), slice(g_c0 - tc * T, g_c1 - tc * T))
+                tile = self._tile(tc, tr)
+                _blend(tile.colour[dst], tile.alpha[dst], tile.off[dst], r.pixels[src], seen,
+                       r.off_nadir[src], feather, ALPHA_OPAQUE[self.dtype])
+                self._tiles.add((tc, tr))
+                self._dirty.add((tc, tr))
+                touched_keys.add((tc, tr))
+                updated += int(seen.sum())
+        self._images.add(r.image_id)
+        return MosaicUpdate(image_id=r.image_id, tiles_touched=len(touched_keys),
+                            cells_updated=updated, update_ms=(time.perf_counter() - t0) * 1e3,
+                            tiles=frozenset(touched_keys))
+
+    def clear(self, tiles: Iterable[tuple[int, int]]) -> None:
+        """Empty these tiles (to recompose them from their images in acquisition order)."""
+        for key in tiles:
+            self._cache.pop(key, None)
+            self._dirty.discard(key)
+            self._tiles.discard(key)
+            if key in self._stored:
+                self._stored.discard(key)
+                self._tile_path(*key).unlink(missing_ok=True)
+
+    def discard(self) -> None:
+        """Drop everything without writing ``mosaic.tif`` (remove the tile store)."""
+        self._cache.clear()
+        shutil.rmtree(self.work_dir, ignore_errors=True)
+
+    def finish(self) -> MosaicResult:
+        """Write ``mosaic.tif`` (COG with overviews, alpha band) and remove the tile store.
+
+        Raises
+        ------
+        InputDataError
+            No ortho was added.
+        """
+        t0 = time.perf_counter()
+        if not self._tiles or self.pixel_m is None or self.dtype is None or self.bands is None:
+            raise InputDataError(f"{self.path}: no ortho was added to the mosaic")
+        T, p = TILE_PX, self.pixel_m
+        tcs = [tc for tc, _ in self._tiles]
+        trs = [tr for _, tr in self._tiles]
+        tc0, tr0 = min(tcs), min(trs)
+        cols, rows = (max(tcs) - tc0 + 1) * T, (max(trs) - tr0 + 1) * T
+        transform = from_origin(tc0 * T * p, -tr0 * T * p, p, p)
+        count = self.bands + 1
+        profile = {"driver": "GTiff", "width": cols, "height": rows, "count": count,
+                   "dtype": self.dtype.name, "tiled": True, "blockxsize": T, "blockysize": T,
+                   "crs": rasterio.crs.CRS.from_wkt(self.crs.to_wkt()), "transform": transform,
+                   "sparse_ok": True, "BIGTIFF": "IF_SAFER"}
+        with atomic_path(self.work_dir / "mosaic_full.tif") as full:
+            with rasterio.open(full, "w", **profile) as dst:
+                dst.colorinterp = colorinterp_for(count, alpha=True)
+                for tc, tr in sorted(self._tiles, key=lambda t: (t[1], t[0])):
+                    tile = self._tile(tc, tr)
+                    data = np.concatenate([np.moveaxis(tile.colour, 2, 0), tile.alpha[None]])
+                    dst.write(data, window=Window((tc - tc0) * T, (tr - tr0) * T, T, T))
+            gtiff_to_cog(full, self.path)
+        shutil.rmtree(self.work_dir, ignore_errors=True)
+        bounds = (tc0 * T * p, -(tr0 * T + rows) * p, (tc0 * T + cols) * p, -tr0 * T * p)
+        return MosaicResult(path=self.path, images=len(self._images), tiles=len(self._tiles),
+                            rows=rows, cols=cols, bounds=bounds,
+                            finish_s=time.perf_counter() - t0)
+
+    # ----------------------------------------------------------------------------------------
+
+    def _tile_path(self, tc: int, tr: int) -> Path:
+        return self.work_dir / f"{tc}_{tr}.npz"
+
+    def _tile(self, tc: int, tr: int) -> _Tile:
+        """The tile from the cache, the tile store or new; evicts the least recently used."""
+        key = (tc, tr)
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
+        assert self.dtype is not None and self.bands is not None
+        if key in self._stored:
+            with np.load(self._tile_path(tc, tr)) as npz:
+                tile = _Tile(colour=npz["colour"], alpha=npz["alpha"], off=npz["off"])
+        else:
+            tile = _Tile(colour=np.zeros((TILE_PX, TILE_PX, self.bands), self.dtype),
+                         alpha=np.zeros((TILE_PX, TILE_PX), self.dtype),
+                         off=np.full((TILE_PX, TILE_PX), np.inf, np.float32))
+        self._cache[key] = tile
+        while len(self._cache) > self._cache_tiles:
+            old_key, old = self._cache.popitem(last=False)
+            if old_key in self._dirty:
+                self._store(old_key, old)
+        return tile
+
+    def _store(self, key: tuple[int, int], tile: _Tile) -> None:
+        target = self._tile_path(*key)
+        fd, tmp = tempfile.mkstemp(dir=self.work_dir, suffix=".npz.tmp")
+        try:
+            with os.fdopen(fd, "wb") as handle:
+                np.savez(handle, colour=tile.colour, alpha=tile.alpha, off=tile.off)
+            os.replace(tmp, target)
+        except BaseException:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            raise
+        self._stored.add(key)
+        self._dirty.discard(key)
+
+
+def tiles_of_bounds(bounds: tuple[float, float, float, float], pixel_m: float) -> (
+        frozenset[tuple[int, int]]):
+    """The ``(column, row)`` of every tile a ``(west, south, east, north)`` window reaches on
+    the global grid of ``pixel_m`` cells (rows grow southwards from northing 0)."""
+    west, south, east, north = bounds
+    c0, c1 = math.floor(west / pixel_m), math.ceil(east / pixel_m)
+    r0, r1 = math.floor(-north / pixel_m), math.ceil(-south / pixel_m)
+    T = TILE_PX
+    return frozenset((tc, tr) for tr in range(r0 // T, (max(r1, r0 + 1) - 1) // T + 1)
+                     for tc in range(c0 // T, (max(c1, c0 + 1) - 1) // T + 1))
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class _Tile:
+    """One mosaic tile: colour (T, T, bands), alpha (T, T), off-nadir tangent (T, T)."""
+
+    colour: np.ndarray
+    alpha: np.ndarray
+    off: np.ndarray
+
+
+def _blend(colour: np.ndarray, alpha: np.ndarray, off: np.ndarray, new: np.ndarray,
+           seen: np.ndarray, new_off: np.ndarray, feather: float, opaque: int) -> None:
+    """Merge one ortho window into a tile window in place.
+
+    Where only the new image sees a cell it is taken; where both do, the weight of the new
+    image is ``clip(0.5 + (off_old - off_new) / feather, 0, 1)`` (a hard choice of the more
+    nadir view when ``feather`` is 0), so the blend spans about ``feather_px`` cells across
+    the seamline where both are equally nadir (``cv2.blendLinear``). ``off`` keeps the better
+    of the two.
+    """
+    old_seen = alpha > 0
+    if feather > 0:
+        with np.errstate(invalid="ignore"):
+            w = off - new_off
+            w *= np.float32(1.0 / feather)
+            w += np.float32(0.5)
+            np.clip(w, 0.0, 1.0, out=w)
+    else:
+        w = (new_off < off).astype(np.float32)
+    w[~old_seen] = 1.0
+    w[~seen] = 0.0
+    if colour.dtype == np.uint8:  # cv2.blendLinear: 8-bit (and float) only
+        cv2.blendLinear(new, colour, w, 1.0 - w, dst=colour)
+    else:
+        old = colour.astype(np.float32)
+        old += w[:, :, None] * (new.astype(np.float32) - old)
+        colour[:] = np.rint(old).astype(colour.dtype)
+    alpha[seen] = opaque
+    np.minimum(off, new_off, out=off, where=seen)

@@ -1,0 +1,1 @@
+"""``seqat reference``: the COLMAP bundle adjustment of a run (``OUT/reference/``)."""

@@ -1,0 +1,164 @@
+"""``seqat feed SRC DST``: replay a flight into a folder at the camera's rate (for ``watch``).
+
+The destination starts as a flight folder without images: ``flight.yaml`` (the source's, or
+for a bare folder of JPEGs the defaults ``images: images``, ``nav: {source: images}``), the
+header of ``nav.csv`` / ``observations.csv``, and the static files a report uses
+(``truth/``, check points). Then, image after image in acquisition order, every
+``1 / rate_hz`` seconds, it writes what a camera and its downlink would, with the
+partial-file convention of docs/formats.md (*Watched flights*):
+
+* the JPEG as ``images/<name>.part``, then renamed to ``images/<name>``;
+* an observations flight's rows of the image, then its ``nav.csv`` row, each appended as
+  whole lines (the text of the source files, unchanged) and flushed.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.common.columns import (
+    CHECKPOINT_OBS_FILE,
+    CHECKPOINTS_FILE,
+    FLIGHT_YAML,
+    IMAGES_DIR,
+    NAV_GEODETIC_COLUMNS,
+    TRUTH_DIR,
+)
+from pipeline.common.csvio import check_header
+from pipeline.flight.folder import read_flight
+from pipeline.flight.nav_files import NAV_PROJECTED_COLUMNS, OBSERVATION_COLUMNS
+from seqat.errors import ConfigError, InputDataError
+
+#: Images per second of ``seqat feed`` by default (the issue's real frame rate).
+DEFAULT_RATE_HZ = 2.0
+#: Suffix of a file being written; renamed away once complete.
+PARTIAL_SUFFIX = ".part"
+#: ``flight.yaml`` of a bare folder of JPEGs (read_flight's defaults).
+BARE_FLIGHT_YAML = "images: images\nnav:\n  source: images\n"
+
+
+@dataclass(frozen=True, kw_only=True)
+class FeedSummary:
+    """What :func:`feed_flight` wrote."""
+
+    images: int
+    duration_s: float
+    late_s: float  # largest delay behind the schedule
+
+
+def _lines_by_image(path: Path, columns: tuple[str, ...]) -> tuple[str, dict[str, list[str]]]:
+    """Header line and the data lines of each image (text as in the file, newline-ended)."""
+    text = path.read_text(encoding="utf-8")
+    lines = [line if line.endswith("\n") else line + "\n" for line in text.splitlines()]
+    if not lines:
+        raise InputDataError(f"{path}:1: empty file")
+    header = [h.strip() for h in lines[0].rstrip("\n").split(",")]
+    check_header(str(path), header, columns)
+    col = header.index("image")
+    rows: dict[str, list[str]] = {}
+    for line in lines[1:]:
+        if line.strip():
+            rows.setdefault(line.split(",")[col].strip(), []).append(line)
+    return lines[0], rows
+
+
+def _append(path: Path, lines: list[str]) -> None:
+    with path.open("a", encoding="utf-8", newline="") as handle:
+        handle.write("".join(lines))
+        handle.flush()
+
+
+def feed_flight(src_dir: Path | str, dst_dir: Path | str, *, rate_hz: float = DEFAULT_RATE_HZ,
+                limit: int | None = None, delay_s: float = 0.0,
+                on_start: Callable[[], None] | None = None,
+                on_image: Callable[[str], None] | None = None) -> FeedSummary:
+    """Copy a flight into ``dst_dir`` image by image at ``rate_hz`` (module docstring).
+
+    Parameters
+    ----------
+    src_dir : Path or str
+        A flight folder ``seqat run`` reads (observations or images).
+    dst_dir : Path or str
+        Created; must not exist or be empty.
+    rate_hz : float
+        Images per second.
+    limit : int or None
+        Feed only the first ``limit`` images.
+    delay_s : float
+        Seconds between writing ``flight.yaml`` and the first image (time to start a watch).
+    on_start : callable or None
+        Called once ``flight.yaml`` is written (before the first image).
+    on_image : callable or None
+        Called with each image id once it is written.
+
+    Raises
+    ------
+    ConfigError
+        ``rate_hz`` not positive; ``dst_dir`` not empty.
+    InputDataError
+        The source flight cannot be read.
+    """
+    if not rate_hz > 0:
+        raise ConfigError(f"--rate: expected a positive number of images per second, got "
+                          f"{rate_hz!r}")
+    src, dst = Path(src_dir), Path(dst_dir)
+    flight = read_flight(src)
+    if dst.exists() and (not dst.is_dir() or any(dst.iterdir())):
+        raise ConfigError(f"{dst}: exists and is not an empty folder")
+    config = flight.config
+    yaml_text = ((src / FLIGHT_YAML).read_text(encoding="utf-8")
+                 if (src / FLIGHT_YAML).is_file() else BARE_FLIGHT_YAML)
+    nav_rows: dict[str, list[str]] = {}
+    obs_rows: dict[str, list[str]] = {}
+    dst.mkdir(parents=True, exist_ok=True)
+    nav_dst = dst / config.nav.file
+    if config.nav.source == "file":
+        columns = NAV_PROJECTED_COLUMNS if config.nav.frame == "projected" else \
+            NAV_GEODETIC_COLUMNS
+        header, nav_rows = _lines_by_image(src / config.nav.file, columns)
+        nav_dst.parent.mkdir(parents=True, exist_ok=True)
+        nav_dst.write_text(header, encoding="utf-8")
+    obs_dst = None
+    if flight.observations_path is not None:
+        header, obs_rows = _lines_by_image(flight.observations_path, OBSERVATION_COLUMNS)
+        obs_dst = dst / (config.observations or "observations.csv")
+        obs_dst.write_text(header, encoding="utf-8")
+    images_dst = dst / (config.images or IMAGES_DIR)
+    if flight.kind == "images":
+        images_dst.mkdir(parents=True, exist_ok=True)
+    for name in (TRUTH_DIR,):
+        if (src / name).is_dir():
+            shutil.copytree(src / name, dst / name)
+    for name in (CHECKPOINTS_FILE, CHECKPOINT_OBS_FILE):
+        if (src / name).is_file():
+            shutil.copy2(src / name, dst / name)
+    (dst / FLIGHT_YAML).write_text(yaml_text, encoding="utf-8")
+    if on_start is not None:
+        on_start()
+
+    ids = flight.nav.image_ids[:limit]
+    paths = flight.image_paths[:limit] if flight.kind == "images" else (None,) * len(ids)
+    t0 = time.monotonic() + delay_s
+    late = 0.0
+    for k, (image, path) in enumerate(zip(ids, paths, strict=True)):
+        due = t0 + k / rate_hz
+        wait = due - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        late = max(late, -wait)
+        if path is not None:
+            part = images_dst / (path.name + PARTIAL_SUFFIX)
+            shutil.copyfile(path, part)
+            os.replace(part, images_dst / path.name)
+        if obs_dst is not None:
+            _append(obs_dst, obs_rows.get(image, []))
+        if nav_rows:
+            _append(nav_dst, nav_rows[image])
+        if on_image is not None:
+            on_image(image)
+    return FeedSummary(images=len(ids), duration_s=time.monotonic() - t0, late_s=late)

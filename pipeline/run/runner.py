@@ -1,0 +1,420 @@
+"""``seqat run``: stream a flight folder through an estimator and store the results.
+
+The stage: validate the whole input first (flight.yaml, CRS, nav, one pass over
+observations.csv, truth) so bad input fails before any computation and nothing is written;
+then feed frames one at a time in acquisition order to the estimator (Seq-R, Seq-F or Sim)
+through a :class:`~pipeline.run.session.RunSession` (the per-image path ``seqat watch`` shares:
+update, feedback, listeners, latency budget, journal), and publish ``eop.csv``,
+``points.csv`` and ``run.json`` together (:func:`pipeline.run.store.write_run_outputs`).
+``--resume`` replays the journal of an interrupted run first (:mod:`pipeline.run.journal`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import hashlib
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from pipeline.common.columns import FLIGHT_YAML
+from pipeline.common.strict_yaml import build_dataclass, load_yaml
+from pipeline.flight.folder import Truth, read_flight, read_truth
+from pipeline.flight.inputs import RunInputs, SkippedImage
+from pipeline.run.accuracy import Accuracy, compare_with_truth
+from pipeline.run.budget import BudgetReport, LatencyBudget
+from pipeline.run.journal import (
+    Journal,
+    JournalContents,
+    check_fingerprint,
+    read_journal,
+    replay_checks,
+)
+from pipeline.run.robustness import RobustnessRecord, robustness_record
+from pipeline.run.session import Estimator, ImageListener, RunSession
+from pipeline.run.sources import ImageSource, ObservationSource
+from pipeline.run.store import (
+    RunRecord,
+    RunTotals,
+    TimingStats,
+    eop_table,
+    point_table,
+    to_jsonable,
+    write_run_outputs,
+)
+from pipeline.tracking.options import TrackerOptions
+from seqat.errors import ConfigError, InputDataError, SeqatError
+from seqat.sequential import SequentialAT, SequentialOptions
+from seqat.simultaneous import SimOptions, SimultaneousAT
+from seqat.types import PinholeCamera, Solution
+
+__all__ = ["Estimator", "EstimatorConfig", "ImageListener", "Method", "RunSummary",
+           "estimator_options", "make_estimator", "run_flight"]
+
+
+class Method(enum.StrEnum):
+    """Estimation method of ``seqat run --method``."""
+
+    SEQ_R = "seq-r"  # sequential, window cut by EOP correlation (seed 000 Seq-R)
+    SEQ_F = "seq-f"  # sequential, full: every parameter stays in the update
+    SIM = "sim"  # simultaneous adjustment of everything seen so far
+
+
+@dataclass(frozen=True, kw_only=True)
+class EstimatorConfig:
+    """Estimator options file of ``seqat run --options FILE`` (all keys optional).
+
+    ``sequential`` is used by ``seq-r`` and ``seq-f`` (its ``sim`` section configures the
+    initial simultaneous stage); ``sim`` by ``--method sim``.
+    """
+
+    sequential: SequentialOptions = SequentialOptions()
+    sim: SimOptions = SimOptions()
+
+
+def load_estimator_config(path: Path | str) -> EstimatorConfig:
+    """Read an estimator options file (strict: unknown keys and wrong types are errors)."""
+    return build_dataclass(EstimatorConfig, load_yaml(path), str(path))
+
+
+def estimator_options(method: Method, config: EstimatorConfig, *, threshold: float | None = None,
+                      initial_images: int | None = None, final_only: bool = False) -> (
+        SequentialOptions | SimOptions):
+    """The options of the chosen estimator: the config file's, overridden by command flags.
+
+    Parameters
+    ----------
+    method : Method
+    config : EstimatorConfig
+    threshold : float or None
+        ``--threshold`` (Seq-R correlation threshold in [0, 1]); ``None``: not given.
+    initial_images : int or None
+        ``--initial-images`` (images of the initial simultaneous stage); ``None``: not given.
+    final_only : bool
+        ``--final-only`` (Sim only: adjust once at the end).
+
+    Raises
+    ------
+    ConfigError
+        A flag that does not apply to the method, or an invalid value.
+    """
+    if method is Method.SIM:
+        for flag, value in (("--threshold", threshold), ("--initial-images", initial_images)):
+            if value is not None:
+                raise ConfigError(f"{flag} applies to the sequential methods, not --method sim")
+        return config.sim
+    if final_only:
+        raise ConfigError(f"--final-only applies to --method sim, not --method {method.value}")
+    opts = config.sequential
+    if method is Method.SEQ_F:
+        if threshold is not None:
+            raise ConfigError("--threshold applies to --method seq-r (seq-f keeps every "
+                              "parameter in the update)")
+        opts = dataclasses.replace(opts, correlation_threshold=None)
+    elif threshold is not None:
+        opts = dataclasses.replace(opts, correlation_threshold=threshold)
+    elif opts.correlation_threshold is None:
+        raise ConfigError("--method seq-r needs a correlation threshold (sequential."
+                          "correlation_threshold is null; use --method seq-f for no cut)")
+    if initial_images is not None:
+        opts = dataclasses.replace(opts, initial_images=initial_images)
+    return opts
+
+
+def make_estimator(method: Method, camera: PinholeCamera, options: SequentialOptions | SimOptions,
+                   *, final_only: bool = False) -> Estimator:
+    """Build the estimator of ``method`` with ``options`` (from :func:`estimator_options`)."""
+    if method is Method.SIM:
+        assert isinstance(options, SimOptions)
+        return SimultaneousAT(camera, options, refit_every_frame=not final_only)
+    assert isinstance(options, SequentialOptions)
+    return SequentialAT(camera, options)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RunSummary:
+    """Typed result of :func:`run_flight` and :func:`pipeline.run.watch.watch_flight`.
+
+    Attributes
+    ----------
+    method : Method
+    flight_dir, out_dir : Path
+    files : tuple[Path, ...]
+        ``eop.csv``, ``points.csv``, ``run.json``, ``nav.csv``, ``observations.csv``.
+    n_images, n_points, n_observations : int
+        Images adjusted, ground points estimated, image observations used.
+    sigma0 : float
+        A posteriori standard error of unit weight of the final solution.
+    redundancy : int
+    update_ms, sequential_update_ms : TimingStats
+        Per-image update times (all images; the sequential stage only).
+    wall_s : float
+        Wall time of the whole stage (reading, estimating, writing).
+    accuracy : Accuracy or None
+        Against ``truth/`` when the flight has it (simulated flights).
+    replayed : int
+        Images replayed from the journal (``--resume``).
+    latency_ms : TimingStats or None
+        End-to-end latency per image (watch mode).
+    budget : BudgetReport or None
+        The latency budget and its threshold changes (``--budget-ms``).
+    skipped : tuple[SkippedImage, ...]
+        Images left out.
+    stopped : str
+        Why a watch stopped (``idle``, ``interrupted``); empty for a run.
+    """
+
+    method: Method
+    flight_dir: Path
+    out_dir: Path
+    files: tuple[Path, ...]
+    n_images: int
+    n_points: int
+    n_observations: int
+    sigma0: float
+    redundancy: int
+    update_ms: TimingStats
+    sequential_update_ms: TimingStats
+    wall_s: float
+    accuracy: Accuracy | None
+    replayed: int = 0
+    latency_ms: TimingStats | None = None
+    budget: BudgetReport | None = None
+    skipped: tuple[SkippedImage, ...] = ()
+    stopped: str = ""
+
+
+def _progress(console: Console, enabled: bool) -> Progress:
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                    TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=console,
+                    transient=True, disable=not (enabled and console.is_terminal))
+
+
+def make_budget(budget_ms: float | None, method: Method,
+                options: SequentialOptions | SimOptions) -> LatencyBudget | None:
+    """The latency budget of ``--budget-ms`` (Seq-R only), or None.
+
+    Raises
+    ------
+    ConfigError
+        ``--budget-ms`` with another method than seq-r, or not positive.
+    """
+    if budget_ms is None:
+        return None
+    if method is not Method.SEQ_R or not isinstance(options, SequentialOptions):
+        raise ConfigError(f"--budget-ms applies to --method seq-r (it tightens the window "
+                          f"threshold), not --method {method.value}")
+    assert options.correlation_threshold is not None
+    return LatencyBudget(budget_ms, options.correlation_threshold)
+
+
+def run_fingerprint(flight_dir: Path, method: Method, options: SequentialOptions | SimOptions,
+                    final_only: bool, observations: Path | None) -> dict[str, object]:
+    """What a journal must have been written with to be resumed (flight and options)."""
+    yaml_path = flight_dir / FLIGHT_YAML
+    digest = (hashlib.sha256(yaml_path.read_bytes()).hexdigest() if yaml_path.is_file()
+              else None)
+    return {"flight": str(flight_dir.resolve()), "flight_yaml_sha256": digest,
+            "method": method.value, "options": to_jsonable(options), "final_only": final_only,
+            "observations": None if observations is None else str(observations.resolve())}
+
+
+def open_journal(out: Path, fingerprint: dict[str, object], resume: bool,
+                 console: Console) -> tuple[Journal, JournalContents | None]:
+    """A new journal, or with ``resume`` the existing one checked against ``fingerprint``.
+
+    Raises
+    ------
+    ConfigError
+        The journal was written for another flight or other options.
+    InputDataError
+        The journal is damaged (other than a torn last record, which is dropped).
+    """
+    contents = read_journal(out) if resume else None
+    if contents is None:
+        if resume:
+            console.print(f"seqat: no journal in {out}: starting from the first image",
+                          highlight=False, markup=False)
+        return Journal.create(out, fingerprint), None
+    check_fingerprint(contents, fingerprint, out)
+    if contents.dropped is not None:
+        console.print(f"seqat: journal: dropped the torn last record ({contents.dropped})",
+                      highlight=False, markup=False)
+    return Journal.resume(out, contents), contents
+
+
+def replay_journal(session: RunSession, source: ObservationSource | ImageSource,
+                   journal: Journal, contents: JournalContents | None) -> None:
+    """Replay the journaled frames and restore the tracker after the last one."""
+    if contents is None or not contents.images:
+        return
+    last = contents.images[-1]
+    if isinstance(source, ImageSource):
+        if not last.tracker_state:
+            raise InputDataError(f"{journal.folder}: the last image has no tracker state; "
+                                 "rerun without --resume")
+        source.restore_tracker(journal.load_tracker_state(last.seq))
+    for record in contents.images:
+        session.replay(record)
+
+
+def publish_run(out: Path, session: RunSession, solution: Solution, *, method: Method,
+                flight: str, inputs: RunInputs, options: SequentialOptions | SimOptions,
+                final_only: bool, tracking_options: TrackerOptions | None,
+                truth: Truth | None, t_start: float, mode: str = "run",
+                stopped: str = "", robustness: RobustnessRecord | None = None) -> RunSummary:
+    """Write the run folder (atomically, all files or none) and summarise the run."""
+    eops, points = eop_table(solution.eops), point_table(solution.points)
+    accuracy = (compare_with_truth(eops, points, truth.eop, truth.points, inputs.nav)
+                if truth is not None else None)
+    updates = session.updates
+    timing = TimingStats.from_samples([u.update_ms for u in updates])
+    timing_seq = TimingStats.from_samples([u.update_ms for u in updates if u.stage == "sequential"])
+    latencies = [x.latency_ms for x in session.live if x.latency_ms is not None]
+    latency = TimingStats.from_samples(latencies) if latencies else None
+    budget = session.budget.report() if session.budget is not None else None
+    totals = RunTotals(images=len(solution.eops), points=len(solution.points),
+                       observations=session.n_observations, update_ms=timing,
+                       sequential_update_ms=timing_seq,
+                       wall_s=time.perf_counter() - t_start, sigma0=solution.sigma0,
+                       redundancy=solution.redundancy, accuracy=accuracy, latency_ms=latency,
+                       journal_ms=TimingStats.from_samples(session.journal_ms))
+    record = RunRecord(method=method.value, flight=flight, inputs=inputs, options=options,
+                       final_only=final_only, images=tuple(updates), totals=totals,
+                       tracking_options=tracking_options, tracking=tuple(session.tracking),
+                       live=tuple(session.live), latency_budget=budget, mode=mode,
+                       replayed=session.replayed, robustness=robustness)
+    files = write_run_outputs(out, solution, record, session.observations_text())
+    return RunSummary(method=method, flight_dir=Path(flight), out_dir=out, files=files,
+                      n_images=totals.images, n_points=totals.points,
+                      n_observations=session.n_observations, sigma0=solution.sigma0,
+                      redundancy=solution.redundancy, update_ms=timing,
+                      sequential_update_ms=timing_seq, wall_s=time.perf_counter() - t_start,
+                      accuracy=accuracy, replayed=session.replayed, latency_ms=latency,
+                      budget=budget, skipped=inputs.skipped, stopped=stopped)
+
+
+def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = Method.SEQ_R,
+               final_only: bool = False, options_path: Path | str | None = None,
+               threshold: float | None = None, initial_images: int | None = None,
+               progress: bool = True, observations: Path | str | None = None,
+               listeners: Sequence[ImageListener] = (), resume: bool = False,
+               budget_ms: float | None = None) -> RunSummary:
+    """Adjust a flight folder with one method and write the results to ``out_dir``.
+
+    Parameters
+    ----------
+    flight_dir : Path or str
+        Flight folder (docs/formats.md).
+    out_dir : Path or str
+        Output folder; created if absent, existing ``eop.csv``, ``points.csv`` and
+        ``run.json`` are replaced only when the run succeeds. ``OUT/journal/`` records every
+        image as it is adjusted (:mod:`pipeline.run.journal`).
+    method : Method
+    final_only : bool
+        Sim only: buffer the frames and adjust once at the end.
+    options_path : Path, str or None
+        Estimator options file (:class:`EstimatorConfig`).
+    threshold, initial_images : optional
+        Command-line overrides (:func:`estimator_options`).
+    progress : bool
+        Show a transient progress bar on a terminal (stderr).
+    observations : Path, str or None
+        Image points (``observations.csv`` format) replacing the flight's own or, for an
+        image flight, the tracker: replays the tie points of an earlier run
+        (``OUT/observations.csv``) with another method.
+    listeners : sequence of ImageListener
+        Called after every image and once at the end (:class:`ImageListener`).
+    resume : bool
+        Continue from ``OUT/journal/`` (written by an interrupted run of the same flight and
+        options): its frames are replayed, the tracker restored, the rest adjusted; the
+        results equal an uninterrupted run's. Without a journal the run starts afresh.
+    budget_ms : float or None
+        Latency budget per image (Seq-R): over it, the window threshold tightens
+        (:class:`pipeline.run.budget.LatencyBudget`).
+
+    Returns
+    -------
+    RunSummary
+
+    Raises
+    ------
+    ConfigError, InputDataError
+        Bad options or input, detected before anything is computed or written; a journal of
+        another flight or other options with ``resume``.
+    EstimationError
+        The adjustment failed; nothing is written (the journal is removed).
+    """
+    t_start = time.perf_counter()
+    method = Method(method)
+    out = Path(out_dir)
+    config = load_estimator_config(options_path) if options_path is not None else EstimatorConfig()
+    options = estimator_options(method, config, threshold=threshold,
+                                initial_images=initial_images, final_only=final_only)
+    budget = make_budget(budget_ms, method, options)
+    if out.exists() and not out.is_dir():
+        raise InputDataError(f"{out}: exists and is not a folder")
+    flight = read_flight(flight_dir)
+    obs_path = None
+    if observations is not None:
+        obs_path = Path(observations)
+        if not obs_path.is_file():
+            raise InputDataError(f"{obs_path}: no such file (--observations)")
+        flight = dataclasses.replace(flight, observations_path=obs_path)
+    truth = read_truth(flight.path)
+    source: ObservationSource | ImageSource
+    if flight.kind == "observations":
+        source = ObservationSource(flight)
+        source.validate()
+    else:
+        source = ImageSource(flight, flight.config.tracking)
+    console = Console(stderr=True)
+    fingerprint = run_fingerprint(flight.path, method, options, final_only, obs_path)
+    journal, contents = open_journal(out, fingerprint, resume, console)
+    skipped = list(contents.skips) if contents is not None else []  # dropouts not bridged
+    try:
+        if contents is not None:
+            replay_checks(contents, flight.nav.image_ids, flight.nav.eop, out)
+        session = RunSession(estimator=make_estimator(method, flight.camera, options,
+                                                      final_only=final_only),
+                             source=source, listeners=listeners, journal=journal, budget=budget)
+        replay_journal(session, source, journal, contents)
+        for warning in flight.warnings:
+            console.print(f"seqat: warning: {warning}", highlight=False, markup=False)
+        for skip in flight.skipped:
+            console.print(f"seqat: skipped: {skip.reason}", highlight=False, markup=False)
+        with _progress(console, progress) as bar:
+            done = session.images + len(skipped)
+            task = bar.add_task(method.value, total=len(flight.nav), completed=done, info="")
+            for prepared in source.frames(start=done):
+                if isinstance(prepared, SkippedImage):  # a GNSS dropout that was not bridged
+                    journal.append_skip(prepared)
+                    skipped.append(prepared)
+                    console.print(f"seqat: skipped: {prepared.reason}", highlight=False,
+                                  markup=False)
+                    bar.update(task, advance=1)
+                    continue
+                live = session.add(prepared)
+                bar.update(task, advance=1,
+                           info=f"{live.update_ms:7.1f} ms  window {live.window_images}")
+        solution = session.finish()
+    except SeqatError:
+        journal.discard()  # deterministic: a resume would fail the same way
+        raise
+    finally:
+        journal.close()
+    done_ids = {u.image_id for u in session.updates}
+    bridged = [iid for row, iid in enumerate(flight.nav.image_ids)
+               if iid in done_ids and flight.is_dropout(row)]
+    robustness = robustness_record(session.estimator, options, bridged=bridged,
+                                   skipped=[s.image for s in skipped])
+    inputs = dataclasses.replace(flight.inputs(), skipped=flight.skipped + tuple(skipped))
+    return publish_run(out, session, solution, method=method, flight=str(flight.path),
+                       inputs=inputs, options=options, final_only=final_only,
+                       tracking_options=source.tracking_options, truth=truth, t_start=t_start,
+                       robustness=robustness)

@@ -1,0 +1,263 @@
+"""One run's per-image path, shared by ``seqat run`` and ``seqat watch``.
+
+:class:`RunSession` takes one :class:`~pipeline.run.sources.PreparedFrame` at a time
+(:meth:`RunSession.add`): the Seq-R threshold of the latency budget, the estimator's update,
+the feedback to the source (initial values and terrain height for the next image), the
+listeners (live ortho, ...), the budget's decision for the next image, and the journal
+record, written last so that a kill at any moment loses at most the image in flight.
+:meth:`RunSession.replay` feeds a journaled frame through the same path (``--resume``), and
+:meth:`RunSession.finish` gives the final solution. The session also keeps what the run
+folder needs: the update records, the observed pixels (``observations.csv``), per-image
+tracking statistics and timings, the nav rows of the images adjusted.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from pipeline.common.tables import NavTable
+from pipeline.run.budget import BudgetEvent, LatencyBudget
+from pipeline.run.journal import ImageRecord, Journal
+from pipeline.run.sources import PreparedFrame
+from pipeline.run.store import format_observation_lines
+from pipeline.tracking.options import TrackerOptions
+from pipeline.tracking.tracker import TrackerState
+from seqat.types import Frame, ImageUpdate, Solution
+
+
+class Estimator(Protocol):
+    """What a run needs from an estimator (SequentialAT, SimultaneousAT)."""
+
+    def add_frame(self, frame: Frame) -> ImageUpdate: ...
+
+    def solution(self) -> Solution: ...
+
+
+class ImageListener(Protocol):
+    """Something that follows a run image by image (live ortho, ...).
+
+    ``on_image`` is called after each update with the frame, its update record and the
+    estimator (query ``window_solution()`` there: O(window)) — replayed images of a resumed
+    run included, so a listener's state is rebuilt; ``on_finish`` once after the final
+    solution, before the run folder is published.
+    """
+
+    def on_image(self, frame: Frame, update: ImageUpdate, estimator: Estimator) -> None: ...
+
+    def on_finish(self, solution: Solution) -> None: ...
+
+
+class FrameFeedback(Protocol):
+    """What the session needs from a frame source (:mod:`pipeline.run.sources`)."""
+
+    tracking_options: TrackerOptions | None
+
+    def replay(self, frame: Frame) -> None: ...
+
+    def feedback(self, update: ImageUpdate, estimator: object) -> None: ...
+
+    def tracker_state(self) -> TrackerState | None: ...
+
+
+@dataclass(frozen=True, kw_only=True)
+class ImageLive:
+    """Timings and counts of one image (``run.json`` ``images[].live``; the watch line).
+
+    Attributes
+    ----------
+    image : str
+    prep_ms : float
+        Reading, tracking and resection.
+    update_ms : float
+        The estimator's update.
+    processing_ms : float
+        From the start of the update to the estimate, plus ``prep_ms`` (listeners included).
+    latency_ms : float or None
+        End to end: the image's input complete (file modification time) -> estimate (watch).
+    threshold : float or None
+        Seq-R correlation threshold the image was adjusted with.
+    window_images : int
+    sigma0 : float
+    sigma_position_m : tuple[float, float, float]
+        A posteriori σ of the new camera's X, Y, Z.
+    observations_rejected : int
+        Left out by the resection (contradicting the image's initial attitude).
+    observations_skipped : int
+        Not used by the estimator (pending rays of unborn points, ...).
+    """
+
+    image: str
+    prep_ms: float
+    update_ms: float
+    processing_ms: float
+    latency_ms: float | None
+    threshold: float | None
+    window_images: int
+    sigma0: float
+    sigma_position_m: tuple[float, float, float]
+    observations_rejected: int
+    observations_skipped: int
+
+
+def _threshold(estimator: object) -> float | None:
+    options = getattr(estimator, "options", None)
+    value = getattr(options, "correlation_threshold", None)
+    return None if value is None else float(value)
+
+
+def _set_threshold(estimator: object, threshold: float | None) -> None:
+    """Seq-R: the threshold of the next updates (options are frozen: replaced whole)."""
+    if threshold is None or threshold == _threshold(estimator):
+        return
+    estimator.set_correlation_threshold(threshold)  # type: ignore[attr-defined]
+
+
+class RunSession:
+    """Feed frames to an estimator one at a time; journal each; keep the run's records.
+
+    Parameters
+    ----------
+    estimator : Estimator
+    source : FrameFeedback
+        Gets the estimator's state after each update.
+    listeners : sequence of ImageListener
+    journal : Journal or None
+        Appended after every image.
+    budget : LatencyBudget or None
+        Adapts the Seq-R threshold between images.
+    on_image : callable or None
+        Called with each new image's :class:`ImageLive` (the watch display).
+    """
+
+    def __init__(self, *, estimator: Estimator, source: FrameFeedback,
+                 listeners: Sequence[ImageListener] = (), journal: Journal | None = None,
+                 budget: LatencyBudget | None = None,
+                 on_image: Callable[[ImageLive, ImageUpdate], None] | None = None) -> None:
+        self.estimator = estimator
+        self.source = source
+        self.listeners = tuple(listeners)
+        self.journal = journal
+        self.budget = budget
+        self.on_image = on_image
+        if budget is not None:
+            _set_threshold(estimator, budget.threshold)
+        self.updates: list[ImageUpdate] = []
+        self.live: list[ImageLive] = []
+        self.tracking: list[Mapping[str, object]] = []
+        self.journal_ms: list[float] = []  # time to journal each new image
+        self.replayed = 0
+        self.n_observations = 0
+        self._lines: list[str] = []
+        self._points: set[str] = set()
+        self._nav_ids: list[str] = []
+        self._nav_times: list[float] = []
+        self._nav_eops: list[np.ndarray] = []
+
+    # ----------------------------------------------------------------------------------------
+    def add(self, prepared: PreparedFrame) -> ImageLive:
+        """Adjust one new image, tell the source, listeners and budget, journal it."""
+        t0 = time.perf_counter()
+        frame = prepared.frame
+        threshold = _threshold(self.estimator)
+        update = self._update(frame)
+        event: BudgetEvent | None = None
+        if self.budget is not None:
+            event = self.budget.after_image(frame.image_id, update.stage,
+                                            prepared.prep_ms + update.update_ms)
+            if event is not None:
+                _set_threshold(self.estimator, event.new_threshold)
+        processing_ms = prepared.prep_ms + (time.perf_counter() - t0) * 1e3
+        latency = (None if prepared.ready_s is None
+                   else (time.time() - prepared.ready_s) * 1e3)
+        live = ImageLive(
+            image=frame.image_id, prep_ms=prepared.prep_ms, update_ms=update.update_ms,
+            processing_ms=processing_ms, latency_ms=latency, threshold=threshold,
+            window_images=update.window_images, sigma0=update.sigma0,
+            sigma_position_m=tuple(float(s) for s in update.eop.sigma[:3]),  # type: ignore[arg-type]
+            observations_rejected=prepared.rejected,
+            observations_skipped=update.observations_skipped)
+        if self.journal is not None:
+            t_journal = time.perf_counter()
+            state = self.source.tracker_state()
+            record = ImageRecord(seq=len(self.updates), frame=frame, time_s=prepared.time_s,
+                                 observed_px=prepared.observed_px, threshold=threshold,
+                                 live=dataclasses.asdict(live), tracking=prepared.tracking,
+                                 budget_event=None if event is None else dataclasses.asdict(event),
+                                 tracker_state=state is not None)
+            self.journal.append_image(record, state)
+            self.journal_ms.append((time.perf_counter() - t_journal) * 1e3)
+        self._keep(update, live, prepared.tracking, prepared.time_s, prepared.observed_px, frame)
+        if self.on_image is not None:
+            self.on_image(live, update)
+        return live
+
+    def replay(self, record: ImageRecord) -> None:
+        """Feed a journaled frame again (``--resume``): same threshold, same estimate."""
+        frame = record.frame
+        _set_threshold(self.estimator, record.threshold)
+        self.source.replay(frame)
+        update = dataclasses.replace(self._update(frame),
+                                     update_ms=float(record.live["update_ms"]))  # type: ignore[arg-type]
+        if self.budget is not None:
+            self.budget.account(update.stage, float(record.live["prep_ms"])  # type: ignore[arg-type]
+                                + update.update_ms)
+            if record.budget_event is not None:
+                event = BudgetEvent(**record.budget_event)  # type: ignore[arg-type]
+                self.budget.apply(event)
+                _set_threshold(self.estimator, event.new_threshold)
+        live = ImageLive(**{**record.live,  # type: ignore[arg-type]
+                            "sigma_position_m": tuple(record.live["sigma_position_m"])})  # type: ignore[call-overload]
+        self._keep(update, live, record.tracking, record.time_s, record.observed_px, frame)
+        self.replayed += 1
+
+    def _update(self, frame: Frame) -> ImageUpdate:
+        update = self.estimator.add_frame(frame)
+        self.source.feedback(update, self.estimator)
+        for listener in self.listeners:
+            listener.on_image(frame, update, self.estimator)
+        return update
+
+    def _keep(self, update: ImageUpdate, live: ImageLive, tracking: Mapping[str, object] | None,
+              time_s: float, observed_px: np.ndarray, frame: Frame) -> None:
+        self.updates.append(update)
+        self.live.append(live)
+        if tracking is not None:
+            self.tracking.append(tracking)
+        self._lines.append(format_observation_lines(frame.image_id, frame.point_ids,
+                                                    observed_px))
+        self._points.update(frame.point_ids)
+        self.n_observations += len(frame.point_ids)
+        self._nav_ids.append(frame.image_id)
+        self._nav_times.append(time_s)
+        self._nav_eops.append(frame.nav_eop)
+
+    # ----------------------------------------------------------------------------------------
+    def finish(self) -> Solution:
+        """Final solution (sequential: the window re-linearised); listeners' ``on_finish``."""
+        finish = getattr(self.estimator, "finish", None)
+        if finish is not None:
+            finish()
+        solution = self.estimator.solution()
+        for listener in self.listeners:
+            listener.on_finish(solution)
+        return solution
+
+    @property
+    def images(self) -> int:
+        return len(self.updates)
+
+    def observations_text(self) -> str:
+        """Rows of the run's ``observations.csv`` (no header)."""
+        return "".join(self._lines)
+
+    def nav(self) -> NavTable:
+        """The nav rows of the images adjusted, in order."""
+        return NavTable(image_ids=tuple(self._nav_ids),
+                        times_s=np.asarray(self._nav_times, dtype=np.float64),
+                        eop=np.asarray(self._nav_eops, dtype=np.float64).reshape(-1, 6))

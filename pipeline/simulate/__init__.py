@@ -1,0 +1,1 @@
+"""``seqat simulate``: simulated flights written as flight folders (observations or rendered)."""

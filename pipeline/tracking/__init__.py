@@ -1,0 +1,1 @@
+"""Streaming tie points of image flights: the tracker and its ``tracking:`` options."""

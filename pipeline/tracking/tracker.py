@@ -1,0 +1,724 @@
+"""Streaming tie points: features of each new image matched to earlier images, grown to tracks.
+
+When image ``i`` arrives (:meth:`Tracker.add_image`) the tracker
+
+1. converts it to gray and downscales it to a *working copy* ``working_width_px`` wide (never
+   upscaled, ``cv2.INTER_AREA``), detects SIFT (default) or ORB features there;
+2. predicts the ground footprint of ``i`` and of every held image from the nav EOPs (the four
+   image corners intersected with the plane ``Z = ground_z_m``, ideal pinhole from
+   ``fx_px, cx_px, cy_px``) and picks as candidates the up-to-``neighbours`` held images whose
+   footprint covers at least ``min_overlap`` of the footprint of ``i``, best overlap first;
+3. matches ``i`` against each candidate (FLANN kd-tree or brute force for SIFT, brute-force
+   Hamming for ORB; ``knnMatch`` k = 2 and Lowe's ratio test; one match per feature of ``i``)
+   and verifies the pair with ``USAC_MAGSAC`` on the fundamental matrix (or a homography) at
+   working resolution; pairs with fewer than ``min_inliers`` inliers are rejected;
+4. gives each feature of ``i`` a point id: the id of the track its verified matches point to,
+   or a fresh id (``t`` + 7-digit counter, unique over the flight).
+
+**Every** kept feature of ``i`` is emitted (:class:`TrackedImage`), matched or not: a track born
+later between ``i`` and a later image needs ``i``'s observation to have reached the estimator
+already (the estimator keeps single-ray points pending). Nothing of ``i`` is emitted again
+later and nothing is looked ahead.
+
+Tracks are never merged. If a feature of ``i`` matches features of several different tracks
+(through different candidate images), it joins the one with the most verified matches (ties:
+the candidate with the larger predicted overlap, then the smaller descriptor distance); if two
+features of ``i`` claim the same track, the one with the smaller descriptor distance gets it
+and the other starts a fresh track. Both count as ``split_conflicts``. Hence a track never
+holds two features of one image.
+
+Memory: the tracker holds per image only the working-resolution keypoints (float32), the
+descriptors (uint8), the point id number of each
+keypoint and the nav EOP, never pixels. An image is dropped once its footprint has not
+overlapped (``>= min_overlap``) any of the last ``stale_after_images`` new images, and at most
+``max_held_images`` are held (the least recently overlapped go first). Footprints are
+recomputed with the current ``ground_z_m`` on every call (4 rays per held image).
+
+Pixels (docs/conventions.md): OpenCV convention, centre of the top-left pixel at ``(0, 0)``. A
+working-resolution keypoint maps to the full-resolution image exactly by
+``u_full = (u_work + 0.5) * s_u - 0.5`` and ``v_full = (v_work + 0.5) * s_v - 0.5`` with
+``s_u = width_px / working width`` and ``s_v = height_px / working height``; the working
+height is ``round(height_px * working width / width_px)``, so ``s_u == s_v`` whenever that
+product is an integer (3600 x 2700 at 800, 1000 or 1400 px).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.tracking.options import MIN_MODEL_POINTS, TrackerOptions
+from seqat.errors import InputDataError
+from seqat.geometry import rays_world
+from seqat.types import EOP_SIZE, FloatArray, PinholeCamera
+
+#: The plane gate is never tighter than this many MAGSAC thresholds.
+PLANE_GATE_MIN_FACTOR = 3.0
+#: Smallest height above the ground plane used by the plane gate, metres.
+MIN_HEIGHT_M = 1.0
+#: Confidence and iteration cap of USAC_MAGSAC.
+RANSAC_CONFIDENCE = 0.999
+RANSAC_MAX_ITERATIONS = 10000
+#: FLANN kd-tree parameters for SIFT (4 randomised trees, 32 leaf checks).
+FLANN_KDTREE = 1
+FLANN_TREES = 4
+FLANN_CHECKS = 32
+#: Seed of OpenCV's RNG before each kd-tree build (deterministic matching).
+FLANN_SEED = 1
+#: A corner ray must point at least this much below the horizon to give a footprint (radians);
+#: flatter rays count as "horizon" and the image falls back to recency-based candidates.
+MIN_RAY_DEPRESSION_RAD = math.radians(5.0)
+#: A footprint corner farther than this multiple of the height above the plane counts as
+#: horizon too (an oblique corner would otherwise span kilometres).
+MAX_FOOTPRINT_RANGE_FACTOR = 20.0
+#: OpenCV's SIFT defaults (Lowe 2004): layers per octave, edge threshold, base blur.
+SIFT_OCTAVE_LAYERS = 3
+SIFT_EDGE_THRESHOLD = 10.0
+SIFT_SIGMA = 1.6
+#: ORB pyramid scale factor (OpenCV's default).
+ORB_SCALE_FACTOR = 1.2
+#: Digits of the point id counter (``t0000001``).
+POINT_ID_DIGITS = 7
+#: Image sizes accepted: gray (H, W) or 3-channel BGR (H, W, 3).
+BGR_CHANNELS = 3
+#: JPEG reduced-decode factors and their OpenCV flags (libjpeg scaled IDCT: reduced pixel k
+#: covers full pixels ``[k f, (k + 1) f)``, checked against ``INTER_AREA`` to < 0.01 px).
+REDUCED_GRAY_FLAGS = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2,
+                      4: cv2.IMREAD_REDUCED_GRAYSCALE_4, 8: cv2.IMREAD_REDUCED_GRAYSCALE_8}
+
+
+class TrackerCamera(Protocol):
+    """What the tracker needs of a camera (a :class:`pipeline.flight.schema.CameraConfig`):
+    its size and the ideal pinhole ``fx_px, cx_px, cy_px`` (footprint prediction only)."""
+
+    @property
+    def width_px(self) -> int: ...
+    @property
+    def height_px(self) -> int: ...
+    @property
+    def fx_px(self) -> float: ...
+    @property
+    def cx_px(self) -> float: ...
+    @property
+    def cy_px(self) -> float: ...
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrackStats:
+    """What the tracker did for one image (serialised into ``run.json``).
+
+    Attributes
+    ----------
+    features : int
+        Features detected (all are used to match).
+    emitted : int
+        Features that became observations (``TrackerOptions.emit_per_image``).
+    candidates : tuple[str, ...]
+        Held images matched, best predicted overlap first.
+    pairs_matched : int
+        Candidate pairs that passed geometric verification.
+    matches : int
+        Ratio-test matches over all candidate pairs.
+    inliers : int
+        Verified matches over the accepted pairs.
+    new_tracks : int
+        Tracks that got their second image now.
+    extended_tracks : int
+        Tracks that got a third or later image now.
+    split_conflicts : int
+        Features whose verified matches pointed to more than one track, plus features that
+        lost a track to another feature of the same image.
+    detect_ms, match_ms, total_ms : float
+        Wall times: gray conversion, downscale and detection; candidate selection, matching,
+        verification and linking; the whole call.
+    """
+
+    features: int
+    emitted: int
+    candidates: tuple[str, ...]
+    pairs_matched: int
+    matches: int
+    inliers: int
+    new_tracks: int
+    extended_tracks: int
+    split_conflicts: int
+    detect_ms: float
+    match_ms: float
+    total_ms: float
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class TrackedImage:
+    """The observations of one image, as emitted to the estimator.
+
+    Attributes
+    ----------
+    image_id : str
+    point_ids : tuple[str, ...]
+        Track id of every emitted feature, unique within the image.
+    uv_px : (k, 2) float
+        Observed pixels of the full-resolution image (OpenCV convention; lens distortion not
+        removed: :class:`pipeline.flight.camera.PixelCorrector` does that).
+    stats : TrackStats
+    """
+
+    image_id: str
+    point_ids: tuple[str, ...]
+    uv_px: FloatArray
+    stats: TrackStats
+
+
+@dataclass(kw_only=True, eq=False)
+class HeldImage:
+    """What the tracker keeps of an earlier image (no pixels); arrays never change once held."""
+
+    image_id: str
+    seq: int  # acquisition index
+    nav_eop: FloatArray  # (6,)
+    kp_work: NDArray[np.float32]  # (n, 2) working-resolution keypoints
+    desc: NDArray[np.uint8]  # (n, d) descriptors
+    point_nums: NDArray[np.int64]  # (n,) point id number of each keypoint, -1 if not emitted
+    last_overlap_seq: int = field(default=0)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class TrackerState:
+    """Everything a :class:`Tracker` holds between images (:meth:`Tracker.state`).
+
+    A fresh tracker of the same options and camera given this state (:meth:`Tracker.restore`)
+    tracks the next images exactly as the tracker it was taken from. ``held`` are copies whose
+    arrays are shared with the tracker (they never change once an image is held).
+
+    Attributes
+    ----------
+    seq : int
+        Images added so far.
+    next_point : int
+        Number of the next fresh track id.
+    origin_xy : (2,) float or None
+        Local origin of the footprints.
+    held : tuple[HeldImage, ...]
+        Held images, oldest first, with their ``last_overlap_seq`` at the time of the state.
+    tracks : (m, 3) int64
+        Point number, images in the track, held images holding it.
+    """
+
+    seq: int
+    next_point: int
+    origin_xy: FloatArray | None
+    held: tuple[HeldImage, ...]
+    tracks: NDArray[np.int64]
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class _Candidate:
+    held: HeldImage
+    overlap: float  # fraction of the new footprint; NaN when a footprint is unknown
+
+
+class Tracker:
+    """Streaming feature tracker (see the module docstring).
+
+    Parameters
+    ----------
+    options : TrackerOptions
+    camera : TrackerCamera
+        A :class:`pipeline.flight.schema.CameraConfig`: size and ``fx_px, cx_px, cy_px``
+        (ideal pinhole, for the footprint prediction only).
+    """
+
+    def __init__(self, options: TrackerOptions, camera: TrackerCamera) -> None:
+        self.options = options
+        self.camera = camera
+        self._pinhole = PinholeCamera(f_px=camera.fx_px, cx_px=camera.cx_px,
+                                      cy_px=camera.cy_px, width_px=camera.width_px,
+                                      height_px=camera.height_px)
+        w = min(options.working_width_px, camera.width_px)
+        h = max(1, round(camera.height_px * w / camera.width_px))
+        self.working_size_px = (w, h)
+        #: Largest JPEG decode reduction that still is at least the working size and divides
+        #: the camera size exactly (:func:`read_gray_image`).
+        self.decode_factor = max(
+            f for f in REDUCED_GRAY_FLAGS
+            if f == 1 or (camera.width_px % f == 0 and camera.height_px % f == 0
+                          and camera.width_px // f >= w and camera.height_px // f >= h))
+        #: Full / working scale along u and v.
+        self.scale_uv = (camera.width_px / w, camera.height_px / h)
+        if options.detector == "sift":
+            # precise upscale: without it OpenCV's SIFT keypoints are 0.25 px (working
+            # resolution) right of and below the true position (its doubled first octave is
+            # resampled centre-aligned, then halved corner-aligned).
+            self._detector = cv2.SIFT_create(
+                options.max_features, SIFT_OCTAVE_LAYERS, options.sift_contrast_threshold,
+                SIFT_EDGE_THRESHOLD, SIFT_SIGMA, cv2.CV_8U, True)
+        else:
+            self._detector = cv2.ORB_create(nfeatures=options.max_features,
+                                            scaleFactor=ORB_SCALE_FACTOR)
+        if options.opencv_threads > 0:
+            cv2.setNumThreads(options.opencv_threads)
+        self._held: list[HeldImage] = []
+        self._seq = 0
+        self._next_point = 1
+        #: point number -> [track length in images, held images holding it]
+        self._tracks: dict[int, list[int]] = {}
+        self._origin_xy: FloatArray | None = None
+
+    # ----------------------------------------------------------------------------------------
+    @property
+    def held_images(self) -> int:
+        """Number of images whose features are kept for matching (bounded)."""
+        return len(self._held)
+
+    @property
+    def held_image_ids(self) -> tuple[str, ...]:
+        """Ids of the held images, oldest first."""
+        return tuple(h.image_id for h in self._held)
+
+    def state(self) -> TrackerState:
+        """The tracker's state after the last image (:class:`TrackerState`)."""
+        tracks = np.array([[num, length, held] for num, (length, held) in self._tracks.items()],
+                          dtype=np.int64).reshape(-1, 3)
+        return TrackerState(seq=self._seq, next_point=self._next_point,
+                            origin_xy=None if self._origin_xy is None else self._origin_xy.copy(),
+                            held=tuple(dataclasses.replace(h) for h in self._held),
+                            tracks=tracks)
+
+    def restore(self, state: TrackerState) -> None:
+        """Continue from ``state`` (taken from a tracker of the same options and camera)."""
+        self._seq, self._next_point = state.seq, state.next_point
+        self._origin_xy = None if state.origin_xy is None else np.array(state.origin_xy)
+        self._held = [dataclasses.replace(h) for h in state.held]
+        self._tracks = {int(n): [int(length), int(held)] for n, length, held in state.tracks}
+
+    def to_full_px(self, uv_work: FloatArray) -> FloatArray:
+        """Working-resolution pixels -> full-resolution pixels (exact, see module docstring).
+
+        Parameters
+        ----------
+        uv_work : (k, 2) float
+
+        Returns
+        -------
+        (k, 2) float
+        """
+        uv = np.asarray(uv_work, dtype=np.float64).reshape(-1, 2)
+        s = np.asarray(self.scale_uv)
+        return (uv + 0.5) * s - 0.5
+
+    # ----------------------------------------------------------------------------------------
+    def add_image(self, image_id: str, image: NDArray[np.uint8], nav_eop: FloatArray,
+                  ground_z_m: float | None) -> TrackedImage:
+        """Detect, match and track one new image.
+
+        Parameters
+        ----------
+        image_id : str
+            Unique within the flight.
+        image : (H, W) or (H, W, 3) uint8
+            Gray or BGR image of the camera's size, or of that size divided by 2, 4 or 8
+            (a reduced JPEG decode, :func:`read_gray_image`) if it divides exactly and is
+            not smaller than the working copy. Reduced pixel ``k`` covers full pixels
+            ``[k f, (k + 1) f)``; the emitted ``uv_px`` are always full-resolution pixels.
+        nav_eop : (6,) float
+            Nav ``[X, Y, Z m, omega, phi, kappa rad]`` in the world frame (footprint only).
+        ground_z_m : float or None
+            Current terrain height estimate (world Z, metres); None before one exists, then
+            ``Z - default_height_above_ground_m`` of this image is used.
+
+        Returns
+        -------
+        TrackedImage
+            Every kept feature of this image with its point id, full-resolution pixels.
+
+        Raises
+        ------
+        InputDataError
+            Wrong image size, type or channels; non-finite nav; an image id already held.
+        """
+        t0 = time.perf_counter()
+        nav = self._check_input(image_id, image, nav_eop)
+        kp_work, desc, response = self._detect(image)
+        n_detected = len(kp_work)
+        t1 = time.perf_counter()
+
+        plane_z = (float(ground_z_m) if ground_z_m is not None and math.isfinite(ground_z_m)
+                   else float(nav[2]) - self.options.default_height_above_ground_m)
+        candidates = self._select_candidates(nav, plane_z)
+        links, n_matches, n_inliers, n_pairs = self._match(kp_work, desc, candidates, nav,
+                                                           plane_z)
+        point_nums, n_new, n_ext, n_conflicts = self._assign(len(kp_work), links)
+        keep = self._emitted(kp_work, response, point_nums)
+        fresh = keep[point_nums[keep] < 0]
+        point_nums[fresh] = np.arange(self._next_point, self._next_point + len(fresh))
+        for num in point_nums[fresh].tolist():
+            self._tracks[num] = [1, 1]
+        self._next_point += len(fresh)
+        held_nums = np.full(len(kp_work), -1, dtype=np.int64)  # -1: not emitted
+        held_nums[keep] = point_nums[keep]
+        t2 = time.perf_counter()
+
+        # every feature is held for matching (verification needs many matches); only the
+        # emitted ones carry tracks
+        held = HeldImage(image_id=image_id, seq=self._seq, nav_eop=nav, kp_work=kp_work,
+                          desc=desc, point_nums=held_nums, last_overlap_seq=self._seq)
+        self._held.append(held)
+        self._seq += 1
+        self._prune()
+
+        uv_full = self.to_full_px(kp_work[keep])
+        ids = tuple(f"t{n:0{POINT_ID_DIGITS}d}" for n in point_nums[keep].tolist())
+        t3 = time.perf_counter()
+        stats = TrackStats(
+            features=n_detected, emitted=len(ids),
+            candidates=tuple(c.held.image_id for c in candidates),
+            pairs_matched=n_pairs, matches=n_matches, inliers=n_inliers, new_tracks=n_new,
+            extended_tracks=n_ext, split_conflicts=n_conflicts,
+            detect_ms=1e3 * (t1 - t0), match_ms=1e3 * (t2 - t1), total_ms=1e3 * (t3 - t0))
+        return TrackedImage(image_id=image_id, point_ids=ids, uv_px=uv_full, stats=stats)
+
+    # ----------------------------------------------------------------------------------------
+    def _check_input(self, image_id: str, image: NDArray[np.uint8],
+                     nav_eop: FloatArray) -> FloatArray:
+        cam = self.camera
+        img = np.asarray(image)
+        shape_ok = (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == BGR_CHANNELS))
+        w, h = self.working_size_px
+        sizes = {(cam.height_px // f, cam.width_px // f) for f in REDUCED_GRAY_FLAGS
+                 if cam.width_px % f == 0 and cam.height_px % f == 0
+                 and cam.width_px // f >= w and cam.height_px // f >= h}
+        if img.dtype != np.uint8 or not shape_ok or img.shape[:2] not in sizes:
+            raise InputDataError(
+                f"image {image_id!r}: expected a uint8 gray or BGR image of "
+                f"{cam.width_px} x {cam.height_px} px or reduced by "
+                f"{', '.join(str(f) for f in REDUCED_GRAY_FLAGS if f > 1)} to at least "
+                f"{w} x {h} px, got {img.dtype} array of shape {img.shape}")
+        nav = np.asarray(nav_eop, dtype=np.float64).reshape(-1)
+        if nav.shape != (EOP_SIZE,) or not np.all(np.isfinite(nav)):
+            raise InputDataError(f"image {image_id!r}: nav_eop must be 6 finite numbers, "
+                                 f"got {nav_eop!r}")
+        if any(h.image_id == image_id for h in self._held):
+            raise InputDataError(f"image {image_id!r}: added twice")
+        return nav
+
+    def _detect(self, image: NDArray[np.uint8]) -> tuple[NDArray[np.float32], NDArray[np.uint8],
+                                                         FloatArray]:
+        """Gray working copy -> keypoints (n, 2) float32, descriptors (n, d) uint8, responses."""
+        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        if self.working_size_px != (gray.shape[1], gray.shape[0]):
+            gray = cv2.resize(gray, self.working_size_px, interpolation=cv2.INTER_AREA)
+        keypoints, desc = self._detector.detectAndCompute(gray, None)
+        n_bytes = 128 if self.options.detector == "sift" else 32
+        if desc is None or len(keypoints) == 0:
+            return np.zeros((0, 2), np.float32), np.zeros((0, n_bytes), np.uint8), np.zeros(0)
+        kp = np.array([k.pt for k in keypoints], dtype=np.float64).reshape(-1, 2)
+        response = np.array([k.response for k in keypoints], dtype=np.float64)
+        if self.options.detector == "orb":
+            # ORB reports a level-l corner at x_l * s_l; the level was resampled centre-aligned
+            # (cv2.resize), so the pixel is (x_l + 0.5) s_l - 0.5: add 0.5 (s_l - 1).
+            level = np.array([k.octave for k in keypoints], dtype=np.float64)
+            kp += 0.5 * (ORB_SCALE_FACTOR**level - 1.0)[:, None]
+        return kp.astype(np.float32), np.ascontiguousarray(desc, dtype=np.uint8), response
+
+    # ----------------------------------------------------------------------------------------
+    def _footprint(self, nav: FloatArray, plane_z: float) -> NDArray[np.float32] | None:
+        """Ground polygon (4, 2) of the image corners on ``Z = plane_z`` (local, CCW), or None."""
+        cam = self.camera
+        corners = np.array([[0.0, 0.0], [cam.width_px - 1.0, 0.0],
+                            [cam.width_px - 1.0, cam.height_px - 1.0],
+                            [0.0, cam.height_px - 1.0]])
+        rays = rays_world(np.tile(nav, (4, 1)), corners, self._pinhole)
+        height = nav[2] - plane_z
+        if height <= 0 or np.any(rays[:, 2] > -math.sin(MIN_RAY_DEPRESSION_RAD)):
+            return None
+        t = -height / rays[:, 2]
+        if np.any(t > MAX_FOOTPRINT_RANGE_FACTOR * height):
+            return None
+        if self._origin_xy is None:
+            self._origin_xy = nav[:2].copy()
+        xy = nav[:2] + t[:, None] * rays[:, :2] - self._origin_xy
+        poly = xy.astype(np.float32)
+        if cv2.contourArea(poly, oriented=True) < 0:
+            poly = poly[::-1].copy()
+        return poly
+
+    def _select_candidates(self, nav: FloatArray, plane_z: float) -> list[_Candidate]:
+        """Held images to match, best predicted overlap first (at most ``neighbours``)."""
+        opts = self.options
+        new_fp = self._footprint(nav, plane_z)
+        recent = {h.image_id for h in self._held[-opts.neighbours:]}
+        overlapping: list[_Candidate] = []
+        fallback: list[_Candidate] = []
+        new_area = cv2.contourArea(new_fp) if new_fp is not None else 0.0
+        for h in self._held:
+            fp = self._footprint(h.nav_eop, plane_z) if new_fp is not None else None
+            if new_fp is None or fp is None or new_area <= 0:
+                if h.image_id in recent:  # horizon: fall back to the most recent images
+                    fallback.append(_Candidate(held=h, overlap=math.nan))
+                continue
+            area, _ = cv2.intersectConvexConvex(new_fp, fp)
+            overlap = float(area) / new_area
+            if area > 0.0 and overlap >= opts.min_overlap:
+                h.last_overlap_seq = self._seq
+                overlapping.append(_Candidate(held=h, overlap=overlap))
+        overlapping.sort(key=lambda c: (-c.overlap, -c.held.seq))
+        fallback.sort(key=lambda c: -c.held.seq)
+        return (overlapping + fallback)[: opts.neighbours]
+
+    # ----------------------------------------------------------------------------------------
+    def _match(self, kp: NDArray[np.float32], desc: NDArray[np.uint8],
+               candidates: list[_Candidate], nav: FloatArray,
+               plane_z: float) -> tuple[dict[int, list[tuple[int, int, float]]], int, int, int]:
+        """Match the new image with each candidate and verify each pair.
+
+        Verification: the geometric model (MAGSAC), then, with the fundamental matrix and
+        ``max_relief_fraction`` set, the plane gate (:meth:`_plane_gate`).
+
+        Returns
+        -------
+        links : dict
+            New-feature index -> list of ``(point number, candidate rank, distance)``.
+        matches, inliers, pairs : int
+        """
+        opts = self.options
+        links: dict[int, list[tuple[int, int, float]]] = {}
+        n_matches = n_inliers = n_pairs = 0
+        if len(kp) < MIN_MODEL_POINTS or not candidates:
+            return links, 0, 0, 0
+        sift = opts.detector == "sift"
+        if sift and opts.matcher == "flann":
+            # FLANN's randomised kd-trees draw from OpenCV's thread RNG: seed it so an image's
+            # matches depend on its inputs only, not on what the process did before (a
+            # resumed run must track like an uninterrupted one)
+            cv2.setRNGSeed(FLANN_SEED)
+            matcher: cv2.DescriptorMatcher = cv2.FlannBasedMatcher(
+                {"algorithm": FLANN_KDTREE, "trees": FLANN_TREES}, {"checks": FLANN_CHECKS})
+            matcher.add([desc.astype(np.float32)])
+            matcher.train()  # one index of the new image, queried by every candidate
+        else:
+            matcher = cv2.BFMatcher(cv2.NORM_L2 if sift else cv2.NORM_HAMMING)
+        new_desc = desc.astype(np.float32) if sift else desc
+        for rank, cand in enumerate(candidates):
+            held = cand.held
+            if len(held.kp_work) < MIN_MODEL_POINTS:
+                continue
+            q = held.desc.astype(np.float32) if sift else held.desc
+            if isinstance(matcher, cv2.FlannBasedMatcher):
+                knn = matcher.knnMatch(q, k=2)
+            else:
+                knn = matcher.knnMatch(q, new_desc, k=2)
+            # ratio test; then one match per new feature (the smallest distance)
+            best: dict[int, tuple[int, float]] = {}
+            for pair in knn:
+                if len(pair) < 2:
+                    continue
+                m0, m1 = pair
+                if m0.distance < opts.ratio * m1.distance:
+                    prev = best.get(m0.trainIdx)
+                    if prev is None or m0.distance < prev[1]:
+                        best[m0.trainIdx] = (m0.queryIdx, m0.distance)
+            n_matches += len(best)
+            if len(best) < opts.min_inliers:
+                continue
+            idx_new = np.fromiter(best.keys(), dtype=np.int64, count=len(best))
+            idx_old = np.array([best[i][0] for i in idx_new.tolist()], dtype=np.int64)
+            dist = np.array([best[i][1] for i in idx_new.tolist()])
+            mask = self._verify(held.kp_work[idx_old], kp[idx_new])
+            if mask is None or int(mask.sum()) < opts.min_inliers:
+                continue
+            if opts.geometry == "fundamental" and opts.max_relief_fraction is not None:
+                mask &= self._plane_gate(held.kp_work[idx_old], kp[idx_new], mask,
+                                         held.nav_eop, nav, plane_z)
+                if int(mask.sum()) < opts.min_inliers:
+                    continue
+            n_pairs += 1
+            n_inliers += int(mask.sum())
+            for i_new, i_old, d in zip(idx_new[mask].tolist(), idx_old[mask].tolist(),
+                                       dist[mask].tolist(), strict=True):
+                num = int(held.point_nums[i_old])
+                if num >= 0:  # a match with a feature that was not emitted carries no track
+                    links.setdefault(i_new, []).append((num, rank, d))
+        return links, n_matches, n_inliers, n_pairs
+
+    def _plane_gate(self, pts_old: NDArray[np.float32], pts_new: NDArray[np.float32],
+                    mask: NDArray[np.bool_], nav_old: FloatArray, nav_new: FloatArray,
+                    plane_z: float) -> NDArray[np.bool_]:
+        """Matches within the parallax that terrain relief can cause, off the dominant plane.
+
+        The fundamental matrix cannot reject a wrong match that lies along its epipolar line,
+        and along a strip the epipolar lines run with the flight direction, the direction of
+        crop rows and roads: such matches give tie points metres or hundreds of metres off.
+        Seen from two nadir cameras a base ``B`` apart at height ``H`` over the ground, a
+        point ``dZ`` off the plane that a homography maps moves by about
+        ``f B / H * dZ / H`` pixels; matches farther than that from the pair's dominant-plane
+        homography (MAGSAC) are dropped. The gate is
+        ``max(PLANE_GATE_MIN_FACTOR * ransac_threshold_px, max_relief_fraction * f B / H)``
+        working pixels.
+        """
+        opts = self.options
+        height = max(float(0.5 * (nav_old[2] + nav_new[2])) - plane_z, MIN_HEIGHT_M)
+        base = float(np.linalg.norm(nav_new[:3] - nav_old[:3]))
+        f_work = self._pinhole.f_px / self.scale_uv[0]
+        assert opts.max_relief_fraction is not None
+        gate = max(PLANE_GATE_MIN_FACTOR * opts.ransac_threshold_px,
+                   opts.max_relief_fraction * f_work * base / height)
+        inl = np.flatnonzero(mask)
+        try:
+            H, _ = cv2.findHomography(pts_old[inl], pts_new[inl], cv2.USAC_MAGSAC, gate,
+                                      maxIters=RANSAC_MAX_ITERATIONS,
+                                      confidence=RANSAC_CONFIDENCE)
+        except cv2.error:
+            H = None
+        if H is None:
+            return np.zeros_like(mask)
+        mapped = cv2.perspectiveTransform(pts_old.reshape(1, -1, 2).astype(np.float64), H)[0]
+        return np.linalg.norm(mapped - pts_new, axis=1) <= gate
+
+    def _verify(self, pts_old: NDArray[np.float32],
+                pts_new: NDArray[np.float32]) -> NDArray[np.bool_] | None:
+        """USAC_MAGSAC inlier mask of the pair, or None when no model is found."""
+        opts = self.options
+        try:
+            if opts.geometry == "fundamental":
+                model, mask = cv2.findFundamentalMat(
+                    pts_old, pts_new, cv2.USAC_MAGSAC, opts.ransac_threshold_px,
+                    RANSAC_CONFIDENCE, RANSAC_MAX_ITERATIONS)
+            else:
+                model, mask = cv2.findHomography(
+                    pts_old, pts_new, cv2.USAC_MAGSAC, opts.ransac_threshold_px,
+                    maxIters=RANSAC_MAX_ITERATIONS, confidence=RANSAC_CONFIDENCE)
+        except cv2.error:  # degenerate sample sets: the pair is rejected
+            return None
+        if model is None or mask is None:
+            return None
+        return mask.reshape(-1).astype(bool)
+
+    def _assign(self, n_features: int, links: dict[int, list[tuple[int, int, float]]]) -> (
+            tuple[NDArray[np.int64], int, int, int]):
+        """Point number of every new feature; counts of new / extended tracks and conflicts."""
+        conflicts = 0
+        # each feature: the track with the most verified matches, then best rank, then distance
+        choice: dict[int, tuple[int, float]] = {}  # feature -> (point number, distance)
+        for feat, cands in links.items():
+            support: dict[int, list[float]] = {}
+            for num, rank, dist in cands:
+                s = support.setdefault(num, [0, math.inf, math.inf])
+                s[0] += 1
+                s[1] = min(s[1], rank)
+                s[2] = min(s[2], dist)
+            if len(support) > 1:
+                conflicts += 1
+            num = min(support, key=lambda n: (-support[n][0], support[n][1], support[n][2]))
+            choice[feat] = (num, support[num][2])
+        # each track: at most one feature of this image (the smallest distance)
+        owner: dict[int, tuple[int, float]] = {}
+        for feat, (num, dist) in choice.items():
+            prev = owner.get(num)
+            if prev is None or (dist, feat) < (prev[1], prev[0]):
+                if prev is not None:
+                    conflicts += 1
+                owner[num] = (feat, dist)
+            else:
+                conflicts += 1
+        point_nums = np.empty(n_features, dtype=np.int64)
+        assigned = np.zeros(n_features, dtype=bool)
+        n_new = n_ext = 0
+        for num, (feat, _) in owner.items():
+            point_nums[feat] = num
+            assigned[feat] = True
+            track = self._tracks[num]
+            if track[0] == 1:
+                n_new += 1
+            else:
+                n_ext += 1
+            track[0] += 1
+            track[1] += 1
+        point_nums[~assigned] = -1  # numbered by add_image if emitted
+        return point_nums, n_new, n_ext, conflicts
+
+    def _emitted(self, kp: NDArray[np.float32], response: FloatArray,
+                 point_nums: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Indices of the features that become observations (``emit_per_image``).
+
+        Continuations of tracks first (all of them), then the strongest new feature of each
+        grid cell in turn, cells visited in order of their strongest feature.
+        """
+        opts = self.options
+        linked = np.flatnonzero(point_nums >= 0)
+        new = np.flatnonzero(point_nums < 0)
+        if opts.emit_per_image is None:
+            return np.sort(np.concatenate([linked, new]))
+        budget = max(0, opts.emit_per_image - linked.size)
+        if budget == 0 or new.size == 0:
+            return linked
+        cols, rows = opts.emit_grid
+        w, h = self.working_size_px
+        cx = np.clip((kp[new, 0] * cols / w).astype(np.int64), 0, cols - 1)
+        cy = np.clip((kp[new, 1] * rows / h).astype(np.int64), 0, rows - 1)
+        cell = cy * cols + cx
+        order = np.lexsort((-response[new], cell))  # by cell, strongest first within a cell
+        sorted_cell = cell[order]
+        first = np.searchsorted(sorted_cell, sorted_cell, side="left")
+        rank_in_cell = np.arange(order.size) - first
+        # round robin: all cells' best, then all cells' second best, ... (ties: stronger first)
+        pick = np.lexsort((-response[new][order], rank_in_cell))[:budget]
+        return np.sort(np.concatenate([linked, new[order[pick]]]))
+
+    def _prune(self) -> None:
+        """Drop stale images, then the least recently overlapped beyond ``max_held_images``."""
+        opts = self.options
+        newest = self._seq - 1
+        keep = [h for h in self._held
+                if newest - h.last_overlap_seq < opts.stale_after_images]
+        if len(keep) > opts.max_held_images:
+            by_use = sorted(keep, key=lambda h: (h.last_overlap_seq, h.seq))
+            dropped = {id(h) for h in by_use[: len(keep) - opts.max_held_images]}
+            keep = [h for h in keep if id(h) not in dropped]
+        kept = {id(h) for h in keep}
+        for h in self._held:
+            if id(h) not in kept:
+                self._release(h)
+        self._held = keep
+
+    def _release(self, held: HeldImage) -> None:
+        for num in held.point_nums[held.point_nums >= 0].tolist():
+            track = self._tracks[num]
+            track[1] -= 1
+            if track[1] == 0:
+                del self._tracks[num]
+
+
+def read_gray_image(path: Path | str, decode_factor: int = 1) -> NDArray[np.uint8]:
+    """Read a JPEG (or any OpenCV image) as gray, optionally with a reduced JPEG decode.
+
+    Parameters
+    ----------
+    path : Path or str
+    decode_factor : {1, 2, 4, 8}
+        :attr:`Tracker.decode_factor`: the libjpeg scaled decode skips most of the IDCT and
+        the downscale of the full image (decode + working copy of a 3600 x 2700 JPEG: 43
+        instead of 57 ms at 1000 px, 38 instead of 55 ms at 800 px).
+
+    Returns
+    -------
+    (H / f, W / f) uint8
+
+    Raises
+    ------
+    InputDataError
+        The file cannot be read or decoded.
+    """
+    if decode_factor not in REDUCED_GRAY_FLAGS:
+        raise ValueError(f"decode_factor must be one of {sorted(REDUCED_GRAY_FLAGS)}, "
+                         f"got {decode_factor!r}")
+    image = cv2.imread(str(path), REDUCED_GRAY_FLAGS[decode_factor])
+    if image is None:
+        raise InputDataError(f"{path}: cannot read or decode the image")
+    return np.asarray(image, dtype=np.uint8)

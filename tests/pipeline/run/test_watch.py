@@ -1,0 +1,208 @@
+"""``seqat watch`` and ``seqat feed``: a growing flight folder adjusted as a batch run would.
+
+Flights are fed by :func:`pipeline.run.feed.feed_flight` in a thread (fast, the partial-file
+convention) while :func:`pipeline.run.watch.watch_flight` runs; the published results must equal
+``seqat run``'s bit for bit. Completeness rules are tested on their own with explicit clocks.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import shutil
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rich.console import Console
+
+from pipeline.common.columns import FLIGHT_YAML, NAV_GEODETIC_COLUMNS
+from pipeline.common.csvio import CsvTail
+from pipeline.flight.schema import load_flight_config
+from pipeline.run.feed import feed_flight
+from pipeline.run.session import ImageLive
+from pipeline.run.watch import Arrival, GrowingFlight, ImageWatcher, WatchOptions, watch_flight
+from seqat.errors import InputDataError
+from seqat.types import ImageUpdate
+
+from ..sample_runs import AUTZEN, STRIP, assert_same_results
+
+#: Feeding rate of the tests (images per second): faster than real time.
+FAST_RATE_HZ = 100.0
+#: Watch options of the tests: short polls, stop one second after the last input.
+QUICK = WatchOptions(idle_timeout_s=1.0, poll_s=0.01, wait_timeout_s=5.0)
+#: A moment long after any wait timeout of QUICK (monotonic seconds).
+LATER_S = 100.0
+
+
+def _feed_in_background(src: Path, dst: Path, rate_hz: float = FAST_RATE_HZ) -> threading.Thread:
+    """Start feeding; returns once flight.yaml is written (the watch needs it)."""
+    started = threading.Event()
+    thread = threading.Thread(target=feed_flight, args=(src, dst),
+                              kwargs={"rate_hz": rate_hz, "delay_s": 0.3,
+                                      "on_start": started.set}, daemon=True)
+    thread.start()
+    assert started.wait(30)
+    return thread
+
+
+def _quiet() -> Console:
+    return Console(file=io.StringIO(), width=200)
+
+
+def test_watch_of_a_fed_observations_flight_equals_the_run(strip_run: Path,
+                                                           tmp_path: Path) -> None:
+    flight, out = tmp_path / "flight", tmp_path / "out"
+    feeder = _feed_in_background(STRIP, flight)
+    console = _quiet()
+    summary = watch_flight(flight, out, watch=QUICK, console=console)
+    feeder.join()
+    assert summary.stopped == "idle" and summary.n_images == 60 and not summary.skipped
+    assert_same_results(strip_run, out)
+    doc = json.loads((out / "run.json").read_text())
+    assert doc["mode"] == "watch"
+    assert all(im["live"]["latency_ms"] > 0 for im in doc["images"])
+    lines = console.file.getvalue().splitlines()  # type: ignore[attr-defined]
+    assert len([line for line in lines if line.startswith("img_")]) == 60
+    assert "latency" in lines[0] and "window" in lines[0] and "σ0" in lines[0]
+
+
+def test_watch_of_a_fed_image_flight_equals_the_run(autzen_run: Path, tmp_path: Path) -> None:
+    flight, out = tmp_path / "flight", tmp_path / "out"
+    feeder = _feed_in_background(AUTZEN, flight)
+    summary = watch_flight(flight, out, watch=QUICK, console=_quiet())
+    feeder.join()
+    assert summary.n_images == 12 and summary.latency_ms is not None
+    assert_same_results(autzen_run, out)
+
+
+def test_a_stopped_watch_publishes_and_resumes(strip_run: Path, tmp_path: Path) -> None:
+    flight, out = tmp_path / "flight", tmp_path / "out"
+    feeder = _feed_in_background(STRIP, flight)
+    stop = threading.Event()
+
+    def stop_after_20(live: ImageLive, update: ImageUpdate) -> None:
+        if update.index == 19:
+            stop.set()  # as Ctrl-C: the image in flight finishes, the results are published
+
+    first = watch_flight(flight, out, watch=QUICK, console=_quiet(), stop=stop,
+                         on_image=stop_after_20)
+    feeder.join()
+    assert first.stopped == "interrupted" and first.n_images == 20
+    assert len((out / "eop.csv").read_text().splitlines()) == 21
+    second = watch_flight(flight, out, watch=QUICK, console=_quiet(), resume=True)
+    assert second.replayed == 20 and second.n_images == 60
+    assert_same_results(strip_run, out)
+
+
+def test_feed_writes_the_partial_file_convention(tmp_path: Path) -> None:
+    seen: list[tuple[str, list[str]]] = []
+    dst = tmp_path / "flight"
+
+    def look(image: str) -> None:
+        seen.append((image, sorted(p.name for p in (dst / "images").iterdir())))
+
+    feed_flight(AUTZEN, dst, rate_hz=FAST_RATE_HZ, limit=3, on_image=look)
+    assert [s[0] for s in seen] == ["img_0001", "img_0002", "img_0003"]
+    assert seen[2][1] == ["img_0001.jpg", "img_0002.jpg", "img_0003.jpg"]  # no .part left
+    nav = (dst / "nav.csv").read_text().splitlines()
+    assert nav == (AUTZEN / "nav.csv").read_text().splitlines()[:4]
+    assert (dst / FLIGHT_YAML).read_text() == (AUTZEN / FLIGHT_YAML).read_text()
+    assert (dst / "truth" / "eop.csv").is_file()
+
+
+def test_partial_and_truncated_images_wait(tmp_path: Path) -> None:
+    data = (AUTZEN / "images" / "img_0001.jpg").read_bytes()
+    (tmp_path / "a.jpg.part").write_bytes(data)
+    (tmp_path / ".b.jpg").write_bytes(data)
+    (tmp_path / "c.jpg").write_bytes(data[: len(data) // 2])
+    watcher = ImageWatcher(tmp_path, set(), wait_timeout_s=5.0)
+    assert watcher.poll(0.0) == ([], [])
+    (tmp_path / "a.jpg.part").rename(tmp_path / "a.jpg")
+    with (tmp_path / "c.jpg").open("ab") as handle:
+        handle.write(data[len(data) // 2:])
+    ready, skipped = watcher.poll(1.0)
+    assert [r[0] for r in ready] == ["a", "c"] and not skipped
+    (tmp_path / "d.jpg").write_bytes(data[:1000])  # truncated for good
+    assert watcher.poll(2.0) == ([], [])
+    ready, skipped = watcher.poll(2.0 + LATER_S)
+    assert not ready and [s.image for s in skipped] == ["d"]
+    assert "truncated JPEG" in skipped[0].reason and "after 5 s" in skipped[0].reason
+
+
+def test_csv_lines_count_once_they_end_with_a_newline(tmp_path: Path) -> None:
+    path = tmp_path / "nav.csv"
+    tail = CsvTail(path, NAV_GEODETIC_COLUMNS)
+    assert tail.poll() == []  # not there yet
+    header = ",".join(NAV_GEODETIC_COLUMNS) + "\n"
+    path.write_text(header + "img_1,0.0,44.0,-123.0,100")
+    assert tail.poll() == []
+    with path.open("a") as handle:
+        handle.write(",0,0,90\nimg_2,1.0")
+    rows = tail.poll()
+    assert [(r.line, r.values["image"], r.values["yaw_deg"]) for r in rows] == [(2, "img_1", "90")]
+    path.write_text(header)
+    with pytest.raises(InputDataError, match="shrank"):
+        tail.poll()
+
+
+def _image_flight(tmp_path: Path, nav_images: list[str], files: list[str]) -> Path:
+    """Autzen's flight.yaml with the given nav rows and image files."""
+    folder = tmp_path / "flight"
+    (folder / "images").mkdir(parents=True)
+    shutil.copy(AUTZEN / FLIGHT_YAML, folder / FLIGHT_YAML)
+    rows = {line.split(",")[0]: line for line in
+            (AUTZEN / "nav.csv").read_text().splitlines(keepends=True)}
+    (folder / "nav.csv").write_text(rows["image"] + "".join(rows[i] for i in nav_images))
+    for name in files:
+        shutil.copy(AUTZEN / "images" / f"{name}.jpg", folder / "images")
+    return folder
+
+
+def test_images_wait_for_their_nav_rows_and_rows_for_their_images(tmp_path: Path) -> None:
+    folder = _image_flight(tmp_path, ["img_0001", "img_0002", "img_0003"],
+                           ["img_0001", "img_0003", "img_0004"])
+    grow = GrowingFlight(folder, load_flight_config(folder / FLIGHT_YAML), set(), 5.0)
+    items, activity = grow.poll(0.0)
+    assert activity and [i.image for i in items] == ["img_0001"]  # img_0003 waits for img_0002
+    assert isinstance(items[0], Arrival) and grow.flight is not None
+    items, _ = grow.poll(1.0)
+    assert items == []
+    items, _ = grow.poll(LATER_S)
+    assert [(type(i).__name__, i.image) for i in items] == [
+        ("SkippedImage", "img_0002"), ("Arrival", "img_0003"), ("SkippedImage", "img_0004")]
+    assert "listed in nav.csv but no complete image" in items[0].reason  # type: ignore[union-attr]
+    assert "img_0004.jpg: no row in nav.csv after 5 s" == items[2].reason  # type: ignore[union-attr]
+
+
+def test_observation_rows_after_their_nav_row_are_an_error(tmp_path: Path) -> None:
+    folder = tmp_path / "flight"
+    folder.mkdir()
+    shutil.copy(STRIP / FLIGHT_YAML, folder / FLIGHT_YAML)
+    nav = (STRIP / "nav.csv").read_text().splitlines(keepends=True)
+    obs = (STRIP / "observations.csv").read_text().splitlines(keepends=True)
+    first = [line for line in obs[1:] if line.startswith("img_0001,")]
+    (folder / "nav.csv").write_text("".join(nav[:2]))
+    (folder / "observations.csv").write_text(obs[0] + "".join(first[:-1]))
+    grow = GrowingFlight(folder, load_flight_config(folder / FLIGHT_YAML), set(), 5.0)
+    items, _ = grow.poll(0.0)
+    assert isinstance(items[0], Arrival) and len(items[0].point_ids) == len(first) - 1
+    np.testing.assert_array_equal(items[0].nav_eop[:3], [float(v) for v in
+                                                         nav[1].split(",")[2:5]])
+    with (folder / "observations.csv").open("a") as handle:
+        handle.write(first[-1])
+    with pytest.raises(InputDataError, match=r"observations.csv:\d+: rows of image 'img_0001' "
+                       "are not contiguous or arrive after its nav row"):
+        grow.poll(1.0)
+
+
+def test_watch_without_flight_yaml_is_exit_2(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+
+    result = CliRunner().invoke(app, ["watch", str(tmp_path), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 2
+    assert result.stderr == (f"seqat: error: {tmp_path / FLIGHT_YAML}: no such file (seqat "
+                             "watch needs flight.yaml from the start)\n")
