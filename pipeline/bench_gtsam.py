@@ -293,11 +293,12 @@ def run_gtsam(flight: SimulatedFlight, lag: int, *, extra_updates: int = 0) -> _
     update_ms: list[float] = []
     build_ms: list[float] = []
     max_rho = 0.0
+    noise_kinds: set[str] = set()
     counts = {"landmarks_entered": 0, "triangulation_failed": 0, "obs_dropped_departed": 0,
               "factors": 0}
     window_vars: list[int] = []
     iterations: list[int] = []
-    threads_max = _threads()
+    threads_before = threads_max = _threads()
     failure = None
     processed = 0
     for i in range(n):
@@ -311,6 +312,7 @@ def run_gtsam(flight: SimulatedFlight, lag: int, *, extra_updates: int = 0) -> _
         stamps[xk] = float(i)
         noise, rho = prior_noise(flight.nav_eop[i], flight.nav_sigma)
         max_rho = max(max_rho, rho)
+        noise_kinds.add("diagonal" if rho < DIAGONAL_CORRELATION_TOL else "full Gaussian")
         graph.add(gtsam.PriorFactorPose3(xk, pose0, noise))
         for k in range(bounds[i], bounds[i + 1]):
             j = int(flight.obs_point[k])
@@ -395,7 +397,9 @@ def run_gtsam(flight: SimulatedFlight, lag: int, *, extra_updates: int = 0) -> _
             "isam2_iterations_total": int(sum(iterations)),
             "extra_updates": extra_updates,
             "prior_max_correlation": max_rho,
-            "threads_max": threads_max,
+            "prior_noise_models": sorted(noise_kinds),
+            "threads_before": threads_before,  # process threads before the run
+            "threads_max": threads_max,  # largest count seen after an update
         },
         failure=failure,
     )
@@ -407,15 +411,19 @@ def _rms(a: FloatArray) -> float:
 
 
 def accuracy(eop: FloatArray, idx: np.ndarray, xyz: FloatArray,
-             flight: SimulatedFlight) -> dict[str, object]:
+             flight: SimulatedFlight, common: np.ndarray | None = None) -> dict[str, object]:
     """RMSE against truth: position (m) and attitude (deg) over the images estimated, ground
-    points over the points estimated; per component and the r.m.s. over the three (as the
-    figures of ``seqat bench``)."""
+    points over the points estimated (and over ``common`` point indices, the points every
+    method estimated); per component and the r.m.s. over the three (as the figures of
+    ``seqat bench``)."""
     n = eop.shape[0]
     d = eop - flight.truth_eop[:n]
     dpos, datt = d[:, :3], np.degrees(wrap_angle(d[:, 3:]))
     dgp = xyz - flight.truth_xyz[idx] if idx.size else np.zeros((0, 3))
+    in_common = np.isin(idx, common) if common is not None else np.zeros(idx.size, bool)
     return {
+        "gp_rmse_common_m": _rms(dgp[in_common]),
+        "n_points_common": int(in_common.sum()),
         "n_images": int(n),
         "n_points": int(idx.size),
         "pos_rmse_m": _rms(dpos),
@@ -473,6 +481,10 @@ def run_gtsam_bench(
             runs = [run_seq_r(flight)]
             runs += [run_gtsam(flight, lag, extra_updates=extra_updates) for lag in lag_images]
             timed_images = [i for i, t in enumerate(runs[0].timed) if t]
+            sm = runs[0].extra["smoothed"]
+            common = sm["point_idx"]
+            for r in runs:
+                common = np.intersect1d(common, r.point_idx)
             rows = []
             for r in runs:
                 upd = _select(r.update_ms, timed_images)
@@ -489,18 +501,17 @@ def run_gtsam_bench(
                     "build": _stats(bld) if r.lag is not None else None,
                     "update_plus_build": _stats(tot) if r.lag is not None else None,
                     "update_all_images": _stats(r.update_ms),
-                    "accuracy": accuracy(r.eop, r.point_idx, r.xyz, flight),
+                    "accuracy": accuracy(r.eop, r.point_idx, r.xyz, flight, common),
                     "failure": r.failure,
                     "extra": {k: v for k, v in r.extra.items() if k != "smoothed"},
                     "update_ms": r.update_ms,
                     "build_ms": r.build_ms if r.lag is not None else None,
                 })
-            sm = runs[0].extra["smoothed"]
             rows.insert(1, {
                 "label": f"{runs[0].label} RTS-smoothed (same run)",
                 "lag_images": None, "update": None, "build": None, "update_plus_build": None,
                 "update_all_images": None,
-                "accuracy": accuracy(sm["eop"], sm["point_idx"], sm["xyz"], flight),
+                "accuracy": accuracy(sm["eop"], sm["point_idx"], sm["xyz"], flight, common),
                 "failure": None, "extra": {}, "update_ms": None, "build_ms": None,
             })
             seed_results.append({
@@ -608,8 +619,8 @@ def render_markdown(report: dict) -> str:
         "`calculateEstimate()`). RMSE = r.m.s. over the three components.",
         "",
         "| seed | method | median ms | EOP pos RMSE (m) | att RMSE (deg) | GP RMSE (m) | "
-        "images | GPs | notes |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "GP RMSE common GPs (m) | images | GPs (common) | notes |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in report["results"]:
         for x in r["methods"]:
@@ -624,13 +635,15 @@ def render_markdown(report: dict) -> str:
             if "landmarks_entered" in e:
                 notes.append(f"{e['obs_dropped_departed']} obs dropped, "
                              f"{e['triangulation_failed']} triangulations failed, "
-                             f"prior max corr {e['prior_max_correlation']:.1e}, "
-                             f"threads {e['threads_max']}")
+                             f"prior {'/'.join(e['prior_noise_models'])} "
+                             f"(max corr {e['prior_max_correlation']:.1e}), "
+                             f"process threads {e['threads_before']} -> {e['threads_max']}")
             med = x["update"]["median_ms"] if x["update"] else None
             lines.append(
                 f"| {r['seed']} | {x['label']} | {_f(med)} | {_f(a['pos_rmse_m'], '.3f')} | "
                 f"{_f(a['att_rmse_deg'], '.4f')} | {_f(a['gp_rmse_m'], '.3f')} | "
-                f"{a['n_images']} | {a['n_points']} | {'; '.join(notes)} |"
+                f"{_f(a['gp_rmse_common_m'], '.3f')} | {a['n_images']} | "
+                f"{a['n_points']} ({a['n_points_common']}) | {'; '.join(notes)} |"
             )
     return "\n".join(lines) + "\n"
 
