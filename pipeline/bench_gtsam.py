@@ -80,6 +80,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")  # effective only if numpy is not imported yet
 
 import argparse  # noqa: E402
+import dataclasses  # noqa: E402
 import datetime  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
@@ -527,6 +528,10 @@ def run_gtsam_bench(
                 "timed_images": [timed_images[0], timed_images[-1] + 1] if timed_images else [],
                 "methods": rows,
             })
+    # The conversion check on the first seed's strip without noise (same geometry).
+    quiet = dataclasses.replace(cfg, sigma_px=1e-12, sigma_position_m=1e-12,
+                                sigma_attitude_deg=1e-12)
+    conversion = check_conversion(simulate_strip(quiet, seeds[0]))
     summary = []
     gt_medians = {}
     for label, p in pooled.items():
@@ -560,6 +565,7 @@ def run_gtsam_bench(
         "env": {v: os.environ.get(v) for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
                                                 "MKL_NUM_THREADS")},
         "python": platform.python_version(),
+        "conversion_check_noise_free_seed0": conversion,
         "summary": summary,
         "results": seed_results,
     }
@@ -590,6 +596,7 @@ def render_markdown(report: dict) -> str:
     """Tables of the report: pooled timing with ratios, then accuracy per seed."""
     m = report["machine"]
     g = report["gtsam"]
+    conv = report["conversion_check_noise_free_seed0"]
     lines = [
         "# GTSAM IncrementalFixedLagSmoother vs Seq-R (same run)",
         "",
@@ -599,6 +606,11 @@ def render_markdown(report: dict) -> str:
         f"{_f(m['load_average_1m_end'])} at end ({report['uptime']}); gtsam {g['version']} "
         f"(`{g['smoother']}`; TBB/OpenMP libraries: {g['thread_libraries'] or 'none'}), "
         f"numpy {m['numpy']}, Python {report['python']}. Run time {report['runtime_s']:.0f} s.",
+        "",
+        f"Pose conversion check (noise-free copy of seed {report['seeds'][0]}'s strip, every "
+        f"observation): PinholeCameraCal3_S2 vs observed uv max "
+        f"{conv['max_px_vs_observed']:.1e} px, vs seqat.geometry.project max "
+        f"{conv['max_px_vs_seqat_project']:.1e} px.",
         "",
         "Per-image time (ms), pooled over seeds, on Seq-R's timed images (its sequential "
         "stage). GTSAM `update` = `smoother.update(...)` only; `build` = that image's factors, "
