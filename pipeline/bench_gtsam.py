@@ -534,15 +534,26 @@ def run_gtsam_bench(
     conversion = check_conversion(simulate_strip(quiet, seeds[0]))
     summary = []
     gt_medians = {}
-    for label, p in pooled.items():
-        summary.append({"label": label, "update": _stats(p["update"]),
-                        "build": _stats(p["build"]) if p["build"] else None,
-                        "update_plus_build": _stats(p["total"]) if p["total"] else None})
+    for row in seed_results[0]["methods"]:
+        label = row["label"]
+        runs = [x for r in seed_results for x in r["methods"] if x["label"] == label]
+        p = pooled.get(label)
+        mean_acc = {k: float(np.mean([x["accuracy"][k] for x in runs]))
+                    for k in ("pos_rmse_m", "att_rmse_deg", "gp_rmse_m", "gp_rmse_common_m")}
+        summary.append({
+            "label": label,
+            "update": _stats(p["update"]) if p else None,
+            "build": _stats(p["build"]) if p and p["build"] else None,
+            "update_plus_build": _stats(p["total"]) if p and p["total"] else None,
+            "accuracy_mean_over_seeds": mean_acc,
+            "failures": sum(x["failure"] is not None for x in runs),
+        })
         if label.startswith("GTSAM"):
             gt_medians[label] = summary[-1]["update"]["median_ms"]
     for s in summary:
         s["ratio_to_gtsam_median"] = {
-            g: (s["update"]["median_ms"] / m if m and math.isfinite(m) else math.nan)
+            g: (s["update"]["median_ms"] / m if s["update"] and m and math.isfinite(m)
+                else math.nan)
             for g, m in gt_medians.items()
         }
     report = {
@@ -614,21 +625,26 @@ def render_markdown(report: dict) -> str:
         "",
         "Per-image time (ms), pooled over seeds, on Seq-R's timed images (its sequential "
         "stage). GTSAM `update` = `smoother.update(...)` only; `build` = that image's factors, "
-        "values, timestamps and triangulations. The machine is shared: only ratios within this "
-        "run count.",
+        "values, timestamps and triangulations. Ratio = the row's median update time over that "
+        "GTSAM run's. Accuracy: mean over seeds of the RMSE against truth (r.m.s. over the "
+        "three components). The machine is shared: only ratios within this run count.",
         "",
     ]
     gts = [s["label"] for s in report["summary"] if s["label"].startswith("GTSAM")]
-    head = "| method | n | median | p95 | max | " + " | ".join(
-        f"median / {x} median" for x in gts) + " | build median | update+build median |"
+    head = ("| method | n | median | p95 | max | " + " | ".join(f"ratio to {x}" for x in gts)
+            + " | GTSAM build median | update+build median | EOP pos RMSE (m) | "
+            "att RMSE (deg) | GP RMSE (m) | failed runs |")
     lines += [head, "|" + "---|" * (head.count("|") - 1)]
     for s in report["summary"]:
-        u = s["update"]
+        u = s["update"] or {"n": 0, "median_ms": None, "p95_ms": None, "max_ms": None}
         ratios = " | ".join(_f(s["ratio_to_gtsam_median"][x]) for x in gts)
         b = s["build"]["median_ms"] if s["build"] else None
         t = s["update_plus_build"]["median_ms"] if s["update_plus_build"] else None
-        lines.append(f"| {s['label']} | {u['n']} | {_f(u['median_ms'])} | {_f(u['p95_ms'])} | "
-                     f"{_f(u['max_ms'])} | {ratios} | {_f(b)} | {_f(t)} |")
+        a = s["accuracy_mean_over_seeds"]
+        lines.append(f"| {s['label']} | {u['n'] or '–'} | {_f(u['median_ms'])} | "
+                     f"{_f(u['p95_ms'])} | {_f(u['max_ms'])} | {ratios} | {_f(b)} | {_f(t)} | "
+                     f"{_f(a['pos_rmse_m'], '.3f')} | {_f(a['att_rmse_deg'], '.4f')} | "
+                     f"{_f(a['gp_rmse_m'], '.3f')} | {s['failures']} |")
     lines += [
         "",
         "Accuracy against truth (final estimates: Seq-R real time = departure values; GTSAM = "

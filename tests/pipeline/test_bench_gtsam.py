@@ -96,7 +96,11 @@ def test_tiny_strip_bench(tmp_path: Path) -> None:
     assert g["extra"]["threads_max"] == g["extra"]["threads_before"]  # gtsam starts no threads
     assert rows["Seq-R ρ≥0.1"]["accuracy"]["pos_rmse_m"] < 3 * nav_sigma
     data = json.loads((tmp_path / "out" / "bench_gtsam.json").read_text(encoding="utf-8"))
-    assert {s["label"] for s in data["summary"]} == {"Seq-R ρ≥0.1", "GTSAM iFLS lag 5"}
+    summary = {s["label"]: s for s in data["summary"]}
+    assert set(summary) == {"Seq-R ρ≥0.1", "Seq-R ρ≥0.1 RTS-smoothed (same run)",
+                            "GTSAM iFLS lag 5"}
+    assert summary["GTSAM iFLS lag 5"]["ratio_to_gtsam_median"]["GTSAM iFLS lag 5"] == 1.0
+    assert summary["Seq-R ρ≥0.1"]["update"]["n"] == 5  # after the 10 initial images
     md = (tmp_path / "out" / "bench_gtsam.md").read_text(encoding="utf-8")
     assert "GTSAM iFLS lag 5" in md and "Seq-R" in md
 
