@@ -79,8 +79,8 @@ iSAM2, the batch solution.
 Findings (docs/bench_gtsam/bench_gtsam.md): no GTSAM error at any lag tried (0-3, 5, 10, 20,
 25, 50, 400; seeds 1-3, not every pair); the accuracy of a departed landmark grows with the lag
 (later images still tie it through shared points): lag 25 matches Seq-R's real-time values,
-lag 400 the RTS-smoothed ones; lags 0-2 leave GPs off by 0.2-2.8 m (marginals linearised at
-two-ray triangulations).
+lag 400 the RTS-smoothed ones; lags 0-2 leave GPs off by 0.2-2.8 m (presumably the marginals,
+linearised at two-ray triangulations; not verified).
 """
 
 from __future__ import annotations
