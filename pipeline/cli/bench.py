@@ -21,11 +21,15 @@ RENDERED_BENCH = "rendered"
 #: [--live MODE] [--rate-hz R] [--nice N]``: timing of the ortho stage
 #: (:mod:`pipeline.bench.ortho`; its own arguments follow).
 ORTHO_BENCH = "ortho"
+#: ``seqat bench gtsam [--seed N ...] [--lag N ...] [--out DIR] [--config CONFIG.yaml]
+#: [--extra-updates N]``: GTSAM's fixed-lag smoother beside Seq-R on simulated strips
+#: (:mod:`pipeline.bench.gtsam`, optional package gtsam; its own arguments follow).
+GTSAM_BENCH = "gtsam"
 
 
 def _passes_arguments(config: Path) -> bool:
-    """Only the rendered and ortho benchmarks take arguments of their own."""
-    return not config.exists() and str(config) in (RENDERED_BENCH, ORTHO_BENCH)
+    """Only the rendered, ortho and gtsam benchmarks take arguments of their own."""
+    return not config.exists() and str(config) in (RENDERED_BENCH, ORTHO_BENCH, GTSAM_BENCH)
 
 
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
@@ -35,7 +39,8 @@ def bench(
         help="Simulation config (configs/*_sim.yaml), an image flight folder, or 'long' "
              "(memory and time along a 10,000-image strip); 'faults' (seeded faults), "
              "'rendered RUN --config CONFIG.yaml' (a rendered flight's products against its "
-             "truth) or 'ortho' (timing of the ortho stage; see docs/benchmarks.md).")],
+             "truth), 'ortho' (timing of the ortho stage) or 'gtsam' (GTSAM's fixed-lag "
+             "smoother beside Seq-R; --lag, --config; see docs/benchmarks.md).")],
     out: Annotated[Path, typer.Option("--out", help="Benchmark output folder.")] = Path(
         "out/bench"),
     seed: Annotated[list[int] | None, typer.Option(
@@ -53,8 +58,9 @@ def bench(
 ) -> None:
     """Compare direct georeferencing, Seq-R, Seq-F and Sim on simulated flights, or, for an
     image flight folder, Seq-R (tracking) with Sim and Seq-F on the same tie points.
-    ``seqat bench faults``: seeded blunders, a GNSS jump and a dropout; ``seqat bench rendered``
-    and ``seqat bench ortho`` take the arguments of their modules (docs/benchmarks.md)."""
+    ``seqat bench faults``: seeded blunders, a GNSS jump and a dropout; ``seqat bench rendered``,
+    ``seqat bench ortho`` and ``seqat bench gtsam`` take the arguments of their modules
+    (docs/benchmarks.md)."""
     if ctx.args and not _passes_arguments(config):
         first = ctx.args[0]
         ctx.fail(f"No such option: {first}" if first.startswith("-") else
@@ -80,6 +86,12 @@ def _bench(*, ctx: typer.Context, config: Path, out: Path, seed: list[int] | Non
         from pipeline.bench.ortho import main as ortho_main
 
         ortho_main(["--out", str(out), *ctx.args])
+        return
+    if name == GTSAM_BENCH:
+        from pipeline.bench.gtsam import main as gtsam_main
+
+        seeds = [arg for s in seed or () for arg in ("--seed", str(s))]
+        gtsam_main(["--out", str(out), *seeds, *ctx.args])
         return
     if str(config) == "long":
         _long_bench(out)

@@ -110,6 +110,8 @@ def test_bench_passes_config_out_seeds_and_thresholds(tmp_path: Path,
      ["RUN", "--config", "c.yaml", "--json", "s.json"]),
     ("ortho", ["--images", "3", "--no-occlusion", "--out", "o"],
      ["--out", "o", "--images", "3", "--no-occlusion"]),
+    ("gtsam", ["--seed", "1", "--lag", "5", "--seed", "2", "--config", "c.yaml", "--out", "o"],
+     ["--out", "o", "--seed", "1", "--seed", "2", "--lag", "5", "--config", "c.yaml"]),
 ])
 def test_bench_reaches_the_module_benchmarks(name: str, args: list[str], forwarded: list[str],
                                              tmp_path: Path, monkeypatch: pytest.MonkeyPatch
@@ -128,3 +130,15 @@ def test_bench_rejects_unknown_options() -> None:
     config = REPO_ROOT / "configs" / "paper_sim.yaml"
     result = CliRunner().invoke(app, ["bench", str(config), "--bogus"])
     assert result.exit_code == 2
+
+
+def test_bench_gtsam_without_gtsam_is_exit_2(tmp_path: Path,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """gtsam is optional: without it the benchmark stops at once with one line."""
+    monkeypatch.setitem(sys.modules, "gtsam", None)  # import gtsam raises ImportError
+    result = CliRunner().invoke(app, ["bench", "gtsam", "--seed", "1", "--lag", "5",
+                                      "--out", str(tmp_path / "b")])
+    assert result.exit_code == 2
+    assert result.stderr == ("seqat: error: seqat bench gtsam needs the optional package gtsam "
+                             "(pip install 'seqat[bench]')\n")
+    assert not (tmp_path / "b").exists()

@@ -11,7 +11,7 @@ import pytest
 
 gtsam = pytest.importorskip("gtsam")
 
-from pipeline.bench_gtsam import (  # noqa: E402
+from pipeline.bench.gtsam import (  # noqa: E402
     attitude_jacobian,
     calibration,
     check_conversion,

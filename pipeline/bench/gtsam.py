@@ -5,7 +5,7 @@ Optional benchmark dependency: GTSAM's Python wheel (``pip install gtsam``, or t
 
 What is compared
 ----------------
-For each seed the strip of :mod:`pipeline.bench` (``simulation:`` of a ``kind: observations``
+For each seed the strip of :mod:`pipeline.bench.strip` (``simulation:`` of a ``kind: observations``
 config, :func:`seqat.simulate.simulate_strip`) is streamed image by image through
 
 * **Seq-R**: :class:`seqat.sequential.SequentialAT` with
@@ -28,7 +28,7 @@ The GTSAM problem (one update per image)
   position, for conditioning, as the seqat estimators do). Intrinsics ``Cal3_S2(f, f, 0, cx,
   cy)``: GTSAM's ``u = f x/z + cx, v = f y/z + cy`` is then seqat's ``u = cx - f p_x/p_z,
   v = cy + f p_y/p_z`` exactly (:func:`check_conversion`: the simulated noise-free image points
-  are reproduced to < 1e-6 px, also in ``tests/pipeline/test_bench_gtsam.py``).
+  are reproduced to < 1e-6 px, also in ``tests/pipeline/bench/test_bench_gtsam.py``).
 * GPS/INS prior ``PriorFactorPose3`` on the nav EOP. Its error is ``Logmap(prior^-1 pose)``,
   tangent order **rotation first** (body frame of the GTSAM camera), then translation (also in
   that body frame). The nav sigmas are mapped to first order (:func:`prior_covariance`): for
@@ -63,18 +63,21 @@ The GTSAM problem (one update per image)
 
 Threads: the PyPI gtsam 4.3 wheel links neither TBB nor OpenMP (checked from its bundled
 libraries, reported in the JSON), so iSAM2 runs on one thread; numpy/BLAS are limited to one
-thread (threadpoolctl, plus ``OMP_NUM_THREADS`` etc. set before numpy when run as
-``python -m``) and the process's thread count is recorded while GTSAM runs.
+thread (threadpoolctl, plus ``OMP_NUM_THREADS`` etc.: set them in the environment for
+``seqat bench gtsam``; ``python -m pipeline.bench.gtsam`` sets them itself before numpy) and
+the process's thread count is recorded while GTSAM runs.
 
-Outputs in ``out_dir``: ``bench_gtsam.json`` and ``bench_gtsam.md``. Re-run::
+Outputs in ``--out``: ``bench_gtsam.json`` and ``bench_gtsam.md``. Re-run::
 
     OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 \\
-        python -m pipeline.bench_gtsam configs/paper_sim.yaml --seeds 1 2 3 \\
-        --lags 10 20 25 400 --out docs/bench_gtsam
+        seqat bench gtsam --config configs/paper_sim.yaml --seed 1 --seed 2 --seed 3 \\
+        --lag 10 --lag 20 --lag 25 --lag 400 --out docs/bench_gtsam
 
-(with gtsam installed elsewhere: ``PYTHONPATH=/path/to/gtsam-pkgs:. python -m ...``). Lag 25 is
-Seq-R's median window on this strip; lag 400 (longer than the strip) never marginalises: plain
-iSAM2, the batch solution.
+(defaults: ``--config configs/paper_sim.yaml --seed 1 --lag 10 --lag 20 --out out/bench``;
+``--extra-updates N``; with gtsam installed elsewhere: ``PYTHONPATH=/path/to/gtsam-pkgs seqat
+bench gtsam ...``; without gtsam the command exits 2 with one line naming the ``bench``
+extra). Lag 25 is Seq-R's median window on this strip; lag 400 (longer than the strip) never
+marginalises: plain iSAM2, the batch solution.
 
 Findings (docs/bench_gtsam/bench_gtsam.md): no GTSAM error at any lag tried (0-3, 5, 10, 20,
 25, 50, 400; seeds 1-3, not every pair); the accuracy of a departed landmark grows with the lag
@@ -105,8 +108,10 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from pipeline.bench import _jsonable, _load_average, _load_sim_config, _machine  # noqa: E402
-from pipeline.bench_report import INITIAL_STAGE  # noqa: E402
+from pipeline.bench.common import load_average, load_sim_config, machine  # noqa: E402
+from pipeline.bench.report import INITIAL_STAGE  # noqa: E402
+from pipeline.run.store import to_jsonable  # noqa: E402
+from seqat.errors import ConfigError  # noqa: E402
 from seqat.geometry import angles_from_rotation, project, rotation_matrix, wrap_angle  # noqa: E402
 from seqat.sequential import SequentialAT, SequentialOptions  # noqa: E402
 from seqat.simulate import SimulatedFlight, simulate_strip  # noqa: E402
@@ -123,11 +128,21 @@ UNCONSTRAINED_SIGMA = 1e6
 RELINEARIZE_THRESHOLD = 0.01
 #: Seq-R as seqat bench runs it.
 SEQ_R_THRESHOLD = 0.1
+#: The error (exit 2) of ``seqat bench gtsam`` when gtsam cannot be imported.
+MISSING_GTSAM = ("seqat bench gtsam needs the optional package gtsam "
+                 "(pip install 'seqat[bench]')")
+#: ``seqat bench gtsam`` defaults.
+DEFAULT_CONFIG = Path("configs/paper_sim.yaml")
+DEFAULT_SEEDS = (1,)
+DEFAULT_LAGS = (10, 20)
 
 
 def _gtsam():  # type: ignore[no-untyped-def]
-    import gtsam
-
+    """The gtsam module, imported on first use (:class:`ConfigError` without it)."""
+    try:
+        import gtsam
+    except ImportError as err:
+        raise ConfigError(MISSING_GTSAM) from err
     return gtsam
 
 
@@ -486,11 +501,14 @@ def run_gtsam_bench(
     import importlib.metadata
 
     if not seeds or not lag_images:
-        raise ValueError("bench_gtsam: at least one seed and one lag are needed")
-    cfg = _load_sim_config(Path(config_path))
+        raise ConfigError("seqat bench gtsam: at least one seed and one lag are needed")
+    if any(lag < 0 for lag in lag_images):
+        raise ConfigError(f"seqat bench gtsam: --lag: expected lags >= 0 images, got "
+                          f"{list(lag_images)}")
+    cfg = load_sim_config(Path(config_path))
     out = Path(out_dir)
     t_start = time.perf_counter()
-    load_start = _load_average()
+    load_start = load_average()
     seed_results = []
     pooled: dict[str, dict[str, list[float]]] = {}
     with threadpool_limits(limits=1):
@@ -574,7 +592,7 @@ def run_gtsam_bench(
         "lag_images": list(lag_images),
         "date_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "runtime_s": time.perf_counter() - t_start,
-        "machine": _jsonable(_machine(load_start)),
+        "machine": to_jsonable(machine(load_start)),
         "uptime": _uptime(),
         "gtsam": {
             "version": importlib.metadata.version("gtsam"),
@@ -593,7 +611,7 @@ def run_gtsam_bench(
         "results": seed_results,
     }
     out.mkdir(parents=True, exist_ok=True)
-    (out / "bench_gtsam.json").write_text(json.dumps(_jsonable(report), indent=1) + "\n",
+    (out / "bench_gtsam.json").write_text(json.dumps(to_jsonable(report), indent=1) + "\n",
                                           encoding="utf-8")
     (out / "bench_gtsam.md").write_text(render_markdown(report), encoding="utf-8")
     return report
@@ -613,6 +631,27 @@ def _f(v: object, fmt: str = ".2f") -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "–"
     return format(v, fmt)
+
+
+def summary_table(report: dict) -> list[str]:
+    """The pooled timing and accuracy table (markdown lines): one row per method."""
+    lines: list[str] = []
+    gts = [s["label"] for s in report["summary"] if s["label"].startswith("GTSAM")]
+    head = ("| method | n | median | p95 | max | " + " | ".join(f"ratio to {x}" for x in gts)
+            + " | GTSAM build median | update+build median | EOP pos RMSE (m) | "
+            "att RMSE (deg) | GP RMSE (m) | failed runs |")
+    lines += [head, "|" + "---|" * (head.count("|") - 1)]
+    for s in report["summary"]:
+        u = s["update"] or {"n": 0, "median_ms": None, "p95_ms": None, "max_ms": None}
+        ratios = " | ".join(_f(s["ratio_to_gtsam_median"][x]) for x in gts)
+        b = s["build"]["median_ms"] if s["build"] else None
+        t = s["update_plus_build"]["median_ms"] if s["update_plus_build"] else None
+        a = s["accuracy_mean_over_seeds"]
+        lines.append(f"| {s['label']} | {u['n'] or '–'} | {_f(u['median_ms'])} | "
+                     f"{_f(u['p95_ms'])} | {_f(u['max_ms'])} | {ratios} | {_f(b)} | {_f(t)} | "
+                     f"{_f(a['pos_rmse_m'], '.3f')} | {_f(a['att_rmse_deg'], '.4f')} | "
+                     f"{_f(a['gp_rmse_m'], '.3f')} | {s['failures']} |")
+    return lines
 
 
 def render_markdown(report: dict) -> str:
@@ -641,22 +680,8 @@ def render_markdown(report: dict) -> str:
         "GTSAM run's. Accuracy: mean over seeds of the RMSE against truth (r.m.s. over the "
         "three components). The machine is shared: only ratios within this run count.",
         "",
+        *summary_table(report),
     ]
-    gts = [s["label"] for s in report["summary"] if s["label"].startswith("GTSAM")]
-    head = ("| method | n | median | p95 | max | " + " | ".join(f"ratio to {x}" for x in gts)
-            + " | GTSAM build median | update+build median | EOP pos RMSE (m) | "
-            "att RMSE (deg) | GP RMSE (m) | failed runs |")
-    lines += [head, "|" + "---|" * (head.count("|") - 1)]
-    for s in report["summary"]:
-        u = s["update"] or {"n": 0, "median_ms": None, "p95_ms": None, "max_ms": None}
-        ratios = " | ".join(_f(s["ratio_to_gtsam_median"][x]) for x in gts)
-        b = s["build"]["median_ms"] if s["build"] else None
-        t = s["update_plus_build"]["median_ms"] if s["update_plus_build"] else None
-        a = s["accuracy_mean_over_seeds"]
-        lines.append(f"| {s['label']} | {u['n'] or '–'} | {_f(u['median_ms'])} | "
-                     f"{_f(u['p95_ms'])} | {_f(u['max_ms'])} | {ratios} | {_f(b)} | {_f(t)} | "
-                     f"{_f(a['pos_rmse_m'], '.3f')} | {_f(a['att_rmse_deg'], '.4f')} | "
-                     f"{_f(a['gp_rmse_m'], '.3f')} | {s['failures']} |")
     lines += [
         "",
         "Accuracy against truth (final estimates: Seq-R real time = departure values; GTSAM = "
@@ -695,22 +720,27 @@ def render_markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m pipeline.bench_gtsam", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("config", type=Path, help="kind: observations config (configs/paper_sim.yaml)")
-    ap.add_argument("--seeds", type=int, nargs="+", default=[1])
-    ap.add_argument("--lags", type=int, nargs="+", default=[10, 20], help="lags in images")
-    ap.add_argument("--out", type=Path, default=Path("out/bench_gtsam"))
+def main(argv: Sequence[str] | None = None) -> dict:
+    """Command-line entry (``seqat bench gtsam ARGS``, or ``python -m`` on ``sys.argv``): run
+    :func:`run_gtsam_bench`, print the summary table and return the report."""
+    ap = argparse.ArgumentParser(prog=None if argv is None else "seqat bench gtsam",
+                                 description=__doc__.splitlines()[0])
+    ap.add_argument("--config", type=Path, default=DEFAULT_CONFIG,
+                    help=f"kind: observations config (default {DEFAULT_CONFIG})")
+    ap.add_argument("--seed", type=int, action="append",
+                    help=f"seed of one simulated strip (repeat; default {DEFAULT_SEEDS})")
+    ap.add_argument("--lag", type=int, action="append",
+                    help=f"smoother lag in images (repeat; default {DEFAULT_LAGS})")
+    ap.add_argument("--out", type=Path, default=Path("out/bench"))
     ap.add_argument("--extra-updates", type=int, default=0,
                     help="empty smoother updates after each image's (timed with it)")
     args = ap.parse_args(argv)
-    report = run_gtsam_bench(args.config, args.seeds, args.lags, args.out,
-                             extra_updates=args.extra_updates)
-    print(render_markdown(report))
+    report = run_gtsam_bench(args.config, args.seed or DEFAULT_SEEDS, args.lag or DEFAULT_LAGS,
+                             args.out, extra_updates=args.extra_updates)
+    print("\n".join(summary_table(report)))
     print(f"written: {args.out / 'bench_gtsam.json'}, {args.out / 'bench_gtsam.md'}")
-    return 0
+    return report
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    main()
