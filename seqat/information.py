@@ -38,6 +38,11 @@ from seqat.types import GP_SIZE, FloatArray
 RANK_TOLERANCE = 1e-12
 
 
+#: A GP block whose largest eigenvalue is below this fraction of the median GP's carries next
+#: to no information (its rays all down-weighted to nothing by the robust loss).
+WEAK_TOLERANCE = 1e-6
+
+
 class RankDeficiency(EstimationError):
     """The information matrix is singular: ``indices`` are the parameters the data do not
     determine (GP blocks whose own 3x3 block is singular, or the largest components of the
@@ -59,14 +64,20 @@ class InformationFactor:
     eliminate : (np,) int
         Offsets in ``L`` of the 3x3 GP blocks to eliminate. Each must be coupled to the other
         eliminated blocks by zeros only (the caller knows the structure; it is not scanned).
+    kept_gp : (nk,) int, optional
+        Offsets of the GP blocks kept in the reduced system: a singular reduced system whose
+        weakest direction lies on them names them in :attr:`RankDeficiency.gp_blocks`.
 
     Raises
     ------
     RankDeficiency
     """
 
-    def __init__(self, L: FloatArray, eliminate: np.ndarray) -> None:
+    def __init__(self, L: FloatArray, eliminate: np.ndarray,
+                 kept_gp: np.ndarray | None = None) -> None:
         n = L.shape[0]
+        self._kept_gp = (np.zeros(0, dtype=np.int64) if kept_gp is None
+                         else np.asarray(kept_gp, dtype=np.int64))
         self.n = n
         eliminate = np.asarray(eliminate, dtype=np.int64)
         p_idx = (eliminate[:, None] + np.arange(GP_SIZE)).reshape(-1, GP_SIZE)
@@ -79,6 +90,9 @@ class InformationFactor:
         if npt:
             ev = np.linalg.eigvalsh(D)
             bad = ~(ev[:, 0] > RANK_TOLERANCE * np.maximum(ev[:, -1], 1e-300))
+            # ... or next to no information at all (every ray down-weighted to nothing):
+            # its elimination would carry rounding into the reduced system
+            bad |= ev[:, -1] < WEAK_TOLERANCE * np.median(ev[:, -1])
             if np.any(bad):
                 raise RankDeficiency(
                     f"singular 3x3 ground point information block ({int(bad.sum())} points)",
@@ -87,6 +101,14 @@ class InformationFactor:
             self.Dinv = 0.5 * (self.Dinv + np.swapaxes(self.Dinv, 1, 2))
         else:
             self.Dinv = np.zeros((0, GP_SIZE, GP_SIZE))
+        kept = self._kept_gp
+        if kept.size and npt:
+            dk = np.diagonal(L)[(kept[:, None] + np.arange(GP_SIZE))].max(axis=1)
+            weak = dk < WEAK_TOLERANCE * np.median(np.einsum("pii->pi", D).max(axis=1))
+            if np.any(weak):
+                raise RankDeficiency(
+                    f"next to no information on {int(weak.sum())} ground points",
+                    (kept[weak, None] + np.arange(GP_SIZE)).ravel(), kept[weak])
         L_RP = L[np.ix_(r_idx, p_idx.ravel())]  # (r, 3 np)
         self.L_RP = L_RP
         r = r_idx.size
@@ -113,12 +135,17 @@ class InformationFactor:
             rcond = 0.0
         if not rcond > RANK_TOLERANCE:
             ev, V = np.linalg.eigh(np.nan_to_num(Ss))
-            weak = V[:, 0]
-            top = np.argsort(-np.abs(weak))[:6]
+            weak = np.abs(V[:, 0])
+            top = np.argsort(-weak)[:6]
+            # GP blocks (kept in R) on which the weakest direction lies
+            big = self.r_idx[weak > 0.1 * weak.max()]
+            kept = self._kept_gp
+            on = kept[np.any((big[None, :] >= kept[:, None])
+                             & (big[None, :] < kept[:, None] + GP_SIZE), axis=1)]
             raise RankDeficiency(
                 f"reduced normal matrix ({r}x{r}) is singular or ill-conditioned "
                 f"(eigenvalues of the scaled matrix from {ev[0]:.3g} to {ev[-1]:.3g})",
-                self.r_idx[top], np.zeros(0, dtype=np.int64))
+                self.r_idx[top], on)
         # S = diag(d) Ss diag(d) = (U diag(d))^T (U diag(d))
         self.U = U / scale[None, :]
         self._Uinv: FloatArray | None = None

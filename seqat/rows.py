@@ -16,6 +16,7 @@ import numpy as np
 
 from seqat import snooping
 from seqat.geometry import project, project_with_jacobians, wrap_angle
+from seqat.robust import cauchy_weight
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray, PinholeCamera
 from seqat.update import LinearRows, UpdateSolution
 
@@ -114,6 +115,9 @@ class RowBuilder:
         parameter) rather than y3, and its image and point indices.
     nav, nav_sigma : (6,) float
         GPS/INS constraint of the new image (local), its sigma.
+    robust_scale : float or None
+        Cauchy loss scale of the image rows in sigma (:mod:`seqat.robust`): their weights
+        are re-computed from the residuals at every linearisation (IRLS).
     """
 
     def __init__(
@@ -124,8 +128,10 @@ class RowBuilder:
         obs: list[tuple[int, int, FloatArray, float, bool, tuple[int, int]]],
         nav: FloatArray,
         nav_sigma: FloatArray,
+        robust_scale: float | None = None,
     ) -> None:
         self.cam, self.t, self.n2 = cam, t, n2
+        self.robust_scale = robust_scale
         self.nav = nav
         y2 = [o for o in obs if o[4]]
         y3 = [o for o in obs if not o[4]]
@@ -147,6 +153,7 @@ class RowBuilder:
         self.sigmas = np.asarray([o[3] for o in ordered], dtype=np.float64).reshape(k)
         w_img = np.repeat(1.0 / np.asarray([o[3] for o in ordered], dtype=np.float64) ** 2, 2)
         self.w = np.concatenate([w_img, 1.0 / nav_sigma**2])
+        self.w0 = self.w.copy()  # least-squares weights; self.w carries the robust factor
         self.k = k
         self.ncol = ncol
 
@@ -164,7 +171,11 @@ class RowBuilder:
             A.flat[self.flat_e] = Je.ravel()
             A.flat[self.flat_p] = Jp.ravel()
             ell[: 2 * k] = self.obs - uv.ravel()
-            self._lin = (z[self.eidx], z[self.pidx], Je, Jp, (self.obs - uv.ravel()).reshape(k, 2))
+            res = (self.obs - uv.ravel()).reshape(k, 2)
+            self._lin = (z[self.eidx], z[self.pidx], Je, Jp, res)
+            if self.robust_scale is not None:
+                self.w[: 2 * k] = self.w0[: 2 * k] * np.repeat(
+                    cauchy_weight(res, self.sigmas, self.robust_scale), 2)
         # GPS/INS constraint of the new EOP (linear, A = I): nav - e_new, angles wrapped.
         A[2 * k + np.arange(EOP_SIZE), t + np.arange(EOP_SIZE)] = 1.0
         dz = self.nav - z[t : t + EOP_SIZE]
@@ -189,7 +200,8 @@ class RowBuilder:
             return
         e, p, Je, Jp, r = self._lin
         factors.add_linearised(self.ids[:, 0], self.ids[:, 1],
-                               self.obs.reshape(self.k, 2), self.sigmas, e, p, Je, Jp, r)
+                               self.obs.reshape(self.k, 2), self.sigmas, e, p, Je, Jp, r,
+                               weight=self.w[: 2 * self.k : 2])
 
     def residuals(self, d1t: FloatArray, d2: FloatArray) -> FloatArray:
         """Residuals of the last linearised rows at the corrections ``(d1t, d2)``: image rows
@@ -232,7 +244,8 @@ class FactorSet:
     img: np.ndarray  # (k,) image index
     pt: np.ndarray  # (k,) point index
     uv: FloatArray  # (k, 2) ideal pixels
-    w: FloatArray  # (k,) weight 1/sigma^2
+    w: FloatArray  # (k,) weight: 1/sigma^2 times the robust factor at the linearisation
+    w0: FloatArray  # (k,) least-squares weight 1/sigma^2
     e_lin: FloatArray  # (k, 6) EOP where the factor was linearised (local)
     p_lin: FloatArray  # (k, 3)
     Je: FloatArray  # (k, 2, 6) Jacobians there
@@ -285,28 +298,33 @@ class Factors:
     """The image-point factors of the window, as appended array chunks (no per-factor Python
     objects: the check after every update must stay well below the update itself)."""
 
-    _FIELDS = ("img", "pt", "uv", "w", "e_lin", "p_lin", "Je", "Jp", "r_lin")
+    _FIELDS = ("img", "pt", "uv", "w", "w0", "e_lin", "p_lin", "Je", "Jp", "r_lin")
 
     def __init__(self) -> None:
         self._chunks: list[tuple[np.ndarray, ...]] = []
 
     def add(self, img: np.ndarray, pt: np.ndarray, uv: FloatArray, sigma: FloatArray,
-            e_lin: FloatArray, p_lin: FloatArray, cam: PinholeCamera) -> None:
+            e_lin: FloatArray, p_lin: FloatArray, cam: PinholeCamera,
+            robust_scale: float | None = None) -> None:
         if len(img) == 0:
             return
         proj, Je, Jp = project_with_jacobians(e_lin, p_lin, cam)
         r = np.asarray(uv, dtype=np.float64).reshape(-1, 2) - proj
-        self.add_linearised(img, pt, uv, sigma, e_lin, p_lin, Je, Jp, r)
+        w0 = 1.0 / np.asarray(sigma, dtype=np.float64).reshape(-1) ** 2
+        self.add_linearised(img, pt, uv, sigma, e_lin, p_lin, Je, Jp, r,
+                            weight=w0 * cauchy_weight(r, sigma, robust_scale))
 
     def add_linearised(self, img: np.ndarray, pt: np.ndarray, uv: FloatArray,
                        sigma: FloatArray, e_lin: FloatArray, p_lin: FloatArray, Je: FloatArray,
-                       Jp: FloatArray, r: FloatArray) -> None:
+                       Jp: FloatArray, r: FloatArray, *,
+                       weight: FloatArray | None = None) -> None:
         if len(img) == 0:
             return
-        w = 1.0 / np.asarray(sigma, dtype=np.float64).reshape(-1) ** 2
+        w0 = 1.0 / np.asarray(sigma, dtype=np.float64).reshape(-1) ** 2
+        w = w0 if weight is None else np.asarray(weight, dtype=np.float64).reshape(-1).copy()
         self._chunks.append((np.asarray(img, dtype=np.int64).copy(),
                              np.asarray(pt, dtype=np.int64).copy(),
-                             np.asarray(uv, dtype=np.float64).reshape(-1, 2).copy(), w,
+                             np.asarray(uv, dtype=np.float64).reshape(-1, 2).copy(), w, w0,
                              np.array(e_lin, dtype=np.float64), np.array(p_lin, dtype=np.float64),
                              np.array(Je, dtype=np.float64), np.array(Jp, dtype=np.float64),
                              np.array(r, dtype=np.float64)))

@@ -50,7 +50,7 @@ from threadpoolctl import ThreadpoolController
 from seqat import snooping
 from seqat.errors import EstimationError
 from seqat.geometry import depth, intersect_rays, project, wrap_angle
-from seqat.information import InformationFactor
+from seqat.information import InformationFactor, RankDeficiency
 from seqat.rows import (
     Factors,
     RowBuilder,
@@ -136,11 +136,18 @@ class SequentialOptions:
     # eliminated after every update (numerically stable, rank checked); "inverse": the
     # paper's update of the inverse normal matrix (Eq. 10-14). docs/algorithm.md, *Engines*.
     engine: str = "information"
+    # Robust loss of the image points: least squares within this many sigma, a Cauchy tail
+    # beyond (seqat/robust.py, 3 recommended; the initial Sim uses the same); None: least
+    # squares (the paper's estimator). docs/algorithm.md, *Robust loss*.
+    robust_scale: float | None = None
     sim: SimOptions = SimOptions()
 
     def __post_init__(self) -> None:
         from seqat.errors import ConfigError
 
+        if self.robust_scale is not None and not self.robust_scale > 0:
+            raise ConfigError(f"robust_scale: expected a positive number (sigmas) or null, "
+                              f"got {self.robust_scale!r}")
         if self.engine not in ENGINES:
             raise ConfigError(f"engine: expected one of {', '.join(ENGINES)}, "
                               f"got {self.engine!r}")
@@ -236,6 +243,9 @@ class Window:
     _Q: FloatArray | None = None
     _factor: InformationFactor | None = None
     _diag: FloatArray | None = None
+    #: Called with the GP keys whose information is singular (the data do not determine
+    #: them); it must take them out of the window. None: the RankDeficiency propagates.
+    on_singular: Callable[[list[Key]], None] | None = None
 
     @property
     def Q(self) -> FloatArray:
@@ -264,11 +274,38 @@ class Window:
     def factor(self) -> InformationFactor:
         """Factorisation of ``L`` (information engine), cached until :meth:`changed`."""
         assert self.L is not None
-        if self._factor is None:
+        while self._factor is None:
             gp = np.fromiter((self.offset[k] for k in self.keys
                               if k[0] == "p" and k not in self.coupled), dtype=np.int64)
-            self._factor = InformationFactor(self.L, gp)
+            kept = np.fromiter((self.offset[k] for k in self.coupled), dtype=np.int64)
+            try:
+                self._factor = InformationFactor(self.L, gp, kept)
+            except RankDeficiency as err:
+                keys = self.keys_at(err.gp_blocks)
+                if not keys or self.on_singular is None:
+                    raise
+                self.on_singular(keys)  # removes them: the loop factorises the rest
         return self._factor
+
+    def keys_at(self, offsets: np.ndarray) -> list[Key]:
+        """The keys whose blocks start at ``offsets``."""
+        at = {off: k for k, off in self.offset.items()}
+        return [at[int(o)] for o in offsets if int(o) in at]
+
+    def drop(self, keys: list[Key]) -> None:
+        """Take ``keys`` out without marginalising them (their rows and columns of ``L`` are
+        deleted: the window is conditioned on their values, which the data do not determine
+        and which therefore carry no information)."""
+        gone = set(keys)
+        keep_keys = [k for k in self.keys if k not in gone]
+        keep = self.indices(keep_keys)
+        if self.L is not None:
+            self.L = self.L[np.ix_(keep, keep)]
+        if self.inverse:
+            self._Q = self.Q[np.ix_(keep, keep)]
+        self.x = self.x[keep]
+        self.coupled -= gone
+        self.relayout(keep_keys)
 
     def q_columns(self, idx: np.ndarray) -> FloatArray:
         """``Q[:, idx]``."""
@@ -348,7 +385,8 @@ class SequentialAT:
         self.camera = camera
         self.options = options
         sim_opts = dataclasses.replace(options.sim, min_rays=options.min_rays,
-                                       snooping_critical=options.snooping_critical)
+                                       snooping_critical=options.snooping_critical,
+                                       robust_scale=options.robust_scale)
         if options.snooping_critical is not None:  # the initial block's points as births
             sim_opts = dataclasses.replace(sim_opts, min_ray_angle_deg=options.min_ray_angle_deg)
         # With data snooping the initial block is adjusted once, when complete: refits of its
@@ -387,6 +425,10 @@ class SequentialAT:
         self._departed_rays: deque[tuple[int, list[int]]] = deque()
         self.reopened = 0  # departed parameters re-opened so far
         self._orphans: set[int] = set()  # window GPs no window image sees (ray rejected)
+        #: Points the data do not determine (singular information), taken out: point ids.
+        self.undetermined: list[str] = []
+        self._dropped_value: dict[Key, FloatArray] = {}
+        self._w.on_singular = self._drop_undetermined
         #: Observations removed by data snooping: (image id, point id, w-test value).
         self.rejections: list[tuple[str, str, float]] = []
         #: GPS/INS groups down-weighted by data snooping: (image id, "position"/"attitude").
@@ -522,7 +564,8 @@ class SequentialAT:
     def _smoothed_departed(self) -> dict[Key, FloatArray]:
         """RTS backward pass over the departures, newest first: O(sum |F| |W|)."""
         w = self._w
-        value: dict[Key, FloatArray] = {k: w.x[w.index(k)] for k in w.keys}
+        value: dict[Key, FloatArray] = dict(self._dropped_value)
+        value.update({k: w.x[w.index(k)] for k in w.keys})
         for dep in reversed(self._departures[self._first_record:]):
             if dep is None:
                 continue
@@ -605,8 +648,11 @@ class SequentialAT:
             gp_row = np.array([sel_of[int(j)] for j in pt], dtype=np.int64)
             self._factors.add(img, pt, np.asarray(st.obs_uv)[use],
                               np.asarray(st.obs_sigma_px)[use], res.eop[img], res.gp[gp_row],
-                              self.camera)
+                              self.camera, self.options.robust_scale)
         self.initial_state = (keys, self._w.x.copy(), res.full_cofactor.copy())
+        if res.undetermined is not None and res.undetermined.any():
+            self._drop_undetermined([("p", int(j)) for j, bad
+                                     in zip(st.selected, res.undetermined, strict=True) if bad])
         self.rejections.extend(sim.rejections)
         self.nav_downweighted.extend(sim.nav_downweighted)
         self._initial = None
@@ -727,7 +773,8 @@ class SequentialAT:
         w = self._w
         gp = np.fromiter((w.offset[k] for k in w.keys if k[0] == "p" and k not in w.coupled),
                          dtype=np.int64)
-        return InformationFactor(H, gp)
+        kept = np.fromiter((w.offset[k] for k in w.coupled), dtype=np.int64)
+        return InformationFactor(H, gp, kept)
 
     @staticmethod
     def _starts(keys: list[Key]) -> np.ndarray:
@@ -818,8 +865,12 @@ class SequentialAT:
         held: set[int] = set()  # points whose birth made the update singular (wait)
         rounds = 0
         while True:
-            y21_pts = [p for p, _ in seen if p not in rejected_new]
-            y21_uv = [uv for p, uv in seen if p not in rejected_new]
+            if not self._inverse:
+                w.factor()  # an undetermined GP leaves now, before the rows are laid out
+            y21 = [(p, uv) for p, uv in seen if p not in rejected_new
+                   and (("p", p) in w.offset or self._reopenable(("p", p), i))]
+            y21_pts = [p for p, _ in y21]
+            y21_uv = [uv for _, uv in y21]
             reopen: list[Key] = [("p", p) for p in y21_pts if ("p", p) not in w.offset]
             ready = [p for p in candidates if p in self._pending and p not in held
                      and len(self._pending[p]) >= opts.min_rays]
@@ -830,6 +881,11 @@ class SequentialAT:
             if reopen:
                 self._reopen(reopen)
                 reopened += reopen
+                if not self._inverse:
+                    w.factor()
+                    keep = [k for k, (p, _) in enumerate(y21) if ("p", p) in w.offset]
+                    y21_pts = [y21_pts[k] for k in keep]
+                    y21_uv = [y21_uv[k] for k in keep]
 
             # --- layout of the new parameters: [EOP of image i, born GPs]
             n2 = EOP_SIZE + GP_SIZE * len(born)
@@ -861,7 +917,7 @@ class SequentialAT:
             ]
             obs += [(t, t + EOP_SIZE + GP_SIZE * b, uv, s, False, (i, born[b]))
                     for (b, uv, s) in y22]
-            builder = RowBuilder(cam, t, n2, obs, nav, nav_sigma)
+            builder = RowBuilder(cam, t, n2, obs, nav, nav_sigma, opts.robust_scale)
             x1t = w.x[touched]
             d1t = np.zeros(touched.size)
             d2 = np.zeros(n2)
@@ -869,6 +925,10 @@ class SequentialAT:
             degenerate: list[int] = []
             while True:
                 iterations += 1
+                # the first iterate is linearised at the start values (an INS 20 deg off):
+                # least squares there, the robust loss from the second on, so that a bad start
+                # does not make every ray an outlier
+                builder.robust_scale = None if iterations == 1 else opts.robust_scale
                 rows = builder.rows(x1t, x2_0, d1t, d2)
                 try:
                     sol = solve_update(Qc, touched, rows, columns=True)
@@ -889,6 +949,7 @@ class SequentialAT:
                 if iterations >= opts.max_update_iterations or (
                     builder.linearisation_error(x1t, x2_0, d1t, d2)
                     < opts.iteration_tolerance_px
+                    and (opts.robust_scale is None or iterations > 1)
                 ):
                     break
             if degenerate:
@@ -1001,6 +1062,22 @@ class SequentialAT:
         np.logical_or.at(bad, I_a, bad_ray)
         bad |= ~np.all(np.isfinite(X), axis=1)
         return [int(b) for b in np.flatnonzero(bad)]
+
+    def _drop_undetermined(self, keys: list[Key]) -> None:
+        """GPs whose information became singular (every ray down-weighted by the robust loss,
+        or rays that no longer intersect): out of the window and of the solution, named in
+        :attr:`undetermined`. A later observation of the point starts it anew."""
+        w = self._w
+        for k in keys:  # departure records may refer to them: they are constants now
+            self._dropped_value[k] = w.x[w.index(k)].copy()
+        w.drop(keys)
+        gone = {k[1] for k in keys if k[0] == "p"}
+        for p in gone:
+            self._gp_count.pop(p, None)
+            self._orphans.discard(p)
+            self.undetermined.append(self._point_ids[p])
+        self._gp_order = [p for p in self._gp_order if p not in gone]
+        self._n_points -= len(gone)
 
     def _reopenable(self, key: Key, i: int) -> bool:
         left = self._departed.get(key)
@@ -1205,7 +1282,7 @@ class SequentialAT:
                 c = column(sk)
                 ucols[off : off + size] = c + np.arange(size)
                 off += size
-                if sk not in w.offset and sk not in queued:
+                if sk not in w.offset and sk not in queued and sk not in self._dropped_value:
                     queued.add(sk)
                     later = self._departed[sk][1]
                     assert later > rec, "a departure record refers to an older one"
@@ -1217,6 +1294,9 @@ class SequentialAT:
             if key in w.offset:
                 idx = w.index(key)
                 J[:, idx] = buf[:, c : c + idx.size]
+            elif key in self._dropped_value:  # taken out as undetermined: a constant
+                val = self._dropped_value[key]
+                const += buf[:, c : c + val.size] @ val
         mean = const + J @ w.x
         return mean, J, C
 
@@ -1266,6 +1346,20 @@ class SequentialAT:
 
     def _relinearise_if_needed(self, threshold_px: float | None = None,
                                force: bool = False) -> None:
+        """:meth:`_relinearise`; GPs that become singular on the way are taken out
+        (:meth:`_drop_undetermined`) and the re-linearisation is tried again without them."""
+        for _ in range(MAX_SINGULAR_RETRIES):
+            try:
+                self._relinearise(threshold_px, force)
+                return
+            except RankDeficiency as err:
+                keys = self._w.keys_at(err.gp_blocks)
+                if not keys:
+                    raise
+                self._drop_undetermined(keys)
+        self._relinearise(threshold_px, force)
+
+    def _relinearise(self, threshold_px: float | None = None, force: bool = False) -> None:
         """Re-linearise the window when its rows no longer describe the image points.
 
         Old rows were linearised where the estimate stood when they arrived; when later data
@@ -1308,33 +1402,40 @@ class SequentialAT:
         xk = x.copy()
         ssr_old_factors = f.linearised_ssr(x[e_idx], x[p_idx])
         prior_old = prior(x)
-        Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self.camera)
-        cost = 0.5 * float(np.sum(f.w[:, None] * r**2)) + prior_old
+        def evaluate(z: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray,
+                                              float]:
+            # The rows keep the robust weights their update gave them: re-weighting the whole
+            # window here (IRLS) let a re-linearisation after a turn, far from the start,
+            # trade dozens of good points for outliers (seen on Seneca: 1e-9 weights, a
+            # singular window).
+            Je, Jp, r = f.evaluate(z[e_idx], z[p_idx], self.camera)
+            return Je, Jp, r, f.w, 0.5 * float(np.sum(f.w[:, None] * r**2)) + prior(z)
+
+        Je, Jp, r, wf, cost = evaluate(xk)
         for _ in range(opts.relinearise_iterations):
-            H, g = normal_from_factors(Je, Jp, r, f.w, cols, x.size)
+            H, g = normal_from_factors(Je, Jp, r, wf, cols, x.size)
             H += H_p
             g += eta_p - H_p @ xk
             delta = solve(H, g)
             del H
-            # Gauss-Newton with step halving: the window's cost never goes up (a turn's
-            # rows far from linear would otherwise send it off)
+            # Gauss-Newton (IRLS) with step halving: the window's cost never goes up (a
+            # turn's rows far from linear would otherwise send it off)
             for _ in range(MAX_STEP_HALVINGS):
                 trial = xk + delta
-                Je_t, Jp_t, r_t = f.evaluate(trial[e_idx], trial[p_idx], self.camera)
-                cost_t = 0.5 * float(np.sum(f.w[:, None] * r_t**2)) + prior(trial)
+                Je_t, Jp_t, r_t, wf_t, cost_t = evaluate(trial)
                 if np.isfinite(cost_t) and cost_t <= cost + 1e-9 * abs(cost):
                     break
                 delta = 0.5 * delta
             else:
                 break  # no step lowers the cost: xk is the minimum to rounding
-            xk, cost, Je, Jp, r = trial, cost_t, Je_t, Jp_t, r_t
+            xk, cost, Je, Jp, r, wf = trial, cost_t, Je_t, Jp_t, r_t, wf_t
             if np.max(np.abs(delta)) < RELINEARISE_TOLERANCE:
                 break
-        H, _ = normal_from_factors(Je, Jp, r, f.w, cols, x.size)
+        H, _ = normal_from_factors(Je, Jp, r, wf, cols, x.size)
         H += H_p
         H = 0.5 * (H + H.T)
         prior_new = prior(xk)
-        ssr_new_factors = float(np.sum(f.w[:, None] * r**2))
+        ssr_new_factors = float(np.sum(wf[:, None] * r**2))
         self._ssr = max(self._ssr + ssr_new_factors - ssr_old_factors
                         + 2.0 * (prior_new - prior_old), 0.0)
         dx = xk - x
@@ -1349,6 +1450,7 @@ class SequentialAT:
             w.Q = 0.5 * (Q + Q.T)
         w.changed()
         f.relinearised_at(xk[e_idx], xk[p_idx], Je, Jp, r)
+        f.w = wf
         self._factors.replace(f)
 
     def _birth(
@@ -1539,6 +1641,8 @@ def _degenerate_points(rows: LinearRows, n_born: int) -> list[int]:
 #: A point being born whose update iterate lies this many times farther from a camera than
 #: its birth intersection (or behind it) is held back (SequentialAT._unstable_births).
 BIRTH_DEPTH_FACTOR = 100.0
+#: Times a re-linearisation is tried again after taking out singular GPs.
+MAX_SINGULAR_RETRIES = 3
 #: A re-linearisation step that raises the window's cost is halved at most this many times.
 MAX_STEP_HALVINGS = 8
 #: A window re-linearisation stops when no parameter moves more than this (m or rad).

@@ -23,6 +23,7 @@ import scipy.sparse.linalg as spla
 from seqat import snooping
 from seqat.errors import EstimationError
 from seqat.geometry import depth, intersect_rays, project, project_with_jacobians, wrap_angle
+from seqat.robust import cauchy_cost, cauchy_weight
 from seqat.types import (
     EOP_SIZE,
     GP_SIZE,
@@ -78,6 +79,16 @@ class SimOptions:
     # A new point enters once its rays spread this much (0: any intersection, the paper).
     # With blunders a small spread lets a bad ray place the point anywhere along the others.
     min_ray_angle_deg: float = 0.0
+    # Robust loss of the image points: least squares within this many sigma, a Cauchy tail
+    # beyond (seqat/robust.py, 3 recommended); None: least squares.
+    robust_scale: float | None = None
+
+    def __post_init__(self) -> None:
+        from seqat.errors import ConfigError
+
+        if self.robust_scale is not None and not self.robust_scale > 0:
+            raise ConfigError(f"robust_scale: expected a positive number (sigmas) or null, "
+                              f"got {self.robust_scale!r}")
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -133,6 +144,7 @@ class SimResult:
     gp_cofactor: FloatArray | None = None
     full_cofactor: FloatArray | None = None
     full_normal: FloatArray | None = None  # its inverse, the normal matrix (Covariance.FULL)
+    undetermined: np.ndarray | None = None  # (m,) bool: points the data do not determine
 
 
 @dataclass(eq=False)
@@ -147,6 +159,7 @@ class _Normals:
     size: int
     Nee: FloatArray | None = None  # (n, 6, 6) EOP diagonal blocks (nav included)
     Npp: FloatArray | None = None  # (m, 3, 3)
+    undetermined: np.ndarray | None = None  # (m,) bool: points out of this linearisation
 
 
 def _eop_residual(nav_eop: FloatArray, eop: FloatArray) -> FloatArray:
@@ -158,7 +171,7 @@ def _eop_residual(nav_eop: FloatArray, eop: FloatArray) -> FloatArray:
 
 def _linearise(
     camera: PinholeCamera, data: BlockData, eop: FloatArray, gp: FloatArray,
-    damping: float = 0.0,
+    damping: float = 0.0, robust_scale: float | None = None,
 ) -> tuple[_Normals, FloatArray, FloatArray]:
     """Build and factorise the reduced normal equations at ``(eop, gp)``.
 
@@ -171,8 +184,21 @@ def _linearise(
     n, m = data.n_images, data.n_points
     img, pt = data.obs_image, data.obs_point
     uv, Je, Jp = project_with_jacobians(eop[img], gp[pt], camera)
-    w = 1.0 / data.obs_sigma_px**2
     ell = data.obs_uv - uv  # (k, 2)
+    w = cauchy_weight(ell, data.obs_sigma_px, robust_scale) / data.obs_sigma_px**2
+    # Points the data do not determine here (parallel rays, an iterate sent far off by a
+    # blunder): their rows get no weight in this linearisation and their block is the
+    # identity (no step), instead of a singular system that rounding decides.
+    Jp_w = Jp * w[:, None, None]
+    Npp0 = np.zeros((m, GP_SIZE, GP_SIZE))
+    np.add.at(Npp0, pt, np.einsum("kri,krj->kij", Jp_w, Jp))
+    undetermined = np.zeros(m, dtype=bool)
+    if m:
+        ev = np.linalg.eigvalsh(Npp0)
+        undetermined = ~(ev[:, 0] > 1e-12 * np.maximum(ev[:, -1], 1e-300)) | ~np.isfinite(
+            ev[:, 0])
+        if undetermined.any():
+            w = np.where(undetermined[pt], 0.0, w)
     wJe = Je * w[:, None, None]
     wJp = Jp * w[:, None, None]
     Nee = np.zeros((n, EOP_SIZE, EOP_SIZE))
@@ -183,6 +209,7 @@ def _linearise(
     b_e += _eop_residual(data.nav_eop, eop) / data.nav_sigma**2
     Npp = np.zeros((m, GP_SIZE, GP_SIZE))
     np.add.at(Npp, pt, np.einsum("kri,krj->kij", wJp, Jp))
+    Npp[undetermined] = np.eye(GP_SIZE)
     b_p = np.zeros((m, GP_SIZE))
     np.add.at(b_p, pt, np.einsum("kri,kr->ki", wJp, ell))
     if damping > 0.0:
@@ -222,6 +249,7 @@ def _linearise(
             size=N_r.shape[0],
             Nee=Nee,
             Npp=Npp,
+            undetermined=undetermined,
         ),
         rhs,
         ell,
@@ -229,13 +257,14 @@ def _linearise(
 
 
 def _weighted_ssr(camera: PinholeCamera, data: BlockData, eop: FloatArray,
-                  gp: FloatArray) -> float:
-    """Weighted sum of squared residuals (image points and nav) at ``(eop, gp)``."""
+                  gp: FloatArray, robust_scale: float | None = None) -> float:
+    """Weighted sum of squared residuals (image points and nav) at ``(eop, gp)``; with a
+    ``robust_scale`` the image points' Cauchy cost (:mod:`seqat.robust`)."""
     img, pt = data.obs_image, data.obs_point
     if np.any(depth(eop[img], gp[pt]) <= 0.0):
         return math.inf  # a point behind a camera that sees it: not a solution
     res = data.obs_uv - project(eop[img], gp[pt], camera)
-    ssr = float(np.sum(res**2 / data.obs_sigma_px[:, None] ** 2))
+    ssr = cauchy_cost(res, data.obs_sigma_px, robust_scale)
     ssr += float(np.sum(_eop_residual(data.nav_eop, eop) ** 2 / data.nav_sigma**2))
     return ssr if np.isfinite(ssr) else math.inf
 
@@ -371,14 +400,15 @@ def adjust_block(
     nrm: _Normals | None = None
     damping = 0.0
     was_damped = False
-    cost = _weighted_ssr(camera, data, eop, gp)
+    robust = options.robust_scale
+    cost = _weighted_ssr(camera, data, eop, gp, robust)
     for iterations in range(1, options.max_iterations + 1):
         # Gauss-Newton while it lowers the cost, shortened by a line search when the full
         # step overshoots, Levenberg-Marquardt damping when no shortened step helps (bad
         # initial values of real flights). Near the minimum the full Gauss-Newton step is
         # taken, so the solution is Gauss-Newton's wherever Gauss-Newton converges.
         while True:
-            nrm, rhs, _ = _linearise(camera, data, eop, gp, damping)
+            nrm, rhs, _ = _linearise(camera, data, eop, gp, damping, robust)
             delta_e = nrm.lu.solve(rhs)
             if not np.all(np.isfinite(delta_e)):
                 raise EstimationError(
@@ -389,7 +419,8 @@ def adjust_block(
             de = delta_e.reshape(n, EOP_SIZE)
             new_cost, step = math.inf, 1.0
             for step in LINE_SEARCH_STEPS:
-                new_cost = _weighted_ssr(camera, data, eop + step * de, gp + step * delta_p)
+                new_cost = _weighted_ssr(camera, data, eop + step * de, gp + step * delta_p,
+                                         robust)
                 if new_cost <= cost * (1.0 + COST_TOLERANCE):
                     break
             if new_cost <= cost * (1.0 + COST_TOLERANCE) or damping >= MAX_DAMPING:
@@ -410,17 +441,20 @@ def adjust_block(
                 and max_ang < options.angle_tolerance_rad):
             converged = True
             break
-    if was_damped:
-        nrm, _, _ = _linearise(camera, data, eop, gp)  # cofactors of the undamped system
-    assert nrm is not None
+    # cofactors (and the normal matrix) of the undamped system, with the robust weights, at
+    # the solution
+    nrm, _, _ = _linearise(camera, data, eop, gp, 0.0, robust)
     img, pt = data.obs_image, data.obs_point
     res_img = data.obs_uv - project(eop[img], gp[pt], camera)
     res_nav = _eop_residual(data.nav_eop, eop)
+    weight = cauchy_weight(res_img, data.obs_sigma_px, robust)
+    und = nrm.undetermined if nrm.undetermined is not None else np.zeros(m, dtype=bool)
+    weight = np.where(und[pt], 0.0, weight)
     ssr = float(
-        np.sum(res_img**2 / data.obs_sigma_px[:, None] ** 2)
+        np.sum(weight[:, None] * res_img**2 / data.obs_sigma_px[:, None] ** 2)
         + np.sum(res_nav**2 / data.nav_sigma**2)
     )
-    redundancy = 2 * img.size - GP_SIZE * m
+    redundancy = 2 * int(np.count_nonzero(~und[pt])) - GP_SIZE * int(np.count_nonzero(~und))
     sigma0 = float(np.sqrt(ssr / redundancy)) if redundancy > 0 else float("nan")
     rms_px = float(np.sqrt(np.mean(res_img**2))) if img.size else float("nan")
     eop_cof = gp_cof = full = normal = None
@@ -456,6 +490,7 @@ def adjust_block(
         gp_cofactor=gp_cof,
         full_cofactor=full,
         full_normal=normal,
+        undetermined=und,
     )
 
 
@@ -820,7 +855,10 @@ class SimultaneousAT:
                 )
             )
         pts = []
+        und = res.undetermined
         for j, gi in enumerate(self._point_sel):
+            if und is not None and und[j]:
+                continue  # the data do not determine it (docs/algorithm.md)
             pts.append(
                 PointEstimate(
                     point_id=self._cat.point_ids[gi],
