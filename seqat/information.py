@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg
+import scipy.sparse
 
 from seqat.errors import EstimationError
 from seqat.types import GP_SIZE, FloatArray
@@ -109,13 +110,16 @@ class InformationFactor:
                 raise RankDeficiency(
                     f"next to no information on {int(weak.sum())} ground points",
                     (kept[weak, None] + np.arange(GP_SIZE)).ravel(), kept[weak])
-        L_RP = L[np.ix_(r_idx, p_idx.ravel())]  # (r, 3 np)
-        self.L_RP = L_RP
+        L_RP = L[np.ix_(r_idx, p_idx.ravel())]  # (r, 3 np); a GP couples to a few images
         r = r_idx.size
-        # B = L_RP D^-1, block by block
-        self.B = np.matmul(L_RP.reshape(r, npt, GP_SIZE).transpose(1, 0, 2),
-                           self.Dinv).transpose(1, 0, 2).reshape(r, GP_SIZE * npt)
-        S = L[np.ix_(r_idx, r_idx)] - self.B @ L_RP.T
+        # B = L_RP D^-1, block by block; both kept sparse (CSR): a point's column block is
+        # non-zero only on the EOPs of the images that see it, so the Schur product, the
+        # solves and the marginals cost O(nnz r), not O(r^2 np)
+        B = np.matmul(L_RP.reshape(r, npt, GP_SIZE).transpose(1, 0, 2),
+                      self.Dinv).transpose(1, 0, 2).reshape(r, GP_SIZE * npt)
+        self.L_RP = scipy.sparse.csr_array(L_RP)
+        self.B = scipy.sparse.csr_array(B)
+        S = L[np.ix_(r_idx, r_idx)] - (self.B @ self.L_RP.T).toarray()
         S = 0.5 * (S + S.T)
         self._chol(S)
 
@@ -195,7 +199,7 @@ class InformationFactor:
         npt = self.p_idx.shape[0]
         if npt:
             Uinv = self._u_inverse()  # Q_RR = Uinv Uinv^T
-            Z = Uinv.T @ self.B  # (r, 3 np): Q_pp = Dinv + Z_p^T Z_p
+            Z = (self.B.T @ Uinv).T  # (r, 3 np): Q_pp = Dinv + Z_p^T Z_p
             extra = np.einsum("ij,ij->j", Z, Z)
             out[self.p_idx.ravel()] = np.einsum("pii->pi", self.Dinv).ravel() + extra
         return out

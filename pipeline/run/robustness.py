@@ -48,6 +48,11 @@ class RobustnessRecord:
         GNSS dropout images sent to the estimator with a resected start value.
     dropout_skipped : tuple[str, ...]
         GNSS dropout images left out (too few known ground points to resect them).
+    robust_scale : float or None
+        Robust loss of the image points (sigmas; ``None``: least squares).
+    undetermined_points : tuple[str, ...]
+        Tie points the data do not determine (singular information), left out of the
+        solution instead of failing it (docs/algorithm.md).
     """
 
     snooping_critical: float | None
@@ -56,6 +61,8 @@ class RobustnessRecord:
     nav_downweighted: tuple[NavDownweight, ...]
     dropout_bridged: tuple[str, ...] = ()
     dropout_skipped: tuple[str, ...] = ()
+    robust_scale: float | None = None
+    undetermined_points: tuple[str, ...] = ()
 
 
 def robustness_record(estimator: object, options: object, *, bridged: Sequence[str] = (),
@@ -78,7 +85,9 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
     return RobustnessRecord(snooping_critical=getattr(options, "snooping_critical", None),
                             min_rays=int(getattr(options, "min_rays", 2)),
                             rejections=rejections, nav_downweighted=nav,
-                            dropout_bridged=tuple(bridged), dropout_skipped=tuple(skipped))
+                            dropout_bridged=tuple(bridged), dropout_skipped=tuple(skipped),
+                            robust_scale=getattr(options, "robust_scale", None),
+                            undetermined_points=tuple(getattr(estimator, "undetermined", ())))
 
 
 @dataclass(frozen=True, kw_only=True)
