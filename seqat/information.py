@@ -39,6 +39,8 @@ from seqat.types import GP_SIZE, FloatArray
 RANK_TOLERANCE = 1e-12
 
 
+#: Coupling blocks ``L_RP`` larger than this (elements) are handled as sparse matrices.
+SPARSE_FROM = 200_000
 #: A GP block whose largest eigenvalue is below this fraction of the median GP's carries next
 #: to no information (its rays all down-weighted to nothing by the robust loss).
 WEAK_TOLERANCE = 1e-6
@@ -117,9 +119,14 @@ class InformationFactor:
         # solves and the marginals cost O(nnz r), not O(r^2 np)
         B = np.matmul(L_RP.reshape(r, npt, GP_SIZE).transpose(1, 0, 2),
                       self.Dinv).transpose(1, 0, 2).reshape(r, GP_SIZE * npt)
-        self.L_RP = scipy.sparse.csr_array(L_RP)
-        self.B = scipy.sparse.csr_array(B)
-        S = L[np.ix_(r_idx, r_idx)] - (self.B @ self.L_RP.T).toarray()
+        if L_RP.size > SPARSE_FROM:
+            self.L_RP = scipy.sparse.csr_array(L_RP)
+            self.B = scipy.sparse.csr_array(B)
+            BL = (self.B @ self.L_RP.T).toarray()
+        else:  # small windows: dense BLAS beats the sparse bookkeeping
+            self.L_RP, self.B = L_RP, B
+            BL = B @ L_RP.T
+        S = L[np.ix_(r_idx, r_idx)] - BL
         S = 0.5 * (S + S.T)
         self._chol(S)
 

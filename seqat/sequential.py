@@ -117,7 +117,7 @@ class SequentialOptions:
     iteration_tolerance_px: float = 0.01  # stop when the rows predict the new estimate this well
     smoothing: bool = True  # Seq-R: keep RTS gains so solution() can smooth departed parameters
     relinearise_px: float | None = 1.0  # re-linearise the window when its rows are this far off
-    relinearise_iterations: int = 30  # at most this many Gauss-Newton steps per re-linearisation
+    relinearise_iterations: int = 20  # at most this many Gauss-Newton steps per re-linearisation
     # Drift check (seed 003 §3.2): every this many images the window is re-adjusted from its
     # observations whatever its linearisation error, and the change is reported (drift_m,
     # drift_deg of ImageUpdate). None: only when the error exceeds relinearise_px.

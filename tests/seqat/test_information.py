@@ -30,7 +30,12 @@ def _window_like(rng: np.random.Generator, n_e: int = 4, n_p: int = 12,
     return L, gp
 
 
-def test_factor_solve_columns_and_marginals_equal_the_dense_inverse() -> None:
+@pytest.mark.parametrize("sparse", [False, True])
+def test_factor_solve_columns_and_marginals_equal_the_dense_inverse(
+        sparse: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    import seqat.information as information
+
+    monkeypatch.setattr(information, "SPARSE_FROM", 0 if sparse else 10**12)
     rng = np.random.default_rng(3)
     L, gp = _window_like(rng)
     Q = np.linalg.inv(L)
