@@ -1,9 +1,16 @@
 """Sequential aerial triangulation: Seq-F and Seq-R (seed 000 §2.2-2.3).
 
 The first ``initial_images`` images are adjusted simultaneously (Sim, §2.1). From then on each
-new image updates the estimates and the inverse normal matrix of the *window* with
-:mod:`seqat.update` (Eq. 10-14): only ``[I + P2bar A21 N11^-1 A21^T]`` and ``(M22 + L22)`` are
-inverted, the big system is never refactorised.
+new image updates the estimates of the *window* with :mod:`seqat.update` (Eq. 13-14): only
+``[I + P2bar A21 N11^-1 A21^T]`` and ``(M22 + L22)`` are inverted. The second moments are
+carried by one of two engines (``SequentialOptions.engine``, docs/algorithm.md, *Engines*):
+``information`` (default) adds the rows' information to the window's information matrix and
+recovers the cofactor blocks it needs from a Cholesky factorisation with the GPs eliminated
+(:mod:`seqat.information`); ``inverse`` is the paper's update of ``N^-1`` (Eq. 10-12).
+
+This module holds the options, the initial stage, the update step and the report; the window
+cut, departures and re-opening (:mod:`seqat.departures`), the window re-linearisation
+(:mod:`seqat.relinearise`) and the births of tie points (:mod:`seqat.births`) are mixed in.
 
 * Seq-F (``correlation_threshold=None``): the window holds every parameter.
 * Seq-R: before each update the window is cut by :mod:`seqat.window` (correlation of each
@@ -32,7 +39,8 @@ least-squares multi-ray intersection at the current EOPs.
 
 Nonlinearity: the new rows are linearised at the current estimates and, optionally, re-
 linearised around the updated estimate of the *new* rows' parameters (an iterated update,
-``max_update_iterations``; 1 reproduces the paper). Old rows are never re-linearised.
+``max_update_iterations``; 1 reproduces the paper). Old rows are re-linearised with the whole
+window when they drift (``relinearise_px``, :mod:`seqat.relinearise`).
 """
 
 from __future__ import annotations
@@ -41,21 +49,21 @@ import dataclasses
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 from threadpoolctl import ThreadpoolController
 
 from seqat import snooping
+from seqat.births import BirthMixin, degenerate_points
+from seqat.departures import Departure, DepartureMixin
 from seqat.errors import EstimationError
-from seqat.geometry import depth, intersect_rays, project, wrap_angle
-from seqat.information import InformationFactor, RankDeficiency
+from seqat.geometry import wrap_angle
+from seqat.relinearise import FINAL_RELINEARISE_PX, RelinearisationMixin
 from seqat.rows import (
     Factors,
     RowBuilder,
     add_information,
-    normal_from_factors,
     snoop_update,
 )
 from seqat.simultaneous import (
@@ -77,32 +85,22 @@ from seqat.types import (
     PointEstimate,
     Solution,
 )
-from seqat.update import LinearRows, solve_update, spd_inverse, update_cofactor
-from seqat.window import correlations_from_columns, first_over_threshold
+from seqat.update import LinearRows, solve_update, update_cofactor
+from seqat.window import Key, Window
 
 #: BLAS threads used by an update: the matrices are small (a few hundred), where OpenBLAS's
 #: thread start-up costs milliseconds (measured: 6 ms with 2 threads vs 0.3 ms with 1).
 UPDATE_BLAS_THREADS = 1
 _BLAS = ThreadpoolController()
 
-#: A tie point whose rays would otherwise leave the window is born with at least this spread.
-MIN_FORCED_RAY_ANGLE_DEG = 1.0
 
-#: A GP stays in the Seq-R window only while this many window images (new one included) see it.
-MIN_WINDOW_RAYS = 2
 
-#: Data snooping at birth: a ray farther than this many critical sigmas from the others'
-#: intersection is screened out (SequentialAT._screen_rays), in at most this many rounds.
-SCREEN_SIGMAS = 2.0
-MAX_SCREEN_ROUNDS = 5
 #: Data snooping: at most this many reject-and-resolve rounds per image.
 MAX_SNOOPING_ROUNDS = 40
 
 #: Window engines (SequentialOptions.engine).
 ENGINES = ("information", "inverse")
 
-#: Parameter key: (kind, index) with kind "e" (EOP of image index) or "p" (GP index).
-Key = tuple[str, int]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -199,167 +197,7 @@ class RecordedRows:
     w: FloatArray
 
 
-@dataclass(frozen=True, kw_only=True, eq=False)
-class _Departure:
-    """Parameters F leaving the Seq-R window and their Rauch-Tung-Striebel gain on the rest W.
-
-    Later data reach F only through W (F is never observed again), so given the final
-    (smoothed) estimate of W the final estimate of F is ``x_F + J (x_W_final - x_W)`` with
-    ``J = Q_FW Q_WW^-1`` taken at departure (Rauch, Tung & Striebel 1965).
-    """
-
-    leaving: tuple[Key, ...]
-    staying: tuple[Key, ...]
-    x_leaving: FloatArray
-    x_staying: FloatArray
-    gain: FloatArray  # (|F|, |W|)
-    conditional: FloatArray  # (|F|, |F|) Q_F|W = L_FF^-1
-    at: int  # index of the image before which F left
-
-
-@dataclass(eq=False)
-class Window:
-    """Parameters being updated: estimates, information or cofactor, and their block layout.
-
-    Two engines (docs/algorithm.md, *Engines*):
-
-    * ``"information"`` (default): the information matrix ``L`` is the one source of truth.
-      Updates only add ``A^T P A`` to it; the cofactor blocks the update, the window rule and
-      the sigmas need are recovered from its Cholesky factorisation with the GPs eliminated
-      (:class:`seqat.information.InformationFactor`), refactorised after every change.
-    * ``"inverse"``: the paper's inverse normal matrix ``Q``, carried by Eq. 10-14. ``L`` is
-      then kept only for smoothing (the RTS gain of leaving parameters).
-
-    ``coupled`` are the GPs that a marginal or re-opening prior couples to other GPs; the
-    factorisation keeps them with the EOPs and eliminates every other GP by its 3x3 block.
-    """
-
-    x: FloatArray = field(default_factory=lambda: np.zeros(0))
-    L: FloatArray | None = None
-    keys: list[Key] = field(default_factory=list)
-    offset: dict[Key, int] = field(default_factory=dict)
-    inverse: bool = False
-    coupled: set[Key] = field(default_factory=set)
-    _Q: FloatArray | None = None
-    _factor: InformationFactor | None = None
-    _diag: FloatArray | None = None
-    #: Called with the GP keys whose information is singular (the data do not determine
-    #: them); it must take them out of the window. None: the RankDeficiency propagates.
-    on_singular: Callable[[list[Key]], None] | None = None
-
-    @property
-    def Q(self) -> FloatArray:
-        """The cofactor matrix (dense; the information engine forms it on request only)."""
-        if self.inverse:
-            assert self._Q is not None
-            return self._Q
-        if self._Q is None:
-            self._Q = self.factor().dense()
-        return self._Q
-
-    @Q.setter
-    def Q(self, value: FloatArray) -> None:
-        if not self.inverse:
-            raise AttributeError("the information engine derives Q from L")
-        self._Q = value
-        self._diag = None
-
-    def changed(self) -> None:
-        """``L`` (information engine) or ``Q`` changed: drop what was derived from it."""
-        self._factor = None
-        self._diag = None
-        if not self.inverse:
-            self._Q = None
-
-    def factor(self) -> InformationFactor:
-        """Factorisation of ``L`` (information engine), cached until :meth:`changed`."""
-        assert self.L is not None
-        while self._factor is None:
-            gp = np.fromiter((self.offset[k] for k in self.keys
-                              if k[0] == "p" and k not in self.coupled), dtype=np.int64)
-            kept = np.fromiter((self.offset[k] for k in self.coupled), dtype=np.int64)
-            try:
-                self._factor = InformationFactor(self.L, gp, kept)
-            except RankDeficiency as err:
-                keys = self.keys_at(err.gp_blocks)
-                if not keys or self.on_singular is None:
-                    raise
-                self.on_singular(keys)  # removes them: the loop factorises the rest
-        return self._factor
-
-    def keys_at(self, offsets: np.ndarray) -> list[Key]:
-        """The keys whose blocks start at ``offsets``."""
-        at = {off: k for k, off in self.offset.items()}
-        return [at[int(o)] for o in offsets if int(o) in at]
-
-    def drop(self, keys: list[Key]) -> None:
-        """Take ``keys`` out without marginalising them (their rows and columns of ``L`` are
-        deleted: the window is conditioned on their values, which the data do not determine
-        and which therefore carry no information)."""
-        gone = set(keys)
-        keep_keys = [k for k in self.keys if k not in gone]
-        keep = self.indices(keep_keys)
-        if self.L is not None:
-            self.L = self.L[np.ix_(keep, keep)]
-        if self.inverse:
-            self._Q = self.Q[np.ix_(keep, keep)]
-        self.x = self.x[keep]
-        self.coupled -= gone
-        self.relayout(keep_keys)
-
-    def q_columns(self, idx: np.ndarray) -> FloatArray:
-        """``Q[:, idx]``."""
-        if self.inverse:
-            return self.Q[:, idx]
-        return self.factor().columns(idx)
-
-    def q_diagonal(self) -> FloatArray:
-        """``diag(Q)``: every marginal variance (cofactor units)."""
-        if self._diag is None:
-            d = np.diagonal(self.Q).copy() if self.inverse else self.factor().diagonal()
-            if d.size and not np.all(d > 0):
-                bad = [self.keys[int(np.searchsorted(self._offsets(), q, side="right")) - 1]
-                       for q in np.flatnonzero(~(d > 0))[:3]]
-                raise EstimationError(f"the window's cofactor has non-positive variances "
-                                      f"(parameters {bad})")
-            self._diag = d
-        return self._diag
-
-    def q_block(self, idx: np.ndarray) -> FloatArray:
-        """``Q[idx, idx]``."""
-        if self.inverse:
-            return self.Q[np.ix_(idx, idx)].copy()
-        return self.factor().block(idx)
-
-    def _offsets(self) -> np.ndarray:
-        return np.fromiter((self.offset[k] for k in self.keys), dtype=np.int64)
-
-    def relayout(self, keys: list[Key]) -> None:
-        self.changed()
-        self.keys = keys
-        self.offset = {}
-        off = 0
-        for k in keys:
-            self.offset[k] = off
-            off += EOP_SIZE if k[0] == "e" else GP_SIZE
-
-    def index(self, key: Key) -> np.ndarray:
-        off = self.offset[key]
-        return np.arange(off, off + (EOP_SIZE if key[0] == "e" else GP_SIZE))
-
-    def indices(self, keys: list[Key]) -> np.ndarray:
-        """Parameter indices of several blocks, concatenated in the order of ``keys``."""
-        if not keys:
-            return np.zeros(0, dtype=np.int64)
-        offs = np.fromiter((self.offset[k] for k in keys), dtype=np.int64, count=len(keys))
-        sizes = np.fromiter(
-            (EOP_SIZE if k[0] == "e" else GP_SIZE for k in keys), dtype=np.int64, count=len(keys)
-        )
-        starts = np.cumsum(sizes) - sizes
-        return np.repeat(offs - starts, sizes) + np.arange(int(sizes.sum()))
-
-
-class SequentialAT:
+class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
     """Seq-F / Seq-R sequential aerial triangulation of a stream of frames.
 
     Parameters
@@ -409,7 +247,7 @@ class SequentialAT:
         self._pending: dict[int, list[tuple[int, FloatArray, float]]] = {}
         self._frozen_eop: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._frozen_gp: dict[int, tuple[FloatArray, FloatArray]] = {}
-        self._departures: list[_Departure | None] = []  # None: finalised (smoothing_lag)
+        self._departures: list[Departure | None] = []  # None: finalised (smoothing_lag)
         self._first_record = 0  # records before this one are finalised
         self._last_finalised = 0
         # Final parameters (smoothing_lag): local value and sigma (and GP observations).
@@ -561,24 +399,6 @@ class SequentialAT:
             eops=tuple(eops), points=tuple(pts), sigma0=self.sigma0, redundancy=self._redundancy
         )
 
-    def _smoothed_departed(self) -> dict[Key, FloatArray]:
-        """RTS backward pass over the departures, newest first: O(sum |F| |W|)."""
-        w = self._w
-        value: dict[Key, FloatArray] = dict(self._dropped_value)
-        value.update({k: w.x[w.index(k)] for k in w.keys})
-        for dep in reversed(self._departures[self._first_record:]):
-            if dep is None:
-                continue
-            x_w = np.concatenate([value[k] for k in dep.staying])
-            x_f = dep.x_leaving + dep.gain @ (x_w - dep.x_staying)
-            off = 0
-            for k in dep.leaving:
-                size = EOP_SIZE if k[0] == "e" else GP_SIZE
-                # a key that re-entered the window left again later (or is in it): the
-                # newer departure, processed first, already holds its final value
-                value.setdefault(k, x_f[off : off + size])
-                off += size
-        return value
 
     # ------------------------------------------------------------------ initial stage (Sim)
     def _add_initial(self, frame: Frame) -> ImageUpdate:
@@ -658,160 +478,7 @@ class SequentialAT:
         self._initial = None
 
     # ------------------------------------------------------------------ sequential stage
-    def _select_window(self, frame_points: set[int]) -> int:
-        """Seq-R: cut the window before the update; returns the number of images dropped."""
-        thr = self.options.correlation_threshold
-        if thr is None or len(self._window_images) < 2:
-            return 0
-        w = self._w
-        offs = np.fromiter(
-            (w.offset[("e", j)] for j in self._window_images),
-            dtype=np.int64,
-            count=len(self._window_images),
-        )
-        # The paper's reference is the last image. On real flights it may be tied to nothing
-        # yet (its points wait for a wider ray spread): its correlations are all zero and the
-        # rule would cut the whole window. Then the newest image that is tied (correlated
-        # over the threshold with another window image) is the reference as well.
-        diag = w.q_diagonal()
-        rho = np.zeros(len(offs))
-        for r in range(len(offs) - 1, -1, -1):
-            o = int(offs[r])
-            rho_r = correlations_from_columns(w.q_columns(o + np.arange(EOP_SIZE)), diag,
-                                              offs, o)
-            rho = np.maximum(rho, rho_r)
-            rho_r[r] = 0.0
-            if np.any(rho_r >= thr):
-                break
-        start = first_over_threshold(rho, thr)
-        start = self._hold_pending_rays(start, frame_points)
-        if start == 0:
-            return 0
-        scale = sigma_scale(self.sigma0, self._redundancy)
-        sd = np.sqrt(w.q_diagonal()) * scale
-        now = len(self._image_ids) - 1
-        keep_rays = self._reopen_age > 0
-        leaving: set[Key] = set()
-        changed: set[int] = {p for p in self._orphans if p in self._gp_count}
-        self._orphans.clear()
-        for _ in range(start):
-            j = self._window_images.popleft()
-            leaving.add(("e", j))
-            idx = w.index(("e", j))
-            self._frozen_eop[j] = (w.x[idx].copy(), sd[idx])
-            with_rays = []
-            for p in self._img_points.pop(j):
-                if p in self._gp_count:
-                    self._gp_count[p] -= 1
-                    changed.add(p)
-                elif p in self._pending:
-                    if keep_rays:
-                        with_rays.append(p)  # kept: image j re-enters if p is born
-                    else:
-                        self._drop_pending_ray(p, j)
-            if with_rays:
-                self._departed_rays.append((j, with_rays))
-        for p in changed:
-            if self._gp_count[p] + (p in frame_points) < MIN_WINDOW_RAYS:
-                leaving.add(("p", p))
-                idx = w.index(("p", p))
-                self._frozen_gp[p] = (w.x[idx].copy(), sd[idx])
-                del self._gp_count[p]
-        self._depart(leaving, now)
-        return start
 
-    def _depart(self, leaving: set[Key], now: int) -> None:
-        """Marginalise ``leaving`` out of the window, keeping its RTS record (smoothing)."""
-        w = self._w
-        keep_keys = [k for k in w.keys if k not in leaving]
-        leave_keys = [k for k in w.keys if k in leaving]
-        keep, leave = w.indices(keep_keys), w.indices(leave_keys)
-        off = 0
-        frozen = w.q_block(leave) if leave.size else np.zeros((0, 0))
-        for k in leave_keys:
-            idx = w.index(k)
-            self._frozen_cof[k] = frozen[off : off + idx.size, off : off + idx.size].copy()
-            self._departed[k] = (now, len(self._departures), off)
-            off += idx.size
-        if w.L is not None:
-            # E[x_F | x_W] = x_F - L_FF^-1 L_FW (x_W - x_W0): the RTS gain from the information
-            # matrix; marginalising F out of L is its Schur complement.
-            L_fw = w.L[np.ix_(leave, keep)]
-            cond = spd_inverse(w.L[np.ix_(leave, leave)], "information of the leaving "
-                                "parameters")
-            gain = -cond @ L_fw
-            fill = L_fw.T @ gain
-            L = w.L[np.ix_(keep, keep)] + 0.5 * (fill + fill.T)
-            # GPs the marginal prior now ties to other GPs are no longer eliminable alone
-            support = np.flatnonzero(np.any(L_fw != 0.0, axis=0))
-            gps = {keep_keys[int(np.searchsorted(self._starts(keep_keys), c, side="right")) - 1]
-                   for c in support}
-            gps = {k for k in gps if k[0] == "p"}
-            if len(gps) > 1:
-                w.coupled |= gps
-            w.L = L
-        if w.L is not None and self._records:
-            self._departures.append(
-                _Departure(
-                    leaving=tuple(leave_keys),
-                    staying=tuple(keep_keys),
-                    x_leaving=w.x[leave],
-                    x_staying=w.x[keep],
-                    gain=gain,
-                    conditional=0.5 * (cond + cond.T),
-                    at=now,
-                )
-            )
-        if self._inverse:
-            w.Q = w.Q[np.ix_(keep, keep)]
-        w.coupled -= leaving
-        w.x = w.x[keep]
-        w.relayout(keep_keys)
-
-    def _factorise(self, H: FloatArray) -> InformationFactor:
-        """Factorisation of an information matrix laid out as the window (GPs eliminated)."""
-        w = self._w
-        gp = np.fromiter((w.offset[k] for k in w.keys if k[0] == "p" and k not in w.coupled),
-                         dtype=np.int64)
-        kept = np.fromiter((w.offset[k] for k in w.coupled), dtype=np.int64)
-        return InformationFactor(H, gp, kept)
-
-    @staticmethod
-    def _starts(keys: list[Key]) -> np.ndarray:
-        """Offsets of ``keys`` laid out in that order."""
-        sizes = np.fromiter((EOP_SIZE if k[0] == "e" else GP_SIZE for k in keys),
-                            dtype=np.int64, count=len(keys))
-        return np.cumsum(sizes) - sizes
-
-    def _hold_pending_rays(self, start: int, frame_points: set[int]) -> int:
-        """Never lose tie rays by waiting: shorten the cut before the first leaving image that
-        holds pending rays of a point with ``min_rays`` rays, and have those points born now.
-
-        Without this, a window shorter than the span a point needs to reach
-        ``min_ray_angle_deg`` would drop every ray before birth: no new ties, lower
-        correlations, a shorter window (observed: collapse to 2 images). Each point is held
-        back at most once; its images leave at the next cut.
-        """
-        min_rays = self.options.min_rays
-        for h in range(start):
-            j = self._window_images[h]
-            live = [
-                p
-                for p in self._img_points[j]
-                if p in self._pending
-                and p not in self._forced
-                and len(self._pending[p]) + (p in frame_points) >= min_rays
-            ]
-            if live:
-                for jj in list(self._window_images)[h:start]:
-                    self._forced.update(
-                        p
-                        for p in self._img_points[jj]
-                        if p in self._pending
-                        and len(self._pending[p]) + (p in frame_points) >= min_rays
-                    )
-                return h
-        return start
 
     def _add_sequential(self, frame: Frame) -> ImageUpdate:
         t0 = time.perf_counter()
@@ -935,7 +602,7 @@ class SequentialAT:
                 except EstimationError:
                     # a point being born that its rays no longer fix (an iterate sent it far
                     # off): it waits for more rays; anything else is a real failure
-                    degenerate = _degenerate_points(rows, len(born))
+                    degenerate = degenerate_points(rows, len(born))
                     if not degenerate:
                         raise
                     break
@@ -1033,35 +700,6 @@ class SequentialAT:
             nav_downweighted=tuple(downweighted),
         )
 
-    def _unstable_births(self, born: list[int], born_xyz: FloatArray,
-                         y12: list[tuple[int, int, FloatArray, float]],
-                         y22: list[tuple[int, FloatArray, float]], x1t: FloatArray,
-                         x2: FloatArray, col_of: dict[Key, int]) -> list[int]:
-        """Points being born (index in the update) that an iterate of the update sent where
-        their rays no longer fix them: behind a camera, or more than
-        :data:`BIRTH_DEPTH_FACTOR` times farther than at birth (seen on a real flight: 1e8 m
-        after a turn, with a singular 3x3 block). They wait for more rays instead of being
-        born into a singular, far-off solution."""
-        if not born:
-            return []
-        E, I = [], []
-        for j, b, _, _ in y12:
-            c = col_of[("e", j)]
-            E.append(x1t[c : c + EOP_SIZE])
-            I.append(b)
-        for b, _, _ in y22:
-            E.append(x2[:EOP_SIZE])
-            I.append(b)
-        E_a, I_a = np.asarray(E).reshape(-1, EOP_SIZE), np.asarray(I, dtype=np.int64)
-        X = x2[EOP_SIZE:].reshape(-1, GP_SIZE)
-        with np.errstate(all="ignore"):
-            d = depth(E_a, X[I_a])
-            d0 = depth(E_a, born_xyz[I_a])
-        bad_ray = ~((d > 0) & (d < BIRTH_DEPTH_FACTOR * np.maximum(d0, 0.0)))
-        bad = np.zeros(len(born), dtype=bool)
-        np.logical_or.at(bad, I_a, bad_ray)
-        bad |= ~np.all(np.isfinite(X), axis=1)
-        return [int(b) for b in np.flatnonzero(bad)]
 
     def _drop_undetermined(self, keys: list[Key]) -> None:
         """GPs whose information became singular (every ray down-weighted by the robust loss,
@@ -1079,478 +717,6 @@ class SequentialAT:
         self._gp_order = [p for p in self._gp_order if p not in gone]
         self._n_points -= len(gone)
 
-    def _reopenable(self, key: Key, i: int) -> bool:
-        left = self._departed.get(key)
-        return left is not None and i - left[0] <= self._reopen_age
-
-    @property
-    def _reopen_age(self) -> int:
-        lag = self.options.smoothing_lag
-        age = self.options.reopen_max_age
-        return age if lag is None else min(age, lag)
-
-    def _finalise_old(self, i: int) -> None:
-        """``smoothing_lag``: every ``lag / 2`` images, parameters that left more than ``lag``
-        images ago take their smoothed value (the RTS pass over the records kept) and are
-        stored compactly or handed to the sink; their departure records are dropped."""
-        lag = self.options.smoothing_lag
-        assert lag is not None
-        if i - self._last_finalised < max(1, lag // 2):
-            return
-        self._last_finalised = i
-        cutoff = i - lag
-        old = [k for k, (t, _, _) in self._departed.items() if t < cutoff]
-        if not old:
-            return
-        value = self._smoothed_departed() if self._records else {}
-        origin = self._origin
-        assert origin is not None
-        for k in old:
-            del self._departed[k]
-            self._frozen_cof.pop(k, None)
-            if k[0] == "e":
-                frozen, sig = self._frozen_eop.pop(k[1])
-                val = value.get(k, frozen).copy()
-                if self._sink is None:
-                    self._final_eop[k[1]] = (val, sig)
-                else:
-                    val[:3] += origin
-                    val[3:] = wrap_angle(val[3:])
-                    self._sink(EopEstimate(image_id=self._image_ids[k[1]], eop=val, sigma=sig))
-            else:
-                frozen, sig = self._frozen_gp.pop(k[1])
-                val = value.get(k, frozen).copy()
-                nobs = self._gp_nobs.pop(k[1])
-                if self._sink is None:
-                    self._final_gp[k[1]] = (val, sig, nobs)
-                else:
-                    self._sunk.add(k[1])
-                    self._sink(PointEstimate(point_id=self._point_ids[k[1]], xyz_m=val + origin,
-                                             sigma_m=sig, n_obs=nobs))
-        r = self._first_record
-        while r < len(self._departures):
-            dep = self._departures[r]
-            if dep is not None and dep.at >= cutoff:
-                break
-            self._departures[r] = None
-            r += 1
-        self._first_record = r
-        if self._sink is not None:
-            gone = {k[1] for k in old if k[0] == "p"}
-            self._gp_order = [p for p in self._gp_order if p not in gone]
-
-    def _forget_old_rays(self, i: int) -> None:
-        """Drop the kept pending rays of images that left more than ``reopen_max_age`` ago."""
-        limit = i - self._reopen_age
-        rays = self._departed_rays
-        while rays:
-            j, points = rays[0]
-            left = self._departed.get(("e", j))
-            if left is not None and left[0] >= limit:
-                break
-            rays.popleft()
-            if ("e", j) in self._w.offset:
-                continue  # re-opened: its rays were used then
-            for p in points:
-                self._drop_pending_ray(p, j)
-
-    def _drop_pending_ray(self, p: int, j: int) -> None:
-        """Forget image ``j``'s pending ray of point ``p`` (and the point with its last ray)."""
-        if p not in self._pending:
-            return
-        rest = [o for o in self._pending[p] if o[0] != j]
-        if rest:
-            self._pending[p] = rest
-        else:
-            del self._pending[p]
-            self._forced.discard(p)
-
-    def _reopen(self, keys: list[Key]) -> None:
-        """Bring departed parameters back into the window (docs/algorithm.md, re-opening).
-
-        With smoothing (departure records kept) each key enters with its exact distribution
-        given the current window (:meth:`_conditional_prior`), jointly with the others, and
-        the records it left with are rewritten to condition on it (:meth:`_split_records`).
-        Without, it enters with its frozen value and cofactor, uncorrelated with the window.
-        The prior adds as many pseudo-observations as parameters: redundancy and sum of
-        squares do not change.
-        """
-        w = self._w
-        n = w.x.size
-        sizes = [EOP_SIZE if k[0] == "e" else GP_SIZE for k in keys]
-        m = sum(sizes)
-        if w.L is None:
-            J = np.zeros((m, n))
-            mean = np.concatenate([self._frozen_value(k) for k in keys])
-            C = scipy.linalg.block_diag(*(self._frozen_cof[k] for k in keys))
-        else:
-            mean, J, C = self._conditional_prior(keys, sizes)
-            self._split_records(keys)
-        for key in keys:
-            if key[0] == "e":
-                j = key[1]
-                self._img_points[j] = []
-                pos = sum(1 for jj in self._window_images if jj < j)
-                self._window_images.insert(pos, j)
-            else:
-                self._gp_count[key[1]] = 0
-        C = 0.5 * (C + C.T)
-        if self._inverse:
-            QJt = w.Q @ J.T
-            Q = np.empty((n + m, n + m))
-            Q[:n, :n] = w.Q
-            Q[:n, n:] = QJt
-            Q[n:, :n] = QJt.T
-            Q[n:, n:] = J @ QJt + C
-            w.Q = Q
-        if w.L is not None:
-            # the prior ties the re-opened keys to the window keys its chain refers to
-            support = [k for k in w.keys if k[0] == "p" and np.any(J[:, w.index(k)] != 0.0)]
-            gps = set(support) | {k for k in keys if k[0] == "p"}
-            if len(gps) > 1:
-                w.coupled |= gps
-            Ci = spd_inverse(C, "conditional cofactor of the re-opened parameters")
-            CiJ = Ci @ J
-            L = np.empty((n + m, n + m))
-            L[:n, :n] = w.L + J.T @ CiJ
-            L[:n, n:] = -CiJ.T
-            L[n:, :n] = -CiJ
-            L[n:, n:] = Ci
-            w.L = L
-        w.x = np.concatenate([w.x, mean])
-        w.relayout(w.keys + keys)
-        self.reopened += len(keys)
-
-    def _conditional_prior(self, keys: list[Key],
-                           sizes: list[int]) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Departed ``keys`` given the current window: ``y = mean + J (x_W - x_W,now) + e``.
-
-        Each departure record says ``x_F = x_F0 + G (x_W - x_W0) + e``, ``e ~ (0, L_FF^-1)``
-        independent of everything after. Starting from the keys themselves, every departed key
-        the form refers to is replaced by its record's relation, oldest record first (a record
-        refers only to keys that left later or are still in the window), until the form refers
-        to window keys only. The result is the exact conditional of the keys given the window
-        as long as no departed key was touched in between; a key re-opened since is taken at
-        its last departure.
-        """
-        w = self._w
-        m = sum(sizes)
-        col_of: dict[Key, int] = {}
-        buf = np.zeros((m, 8 * m + 64))
-        ncol = 0
-
-        def column(key: Key) -> int:
-            nonlocal buf, ncol
-            c = col_of.get(key)
-            if c is None:
-                size = EOP_SIZE if key[0] == "e" else GP_SIZE
-                if ncol + size > buf.shape[1]:
-                    buf = np.concatenate([buf, np.zeros_like(buf)], axis=1)
-                c = col_of[key] = ncol
-                ncol += size
-            return c
-
-        pending: dict[int, list[Key]] = {}
-        row = 0
-        for key, size in zip(keys, sizes, strict=True):
-            c = column(key)
-            buf[row : row + size, c : c + size] = np.eye(size)
-            pending.setdefault(self._departed[key][1], []).append(key)
-            row += size
-        const = np.zeros(m)
-        C = np.zeros((m, m))
-        queued = set(keys)
-        while pending:
-            rec = min(pending)
-            members = pending.pop(rec)
-            dep = self._departures[rec]
-            src = np.concatenate([self._departed[k][2] + np.arange(EOP_SIZE if k[0] == "e"
-                                                                   else GP_SIZE)
-                                  for k in members])
-            cols = np.concatenate([col_of[k] + np.arange(EOP_SIZE if k[0] == "e" else GP_SIZE)
-                                   for k in members])
-            JK = buf[:, cols].copy()
-            buf[:, cols] = 0.0
-            G = dep.gain[src]
-            const += JK @ (dep.x_leaving[src] - G @ dep.x_staying)
-            C += JK @ dep.conditional[np.ix_(src, src)] @ JK.T
-            JG = JK @ G
-            ucols = np.empty(JG.shape[1], dtype=np.int64)
-            off = 0
-            for sk in dep.staying:
-                size = EOP_SIZE if sk[0] == "e" else GP_SIZE
-                c = column(sk)
-                ucols[off : off + size] = c + np.arange(size)
-                off += size
-                if sk not in w.offset and sk not in queued and sk not in self._dropped_value:
-                    queued.add(sk)
-                    later = self._departed[sk][1]
-                    assert later > rec, "a departure record refers to an older one"
-                    pending.setdefault(later, []).append(sk)
-            buf[:, ucols] += JG
-        n = w.x.size
-        J = np.zeros((m, n))
-        for key, c in col_of.items():
-            if key in w.offset:
-                idx = w.index(key)
-                J[:, idx] = buf[:, c : c + idx.size]
-            elif key in self._dropped_value:  # taken out as undetermined: a constant
-                val = self._dropped_value[key]
-                const += buf[:, c : c + val.size] @ val
-        mean = const + J @ w.x
-        return mean, J, C
-
-    def _split_records(self, keys: list[Key]) -> None:
-        """Re-opened keys become conditioning keys of the departure records they left with.
-
-        Record ``x_F = x_F0 + G (x_W - x_W0) + e`` with F = R (re-opened) + M (not): given
-        ``x_R`` as well, ``x_M = x_M0 + (G_M - K G_R)(x_W - x_W0) + K (x_R - x_R0) + e'`` with
-        ``K = C_MR C_RR^-1`` and ``Cov(e') = C_MM - K C_RM``. The record then says how M
-        follows everything R learns from now on (for later re-opening and for smoothing).
-        """
-        by_record: dict[int, list[Key]] = {}
-        for key in keys:
-            by_record.setdefault(self._departed.pop(key)[1], []).append(key)
-        for rec, reopened in by_record.items():
-            dep = self._departures[rec]
-            sizes = {k: EOP_SIZE if k[0] == "e" else GP_SIZE for k in dep.leaving}
-            starts = dict(zip(dep.leaving, np.cumsum([0] + list(sizes.values()))[:-1],
-                              strict=True))
-            chosen = set(reopened)
-            rest = [k for k in dep.leaving if k not in chosen]
-            r_idx = np.concatenate([starts[k] + np.arange(sizes[k]) for k in reopened])
-            m_idx = (np.concatenate([starts[k] + np.arange(sizes[k]) for k in rest])
-                     if rest else np.zeros(0, dtype=np.int64))
-            C = dep.conditional
-            K = np.linalg.solve(C[np.ix_(r_idx, r_idx)], C[np.ix_(r_idx, m_idx)]).T
-            cond = C[np.ix_(m_idx, m_idx)] - K @ C[np.ix_(r_idx, m_idx)]
-            self._departures[rec] = _Departure(
-                leaving=tuple(rest),
-                staying=dep.staying + tuple(reopened),
-                x_leaving=dep.x_leaving[m_idx],
-                x_staying=np.concatenate([dep.x_staying, dep.x_leaving[r_idx]]),
-                gain=np.hstack([dep.gain[m_idx] - K @ dep.gain[r_idx], K]),
-                conditional=0.5 * (cond + cond.T),
-                at=dep.at,
-            )
-            off = 0
-            for k in rest:
-                self._departed[k] = (self._departed[k][0], rec, off)
-                off += sizes[k]
-
-    def _frozen_value(self, key: Key) -> FloatArray:
-        """Last estimate of a departed key (local frame)."""
-        if key in self._w.offset:
-            return self._w.x[self._w.index(key)]
-        return (self._frozen_eop if key[0] == "e" else self._frozen_gp)[key[1]][0]
-
-    def _relinearise_if_needed(self, threshold_px: float | None = None,
-                               force: bool = False) -> None:
-        """:meth:`_relinearise`; GPs that become singular on the way are taken out
-        (:meth:`_drop_undetermined`) and the re-linearisation is tried again without them."""
-        for _ in range(MAX_SINGULAR_RETRIES):
-            try:
-                self._relinearise(threshold_px, force)
-                return
-            except RankDeficiency as err:
-                keys = self._w.keys_at(err.gp_blocks)
-                if not keys:
-                    raise
-                self._drop_undetermined(keys)
-        self._relinearise(threshold_px, force)
-
-    def _relinearise(self, threshold_px: float | None = None, force: bool = False) -> None:
-        """Re-linearise the window when its rows no longer describe the image points.
-
-        Old rows were linearised where the estimate stood when they arrived; when later data
-        move the estimate (a light UAV's INS is degrees off), the linear model drifts from
-        the collinearity equations (seed 003 §3.2). The check costs O(window observations):
-        the largest difference between the projected image points and the rows' linear
-        prediction at the current estimate. Above ``relinearise_px`` the window is
-        re-adjusted by Gauss-Newton: its information is split into the rows of its own
-        observations (taken out at their old linearisation) and the rest (the marginalised
-        prior of the departed parameters and the linear GPS/INS rows, kept), and the own
-        rows are linearised anew at each iterate. ``Q``, ``L`` and σ0 follow.
-        """
-        w, opts = self._w, self.options
-        assert opts.relinearise_px is not None
-        f = self._factors.in_window(w)
-        if f is None:
-            return
-        e_idx, p_idx = f.columns(w)
-        x = w.x
-        limit = opts.relinearise_px if threshold_px is None else threshold_px
-        self._drift_px = f.linearisation_error(x[e_idx], x[p_idx], self.camera)
-        if self._drift_px <= limit and not force:
-            return
-        self.relinearisations += 1
-        L = w.L if w.L is not None else np.linalg.inv(w.Q)
-        cols = np.concatenate([e_idx, p_idx], axis=1)  # (k, 9) window columns per factor
-        H_old, eta_old = f.information(cols, x.size)
-        H_p = L - H_old
-        del H_old
-        eta_p = L @ x - eta_old
-
-        def prior(z: FloatArray) -> float:  # the kept information's part of the cost / 2
-            return float(0.5 * z @ H_p @ z - eta_p @ z)
-
-        def solve(H: FloatArray, g: FloatArray) -> FloatArray:
-            if self._inverse:
-                return np.linalg.solve(H, g)
-            return self._factorise(H).solve(g)
-
-        xk = x.copy()
-        ssr_old_factors = f.linearised_ssr(x[e_idx], x[p_idx])
-        prior_old = prior(x)
-        def evaluate(z: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray,
-                                              float]:
-            # The rows keep the robust weights their update gave them: re-weighting the whole
-            # window here (IRLS) let a re-linearisation after a turn, far from the start,
-            # trade dozens of good points for outliers (seen on Seneca: 1e-9 weights, a
-            # singular window).
-            Je, Jp, r = f.evaluate(z[e_idx], z[p_idx], self.camera)
-            return Je, Jp, r, f.w, 0.5 * float(np.sum(f.w[:, None] * r**2)) + prior(z)
-
-        Je, Jp, r, wf, cost = evaluate(xk)
-        for _ in range(opts.relinearise_iterations):
-            H, g = normal_from_factors(Je, Jp, r, wf, cols, x.size)
-            H += H_p
-            g += eta_p - H_p @ xk
-            delta = solve(H, g)
-            del H
-            # Gauss-Newton (IRLS) with step halving: the window's cost never goes up (a
-            # turn's rows far from linear would otherwise send it off)
-            for _ in range(MAX_STEP_HALVINGS):
-                trial = xk + delta
-                Je_t, Jp_t, r_t, wf_t, cost_t = evaluate(trial)
-                if np.isfinite(cost_t) and cost_t <= cost + 1e-9 * abs(cost):
-                    break
-                delta = 0.5 * delta
-            else:
-                break  # no step lowers the cost: xk is the minimum to rounding
-            xk, cost, Je, Jp, r, wf = trial, cost_t, Je_t, Jp_t, r_t, wf_t
-            if np.max(np.abs(delta)) < RELINEARISE_TOLERANCE:
-                break
-        H, _ = normal_from_factors(Je, Jp, r, wf, cols, x.size)
-        H += H_p
-        H = 0.5 * (H + H.T)
-        prior_new = prior(xk)
-        ssr_new_factors = float(np.sum(wf[:, None] * r**2))
-        self._ssr = max(self._ssr + ssr_new_factors - ssr_old_factors
-                        + 2.0 * (prior_new - prior_old), 0.0)
-        dx = xk - x
-        eop_keys = [k for k in w.keys if k[0] == "e"]
-        ie = w.indices(eop_keys).reshape(-1, EOP_SIZE)
-        self._drift_m = float(np.max(np.abs(dx[ie[:, :3]]), initial=0.0))
-        self._drift_deg = float(np.degrees(np.max(np.abs(dx[ie[:, 3:]]), initial=0.0)))
-        w.x = xk
-        w.L = H if w.L is not None else None
-        if self._inverse:
-            Q = np.linalg.inv(H)
-            w.Q = 0.5 * (Q + Q.T)
-        w.changed()
-        f.relinearised_at(xk[e_idx], xk[p_idx], Je, Jp, r)
-        f.w = wf
-        self._factors.replace(f)
-
-    def _birth(
-        self, candidates: list[int], i: int, nav: FloatArray, *, use_new: bool = True
-    ) -> tuple[list[int], FloatArray]:
-        """Intersect candidate tie points; return those with a usable geometry and their XYZ.
-
-        ``use_new=False`` leaves the new image's rays out of the intersection (its EOP start
-        value is unknown: a GNSS dropout); the point then needs two other rays.
-        """
-        if not candidates:
-            return [], np.zeros((0, GP_SIZE))
-        if self.options.snooping_critical is not None:
-            self._screen_rays(candidates, i)
-            ok = [p for p in candidates if p in self._pending
-                  and len(self._pending[p]) >= self.options.min_rays]
-            if len(ok) < len(candidates):
-                return self._birth(ok, i, nav, use_new=use_new)
-        eops, uvs, idx = [], [], []
-        for c, p in enumerate(candidates):
-            for j, uv, _ in self._pending[p]:
-                if j == i and not use_new:
-                    continue
-                eops.append(nav if j == i else self._eop_value(j))
-                uvs.append(uv)
-                idx.append(c)
-        if not idx:
-            return [], np.zeros((0, GP_SIZE))
-        E, UV, I = np.asarray(eops), np.asarray(uvs), np.asarray(idx)
-        X, spread = intersect_rays(E, UV, I, len(candidates), self.camera)
-        min_angle = np.radians(
-            [
-                MIN_FORCED_RAY_ANGLE_DEG if p in self._forced else self.options.min_ray_angle_deg
-                for p in candidates
-            ]
-        )
-        ok = np.all(np.isfinite(X), axis=1) & (spread >= min_angle)
-        front = np.ones(len(candidates), dtype=bool)
-        if np.any(ok):
-            d = depth(E, np.nan_to_num(X)[I])
-            np.logical_and.at(front, I, d > 0)
-        ok &= front
-        sel = np.flatnonzero(ok)
-        return [candidates[c] for c in sel], X[sel]
-
-    def _eop_value(self, j: int) -> FloatArray:
-        w = self._w
-        return w.x[w.index(("e", j))] if ("e", j) in w.offset else self._frozen_eop[j][0]
-
-    def _screen_rays(self, candidates: list[int], i: int) -> None:
-        """Data snooping at birth: the rays of estimated images (not the new one, whose EOP is
-        still the nav) must meet in one point. The worst ray of a point whose rays miss it by
-        more than ``SCREEN_SIGMAS * critical * sigma`` pixels is rejected while at least two
-        remain; a blunder in a point's first rays would otherwise be intersected into a wrong
-        point the update cannot leave (a local minimum that fits all its rays)."""
-        crit = self.options.snooping_critical
-        assert crit is not None
-        rays = [(c, j, uv) for c, p in enumerate(candidates) for (j, uv, _) in self._pending[p]]
-        I = np.asarray([r[0] for r in rays], dtype=np.int64)
-        UV = np.asarray([r[2] for r in rays], dtype=np.float64).reshape(-1, 2)
-        # the new image's rays take any EOP: they are not used here
-        E = np.asarray([self._eop_value(j) if j != i else np.zeros(EOP_SIZE)
-                        for (_, j, _) in rays]).reshape(-1, EOP_SIZE)
-        old = np.asarray([j != i for (_, j, _) in rays], dtype=bool)
-        sig = np.asarray([s for p in candidates for (_, _, s) in self._pending[p]])
-        limit = SCREEN_SIGMAS * crit * sig
-        alive = old.copy()
-        for _ in range(MAX_SCREEN_ROUNDS):
-            n_old = np.bincount(I[alive], minlength=len(candidates))
-            if not np.any(n_old >= 3):
-                break
-            X, _ = intersect_rays(E[alive], UV[alive], I[alive], len(candidates), self.camera)
-            res = np.full(I.size, -np.inf)
-            sel = alive & (n_old[I] >= 3) & np.all(np.isfinite(X[I]), axis=1)
-            if not np.any(sel):
-                break
-            res[sel] = (np.linalg.norm(UV[sel] - project(E[sel], X[I[sel]], self.camera),
-                                       axis=1) - limit[sel])
-            order = np.lexsort((-res, I))
-            first = order[np.r_[True, I[order][1:] != I[order][:-1]]]
-            worst = first[res[first] > 0]
-            if worst.size == 0:
-                break
-            alive[worst] = False
-            for r in worst:
-                p = candidates[int(I[r])]
-                rays = self._pending[p]
-                k = int(r - np.flatnonzero(I == I[r])[0])
-                j, _, s = rays[k]
-                self.rejections.append((self._image_ids[j], self._point_ids[p],
-                                        float(res[r] / s / crit + SCREEN_SIGMAS)))
-        if not np.all(alive | ~old):
-            for c, p in enumerate(candidates):
-                rays = self._pending[p]
-                gone = ~alive[I == c] & old[I == c]
-                if gone.any():
-                    for (j, _, _), g in zip(rays, gone, strict=True):
-                        if g and j in self._img_points and p in self._img_points[j]:
-                            self._img_points[j].remove(p)
-                    self._pending[p] = [o for o, g in zip(rays, gone, strict=True) if not g]
 
     def _record(
         self,
@@ -1626,26 +792,3 @@ class SequentialAT:
         )
 
 
-def _degenerate_points(rows: LinearRows, n_born: int) -> list[int]:
-    """Points being born (index in the update) whose own 3x3 normal block is singular."""
-    D = rows.A22.T @ (rows.w2[:, None] * rows.A22) + rows.A32.T @ (rows.w3[:, None] * rows.A32)
-    out = []
-    for b in range(n_born):
-        sl = slice(EOP_SIZE + GP_SIZE * b, EOP_SIZE + GP_SIZE * (b + 1))
-        ev = np.linalg.eigvalsh(D[sl, sl])
-        if not ev[0] > 1e-9 * max(ev[-1], 1e-300):
-            out.append(b)
-    return out
-
-
-#: A point being born whose update iterate lies this many times farther from a camera than
-#: its birth intersection (or behind it) is held back (SequentialAT._unstable_births).
-BIRTH_DEPTH_FACTOR = 100.0
-#: Times a re-linearisation is tried again after taking out singular GPs.
-MAX_SINGULAR_RETRIES = 3
-#: A re-linearisation step that raises the window's cost is halved at most this many times.
-MAX_STEP_HALVINGS = 8
-#: A window re-linearisation stops when no parameter moves more than this (m or rad).
-RELINEARISE_TOLERANCE = 1e-7
-#: finish() re-linearises the window when its rows are this far off (pixels).
-FINAL_RELINEARISE_PX = 1e-3

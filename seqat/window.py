@@ -1,17 +1,28 @@
-"""Seq-R window selection by correlation (seed 000 §2.3, Fig. 2).
+"""Seq-R window selection by correlation (seed 000 §2.3, Fig. 2), and the window itself.
 
 The correlation between two images is the largest absolute correlation coefficient in the
 6x6 block of their EOPs taken from the cofactor matrix the sequential update already holds.
 Images are scanned from the oldest; the first one whose correlation with the *last* image
 reaches the threshold starts the window, and every later image stays in it ("first over
 threshold"), whatever its own correlation.
+
+:class:`Window` holds the window's estimates and its information (or, for the paper's engine,
+cofactor) matrix with their block layout (docs/algorithm.md, *Engines*).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
 import numpy as np
 
-from seqat.types import EOP_SIZE, FloatArray
+from seqat.errors import EstimationError
+from seqat.information import InformationFactor, RankDeficiency
+from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
+
+#: Parameter key: (kind, index) with kind "e" (EOP of image index) or "p" (GP index).
+Key = tuple[str, int]
 
 
 def eop_correlations(Q: FloatArray, eop_offsets: np.ndarray, last_offset: int) -> FloatArray:
@@ -54,3 +65,145 @@ def first_over_threshold(correlations: FloatArray, threshold: float) -> int:
     """
     over = np.flatnonzero(correlations >= threshold)
     return int(over[0]) if over.size else len(correlations) - 1
+
+
+@dataclass(eq=False)
+class Window:
+    """Parameters being updated: estimates, information or cofactor, and their block layout.
+
+    Two engines (docs/algorithm.md, *Engines*):
+
+    * ``"information"`` (default): the information matrix ``L`` is the one source of truth.
+      Updates only add ``A^T P A`` to it; the cofactor blocks the update, the window rule and
+      the sigmas need are recovered from its Cholesky factorisation with the GPs eliminated
+      (:class:`seqat.information.InformationFactor`), refactorised after every change.
+    * ``"inverse"``: the paper's inverse normal matrix ``Q``, carried by Eq. 10-14. ``L`` is
+      then kept only for smoothing (the RTS gain of leaving parameters).
+
+    ``coupled`` are the GPs that a marginal or re-opening prior couples to other GPs; the
+    factorisation keeps them with the EOPs and eliminates every other GP by its 3x3 block.
+    """
+
+    x: FloatArray = field(default_factory=lambda: np.zeros(0))
+    L: FloatArray | None = None
+    keys: list[Key] = field(default_factory=list)
+    offset: dict[Key, int] = field(default_factory=dict)
+    inverse: bool = False
+    coupled: set[Key] = field(default_factory=set)
+    _Q: FloatArray | None = None
+    _factor: InformationFactor | None = None
+    _diag: FloatArray | None = None
+    #: Called with the GP keys whose information is singular (the data do not determine
+    #: them); it must take them out of the window. None: the RankDeficiency propagates.
+    on_singular: Callable[[list[Key]], None] | None = None
+
+    @property
+    def Q(self) -> FloatArray:
+        """The cofactor matrix (dense; the information engine forms it on request only)."""
+        if self.inverse:
+            assert self._Q is not None
+            return self._Q
+        if self._Q is None:
+            self._Q = self.factor().dense()
+        return self._Q
+
+    @Q.setter
+    def Q(self, value: FloatArray) -> None:
+        if not self.inverse:
+            raise AttributeError("the information engine derives Q from L")
+        self._Q = value
+        self._diag = None
+
+    def changed(self) -> None:
+        """``L`` (information engine) or ``Q`` changed: drop what was derived from it."""
+        self._factor = None
+        self._diag = None
+        if not self.inverse:
+            self._Q = None
+
+    def factor(self) -> InformationFactor:
+        """Factorisation of ``L`` (information engine), cached until :meth:`changed`."""
+        assert self.L is not None
+        while self._factor is None:
+            gp = np.fromiter((self.offset[k] for k in self.keys
+                              if k[0] == "p" and k not in self.coupled), dtype=np.int64)
+            kept = np.fromiter((self.offset[k] for k in self.coupled), dtype=np.int64)
+            try:
+                self._factor = InformationFactor(self.L, gp, kept)
+            except RankDeficiency as err:
+                keys = self.keys_at(err.gp_blocks)
+                if not keys or self.on_singular is None:
+                    raise
+                self.on_singular(keys)  # removes them: the loop factorises the rest
+        return self._factor
+
+    def keys_at(self, offsets: np.ndarray) -> list[Key]:
+        """The keys whose blocks start at ``offsets``."""
+        at = {off: k for k, off in self.offset.items()}
+        return [at[int(o)] for o in offsets if int(o) in at]
+
+    def drop(self, keys: list[Key]) -> None:
+        """Take ``keys`` out without marginalising them (their rows and columns of ``L`` are
+        deleted: the window is conditioned on their values, which the data do not determine
+        and which therefore carry no information)."""
+        gone = set(keys)
+        keep_keys = [k for k in self.keys if k not in gone]
+        keep = self.indices(keep_keys)
+        if self.L is not None:
+            self.L = self.L[np.ix_(keep, keep)]
+        if self.inverse:
+            self._Q = self.Q[np.ix_(keep, keep)]
+        self.x = self.x[keep]
+        self.coupled -= gone
+        self.relayout(keep_keys)
+
+    def q_columns(self, idx: np.ndarray) -> FloatArray:
+        """``Q[:, idx]``."""
+        if self.inverse:
+            return self.Q[:, idx]
+        return self.factor().columns(idx)
+
+    def q_diagonal(self) -> FloatArray:
+        """``diag(Q)``: every marginal variance (cofactor units)."""
+        if self._diag is None:
+            d = np.diagonal(self.Q).copy() if self.inverse else self.factor().diagonal()
+            if d.size and not np.all(d > 0):
+                bad = [self.keys[int(np.searchsorted(self._offsets(), q, side="right")) - 1]
+                       for q in np.flatnonzero(~(d > 0))[:3]]
+                raise EstimationError(f"the window's cofactor has non-positive variances "
+                                      f"(parameters {bad})")
+            self._diag = d
+        return self._diag
+
+    def q_block(self, idx: np.ndarray) -> FloatArray:
+        """``Q[idx, idx]``."""
+        if self.inverse:
+            return self.Q[np.ix_(idx, idx)].copy()
+        return self.factor().block(idx)
+
+    def _offsets(self) -> np.ndarray:
+        return np.fromiter((self.offset[k] for k in self.keys), dtype=np.int64)
+
+    def relayout(self, keys: list[Key]) -> None:
+        self.changed()
+        self.keys = keys
+        self.offset = {}
+        off = 0
+        for k in keys:
+            self.offset[k] = off
+            off += EOP_SIZE if k[0] == "e" else GP_SIZE
+
+    def index(self, key: Key) -> np.ndarray:
+        off = self.offset[key]
+        return np.arange(off, off + (EOP_SIZE if key[0] == "e" else GP_SIZE))
+
+    def indices(self, keys: list[Key]) -> np.ndarray:
+        """Parameter indices of several blocks, concatenated in the order of ``keys``."""
+        if not keys:
+            return np.zeros(0, dtype=np.int64)
+        offs = np.fromiter((self.offset[k] for k in keys), dtype=np.int64, count=len(keys))
+        sizes = np.fromiter(
+            (EOP_SIZE if k[0] == "e" else GP_SIZE for k in keys), dtype=np.int64, count=len(keys)
+        )
+        starts = np.cumsum(sizes) - sizes
+        return np.repeat(offs - starts, sizes) + np.arange(int(sizes.sum()))

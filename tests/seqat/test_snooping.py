@@ -153,7 +153,7 @@ def test_gnss_jump_is_flagged_and_dropout_bridged() -> None:
 def test_a_point_its_rays_no_longer_fix_is_held_back() -> None:
     """The update's singular D is traced to the born point whose own block is singular (its
     rays no longer fix it); a healthy point is not blamed."""
-    from seqat.sequential import _degenerate_points
+    from seqat.births import degenerate_points as _degenerate_points
     from seqat.update import LinearRows
 
     rng = np.random.default_rng(0)

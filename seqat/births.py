@@ -1,0 +1,170 @@
+"""Births of tie points in the sequential update: intersection, screening, guards.
+
+Mixed into :class:`seqat.sequential.SequentialAT` (its state lives there). A tie point
+becomes a GP once it has ``min_rays`` rays in window images with a usable intersection angle
+(docs/algorithm.md, *When a tie point becomes a GP*).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from seqat.geometry import depth, intersect_rays, project
+from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
+from seqat.update import LinearRows
+from seqat.window import Key
+
+#: A tie point whose rays would otherwise leave the window is born with at least this spread.
+MIN_FORCED_RAY_ANGLE_DEG = 1.0
+#: Data snooping at birth: a ray farther than this many critical sigmas from the others'
+#: intersection is screened out (SequentialAT._screen_rays), in at most this many rounds.
+SCREEN_SIGMAS = 2.0
+MAX_SCREEN_ROUNDS = 5
+#: A point being born whose update iterate lies this many times farther from a camera than
+#: its birth intersection (or behind it) is held back (SequentialAT._unstable_births).
+BIRTH_DEPTH_FACTOR = 100.0
+
+
+class BirthMixin:
+    """Point births of :class:`SequentialAT`."""
+
+    def _unstable_births(self, born: list[int], born_xyz: FloatArray,
+                         y12: list[tuple[int, int, FloatArray, float]],
+                         y22: list[tuple[int, FloatArray, float]], x1t: FloatArray,
+                         x2: FloatArray, col_of: dict[Key, int]) -> list[int]:
+        """Points being born (index in the update) that an iterate of the update sent where
+        their rays no longer fix them: behind a camera, or more than
+        :data:`BIRTH_DEPTH_FACTOR` times farther than at birth (seen on a real flight: 1e8 m
+        after a turn, with a singular 3x3 block). They wait for more rays instead of being
+        born into a singular, far-off solution."""
+        if not born:
+            return []
+        E, I = [], []
+        for j, b, _, _ in y12:
+            c = col_of[("e", j)]
+            E.append(x1t[c : c + EOP_SIZE])
+            I.append(b)
+        for b, _, _ in y22:
+            E.append(x2[:EOP_SIZE])
+            I.append(b)
+        E_a, I_a = np.asarray(E).reshape(-1, EOP_SIZE), np.asarray(I, dtype=np.int64)
+        X = x2[EOP_SIZE:].reshape(-1, GP_SIZE)
+        with np.errstate(all="ignore"):
+            d = depth(E_a, X[I_a])
+            d0 = depth(E_a, born_xyz[I_a])
+        bad_ray = ~((d > 0) & (d < BIRTH_DEPTH_FACTOR * np.maximum(d0, 0.0)))
+        bad = np.zeros(len(born), dtype=bool)
+        np.logical_or.at(bad, I_a, bad_ray)
+        bad |= ~np.all(np.isfinite(X), axis=1)
+        return [int(b) for b in np.flatnonzero(bad)]
+
+    def _birth(
+        self, candidates: list[int], i: int, nav: FloatArray, *, use_new: bool = True
+    ) -> tuple[list[int], FloatArray]:
+        """Intersect candidate tie points; return those with a usable geometry and their XYZ.
+
+        ``use_new=False`` leaves the new image's rays out of the intersection (its EOP start
+        value is unknown: a GNSS dropout); the point then needs two other rays.
+        """
+        if not candidates:
+            return [], np.zeros((0, GP_SIZE))
+        if self.options.snooping_critical is not None:
+            self._screen_rays(candidates, i)
+            ok = [p for p in candidates if p in self._pending
+                  and len(self._pending[p]) >= self.options.min_rays]
+            if len(ok) < len(candidates):
+                return self._birth(ok, i, nav, use_new=use_new)
+        eops, uvs, idx = [], [], []
+        for c, p in enumerate(candidates):
+            for j, uv, _ in self._pending[p]:
+                if j == i and not use_new:
+                    continue
+                eops.append(nav if j == i else self._eop_value(j))
+                uvs.append(uv)
+                idx.append(c)
+        if not idx:
+            return [], np.zeros((0, GP_SIZE))
+        E, UV, I = np.asarray(eops), np.asarray(uvs), np.asarray(idx)
+        X, spread = intersect_rays(E, UV, I, len(candidates), self.camera)
+        min_angle = np.radians(
+            [
+                MIN_FORCED_RAY_ANGLE_DEG if p in self._forced else self.options.min_ray_angle_deg
+                for p in candidates
+            ]
+        )
+        ok = np.all(np.isfinite(X), axis=1) & (spread >= min_angle)
+        front = np.ones(len(candidates), dtype=bool)
+        if np.any(ok):
+            d = depth(E, np.nan_to_num(X)[I])
+            np.logical_and.at(front, I, d > 0)
+        ok &= front
+        sel = np.flatnonzero(ok)
+        return [candidates[c] for c in sel], X[sel]
+
+    def _eop_value(self, j: int) -> FloatArray:
+        w = self._w
+        return w.x[w.index(("e", j))] if ("e", j) in w.offset else self._frozen_eop[j][0]
+
+    def _screen_rays(self, candidates: list[int], i: int) -> None:
+        """Data snooping at birth: the rays of estimated images (not the new one, whose EOP is
+        still the nav) must meet in one point. The worst ray of a point whose rays miss it by
+        more than ``SCREEN_SIGMAS * critical * sigma`` pixels is rejected while at least two
+        remain; a blunder in a point's first rays would otherwise be intersected into a wrong
+        point the update cannot leave (a local minimum that fits all its rays)."""
+        crit = self.options.snooping_critical
+        assert crit is not None
+        rays = [(c, j, uv) for c, p in enumerate(candidates) for (j, uv, _) in self._pending[p]]
+        I = np.asarray([r[0] for r in rays], dtype=np.int64)
+        UV = np.asarray([r[2] for r in rays], dtype=np.float64).reshape(-1, 2)
+        # the new image's rays take any EOP: they are not used here
+        E = np.asarray([self._eop_value(j) if j != i else np.zeros(EOP_SIZE)
+                        for (_, j, _) in rays]).reshape(-1, EOP_SIZE)
+        old = np.asarray([j != i for (_, j, _) in rays], dtype=bool)
+        sig = np.asarray([s for p in candidates for (_, _, s) in self._pending[p]])
+        limit = SCREEN_SIGMAS * crit * sig
+        alive = old.copy()
+        for _ in range(MAX_SCREEN_ROUNDS):
+            n_old = np.bincount(I[alive], minlength=len(candidates))
+            if not np.any(n_old >= 3):
+                break
+            X, _ = intersect_rays(E[alive], UV[alive], I[alive], len(candidates), self.camera)
+            res = np.full(I.size, -np.inf)
+            sel = alive & (n_old[I] >= 3) & np.all(np.isfinite(X[I]), axis=1)
+            if not np.any(sel):
+                break
+            res[sel] = (np.linalg.norm(UV[sel] - project(E[sel], X[I[sel]], self.camera),
+                                       axis=1) - limit[sel])
+            order = np.lexsort((-res, I))
+            first = order[np.r_[True, I[order][1:] != I[order][:-1]]]
+            worst = first[res[first] > 0]
+            if worst.size == 0:
+                break
+            alive[worst] = False
+            for r in worst:
+                p = candidates[int(I[r])]
+                rays = self._pending[p]
+                k = int(r - np.flatnonzero(I == I[r])[0])
+                j, _, s = rays[k]
+                self.rejections.append((self._image_ids[j], self._point_ids[p],
+                                        float(res[r] / s / crit + SCREEN_SIGMAS)))
+        if not np.all(alive | ~old):
+            for c, p in enumerate(candidates):
+                rays = self._pending[p]
+                gone = ~alive[I == c] & old[I == c]
+                if gone.any():
+                    for (j, _, _), g in zip(rays, gone, strict=True):
+                        if g and j in self._img_points and p in self._img_points[j]:
+                            self._img_points[j].remove(p)
+                    self._pending[p] = [o for o, g in zip(rays, gone, strict=True) if not g]
+
+
+def degenerate_points(rows: LinearRows, n_born: int) -> list[int]:
+    """Points being born (index in the update) whose own 3x3 normal block is singular."""
+    D = rows.A22.T @ (rows.w2[:, None] * rows.A22) + rows.A32.T @ (rows.w3[:, None] * rows.A32)
+    out = []
+    for b in range(n_born):
+        sl = slice(EOP_SIZE + GP_SIZE * b, EOP_SIZE + GP_SIZE * (b + 1))
+        ev = np.linalg.eigvalsh(D[sl, sl])
+        if not ev[0] > 1e-9 * max(ev[-1], 1e-300):
+            out.append(b)
+    return out

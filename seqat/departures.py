@@ -1,0 +1,477 @@
+"""Seq-R: the window cut, the departure of parameters and their re-opening.
+
+Mixed into :class:`seqat.sequential.SequentialAT` (its state lives there). Leaving
+parameters are marginalised out of the window's information with a Rauch-Tung-Striebel
+record (smoothing); a departed GP observed again, or a departed image holding a pending ray
+of a point being born, re-enters with its exact conditional given the window
+(docs/algorithm.md, *Seq-R: the window*, *Re-opening departed parameters*).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+from seqat.geometry import wrap_angle
+from seqat.simultaneous import sigma_scale
+from seqat.types import EOP_SIZE, GP_SIZE, EopEstimate, FloatArray, PointEstimate
+from seqat.update import spd_inverse
+from seqat.window import Key, correlations_from_columns, first_over_threshold
+
+#: A GP stays in the Seq-R window only while this many window images (new one included) see it.
+MIN_WINDOW_RAYS = 2
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Departure:
+    """Parameters F leaving the Seq-R window and their Rauch-Tung-Striebel gain on the rest W.
+
+    Later data reach F only through W (F is never observed again), so given the final
+    (smoothed) estimate of W the final estimate of F is ``x_F + J (x_W_final - x_W)`` with
+    ``J = Q_FW Q_WW^-1`` taken at departure (Rauch, Tung & Striebel 1965).
+    """
+
+    leaving: tuple[Key, ...]
+    staying: tuple[Key, ...]
+    x_leaving: FloatArray
+    x_staying: FloatArray
+    gain: FloatArray  # (|F|, |W|)
+    conditional: FloatArray  # (|F|, |F|) Q_F|W = L_FF^-1
+    at: int  # index of the image before which F left
+
+
+class DepartureMixin:
+    """Window cut, departures, re-opening and smoothing of :class:`SequentialAT`."""
+
+    def _smoothed_departed(self) -> dict[Key, FloatArray]:
+        """RTS backward pass over the departures, newest first: O(sum |F| |W|)."""
+        w = self._w
+        value: dict[Key, FloatArray] = dict(self._dropped_value)
+        value.update({k: w.x[w.index(k)] for k in w.keys})
+        for dep in reversed(self._departures[self._first_record:]):
+            if dep is None:
+                continue
+            x_w = np.concatenate([value[k] for k in dep.staying])
+            x_f = dep.x_leaving + dep.gain @ (x_w - dep.x_staying)
+            off = 0
+            for k in dep.leaving:
+                size = EOP_SIZE if k[0] == "e" else GP_SIZE
+                # a key that re-entered the window left again later (or is in it): the
+                # newer departure, processed first, already holds its final value
+                value.setdefault(k, x_f[off : off + size])
+                off += size
+        return value
+
+    def _select_window(self, frame_points: set[int]) -> int:
+        """Seq-R: cut the window before the update; returns the number of images dropped."""
+        thr = self.options.correlation_threshold
+        if thr is None or len(self._window_images) < 2:
+            return 0
+        w = self._w
+        offs = np.fromiter(
+            (w.offset[("e", j)] for j in self._window_images),
+            dtype=np.int64,
+            count=len(self._window_images),
+        )
+        # The paper's reference is the last image. On real flights it may be tied to nothing
+        # yet (its points wait for a wider ray spread): its correlations are all zero and the
+        # rule would cut the whole window. Then the newest image that is tied (correlated
+        # over the threshold with another window image) is the reference as well.
+        diag = w.q_diagonal()
+        rho = np.zeros(len(offs))
+        for r in range(len(offs) - 1, -1, -1):
+            o = int(offs[r])
+            rho_r = correlations_from_columns(w.q_columns(o + np.arange(EOP_SIZE)), diag,
+                                              offs, o)
+            rho = np.maximum(rho, rho_r)
+            rho_r[r] = 0.0
+            if np.any(rho_r >= thr):
+                break
+        start = first_over_threshold(rho, thr)
+        start = self._hold_pending_rays(start, frame_points)
+        if start == 0:
+            return 0
+        scale = sigma_scale(self.sigma0, self._redundancy)
+        sd = np.sqrt(w.q_diagonal()) * scale
+        now = len(self._image_ids) - 1
+        keep_rays = self._reopen_age > 0
+        leaving: set[Key] = set()
+        changed: set[int] = {p for p in self._orphans if p in self._gp_count}
+        self._orphans.clear()
+        for _ in range(start):
+            j = self._window_images.popleft()
+            leaving.add(("e", j))
+            idx = w.index(("e", j))
+            self._frozen_eop[j] = (w.x[idx].copy(), sd[idx])
+            with_rays = []
+            for p in self._img_points.pop(j):
+                if p in self._gp_count:
+                    self._gp_count[p] -= 1
+                    changed.add(p)
+                elif p in self._pending:
+                    if keep_rays:
+                        with_rays.append(p)  # kept: image j re-enters if p is born
+                    else:
+                        self._drop_pending_ray(p, j)
+            if with_rays:
+                self._departed_rays.append((j, with_rays))
+        for p in changed:
+            if self._gp_count[p] + (p in frame_points) < MIN_WINDOW_RAYS:
+                leaving.add(("p", p))
+                idx = w.index(("p", p))
+                self._frozen_gp[p] = (w.x[idx].copy(), sd[idx])
+                del self._gp_count[p]
+        self._depart(leaving, now)
+        return start
+
+    def _depart(self, leaving: set[Key], now: int) -> None:
+        """Marginalise ``leaving`` out of the window, keeping its RTS record (smoothing)."""
+        w = self._w
+        keep_keys = [k for k in w.keys if k not in leaving]
+        leave_keys = [k for k in w.keys if k in leaving]
+        keep, leave = w.indices(keep_keys), w.indices(leave_keys)
+        off = 0
+        frozen = w.q_block(leave) if leave.size else np.zeros((0, 0))
+        for k in leave_keys:
+            idx = w.index(k)
+            self._frozen_cof[k] = frozen[off : off + idx.size, off : off + idx.size].copy()
+            self._departed[k] = (now, len(self._departures), off)
+            off += idx.size
+        if w.L is not None:
+            # E[x_F | x_W] = x_F - L_FF^-1 L_FW (x_W - x_W0): the RTS gain from the information
+            # matrix; marginalising F out of L is its Schur complement.
+            L_fw = w.L[np.ix_(leave, keep)]
+            cond = spd_inverse(w.L[np.ix_(leave, leave)], "information of the leaving "
+                                "parameters")
+            gain = -cond @ L_fw
+            fill = L_fw.T @ gain
+            L = w.L[np.ix_(keep, keep)] + 0.5 * (fill + fill.T)
+            # GPs the marginal prior now ties to other GPs are no longer eliminable alone
+            support = np.flatnonzero(np.any(L_fw != 0.0, axis=0))
+            gps = {keep_keys[int(np.searchsorted(self._starts(keep_keys), c, side="right")) - 1]
+                   for c in support}
+            gps = {k for k in gps if k[0] == "p"}
+            if len(gps) > 1:
+                w.coupled |= gps
+            w.L = L
+        if w.L is not None and self._records:
+            self._departures.append(
+                Departure(
+                    leaving=tuple(leave_keys),
+                    staying=tuple(keep_keys),
+                    x_leaving=w.x[leave],
+                    x_staying=w.x[keep],
+                    gain=gain,
+                    conditional=0.5 * (cond + cond.T),
+                    at=now,
+                )
+            )
+        if self._inverse:
+            w.Q = w.Q[np.ix_(keep, keep)]
+        w.coupled -= leaving
+        w.x = w.x[keep]
+        w.relayout(keep_keys)
+
+    @staticmethod
+    def _starts(keys: list[Key]) -> np.ndarray:
+        """Offsets of ``keys`` laid out in that order."""
+        sizes = np.fromiter((EOP_SIZE if k[0] == "e" else GP_SIZE for k in keys),
+                            dtype=np.int64, count=len(keys))
+        return np.cumsum(sizes) - sizes
+
+    def _hold_pending_rays(self, start: int, frame_points: set[int]) -> int:
+        """Never lose tie rays by waiting: shorten the cut before the first leaving image that
+        holds pending rays of a point with ``min_rays`` rays, and have those points born now.
+
+        Without this, a window shorter than the span a point needs to reach
+        ``min_ray_angle_deg`` would drop every ray before birth: no new ties, lower
+        correlations, a shorter window (observed: collapse to 2 images). Each point is held
+        back at most once; its images leave at the next cut.
+        """
+        min_rays = self.options.min_rays
+        for h in range(start):
+            j = self._window_images[h]
+            live = [
+                p
+                for p in self._img_points[j]
+                if p in self._pending
+                and p not in self._forced
+                and len(self._pending[p]) + (p in frame_points) >= min_rays
+            ]
+            if live:
+                for jj in list(self._window_images)[h:start]:
+                    self._forced.update(
+                        p
+                        for p in self._img_points[jj]
+                        if p in self._pending
+                        and len(self._pending[p]) + (p in frame_points) >= min_rays
+                    )
+                return h
+        return start
+
+    def _reopenable(self, key: Key, i: int) -> bool:
+        left = self._departed.get(key)
+        return left is not None and i - left[0] <= self._reopen_age
+
+    @property
+    def _reopen_age(self) -> int:
+        lag = self.options.smoothing_lag
+        age = self.options.reopen_max_age
+        return age if lag is None else min(age, lag)
+
+    def _finalise_old(self, i: int) -> None:
+        """``smoothing_lag``: every ``lag / 2`` images, parameters that left more than ``lag``
+        images ago take their smoothed value (the RTS pass over the records kept) and are
+        stored compactly or handed to the sink; their departure records are dropped."""
+        lag = self.options.smoothing_lag
+        assert lag is not None
+        if i - self._last_finalised < max(1, lag // 2):
+            return
+        self._last_finalised = i
+        cutoff = i - lag
+        old = [k for k, (t, _, _) in self._departed.items() if t < cutoff]
+        if not old:
+            return
+        value = self._smoothed_departed() if self._records else {}
+        origin = self._origin
+        assert origin is not None
+        for k in old:
+            del self._departed[k]
+            self._frozen_cof.pop(k, None)
+            if k[0] == "e":
+                frozen, sig = self._frozen_eop.pop(k[1])
+                val = value.get(k, frozen).copy()
+                if self._sink is None:
+                    self._final_eop[k[1]] = (val, sig)
+                else:
+                    val[:3] += origin
+                    val[3:] = wrap_angle(val[3:])
+                    self._sink(EopEstimate(image_id=self._image_ids[k[1]], eop=val, sigma=sig))
+            else:
+                frozen, sig = self._frozen_gp.pop(k[1])
+                val = value.get(k, frozen).copy()
+                nobs = self._gp_nobs.pop(k[1])
+                if self._sink is None:
+                    self._final_gp[k[1]] = (val, sig, nobs)
+                else:
+                    self._sunk.add(k[1])
+                    self._sink(PointEstimate(point_id=self._point_ids[k[1]], xyz_m=val + origin,
+                                             sigma_m=sig, n_obs=nobs))
+        r = self._first_record
+        while r < len(self._departures):
+            dep = self._departures[r]
+            if dep is not None and dep.at >= cutoff:
+                break
+            self._departures[r] = None
+            r += 1
+        self._first_record = r
+        if self._sink is not None:
+            gone = {k[1] for k in old if k[0] == "p"}
+            self._gp_order = [p for p in self._gp_order if p not in gone]
+
+    def _forget_old_rays(self, i: int) -> None:
+        """Drop the kept pending rays of images that left more than ``reopen_max_age`` ago."""
+        limit = i - self._reopen_age
+        rays = self._departed_rays
+        while rays:
+            j, points = rays[0]
+            left = self._departed.get(("e", j))
+            if left is not None and left[0] >= limit:
+                break
+            rays.popleft()
+            if ("e", j) in self._w.offset:
+                continue  # re-opened: its rays were used then
+            for p in points:
+                self._drop_pending_ray(p, j)
+
+    def _drop_pending_ray(self, p: int, j: int) -> None:
+        """Forget image ``j``'s pending ray of point ``p`` (and the point with its last ray)."""
+        if p not in self._pending:
+            return
+        rest = [o for o in self._pending[p] if o[0] != j]
+        if rest:
+            self._pending[p] = rest
+        else:
+            del self._pending[p]
+            self._forced.discard(p)
+
+    def _reopen(self, keys: list[Key]) -> None:
+        """Bring departed parameters back into the window (docs/algorithm.md, re-opening).
+
+        With smoothing (departure records kept) each key enters with its exact distribution
+        given the current window (:meth:`_conditional_prior`), jointly with the others, and
+        the records it left with are rewritten to condition on it (:meth:`_split_records`).
+        Without, it enters with its frozen value and cofactor, uncorrelated with the window.
+        The prior adds as many pseudo-observations as parameters: redundancy and sum of
+        squares do not change.
+        """
+        w = self._w
+        n = w.x.size
+        sizes = [EOP_SIZE if k[0] == "e" else GP_SIZE for k in keys]
+        m = sum(sizes)
+        if w.L is None:
+            J = np.zeros((m, n))
+            mean = np.concatenate([self._frozen_value(k) for k in keys])
+            C = scipy.linalg.block_diag(*(self._frozen_cof[k] for k in keys))
+        else:
+            mean, J, C = self._conditional_prior(keys, sizes)
+            self._split_records(keys)
+        for key in keys:
+            if key[0] == "e":
+                j = key[1]
+                self._img_points[j] = []
+                pos = sum(1 for jj in self._window_images if jj < j)
+                self._window_images.insert(pos, j)
+            else:
+                self._gp_count[key[1]] = 0
+        C = 0.5 * (C + C.T)
+        if self._inverse:
+            QJt = w.Q @ J.T
+            Q = np.empty((n + m, n + m))
+            Q[:n, :n] = w.Q
+            Q[:n, n:] = QJt
+            Q[n:, :n] = QJt.T
+            Q[n:, n:] = J @ QJt + C
+            w.Q = Q
+        if w.L is not None:
+            # the prior ties the re-opened keys to the window keys its chain refers to
+            support = [k for k in w.keys if k[0] == "p" and np.any(J[:, w.index(k)] != 0.0)]
+            gps = set(support) | {k for k in keys if k[0] == "p"}
+            if len(gps) > 1:
+                w.coupled |= gps
+            Ci = spd_inverse(C, "conditional cofactor of the re-opened parameters")
+            CiJ = Ci @ J
+            L = np.empty((n + m, n + m))
+            L[:n, :n] = w.L + J.T @ CiJ
+            L[:n, n:] = -CiJ.T
+            L[n:, :n] = -CiJ
+            L[n:, n:] = Ci
+            w.L = L
+        w.x = np.concatenate([w.x, mean])
+        w.relayout(w.keys + keys)
+        self.reopened += len(keys)
+
+    def _conditional_prior(self, keys: list[Key],
+                           sizes: list[int]) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Departed ``keys`` given the current window: ``y = mean + J (x_W - x_W,now) + e``.
+
+        Each departure record says ``x_F = x_F0 + G (x_W - x_W0) + e``, ``e ~ (0, L_FF^-1)``
+        independent of everything after. Starting from the keys themselves, every departed key
+        the form refers to is replaced by its record's relation, oldest record first (a record
+        refers only to keys that left later or are still in the window), until the form refers
+        to window keys only. The result is the exact conditional of the keys given the window
+        as long as no departed key was touched in between; a key re-opened since is taken at
+        its last departure.
+        """
+        w = self._w
+        m = sum(sizes)
+        col_of: dict[Key, int] = {}
+        buf = np.zeros((m, 8 * m + 64))
+        ncol = 0
+
+        def column(key: Key) -> int:
+            nonlocal buf, ncol
+            c = col_of.get(key)
+            if c is None:
+                size = EOP_SIZE if key[0] == "e" else GP_SIZE
+                if ncol + size > buf.shape[1]:
+                    buf = np.concatenate([buf, np.zeros_like(buf)], axis=1)
+                c = col_of[key] = ncol
+                ncol += size
+            return c
+
+        pending: dict[int, list[Key]] = {}
+        row = 0
+        for key, size in zip(keys, sizes, strict=True):
+            c = column(key)
+            buf[row : row + size, c : c + size] = np.eye(size)
+            pending.setdefault(self._departed[key][1], []).append(key)
+            row += size
+        const = np.zeros(m)
+        C = np.zeros((m, m))
+        queued = set(keys)
+        while pending:
+            rec = min(pending)
+            members = pending.pop(rec)
+            dep = self._departures[rec]
+            src = np.concatenate([self._departed[k][2] + np.arange(EOP_SIZE if k[0] == "e"
+                                                                   else GP_SIZE)
+                                  for k in members])
+            cols = np.concatenate([col_of[k] + np.arange(EOP_SIZE if k[0] == "e" else GP_SIZE)
+                                   for k in members])
+            JK = buf[:, cols].copy()
+            buf[:, cols] = 0.0
+            G = dep.gain[src]
+            const += JK @ (dep.x_leaving[src] - G @ dep.x_staying)
+            C += JK @ dep.conditional[np.ix_(src, src)] @ JK.T
+            JG = JK @ G
+            ucols = np.empty(JG.shape[1], dtype=np.int64)
+            off = 0
+            for sk in dep.staying:
+                size = EOP_SIZE if sk[0] == "e" else GP_SIZE
+                c = column(sk)
+                ucols[off : off + size] = c + np.arange(size)
+                off += size
+                if sk not in w.offset and sk not in queued and sk not in self._dropped_value:
+                    queued.add(sk)
+                    later = self._departed[sk][1]
+                    assert later > rec, "a departure record refers to an older one"
+                    pending.setdefault(later, []).append(sk)
+            buf[:, ucols] += JG
+        n = w.x.size
+        J = np.zeros((m, n))
+        for key, c in col_of.items():
+            if key in w.offset:
+                idx = w.index(key)
+                J[:, idx] = buf[:, c : c + idx.size]
+            elif key in self._dropped_value:  # taken out as undetermined: a constant
+                val = self._dropped_value[key]
+                const += buf[:, c : c + val.size] @ val
+        mean = const + J @ w.x
+        return mean, J, C
+
+    def _split_records(self, keys: list[Key]) -> None:
+        """Re-opened keys become conditioning keys of the departure records they left with.
+
+        Record ``x_F = x_F0 + G (x_W - x_W0) + e`` with F = R (re-opened) + M (not): given
+        ``x_R`` as well, ``x_M = x_M0 + (G_M - K G_R)(x_W - x_W0) + K (x_R - x_R0) + e'`` with
+        ``K = C_MR C_RR^-1`` and ``Cov(e') = C_MM - K C_RM``. The record then says how M
+        follows everything R learns from now on (for later re-opening and for smoothing).
+        """
+        by_record: dict[int, list[Key]] = {}
+        for key in keys:
+            by_record.setdefault(self._departed.pop(key)[1], []).append(key)
+        for rec, reopened in by_record.items():
+            dep = self._departures[rec]
+            sizes = {k: EOP_SIZE if k[0] == "e" else GP_SIZE for k in dep.leaving}
+            starts = dict(zip(dep.leaving, np.cumsum([0] + list(sizes.values()))[:-1],
+                              strict=True))
+            chosen = set(reopened)
+            rest = [k for k in dep.leaving if k not in chosen]
+            r_idx = np.concatenate([starts[k] + np.arange(sizes[k]) for k in reopened])
+            m_idx = (np.concatenate([starts[k] + np.arange(sizes[k]) for k in rest])
+                     if rest else np.zeros(0, dtype=np.int64))
+            C = dep.conditional
+            K = np.linalg.solve(C[np.ix_(r_idx, r_idx)], C[np.ix_(r_idx, m_idx)]).T
+            cond = C[np.ix_(m_idx, m_idx)] - K @ C[np.ix_(r_idx, m_idx)]
+            self._departures[rec] = Departure(
+                leaving=tuple(rest),
+                staying=dep.staying + tuple(reopened),
+                x_leaving=dep.x_leaving[m_idx],
+                x_staying=np.concatenate([dep.x_staying, dep.x_leaving[r_idx]]),
+                gain=np.hstack([dep.gain[m_idx] - K @ dep.gain[r_idx], K]),
+                conditional=0.5 * (cond + cond.T),
+                at=dep.at,
+            )
+            off = 0
+            for k in rest:
+                self._departed[k] = (self._departed[k][0], rec, off)
+                off += sizes[k]
+
+    def _frozen_value(self, key: Key) -> FloatArray:
+        """Last estimate of a departed key (local frame)."""
+        if key in self._w.offset:
+            return self._w.x[self._w.index(key)]
+        return (self._frozen_eop if key[0] == "e" else self._frozen_gp)[key[1]][0]

@@ -1,0 +1,142 @@
+"""Re-linearising the Seq-F / Seq-R window (seed 003 §3.2; docs/algorithm.md).
+
+Mixed into :class:`seqat.sequential.SequentialAT` (its state lives there).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from seqat.information import InformationFactor, RankDeficiency
+from seqat.rows import normal_from_factors
+from seqat.types import EOP_SIZE, FloatArray
+
+#: Times a re-linearisation is tried again after taking out singular GPs.
+MAX_SINGULAR_RETRIES = 3
+#: A re-linearisation step that raises the window's cost is halved at most this many times.
+MAX_STEP_HALVINGS = 8
+#: A window re-linearisation stops when no parameter moves more than this (m or rad).
+RELINEARISE_TOLERANCE = 1e-7
+#: finish() re-linearises the window when its rows are this far off (pixels).
+FINAL_RELINEARISE_PX = 1e-3
+
+
+class RelinearisationMixin:
+    """Window re-linearisation of :class:`SequentialAT`."""
+
+    def _relinearise_if_needed(self, threshold_px: float | None = None,
+                               force: bool = False) -> None:
+        """:meth:`_relinearise`; GPs that become singular on the way are taken out
+        (:meth:`_drop_undetermined`) and the re-linearisation is tried again without them."""
+        for _ in range(MAX_SINGULAR_RETRIES):
+            try:
+                self._relinearise(threshold_px, force)
+                return
+            except RankDeficiency as err:
+                keys = self._w.keys_at(err.gp_blocks)
+                if not keys:
+                    raise
+                self._drop_undetermined(keys)
+        self._relinearise(threshold_px, force)
+
+    def _relinearise(self, threshold_px: float | None = None, force: bool = False) -> None:
+        """Re-linearise the window when its rows no longer describe the image points.
+
+        Old rows were linearised where the estimate stood when they arrived; when later data
+        move the estimate (a light UAV's INS is degrees off), the linear model drifts from
+        the collinearity equations (seed 003 §3.2). The check costs O(window observations):
+        the largest difference between the projected image points and the rows' linear
+        prediction at the current estimate. Above ``relinearise_px`` the window is
+        re-adjusted by Gauss-Newton: its information is split into the rows of its own
+        observations (taken out at their old linearisation) and the rest (the marginalised
+        prior of the departed parameters and the linear GPS/INS rows, kept), and the own
+        rows are linearised anew at each iterate. ``Q``, ``L`` and σ0 follow.
+        """
+        w, opts = self._w, self.options
+        assert opts.relinearise_px is not None
+        f = self._factors.in_window(w)
+        if f is None:
+            return
+        e_idx, p_idx = f.columns(w)
+        x = w.x
+        limit = opts.relinearise_px if threshold_px is None else threshold_px
+        self._drift_px = f.linearisation_error(x[e_idx], x[p_idx], self.camera)
+        if self._drift_px <= limit and not force:
+            return
+        self.relinearisations += 1
+        L = w.L if w.L is not None else np.linalg.inv(w.Q)
+        cols = np.concatenate([e_idx, p_idx], axis=1)  # (k, 9) window columns per factor
+        H_old, eta_old = f.information(cols, x.size)
+        H_p = L - H_old
+        del H_old
+        eta_p = L @ x - eta_old
+
+        def prior(z: FloatArray) -> float:  # the kept information's part of the cost / 2
+            return float(0.5 * z @ H_p @ z - eta_p @ z)
+
+        def solve(H: FloatArray, g: FloatArray) -> FloatArray:
+            if self._inverse:
+                return np.linalg.solve(H, g)
+            return self._factorise(H).solve(g)
+
+        xk = x.copy()
+        ssr_old_factors = f.linearised_ssr(x[e_idx], x[p_idx])
+        prior_old = prior(x)
+        def evaluate(z: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray,
+                                              float]:
+            # The rows keep the robust weights their update gave them: re-weighting the whole
+            # window here (IRLS) let a re-linearisation after a turn, far from the start,
+            # trade dozens of good points for outliers (seen on Seneca: 1e-9 weights, a
+            # singular window).
+            Je, Jp, r = f.evaluate(z[e_idx], z[p_idx], self.camera)
+            return Je, Jp, r, f.w, 0.5 * float(np.sum(f.w[:, None] * r**2)) + prior(z)
+
+        Je, Jp, r, wf, cost = evaluate(xk)
+        for _ in range(opts.relinearise_iterations):
+            H, g = normal_from_factors(Je, Jp, r, wf, cols, x.size)
+            H += H_p
+            g += eta_p - H_p @ xk
+            delta = solve(H, g)
+            del H
+            # Gauss-Newton (IRLS) with step halving: the window's cost never goes up (a
+            # turn's rows far from linear would otherwise send it off)
+            for _ in range(MAX_STEP_HALVINGS):
+                trial = xk + delta
+                Je_t, Jp_t, r_t, wf_t, cost_t = evaluate(trial)
+                if np.isfinite(cost_t) and cost_t <= cost + 1e-9 * abs(cost):
+                    break
+                delta = 0.5 * delta
+            else:
+                break  # no step lowers the cost: xk is the minimum to rounding
+            xk, cost, Je, Jp, r, wf = trial, cost_t, Je_t, Jp_t, r_t, wf_t
+            if np.max(np.abs(delta)) < RELINEARISE_TOLERANCE:
+                break
+        H, _ = normal_from_factors(Je, Jp, r, wf, cols, x.size)
+        H += H_p
+        H = 0.5 * (H + H.T)
+        prior_new = prior(xk)
+        ssr_new_factors = float(np.sum(wf[:, None] * r**2))
+        self._ssr = max(self._ssr + ssr_new_factors - ssr_old_factors
+                        + 2.0 * (prior_new - prior_old), 0.0)
+        dx = xk - x
+        eop_keys = [k for k in w.keys if k[0] == "e"]
+        ie = w.indices(eop_keys).reshape(-1, EOP_SIZE)
+        self._drift_m = float(np.max(np.abs(dx[ie[:, :3]]), initial=0.0))
+        self._drift_deg = float(np.degrees(np.max(np.abs(dx[ie[:, 3:]]), initial=0.0)))
+        w.x = xk
+        w.L = H if w.L is not None else None
+        if self._inverse:
+            Q = np.linalg.inv(H)
+            w.Q = 0.5 * (Q + Q.T)
+        w.changed()
+        f.relinearised_at(xk[e_idx], xk[p_idx], Je, Jp, r)
+        f.w = wf
+        self._factors.replace(f)
+
+    def _factorise(self, H: FloatArray) -> InformationFactor:
+        """Factorisation of an information matrix laid out as the window (GPs eliminated)."""
+        w = self._w
+        gp = np.fromiter((w.offset[k] for k in w.keys if k[0] == "p" and k not in w.coupled),
+                         dtype=np.int64)
+        kept = np.fromiter((w.offset[k] for k in w.coupled), dtype=np.int64)
+        return InformationFactor(H, gp, kept)
