@@ -3,8 +3,8 @@ functions included.
 
 * :mod:`seqat` imports nothing from :mod:`pipeline`;
 * no import cycles in :mod:`pipeline`, neither between modules nor between its subpackages;
-* no ``from X import _private`` across modules of :mod:`pipeline`;
-* no module of :mod:`pipeline` over :data:`MAX_MODULE_LINES` lines.
+* no ``from X import _private`` across modules of :mod:`pipeline` and :mod:`seqat`;
+* no module of :mod:`pipeline` or :mod:`seqat` over :data:`MAX_MODULE_LINES` lines.
 """
 
 from __future__ import annotations
@@ -163,14 +163,14 @@ def test_subpackages_import_only_what_the_architecture_allows() -> None:
 
 def test_no_private_names_imported_across_modules() -> None:
     bad = [f"{name}:{line}: from {module} import {n}"
-           for name, path in PIPELINE.items()
+           for name, path in {**PIPELINE, **_modules("seqat")}.items()
            for module, names, line in _imports(name, path)
            if module.split(".")[0] in ("pipeline", "seqat") and module != name
            for n in names if n.startswith("_") and not n.startswith("__")]
     assert bad == []
 
 
-def test_no_pipeline_module_over_the_line_limit() -> None:
-    long = {name: n for name, path in PIPELINE.items()
+def test_no_module_over_the_line_limit() -> None:
+    long = {name: n for name, path in {**PIPELINE, **_modules("seqat")}.items()
             if (n := len(path.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES}
     assert long == {}
