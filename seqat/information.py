@@ -57,6 +57,52 @@ class RankDeficiency(EstimationError):
         self.gp_blocks = gp_blocks  # offsets of singular eliminated GP blocks
 
 
+def split_indices(n: int, eliminate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Kept indices ``R`` (r,) and eliminated GP blocks ``P`` (np, 3) of an n-parameter
+    window whose eliminated GP blocks start at ``eliminate``."""
+    eliminate = np.asarray(eliminate, dtype=np.int64)
+    p_idx = (eliminate[:, None] + np.arange(GP_SIZE)).reshape(-1, GP_SIZE)
+    mask = np.ones(n, dtype=bool)
+    mask[p_idx.ravel()] = False
+    return np.flatnonzero(mask), p_idx
+
+
+def gather_parts(L: FloatArray, r_idx: np.ndarray,
+                 p_idx: np.ndarray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``D`` (np, 3, 3), ``L_RR`` (r, r) and ``L_RP`` (r, 3 np) of ``L``."""
+    D = L[p_idx[:, :, None], p_idx[:, None, :]]
+    return D, L[np.ix_(r_idx, r_idx)], L[np.ix_(r_idx, p_idx.ravel())]
+
+
+def add_block_parts(parts: tuple[FloatArray, FloatArray, FloatArray], blocks: FloatArray,
+                    cols: np.ndarray, r_idx: np.ndarray, p_idx: np.ndarray, n: int,
+                    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``parts`` (of :func:`gather_parts`) plus symmetric blocks ``blocks`` (k, c, c) on
+    window columns ``cols`` (k, c), each block touching at most one eliminated GP: the parts
+    of ``L + sum_k blocks_k`` without forming the n x n matrix."""
+    D, L_RR, L_RP = parts
+    r, npt = r_idx.size, p_idx.shape[0]
+    rpos = np.full(n, -1, dtype=np.int64)
+    rpos[r_idx] = np.arange(r)
+    ppos = np.full(n, -1, dtype=np.int64)
+    ppos[p_idx.ravel()] = np.arange(GP_SIZE * npt)
+    a = np.broadcast_to(cols[:, :, None], blocks.shape).ravel()
+    b = np.broadcast_to(cols[:, None, :], blocks.shape).ravel()
+    v = blocks.ravel()
+    ra, rb, pa, pb = rpos[a], rpos[b], ppos[a], ppos[b]
+    sel = (ra >= 0) & (rb >= 0)
+    RR = L_RR + np.bincount(ra[sel] * r + rb[sel], weights=v[sel],
+                            minlength=r * r).reshape(r, r)
+    sel = (ra >= 0) & (pb >= 0)
+    RP = L_RP + np.bincount(ra[sel] * (GP_SIZE * npt) + pb[sel], weights=v[sel],
+                            minlength=r * GP_SIZE * npt).reshape(r, GP_SIZE * npt)
+    sel = (pa >= 0) & (pb >= 0)
+    DD = D + np.bincount((pa[sel] // GP_SIZE) * GP_SIZE**2 + (pa[sel] % GP_SIZE) * GP_SIZE
+                         + pb[sel] % GP_SIZE, weights=v[sel],
+                         minlength=npt * GP_SIZE**2).reshape(npt, GP_SIZE, GP_SIZE)
+    return DD, RR, RP
+
+
 class InformationFactor:
     """Cholesky factorisation of a window information matrix with its GPs eliminated.
 
@@ -76,20 +122,22 @@ class InformationFactor:
     RankDeficiency
     """
 
-    def __init__(self, L: FloatArray, eliminate: np.ndarray,
-                 kept_gp: np.ndarray | None = None) -> None:
-        n = L.shape[0]
+    def __init__(self, L: FloatArray | None, eliminate: np.ndarray,
+                 kept_gp: np.ndarray | None = None, *,
+                 parts: tuple[FloatArray, FloatArray, FloatArray] | None = None,
+                 n: int | None = None) -> None:
+        n = L.shape[0] if L is not None else int(n)  # type: ignore[arg-type]
         self._kept_gp = (np.zeros(0, dtype=np.int64) if kept_gp is None
                          else np.asarray(kept_gp, dtype=np.int64))
         self.n = n
-        eliminate = np.asarray(eliminate, dtype=np.int64)
-        p_idx = (eliminate[:, None] + np.arange(GP_SIZE)).reshape(-1, GP_SIZE)
-        mask = np.ones(n, dtype=bool)
-        mask[p_idx.ravel()] = False
-        r_idx = np.flatnonzero(mask)
+        r_idx, p_idx = split_indices(n, eliminate)
         self.r_idx, self.p_idx = r_idx, p_idx
         npt = p_idx.shape[0]
-        D = L[p_idx[:, :, None], p_idx[:, None, :]]  # (np, 3, 3)
+        if parts is None:
+            assert L is not None
+            D, L_RR, L_RP = gather_parts(L, r_idx, p_idx)
+        else:  # the blocks given (a re-linearisation assembles them without forming L)
+            D, L_RR, L_RP = parts
         if npt:
             ev = np.linalg.eigvalsh(D)
             bad = ~(ev[:, 0] > RANK_TOLERANCE * np.maximum(ev[:, -1], 1e-300))
@@ -106,14 +154,14 @@ class InformationFactor:
             self.Dinv = np.zeros((0, GP_SIZE, GP_SIZE))
         kept = self._kept_gp
         if kept.size and npt:
-            dk = np.diagonal(L)[(kept[:, None] + np.arange(GP_SIZE))].max(axis=1)
+            pos = np.searchsorted(r_idx, kept[:, None] + np.arange(GP_SIZE))
+            dk = np.diagonal(L_RR)[pos].max(axis=1)
             weak = dk < WEAK_TOLERANCE * np.median(np.einsum("pii->pi", D).max(axis=1))
             if np.any(weak):
                 raise RankDeficiency(
                     f"next to no information on {int(weak.sum())} ground points",
                     (kept[weak, None] + np.arange(GP_SIZE)).ravel(), kept[weak])
-        L_RP = L[np.ix_(r_idx, p_idx.ravel())]  # (r, 3 np); a GP couples to a few images
-        r = r_idx.size
+        r = r_idx.size  # L_RP (r, 3 np): a GP couples to the few images that see it
         # B = L_RP D^-1, block by block; both kept sparse (CSR): a point's column block is
         # non-zero only on the EOPs of the images that see it, so the Schur product, the
         # solves and the marginals cost O(nnz r), not O(r^2 np)
@@ -126,7 +174,7 @@ class InformationFactor:
         else:  # small windows: dense BLAS beats the sparse bookkeeping
             self.L_RP, self.B = L_RP, B
             BL = B @ L_RP.T
-        S = L[np.ix_(r_idx, r_idx)] - BL
+        S = L_RR - BL
         S = 0.5 * (S + S.T)
         self._chol(S)
 

@@ -5,10 +5,18 @@ Mixed into :class:`seqat.sequential.SequentialAT` (its state lives there).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
-from seqat.information import InformationFactor, RankDeficiency
-from seqat.rows import normal_from_factors
+from seqat.information import (
+    InformationFactor,
+    RankDeficiency,
+    add_block_parts,
+    gather_parts,
+    split_indices,
+)
+from seqat.rows import factor_blocks, gradient_from_factors, normal_from_factors
 from seqat.types import EOP_SIZE, FloatArray
 
 #: Times a re-linearisation is tried again after taking out singular GPs.
@@ -71,50 +79,60 @@ class RelinearisationMixin:
         del H_old
         eta_p = L @ x - eta_old
 
-        def prior(z: FloatArray) -> float:  # the kept information's part of the cost / 2
-            return float(0.5 * z @ H_p @ z - eta_p @ z)
+        def prior(z: FloatArray, Hp_z: FloatArray) -> float:  # the kept information / 2
+            return float(0.5 * z @ Hp_z - eta_p @ z)
 
-        def solve(H: FloatArray, g: FloatArray) -> FloatArray:
+        n = x.size
+        if not self._inverse:
+            # the GP-eliminated blocks of H_p once; each step adds its rows' blocks to them
+            # (no n x n matrix per step: docs/algorithm.md, *Re-linearising the window*)
+            gp = np.fromiter((w.offset[k] for k in w.keys
+                              if k[0] == "p" and k not in w.coupled), dtype=np.int64)
+            kept = np.fromiter((w.offset[k] for k in w.coupled), dtype=np.int64)
+            r_idx, p_blk = split_indices(n, gp)
+            base = gather_parts(H_p, r_idx, p_blk)
+
+        def solver_at(Je: FloatArray, Jp: FloatArray,
+                      wf: FloatArray) -> Callable[[FloatArray], FloatArray]:
             if self._inverse:
-                return np.linalg.solve(H, g)
-            return self._factorise(H).solve(g)
+                H, _ = normal_from_factors(Je, Jp, np.zeros((Je.shape[0], 2)), wf, cols, n)
+                H += H_p
+                return lambda g: np.linalg.solve(H, g)
+            parts = add_block_parts(base, factor_blocks(Je, Jp, wf), cols, r_idx, p_blk, n)
+            return InformationFactor(None, gp, kept, parts=parts, n=n).solve
 
+        # The rows keep the robust weights their update gave them: re-weighting the whole
+        # window here (IRLS) let a re-linearisation after a turn, far from the start, trade
+        # dozens of good points for outliers (seen on Seneca: 1e-9 weights, a singular window).
+        wf = f.w
         xk = x.copy()
         ssr_old_factors = f.linearised_ssr(x[e_idx], x[p_idx])
-        prior_old = prior(x)
-        def evaluate(z: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray,
-                                              float]:
-            # The rows keep the robust weights their update gave them: re-weighting the whole
-            # window here (IRLS) let a re-linearisation after a turn, far from the start,
-            # trade dozens of good points for outliers (seen on Seneca: 1e-9 weights, a
-            # singular window).
-            Je, Jp, r = f.evaluate(z[e_idx], z[p_idx], self.camera)
-            return Je, Jp, r, f.w, 0.5 * float(np.sum(f.w[:, None] * r**2)) + prior(z)
-
-        Je, Jp, r, wf, cost = evaluate(xk)
+        Hp_x = H_p @ xk
+        prior_old = prior(x, Hp_x)
+        Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self.camera)
+        cost = 0.5 * float(np.sum(wf[:, None] * r**2)) + prior_old
         for _ in range(opts.relinearise_iterations):
-            H, g = normal_from_factors(Je, Jp, r, wf, cols, x.size)
-            H += H_p
-            g += eta_p - H_p @ xk
-            delta = solve(H, g)
-            del H
-            # Gauss-Newton (IRLS) with step halving: the window's cost never goes up (a
-            # turn's rows far from linear would otherwise send it off)
+            g = gradient_from_factors(Je, Jp, r, wf, cols, n) + eta_p - Hp_x
+            delta = solver_at(Je, Jp, wf)(g)
+            # Gauss-Newton with step halving: the window's cost never goes up (a turn's rows
+            # far from linear would otherwise send it off)
             for _ in range(MAX_STEP_HALVINGS):
                 trial = xk + delta
-                Je_t, Jp_t, r_t, wf_t, cost_t = evaluate(trial)
+                Hp_t = H_p @ trial
+                Je_t, Jp_t, r_t = f.evaluate(trial[e_idx], trial[p_idx], self.camera)
+                cost_t = 0.5 * float(np.sum(wf[:, None] * r_t**2)) + prior(trial, Hp_t)
                 if np.isfinite(cost_t) and cost_t <= cost + 1e-9 * abs(cost):
                     break
                 delta = 0.5 * delta
             else:
                 break  # no step lowers the cost: xk is the minimum to rounding
-            xk, cost, Je, Jp, r, wf = trial, cost_t, Je_t, Jp_t, r_t, wf_t
+            xk, cost, Je, Jp, r, Hp_x = trial, cost_t, Je_t, Jp_t, r_t, Hp_t
             if np.max(np.abs(delta)) < RELINEARISE_TOLERANCE:
                 break
         H, _ = normal_from_factors(Je, Jp, r, wf, cols, x.size)
         H += H_p
         H = 0.5 * (H + H.T)
-        prior_new = prior(xk)
+        prior_new = prior(xk, Hp_x)
         ssr_new_factors = float(np.sum(wf[:, None] * r**2))
         self._ssr = max(self._ssr + ssr_new_factors - ssr_old_factors
                         + 2.0 * (prior_new - prior_old), 0.0)
@@ -132,11 +150,3 @@ class RelinearisationMixin:
         f.relinearised_at(xk[e_idx], xk[p_idx], Je, Jp, r)
         f.w = wf
         self._factors.replace(f)
-
-    def _factorise(self, H: FloatArray) -> InformationFactor:
-        """Factorisation of an information matrix laid out as the window (GPs eliminated)."""
-        w = self._w
-        gp = np.fromiter((w.offset[k] for k in w.keys if k[0] == "p" and k not in w.coupled),
-                         dtype=np.int64)
-        kept = np.fromiter((w.offset[k] for k in w.coupled), dtype=np.int64)
-        return InformationFactor(H, gp, kept)

@@ -224,6 +224,20 @@ class RowBuilder:
 
 
 
+def factor_blocks(Je: FloatArray, Jp: FloatArray, w: FloatArray) -> FloatArray:
+    """``J^T W J`` of each image-point factor, (k, 9, 9) on its [EOP, GP] columns."""
+    J = np.concatenate([Je, Jp], axis=2)  # (k, 2, 9)
+    return np.einsum("kri,krj->kij", J * w[:, None, None], J)
+
+
+def gradient_from_factors(Je: FloatArray, Jp: FloatArray, r: FloatArray, w: FloatArray,
+                          cols: np.ndarray, n: int) -> FloatArray:
+    """``J^T W r`` of image-point factors scattered into ``n`` window columns."""
+    J = np.concatenate([Je, Jp], axis=2)
+    return np.bincount(cols.ravel(), weights=np.einsum("kri,kr->ki", J * w[:, None, None],
+                                                       r).ravel(), minlength=n)
+
+
 def normal_from_factors(Je: FloatArray, Jp: FloatArray, r: FloatArray, w: FloatArray,
                          cols: np.ndarray, n: int) -> tuple[FloatArray, FloatArray]:
     """``J^T W J`` and ``J^T W r`` of image-point factors scattered into ``n`` window columns."""
