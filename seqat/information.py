@@ -130,6 +130,7 @@ class InformationFactor:
         self._kept_gp = (np.zeros(0, dtype=np.int64) if kept_gp is None
                          else np.asarray(kept_gp, dtype=np.int64))
         self.n = n
+        eliminate = np.asarray(eliminate, dtype=np.int64)
         r_idx, p_idx = split_indices(n, eliminate)
         self.r_idx, self.p_idx = r_idx, p_idx
         npt = p_idx.shape[0]
@@ -162,8 +163,8 @@ class InformationFactor:
                     f"next to no information on {int(weak.sum())} ground points",
                     (kept[weak, None] + np.arange(GP_SIZE)).ravel(), kept[weak])
         r = r_idx.size  # L_RP (r, 3 np): a GP couples to the few images that see it
-        # B = L_RP D^-1, block by block; both kept sparse (CSR): a point's column block is
-        # non-zero only on the EOPs of the images that see it, so the Schur product, the
+        # B = L_RP D^-1, block by block; large ones kept sparse (CSR): a point's column block
+        # is non-zero only on the EOPs of the images that see it, so the Schur product, the
         # solves and the marginals cost O(nnz r), not O(r^2 np)
         B = np.matmul(L_RP.reshape(r, npt, GP_SIZE).transpose(1, 0, 2),
                       self.Dinv).transpose(1, 0, 2).reshape(r, GP_SIZE * npt)
