@@ -62,6 +62,14 @@ def test_seneca_mini_runs_and_georeferences_every_image(mini_run: Path) -> None:
     d = run.eop.eop - run.nav.eop
     assert np.all(np.abs(d[:, :3]) < 3 * np.asarray(record["nav_sigma"]["position_m"]))
     assert len(run.points) > 200
+    # after every image of a real flight: sigma0 finite, every published sigma finite and > 0
+    for im in images:
+        if im["stage"] == "sequential":
+            assert np.isfinite(im["sigma0"]) and im["sigma0"] > 0
+        sig = np.asarray(im["live"]["sigma_position_m"], dtype=float)
+        assert np.all(np.isfinite(sig)) and np.all(sig > 0), im["image_id"]
+    assert np.all(np.isfinite(run.eop.sigma)) and np.all(run.eop.sigma > 0)
+    assert np.all(np.isfinite(run.points.sigma_m)) and np.all(run.points.sigma_m > 0)
 
 
 def test_replay_of_the_tie_points_gives_the_same_result(mini_run: Path, tmp_path: Path) -> None:
