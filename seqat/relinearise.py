@@ -16,11 +16,16 @@ from seqat.information import (
     gather_parts,
     split_indices,
 )
+from seqat.robust import cauchy_weight
 from seqat.rows import factor_blocks, gradient_from_factors, normal_from_factors
 from seqat.types import EOP_SIZE, FloatArray
 
 #: Times a re-linearisation is tried again after taking out singular GPs.
 MAX_SINGULAR_RETRIES = 3
+#: Robust loss: at most this many re-weightings per re-linearisation, and the change of a
+#: weight factor below which they stop.
+ROBUST_ROUNDS = 3
+ROBUST_WEIGHT_TOLERANCE = 0.05
 #: A re-linearisation step that raises the window's cost is halved at most this many times.
 MAX_STEP_HALVINGS = 8
 #: A window re-linearisation stops when no parameter moves more than this (m or rad).
@@ -101,34 +106,44 @@ class RelinearisationMixin:
             parts = add_block_parts(base, factor_blocks(Je, Jp, wf), cols, r_idx, p_blk, n)
             return InformationFactor(None, gp, kept, parts=parts, n=n).solve
 
-        # The rows keep the robust weights their update gave them: re-weighting the whole
-        # window here (IRLS) let a re-linearisation after a turn, far from the start, trade
-        # dozens of good points for outliers (seen on Seneca: 1e-9 weights, a singular window).
+        # Robust loss: the weights are re-computed only where Gauss-Newton has converged with
+        # the previous ones (an outer IRLS loop, at most ROBUST_ROUNDS); re-weighting at every
+        # iterate let a re-linearisation after a turn, far from the start, trade dozens of
+        # good points for outliers (seen on Seneca: 1e-9 weights, a singular window).
         wf = f.w
+        robust = opts.robust_scale
+        sigma = 1.0 / np.sqrt(f.w0)
         xk = x.copy()
         ssr_old_factors = f.linearised_ssr(x[e_idx], x[p_idx])
         Hp_x = H_p @ xk
         prior_old = prior(x, Hp_x)
         Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self.camera)
-        cost = 0.5 * float(np.sum(wf[:, None] * r**2)) + prior_old
-        for _ in range(opts.relinearise_iterations):
-            g = gradient_from_factors(Je, Jp, r, wf, cols, n) + eta_p - Hp_x
-            delta = solver_at(Je, Jp, wf)(g)
-            # Gauss-Newton with step halving: the window's cost never goes up (a turn's rows
-            # far from linear would otherwise send it off)
-            for _ in range(MAX_STEP_HALVINGS):
-                trial = xk + delta
-                Hp_t = H_p @ trial
-                Je_t, Jp_t, r_t = f.evaluate(trial[e_idx], trial[p_idx], self.camera)
-                cost_t = 0.5 * float(np.sum(wf[:, None] * r_t**2)) + prior(trial, Hp_t)
-                if np.isfinite(cost_t) and cost_t <= cost + 1e-9 * abs(cost):
+        for _ in range(1 if robust is None else ROBUST_ROUNDS):
+            cost = 0.5 * float(np.sum(wf[:, None] * r**2)) + prior(xk, Hp_x)
+            for _ in range(opts.relinearise_iterations):
+                g = gradient_from_factors(Je, Jp, r, wf, cols, n) + eta_p - Hp_x
+                delta = solver_at(Je, Jp, wf)(g)
+                # Gauss-Newton with step halving: the window's cost never goes up (a turn's
+                # rows far from linear would otherwise send it off)
+                for _ in range(MAX_STEP_HALVINGS):
+                    trial = xk + delta
+                    Hp_t = H_p @ trial
+                    Je_t, Jp_t, r_t = f.evaluate(trial[e_idx], trial[p_idx], self.camera)
+                    cost_t = 0.5 * float(np.sum(wf[:, None] * r_t**2)) + prior(trial, Hp_t)
+                    if np.isfinite(cost_t) and cost_t <= cost + 1e-9 * abs(cost):
+                        break
+                    delta = 0.5 * delta
+                else:
+                    break  # no step lowers the cost: xk is the minimum to rounding
+                xk, cost, Je, Jp, r, Hp_x = trial, cost_t, Je_t, Jp_t, r_t, Hp_t
+                if np.max(np.abs(delta)) < RELINEARISE_TOLERANCE:
                     break
-                delta = 0.5 * delta
-            else:
-                break  # no step lowers the cost: xk is the minimum to rounding
-            xk, cost, Je, Jp, r, Hp_x = trial, cost_t, Je_t, Jp_t, r_t, Hp_t
-            if np.max(np.abs(delta)) < RELINEARISE_TOLERANCE:
+            if robust is None:
                 break
+            w_new = f.w0 * cauchy_weight(r, sigma, robust)
+            if np.max(np.abs(w_new - wf) / f.w0) < ROBUST_WEIGHT_TOLERANCE:
+                break
+            wf = w_new
         H, _ = normal_from_factors(Je, Jp, r, wf, cols, x.size)
         H += H_p
         H = 0.5 * (H + H.T)
