@@ -21,7 +21,7 @@ from seqat.rows import factor_blocks, gradient_from_factors, normal_from_factors
 from seqat.types import EOP_SIZE, FloatArray
 
 #: Times a re-linearisation is tried again after taking out singular GPs.
-MAX_SINGULAR_RETRIES = 3
+MAX_SINGULAR_RETRIES = 10
 #: Robust loss: at most this many re-weightings per re-linearisation, and the change of a
 #: weight factor below which they stop.
 ROBUST_ROUNDS = 3
@@ -40,7 +40,10 @@ class RelinearisationMixin:
     def _relinearise_if_needed(self, threshold_px: float | None = None,
                                force: bool = False) -> None:
         """:meth:`_relinearise`; GPs that become singular on the way are taken out
-        (:meth:`_drop_undetermined`) and the re-linearisation is tried again without them."""
+        (:meth:`_drop_undetermined`) and the re-linearisation is tried again without them.
+        If it still meets a singular system it is skipped (the window stays as the updates
+        left it, counted in :attr:`relinearisations_skipped`): a re-linearisation refines,
+        its failure must not end the flight."""
         for _ in range(MAX_SINGULAR_RETRIES):
             try:
                 self._relinearise(threshold_px, force)
@@ -48,9 +51,9 @@ class RelinearisationMixin:
             except RankDeficiency as err:
                 keys = self._w.keys_at(err.gp_blocks)
                 if not keys:
-                    raise
+                    break
                 self._drop_undetermined(keys)
-        self._relinearise(threshold_px, force)
+        self.relinearisations_skipped += 1
 
     def _relinearise(self, threshold_px: float | None = None, force: bool = False) -> None:
         """Re-linearise the window when its rows no longer describe the image points.

@@ -276,6 +276,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
         self._redundancy = 0
         self._factors = Factors()
         self.relinearisations = 0  # window re-linearisations so far
+        self.relinearisations_skipped = 0  # ... given up on a singular system
         self._drift_px = self._drift_m = self._drift_deg = float("nan")
         self.recorded: list[RecordedRows] | None = [] if record else None
         self.initial_state: tuple[list[Key], FloatArray, FloatArray] | None = None
