@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from seqat.geometry import depth, intersect_rays, project
+from seqat.geometry import depth, intersect_rays, project, wrap_angle
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 from seqat.update import LinearRows
 from seqat.window import Key
@@ -25,8 +25,26 @@ MAX_SCREEN_ROUNDS = 5
 BIRTH_DEPTH_FACTOR = 100.0
 
 
+#: An update that moves the new image or a window parameter by more than this many of its
+#: prior sigmas diverged (SequentialAT._diverged): the image is carried by its GPS/INS.
+DIVERGED_SIGMAS = 100.0
+
+
 class BirthMixin:
-    """Point births of :class:`SequentialAT`."""
+    """Point births of :class:`SequentialAT`, and the guard of an update's result."""
+
+    @staticmethod
+    def _diverged(nav: FloatArray, nav_sigma: FloatArray, x2_0: FloatArray, d2: FloatArray,
+                  Q_tt: FloatArray, d1t: FloatArray) -> bool:
+        """The update moved the new image or a touched window parameter by more than
+        :data:`DIVERGED_SIGMAS` of its prior sigma (GPS/INS; window cofactor, unscaled)."""
+        dev = x2_0[:EOP_SIZE] + d2[:EOP_SIZE] - nav
+        dev[3:] = wrap_angle(dev[3:])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z_new = np.abs(dev) / nav_sigma
+            z_old = np.abs(d1t) / np.sqrt(np.diagonal(Q_tt)) if d1t.size else np.zeros(0)
+        worst = max(float(np.nanmax(z_new, initial=0.0)), float(np.nanmax(z_old, initial=0.0)))
+        return not worst <= DIVERGED_SIGMAS
 
     def _unstable_births(self, born: list[int], born_xyz: FloatArray,
                          y12: list[tuple[int, int, FloatArray, float]],

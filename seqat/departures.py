@@ -45,6 +45,22 @@ class Departure:
 class DepartureMixin:
     """Window cut, departures, re-opening and smoothing of :class:`SequentialAT`."""
 
+    def _drop_undetermined(self, keys: list[Key]) -> None:
+        """GPs whose information became singular (every ray down-weighted by the robust loss,
+        or rays that no longer intersect): out of the window and of the solution, named in
+        :attr:`undetermined`. A later observation of the point starts it anew."""
+        w = self._w
+        for k in keys:  # departure records may refer to them: they are constants now
+            self._dropped_value[k] = w.x[w.index(k)].copy()
+        w.drop(keys)
+        gone = {k[1] for k in keys if k[0] == "p"}
+        for p in gone:
+            self._gp_count.pop(p, None)
+            self._orphans.discard(p)
+            self.undetermined.append(self._point_ids[p])
+        self._gp_order = [p for p in self._gp_order if p not in gone]
+        self._n_points -= len(gone)
+
     def _smoothed_departed(self) -> dict[Key, FloatArray]:
         """RTS backward pass over the departures, newest first: O(sum |F| |W|)."""
         w = self._w

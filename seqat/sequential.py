@@ -263,6 +263,9 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
         self._departed_rays: deque[tuple[int, list[int]]] = deque()
         self.reopened = 0  # departed parameters re-opened so far
         self._orphans: set[int] = set()  # window GPs no window image sees (ray rejected)
+        #: Images whose rows sent the update beyond every prior (DIVERGED_SIGMAS): carried
+        #: by their GPS/INS alone.
+        self.diverged: list[str] = []
         #: Points the data do not determine (singular information), taken out: point ids.
         self.undetermined: list[str] = []
         self._dropped_value: dict[Key, FloatArray] = {}
@@ -528,6 +531,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
         nav_sigma = free_nav_sigma(frame.nav_sigma)
         rejected: list[tuple[int, int, float]] = []  # (image, point, w) removed by snooping
         rejected_new: set[int] = set()  # points whose ray in the new image was removed
+        diverged = False
         downweighted: list[str] = []
         reopened: list[Key] = []
         held: set[int] = set()  # points whose birth made the update singular (wait)
@@ -623,6 +627,17 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
             if degenerate:
                 held.update(born[b] for b in degenerate)
                 continue
+            if not diverged and self._diverged(nav, nav_sigma, x2_0, d2, Qc[touched], d1t):
+                # The image's rows sent the solution far beyond every prior sigma (gross
+                # errors in most of its points): the image is carried by its GPS/INS alone
+                # and its rays are left out, named in ``diverged``.
+                diverged = True
+                self.diverged.append(frame.image_id)
+                rejected_new.update(pts)
+                for p in pts:
+                    self._drop_pending_ray(p, i)
+                candidates = [p for p in candidates if p in self._pending]
+                continue
             if opts.snooping_critical is None or rounds >= MAX_SNOOPING_ROUNDS:
                 break
             rounds += 1
@@ -700,23 +715,6 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
                            for j, p, wq in rejected),
             nav_downweighted=tuple(downweighted),
         )
-
-
-    def _drop_undetermined(self, keys: list[Key]) -> None:
-        """GPs whose information became singular (every ray down-weighted by the robust loss,
-        or rays that no longer intersect): out of the window and of the solution, named in
-        :attr:`undetermined`. A later observation of the point starts it anew."""
-        w = self._w
-        for k in keys:  # departure records may refer to them: they are constants now
-            self._dropped_value[k] = w.x[w.index(k)].copy()
-        w.drop(keys)
-        gone = {k[1] for k in keys if k[0] == "p"}
-        for p in gone:
-            self._gp_count.pop(p, None)
-            self._orphans.discard(p)
-            self.undetermined.append(self._point_ids[p])
-        self._gp_order = [p for p in self._gp_order if p not in gone]
-        self._n_points -= len(gone)
 
 
     def _record(

@@ -53,6 +53,9 @@ class RobustnessRecord:
     undetermined_points : tuple[str, ...]
         Tie points the data do not determine (singular information), left out of the
         solution instead of failing it (docs/algorithm.md).
+    diverged_images : tuple[str, ...]
+        Images whose rows sent the update beyond every prior sigma (gross errors in most of
+        their points): carried by their GPS/INS alone, their rays left out.
     """
 
     snooping_critical: float | None
@@ -63,6 +66,7 @@ class RobustnessRecord:
     dropout_skipped: tuple[str, ...] = ()
     robust_scale: float | None = None
     undetermined_points: tuple[str, ...] = ()
+    diverged_images: tuple[str, ...] = ()
 
 
 def robustness_record(estimator: object, options: object, *, bridged: Sequence[str] = (),
@@ -87,7 +91,8 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
                             rejections=rejections, nav_downweighted=nav,
                             dropout_bridged=tuple(bridged), dropout_skipped=tuple(skipped),
                             robust_scale=getattr(options, "robust_scale", None),
-                            undetermined_points=tuple(getattr(estimator, "undetermined", ())))
+                            undetermined_points=tuple(getattr(estimator, "undetermined", ())),
+                            diverged_images=tuple(getattr(estimator, "diverged", ())))
 
 
 @dataclass(frozen=True, kw_only=True)
