@@ -40,6 +40,7 @@ from rich.text import Text
 
 from pipeline.common.columns import FLIGHT_YAML, NAV_GEODETIC_COLUMNS
 from pipeline.common.csvio import CsvTail
+from pipeline.common.outdir import claim_output_folder, output_errors, release_output_folder
 from pipeline.common.strict_yaml import build_dataclass
 from pipeline.common.tables import NavTable
 from pipeline.flight.camera import PixelCorrector, pinhole_camera
@@ -79,12 +80,13 @@ from pipeline.run.runner import (
     RunSummary,
     estimator_options,
     load_estimator_config,
+    load_journal,
     make_budget,
     make_estimator,
-    open_journal,
     publish_run,
     replay_journal,
     run_fingerprint,
+    start_journal,
 )
 from pipeline.run.session import ImageListener, ImageLive, RunSession
 from pipeline.run.sources import ImageSource, ObservationSource, PreparedFrame
@@ -553,18 +555,31 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
     if out.exists() and not out.is_dir():
         raise InputDataError(f"{out}: exists and is not a folder")
     flight_config = load_flight_config(yaml_path)
-    console = console or Console(stderr=True)
-    journal, contents = open_journal(out, run_fingerprint(folder, method, options, False, None),
-                                     resume, console)
+    console = console or Console(stderr=True, soft_wrap=True)
+    fingerprint = run_fingerprint(folder, method, options, False, None)
+    # everything is checked before OUT is touched: a config error never replaces the journal
+    contents = load_journal(out, fingerprint, resume, console)
     skipped = list(contents.skips) if contents is not None else []
     done = {s.image for s in skipped}
     if contents is not None:
         done |= {r.frame.image_id for r in contents.images}
+    grow = GrowingFlight(folder, flight_config, done, watch.wait_timeout_s,
+                         dict(contents.setup) if contents and contents.setup else None)
+    inputs_read = [folder, grow.images_dir, options_path,
+                   None if flight_config.observations is None
+                   else folder / flight_config.observations,
+                   folder / flight_config.nav.file if flight_config.nav.source == "file"
+                   else None]
+    created = claim_output_folder(out, inputs_read)
+    try:
+        with output_errors(out):
+            journal = start_journal(out, fingerprint, contents)
+    except BaseException:
+        release_output_folder(out, created)
+        raise
     stop = stop or threading.Event()
     stopped = "interrupted"
     try:
-        grow = GrowingFlight(folder, flight_config, done, watch.wait_timeout_s,
-                             dict(contents.setup) if contents and contents.setup else None)
         session: RunSession | None = None
         source: ObservationSource | ImageSource | None = None
         printer = on_image or (lambda live, _: console.print(live_line(live, budget_ms),
