@@ -22,8 +22,9 @@ from seqat.errors import InputDataError
 
 #: Marker file of a run folder (``seqat run`` / ``watch``); written when the folder is claimed.
 RUN_MARKER = ".seqat-run"
-#: Files that also mark a run folder written before the marker existed.
-LEGACY_RUN_MARKERS = ("run.json",)
+#: Files that also mark a run folder written before the marker existed (a finished run, an
+#: interrupted one).
+LEGACY_RUN_MARKERS = ("run.json", "journal/journal.log")
 
 
 def _resolved(path: Path) -> Path:
