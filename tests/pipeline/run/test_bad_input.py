@@ -1,0 +1,33 @@
+"""Issue 13: what a run says about bad input is one line per message, however long."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from typer.testing import CliRunner
+
+from pipeline.cli import app
+
+RUN_ARGS = ["--method", "seq-f", "--initial-images", "6", "--no-progress"]
+
+
+def test_long_skip_lines_are_not_wrapped(small_sim_dir: Path, tmp_path: Path) -> None:
+    flight = Path(shutil.copytree(small_sim_dir, tmp_path / "flight"))
+    long_id = "img_0012_taken_by_the_second_camera_of_a_flight_with_very_long_image_names"
+    for name in ("nav.csv", "observations.csv"):
+        (flight / name).write_text((flight / name).read_text().replace("img_0012", long_id))
+    nav = (flight / "nav.csv").read_text().splitlines(keepends=True)
+    row = [line for line in nav if line.startswith(long_id)][0].split(",")
+    row[2] = ""  # no position: a GNSS dropout
+    nav = [",".join(row) if line.startswith(long_id) else line for line in nav]
+    (flight / "nav.csv").write_text("".join(nav))
+    yaml = (flight / "flight.yaml").read_text().replace("nav:\n", "nav:\n  dropout: skip\n")
+    (flight / "flight.yaml").write_text(yaml)
+    result = CliRunner().invoke(app, ["run", str(flight), "--out", str(tmp_path / "out"),
+                                      *RUN_ARGS])
+    assert result.exit_code == 0, result.output
+    lines = [line for line in result.stderr.splitlines() if long_id in line]
+    assert len(lines) == 1
+    assert lines[0].startswith("seqat: skipped: ") and lines[0].endswith("nav.dropout: skip)")
+    assert len(lines[0]) > 100
