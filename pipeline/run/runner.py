@@ -401,7 +401,9 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     source: ObservationSource | ImageSource
     if flight.kind == "observations":
         source = ObservationSource(flight)
-        source.validate()
+        stats = source.validate()
+        if stats.warnings:  # observations outside the image, left out
+            flight = dataclasses.replace(flight, warnings=flight.warnings + stats.warnings)
     else:
         source = ImageSource(flight, flight.config.tracking)
     console = Console(stderr=True, soft_wrap=True)

@@ -36,3 +36,24 @@ def test_watched_csv_accepts_a_bom(tmp_path) -> None:
     path.write_bytes(b"\xef\xbb\xbf" + NAV_CSV.encode())
     rows = CsvTail(path, NAV_CSV.splitlines()[0].split(",")).poll()
     assert [r.values["image"] for r in rows] == ["img_1", "img_2", "img_3", "img_4"]
+
+
+def test_observations_a_hair_outside_are_kept(make_flight: FlightMaker) -> None:
+    obs = OBSERVATIONS_CSV.replace("img_4,p4,10.0,11.0", "img_4,p4,-1.93,11.0")
+    frames = list(read_flight(make_flight(**{"observations.csv": obs})).frames())
+    assert frames[3].point_ids == ("p3", "p4")
+
+
+def test_observations_far_outside_are_dropped_with_a_warning(make_flight: FlightMaker) -> None:
+    obs = OBSERVATIONS_CSV.replace("img_4,p4,10.0,11.0", "img_4,p4,700.0,11.0")
+    obs = obs.replace("img_2,p3,500.0,100.0", "img_2,p3,500.0,-30.0")
+    folder = make_flight(**{"observations.csv": obs})
+    flight = read_flight(folder)
+    stats = flight.frames().validate()
+    assert stats.n_observations == 5
+    assert stats.warnings == (
+        f"{folder / 'observations.csv'}: 2 of 7 observation(s) lie more than 5 sigma_image_px "
+        f"outside the image and were left out (first: {folder / 'observations.csv'}:6: pixel "
+        "(500.0, -30.0) of point 'p3' lies outside the 640 x 480 px image)",)
+    frames = list(flight.frames())
+    assert frames[1].point_ids == ("p1", "p2") and frames[3].point_ids == ("p3",)
