@@ -46,10 +46,12 @@ from pipeline.common.tables import NavTable
 from pipeline.flight.camera import PixelCorrector, pinhole_camera
 from pipeline.flight.folder import (
     Flight,
+    PixelOutsideImage,
     camera_from_exif,
     check_image_size,
     geodetic_nav_eop,
     observation_row,
+    outside_tolerance_px,
     read_truth,
 )
 from pipeline.flight.image_metadata import (
@@ -363,7 +365,12 @@ class GrowingFlight:
                 self._groups[image] = ({}, [])
                 self._current_group = image
             point_line, uvs = self._groups[image]
-            _, u, v = observation_row(row, image, point_line, self.camera)
+            try:
+                _, u, v = observation_row(row, image, point_line, self.camera,
+                                          outside_tolerance_px(self.config.sigma_image_px))
+            except PixelOutsideImage as err:  # left out (a streamed file: no share known)
+                self.warnings.append(f"{err}; left out")
+                continue
             uvs.append((u, v))
         return bool(rows)
 

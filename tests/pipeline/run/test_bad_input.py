@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -31,3 +32,24 @@ def test_long_skip_lines_are_not_wrapped(small_sim_dir: Path, tmp_path: Path) ->
     assert len(lines) == 1
     assert lines[0].startswith("seqat: skipped: ") and lines[0].endswith("nav.dropout: skip)")
     assert len(lines[0]) > 100
+
+
+def test_observations_outside_the_image_are_a_warning_in_run_json(small_sim_dir: Path,
+                                                                  tmp_path: Path) -> None:
+    flight = Path(shutil.copytree(small_sim_dir, tmp_path / "flight"))
+    lines = (flight / "observations.csv").read_text().splitlines(keepends=True)
+    image, point, _, y = lines[5].strip().split(",")
+    lines[4] = lines[4].split(",")[0] + "," + lines[4].split(",")[1] + ",-1.93," + y + "\n"
+    lines[5] = f"{image},{point},-400.0,{y}\n"
+    (flight / "observations.csv").write_text("".join(lines))
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["run", str(flight), "--out", str(out), *RUN_ARGS])
+    assert result.exit_code == 0, result.output
+    doc = json.loads((out / "run.json").read_text())
+    expected = (f"{flight / 'observations.csv'}: 1 of {len(lines) - 1} observation(s) lie more "
+                f"than 5 sigma_image_px outside the image and were left out (first: "
+                f"{flight / 'observations.csv'}:6: pixel (-400.0, {float(y)!r}) of point "
+                f"'{point}' lies outside the 2456 x 2058 px image)")
+    assert doc["warnings"] == [expected]
+    assert f"seqat: warning: {expected}\n" in result.stderr
+    assert doc["totals"]["observations"] == len(lines) - 2
