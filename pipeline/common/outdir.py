@@ -126,7 +126,8 @@ def release_output_folder(out: Path, created: list[Path], marker: str = RUN_MARK
     if not created:
         return
     with contextlib.suppress(OSError):
-        (out / marker).unlink()
+        if [p.name for p in out.iterdir()] == [marker]:  # else seqat's files are in it
+            (out / marker).unlink()
     for folder in created:
         with contextlib.suppress(OSError):
             folder.rmdir()

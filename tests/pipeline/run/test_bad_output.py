@@ -152,3 +152,23 @@ def test_failed_watch_keeps_the_journal_and_creates_nothing(flight: Path,
         assert "no such image folder" in result.stderr
     assert _snapshot(out / "journal") == journal
     assert not (tmp_path / "new").exists()
+
+
+def test_dsm_out_in_proc_is_exit_2() -> None:
+    las = Path("sample_data/autzen_rendered/lidar/surface.laz")
+    if not las.is_file():
+        pytest.skip("no sample LiDAR")
+    result = CliRunner().invoke(app, ["dsm", str(las), "--out", "/proc/seqat-dsm.tif"])
+    assert result.exit_code == 2, result.output
+    assert result.stderr.startswith("seqat: error: /proc/seqat-dsm.tif: cannot write")
+    assert ".tmp" not in result.stderr
+
+
+def test_write_files_atomically_names_the_folder(tmp_path: Path) -> None:
+    from pipeline.common.atomic import atomic_write_text, write_files_atomically
+    from seqat.errors import InputDataError
+
+    with pytest.raises(InputDataError, match=r"^/proc/seqat-x: cannot write: "):
+        write_files_atomically(Path("/proc/seqat-x"), {"a.csv": "x\n"})
+    with pytest.raises(InputDataError, match=r"is a folder"):
+        atomic_write_text(tmp_path, "x")
