@@ -629,7 +629,14 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
                     if session is None:
                         session, source = start()
                     assert source is not None
-                    session.add(_prepare(source, item, grow))
+                    prepared = _prepare(source, item, grow)
+                    if isinstance(prepared, SkippedImage):  # unreadable image data
+                        journal.append_skip(prepared)
+                        skipped.append(prepared)
+                        console.print(f"seqat: skipped: {prepared.reason}", highlight=False,
+                                      markup=False)
+                        continue
+                    session.add(prepared)
                     last_activity = time.monotonic()
                 if (watch.idle_timeout_s is not None
                         and time.monotonic() - last_activity > watch.idle_timeout_s):
@@ -658,7 +665,7 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
 
 
 def _prepare(source: ObservationSource | ImageSource, item: Arrival,
-             grow: GrowingFlight) -> PreparedFrame:
+             grow: GrowingFlight) -> PreparedFrame | SkippedImage:
     flight = grow.flight
     assert flight is not None
     if isinstance(source, ObservationSource):

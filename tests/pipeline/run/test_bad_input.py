@@ -53,3 +53,35 @@ def test_observations_outside_the_image_are_a_warning_in_run_json(small_sim_dir:
     assert doc["warnings"] == [expected]
     assert f"seqat: warning: {expected}\n" in result.stderr
     assert doc["totals"]["observations"] == len(lines) - 2
+
+
+def test_corrupt_image_data_skips_the_image(tmp_path: Path) -> None:
+    from pipeline.flight.folder import read_flight
+    from pipeline.flight.inputs import SkippedImage
+    from pipeline.run.sources import ImageSource
+
+    src = Path("sample_data/seneca_mini/images")
+    (tmp_path / "images").mkdir()
+    paths = [Path(shutil.copy(p, tmp_path / "images" / p.name))
+             for p in sorted(src.glob("*.jpg"))[:3]]
+    data = bytearray(paths[1].read_bytes())
+    sos = data.rfind(b"\xff\xda")  # the main image's scan (an EXIF thumbnail has one too)
+    data[sos + 200: sos + 260] = b"\xff\xd8" * 30  # entropy-coded data damaged, headers intact
+    paths[1].write_bytes(bytes(data))
+    flight = read_flight(tmp_path)
+    assert paths[1].stem in flight.nav.image_ids  # the file looks like a complete JPEG
+    source = ImageSource(flight, flight.config.tracking)
+    row = flight.nav.image_ids.index(paths[1].stem)
+    nav_eop, nav_sigma = flight.frame_nav(row)
+    result = source.prepare(paths[1].stem, flight.image_paths[row], nav_eop,
+                            float(flight.nav.times_s[row]), nav_sigma=nav_sigma)
+    assert isinstance(result, SkippedImage)
+    assert result.reason.startswith(f"{paths[1].name}: corrupt JPEG data (marker 0xffd8 inside")
+
+
+def test_sample_images_pass_the_scan_check() -> None:
+    from pipeline.tracking.decode import jpeg_scan_problem
+
+    paths = sorted(Path("sample_data").glob("*/images/*.jpg"))
+    assert paths
+    assert [p for p in paths if jpeg_scan_problem(p.read_bytes()) is not None] == []
