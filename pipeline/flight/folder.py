@@ -25,6 +25,7 @@ from pipeline.common.columns import FLIGHT_YAML, IMAGES_DIR, TRUTH_DIR
 from pipeline.common.csvio import CsvRow, read_csv
 from pipeline.common.tables import GroundPoints, NavTable
 from pipeline.flight.camera import PixelCorrector, pinhole_camera
+from pipeline.flight.consistency import check_one_camera, crs_area_warning, duplicate_images
 from pipeline.flight.dropout import dropout_sigma, predict_missing
 from pipeline.flight.image_metadata import (
     HeightKind,
@@ -353,10 +354,17 @@ def read_flight(flight_dir: Path | str) -> Flight:
             raise ConfigError(f"{source}: camera: required for an observations flight")
         camera_config, approximate = camera_from_exif(next(iter(metas.values()))), True
     if obs_path is None:
+        check_one_camera(nav.image_ids, metas)
+        for dup in duplicate_images(nav.image_ids, metas):
+            skipped.append(dup)
+            del metas[dup.image]  # its nav row goes with the images without metadata
         nav = _check_sizes(nav, metas, camera_config, skipped, warnings)
     if len(nav) < MIN_IMAGES:
         raise InputDataError(f"{folder}: {len(nav)} usable image(s); at least {MIN_IMAGES} are "
                              f"needed (skipped: {'; '.join(s.reason for s in skipped)})")
+    crs_warning = crs_area_warning(crs, nav, source)
+    if crs_warning is not None:
+        warnings.append(crs_warning)
     paths = tuple(metas[i].path for i in nav.image_ids) if obs_path is None else ()
     return Flight(path=folder, config=config, crs=crs, camera_config=camera_config,
                   camera_approximate=approximate, camera=pinhole_camera(camera_config),

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import shutil
+from pathlib import Path
+
 import pytest
 
 from pipeline.common.csvio import CsvTail
 from pipeline.flight.folder import read_flight
 from seqat.errors import InputDataError
 
-from ..sample_flight import NAV_CSV, OBSERVATIONS_CSV, FlightMaker
+from ..sample_flight import FLIGHT_YAML, NAV_CSV, OBSERVATIONS_CSV, FlightMaker
 
 
 def test_nav_and_observations_with_a_utf8_bom_are_read(make_flight: FlightMaker) -> None:
@@ -31,7 +34,7 @@ def test_latin1_byte_is_reported_at_its_line(make_flight: FlightMaker) -> None:
                               "(save the file as UTF-8)")
 
 
-def test_watched_csv_accepts_a_bom(tmp_path) -> None:
+def test_watched_csv_accepts_a_bom(tmp_path: Path) -> None:
     path = tmp_path / "nav.csv"
     path.write_bytes(b"\xef\xbb\xbf" + NAV_CSV.encode())
     rows = CsvTail(path, NAV_CSV.splitlines()[0].split(",")).poll()
@@ -57,3 +60,43 @@ def test_observations_far_outside_are_dropped_with_a_warning(make_flight: Flight
         "(500.0, -30.0) of point 'p3' lies outside the 640 x 480 px image)",)
     frames = list(flight.frames())
     assert frames[1].point_ids == ("p1", "p2") and frames[3].point_ids == ("p3",)
+
+
+MINI = Path("sample_data/seneca_mini/images")
+
+
+def _mini_copy(tmp_path: Path, n: int) -> list[Path]:
+    (tmp_path / "images").mkdir()
+    return [Path(shutil.copy(p, tmp_path / "images" / p.name))
+            for p in sorted(MINI.glob("*.jpg"))[:n]]
+
+
+def test_the_same_photo_twice_is_skipped_naming_both(tmp_path: Path) -> None:
+    paths = _mini_copy(tmp_path, 3)
+    shutil.copy(paths[1], tmp_path / "images" / "IMG_0461_copy.jpg")
+    flight = read_flight(tmp_path)
+    reasons = [s.reason for s in flight.skipped]
+    assert reasons == ["IMG_0461_copy.jpg: a duplicate of IMG_0461.jpg (an identical file); "
+                       "left out"]
+    assert flight.nav.image_ids == ("IMG_0460", "IMG_0461", "IMG_0462")
+
+
+def test_a_camera_change_mid_flight_is_refused(tmp_path: Path) -> None:
+    paths = _mini_copy(tmp_path, 4)
+    data = paths[2].read_bytes()
+    paths[2].write_bytes(data.replace(b"PowerShot ELPH 300 HS", b"PowerShot ELPH 999 HS", 1))
+    with pytest.raises(InputDataError) as err:
+        read_flight(tmp_path)
+    assert str(err.value) == (
+        "IMG_0462.jpg: taken with another camera (Canon Canon PowerShot ELPH 999 HS, 4.3 mm) "
+        "than IMG_0460.jpg (Canon Canon PowerShot ELPH 300 HS, 4.3 mm); one camera per "
+        "flight is supported (split the flight by camera)")
+
+
+def test_a_flight_outside_the_crs_area_of_use_is_warned_about(make_flight: FlightMaker) -> None:
+    yaml = FLIGHT_YAML.replace("EPSG:32652", "EPSG:2154")  # Lambert-93: France, not Korea
+    folder = make_flight(**{"flight.yaml": yaml})
+    flight = read_flight(folder)
+    assert len(flight.warnings) == 1
+    assert flight.warnings[0].startswith(f"{folder / 'flight.yaml'}: crs: the flight's centre (")
+    assert "lies outside the area of use of 'RGF93 v1 / Lambert-93' (" in flight.warnings[0]
