@@ -287,6 +287,12 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                 truth: Truth | None, t_start: float, mode: str = "run",
                 stopped: str = "", robustness: RobustnessRecord | None = None) -> RunSummary:
     """Write the run folder (atomically, all files or none) and summarise the run."""
+    extra = session.tie_point_warnings(solution)
+    if extra:
+        console = Console(stderr=True, soft_wrap=True)
+        for warning in extra:
+            console.print(f"seqat: warning: {warning}", highlight=False, markup=False)
+        inputs = dataclasses.replace(inputs, warnings=(*inputs.warnings, *extra))
     eops, points = eop_table(solution.eops), point_table(solution.points)
     accuracy = (compare_with_truth(eops, points, truth.eop, truth.points, inputs.nav)
                 if truth is not None else None)

@@ -85,3 +85,24 @@ def test_sample_images_pass_the_scan_check() -> None:
     paths = sorted(Path("sample_data").glob("*/images/*.jpg"))
     assert paths
     assert [p for p in paths if jpeg_scan_problem(p.read_bytes()) is not None] == []
+
+
+def test_images_and_flights_without_tie_points_are_warned_about(small_sim_dir: Path,
+                                                                tmp_path: Path) -> None:
+    flight = Path(shutil.copytree(small_sim_dir, tmp_path / "flight"))
+    obs = (flight / "observations.csv").read_text().splitlines(keepends=True)
+    (flight / "observations.csv").write_text(
+        "".join(line for line in obs if not line.startswith("img_0010,")))
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["run", str(flight), "--out", str(out), *RUN_ARGS])
+    assert result.exit_code == 0, result.output
+    expected = ("img_0010: no tie points (none of its observations is a ground point of the "
+                "solution); its EOP rests on its GPS/INS nav")
+    assert f"seqat: warning: {expected}\n" in result.stderr
+    assert json.loads((out / "run.json").read_text())["warnings"] == [expected]
+
+    (flight / "observations.csv").write_text(obs[0])  # not one tie point
+    result = CliRunner().invoke(app, ["run", str(flight), "--out", str(out), *RUN_ARGS])
+    assert result.exit_code == 0, result.output
+    assert "seqat: warning: the flight has no tie points: no ground point was estimated " \
+        "from its 24 images" in result.stderr
