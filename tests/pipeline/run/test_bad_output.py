@@ -172,3 +172,10 @@ def test_write_files_atomically_names_the_folder(tmp_path: Path) -> None:
         write_files_atomically(Path("/proc/seqat-x"), {"a.csv": "x\n"})
     with pytest.raises(InputDataError, match=r"is a folder"):
         atomic_write_text(tmp_path, "x")
+
+
+def test_bench_out_inside_the_flight_is_refused(flight: Path) -> None:
+    result = CliRunner().invoke(app, ["bench", str(flight), "--out", str(flight / "bench")])
+    assert result.exit_code == 2, result.output
+    assert "lies inside the input" in result.stderr
+    assert not (flight / "bench").exists()
