@@ -71,6 +71,8 @@ def _camera_of(meta: ImageMetadata) -> tuple[str | None, str | None, float | Non
 
 def _describe(camera: tuple[str | None, str | None, float | None]) -> str:
     make, model, focal = camera
+    if make and model and model.lower().startswith(make.lower()):
+        make = None  # "Canon" + "Canon PowerShot ...": the model names the make already
     name = " ".join(part for part in (make, model) if part) or "unknown camera"
     return f"{name}, {focal:g} mm" if focal is not None else name
 

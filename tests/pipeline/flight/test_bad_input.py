@@ -88,8 +88,8 @@ def test_a_camera_change_mid_flight_is_refused(tmp_path: Path) -> None:
     with pytest.raises(InputDataError) as err:
         read_flight(tmp_path)
     assert str(err.value) == (
-        "IMG_0462.jpg: taken with another camera (Canon Canon PowerShot ELPH 999 HS, 4.3 mm) "
-        "than IMG_0460.jpg (Canon Canon PowerShot ELPH 300 HS, 4.3 mm); one camera per "
+        "IMG_0462.jpg: taken with another camera (Canon PowerShot ELPH 999 HS, 4.3 mm) "
+        "than IMG_0460.jpg (Canon PowerShot ELPH 300 HS, 4.3 mm); one camera per "
         "flight is supported (split the flight by camera)")
 
 
