@@ -138,7 +138,7 @@ def run_long_bench(out: Path | str, *, images: int = 10_000, lag: int = 200, see
     out_dir.mkdir(parents=True, exist_ok=True)
     load_start = load_average()
     config = StripSimConfig(n_images=images, n_points=int(round(images * POINTS_PER_IMAGE)))
-    console = Console(stderr=True)
+    console = Console(stderr=True, soft_wrap=True)
     variants = []
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), console=console, transient=True,

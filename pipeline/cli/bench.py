@@ -75,8 +75,11 @@ def _bench(*, ctx: typer.Context, config: Path, out: Path, seed: list[int] | Non
            rendered: Path) -> None:
     """The body of :func:`bench` under the exit-code contract."""
     from pipeline.bench.strip import run_bench
+    from pipeline.common.outdir import check_not_input
 
     name = str(config) if not config.exists() else None
+    check_not_input(out, [config if config.exists() else None,
+                          *((strip_config, rendered) if name == FAULTS_BENCH else ())])
     if name == RENDERED_BENCH:
         from pipeline.bench.rendered import main as rendered_main
 

@@ -69,16 +69,28 @@ def run(
     if not ortho and (dsm is not None or ortho_options is not None):
         raise ConfigError("--dsm and --ortho-options go with --ortho")
     live = None
+    created: list[Path] = []
     if ortho:
+        from pipeline.common.outdir import claim_output_folder
         from pipeline.ortho.live import open_live_ortho
 
-        live = open_live_ortho(flight, out, dsm_path=dsm, options_path=ortho_options)
-    with live if live is not None else contextlib.nullcontext():
-        summary = run_flight(flight, out, method=_method(method), final_only=final_only,
-                             options_path=options, threshold=threshold,
-                             initial_images=initial_images, progress=progress,
-                             observations=observations, resume=resume, budget_ms=budget_ms,
-                             listeners=(live,) if live is not None else ())
+        # the live ortho writes into OUT (dsm.tif) before the run starts: claim it first
+        created = claim_output_folder(out, [flight, dsm, ortho_options, options, observations])
+    try:
+        if ortho:
+            live = open_live_ortho(flight, out, dsm_path=dsm, options_path=ortho_options)
+        with live if live is not None else contextlib.nullcontext():
+            summary = run_flight(flight, out, method=_method(method), final_only=final_only,
+                                 options_path=options, threshold=threshold,
+                                 initial_images=initial_images, progress=progress,
+                                 observations=observations, resume=resume,
+                                 budget_ms=budget_ms,
+                                 listeners=(live,) if live is not None else ())
+    except BaseException:
+        from pipeline.common.outdir import release_output_folder
+
+        release_output_folder(out, created)
+        raise
     console().print(table(f"seqat run {summary.flight_dir}", run_rows(summary, final_only)))
     if live is not None:
         o = live.result()

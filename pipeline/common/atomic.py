@@ -13,6 +13,7 @@ import tempfile
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
+from pipeline.common.outdir import output_errors
 from seqat.errors import InputDataError
 
 
@@ -49,8 +50,18 @@ def fsync_dir(folder: Path) -> None:
 
 
 def atomic_write_text(path: Path | str, text: str) -> None:
-    """Replace ``path`` by ``text`` atomically (temp file in the same folder, fsync, rename)."""
+    """Replace ``path`` by ``text`` atomically (temp file in the same folder, fsync, rename).
+
+    File system errors are InputDataErrors naming ``path`` (:func:`output_errors`).
+    """
     path = Path(path)
+    with output_errors(path):
+        _atomic_write_text(path, text)
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    if path.is_dir():
+        raise InputDataError(f"{path}: is a folder; cannot write a file there")
     tmp = _write_temp(path.parent, path.name, text)
     try:
         os.replace(tmp, path)
@@ -81,6 +92,11 @@ def write_files_atomically(out_dir: Path | str, files: Mapping[str, str]) -> tup
         The written paths, in the order of ``files``.
     """
     out = Path(out_dir)
+    with output_errors(out):
+        return _write_files_atomically(out, files)
+
+
+def _write_files_atomically(out: Path, files: Mapping[str, str]) -> tuple[Path, ...]:
     if out.exists() and not out.is_dir():
         raise InputDataError(f"{out}: exists and is not a folder")
     created: list[Path] = []
@@ -125,8 +141,9 @@ def building_folder(out: Path) -> Iterator[Path]:
     previous ``out`` is moved aside first and removed after); when it fails, the temporary
     folder is removed and a previous ``out`` is put back.
     """
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
+    with output_errors(out):
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
     old: Path | None = None
     try:
         os.chmod(tmp, 0o777 & ~_umask())

@@ -10,12 +10,14 @@ ignored. Ids are non-empty and contain no whitespace, commas or quotes.
 
 from __future__ import annotations
 
+import codecs
 import csv
 import math
 import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 from seqat.errors import InputDataError
 
@@ -84,11 +86,11 @@ def read_csv(path: Path | str, columns: Sequence[str]) -> Iterator[CsvRow]:
     """
     where = str(path)
     try:
-        handle = open(path, encoding="utf-8", newline="")  # noqa: SIM115 - closed below
+        handle = open(path, "rb")  # noqa: SIM115 - closed below
     except OSError as err:
         raise InputDataError(f"{where}: cannot read: {err.strerror or err}") from err
     with handle:
-        reader = csv.reader(handle, skipinitialspace=True, strict=True)
+        reader = csv.reader(_decoded_lines(handle, where), skipinitialspace=True, strict=True)
         try:
             header = [h.strip() for h in next(reader)]
         except StopIteration:
@@ -107,6 +109,28 @@ def read_csv(path: Path | str, columns: Sequence[str]) -> Iterator[CsvRow]:
             row = make_row(where, reader.line_num, header, fields)
             if row is not None:
                 yield row
+
+
+def decode_line(raw: bytes, where: str, line: int) -> str:
+    """One line of a CSV file as text: UTF-8, a byte-order mark allowed on the first line.
+
+    Raises
+    ------
+    InputDataError
+        Not UTF-8: names the line, the column and the byte.
+    """
+    if line == 1 and raw.startswith(codecs.BOM_UTF8):
+        raw = raw[len(codecs.BOM_UTF8):]
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise InputDataError(f"{where}:{line}: not UTF-8: byte 0x{raw[err.start]:02x} at column "
+                             f"{err.start + 1} (save the file as UTF-8)") from err
+
+
+def _decoded_lines(handle: BinaryIO, where: str) -> Iterator[str]:
+    for number, raw in enumerate(handle, start=1):
+        yield decode_line(raw, where, number)
 
 
 def check_header(where: str, header: Sequence[str], columns: Sequence[str]) -> None:
@@ -173,10 +197,10 @@ class CsvTail:
         rows: list[CsvRow] = []
         for raw in data[:end].splitlines():
             self._line += 1
+            text = decode_line(raw, where, self._line)
             try:
-                text = raw.decode("utf-8")
                 fields = next(csv.reader([text], skipinitialspace=True, strict=True), [])
-            except (csv.Error, UnicodeDecodeError) as err:
+            except csv.Error as err:
                 raise InputDataError(f"{where}:{self._line}: malformed CSV: {err}") from err
             if self._header is None:
                 self._header = [h.strip() for h in fields]

@@ -25,6 +25,7 @@ from pipeline.common.columns import FLIGHT_YAML, IMAGES_DIR, TRUTH_DIR
 from pipeline.common.csvio import CsvRow, read_csv
 from pipeline.common.tables import GroundPoints, NavTable
 from pipeline.flight.camera import PixelCorrector, pinhole_camera
+from pipeline.flight.consistency import check_one_camera, crs_area_warning, duplicate_images
 from pipeline.flight.dropout import dropout_sigma, predict_missing
 from pipeline.flight.image_metadata import (
     HeightKind,
@@ -57,6 +58,10 @@ FULL_FRAME_DIAGONAL_MM = 43.2666
 ASPECT_TOLERANCE = 2e-3
 #: Half a pixel: observed pixel centres lie in ``[-0.5, width - 0.5]`` (OpenCV convention).
 HALF_PIXEL = 0.5
+#: Observations up to this many sigma_image_px outside the image border are accepted.
+OUTSIDE_TOLERANCE_SIGMAS = 5.0
+#: A file with more than this share of its observations outside the image is refused.
+MAX_OUTSIDE_FRACTION = 0.5
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class Flight:
@@ -349,10 +354,17 @@ def read_flight(flight_dir: Path | str) -> Flight:
             raise ConfigError(f"{source}: camera: required for an observations flight")
         camera_config, approximate = camera_from_exif(next(iter(metas.values()))), True
     if obs_path is None:
+        check_one_camera(nav.image_ids, metas)
+        for dup in duplicate_images(nav.image_ids, metas):
+            skipped.append(dup)
+            del metas[dup.image]  # its nav row goes with the images without metadata
         nav = _check_sizes(nav, metas, camera_config, skipped, warnings)
     if len(nav) < MIN_IMAGES:
         raise InputDataError(f"{folder}: {len(nav)} usable image(s); at least {MIN_IMAGES} are "
                              f"needed (skipped: {'; '.join(s.reason for s in skipped)})")
+    crs_warning = crs_area_warning(crs, nav, source)
+    if crs_warning is not None:
+        warnings.append(crs_warning)
     paths = tuple(metas[i].path for i in nav.image_ids) if obs_path is None else ()
     return Flight(path=folder, config=config, crs=crs, camera_config=camera_config,
                   camera_approximate=approximate, camera=pinhole_camera(camera_config),
@@ -441,6 +453,7 @@ class ObservationStats:
     n_observations: int
     n_points: int
     n_images_observed: int
+    warnings: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -470,6 +483,8 @@ class FrameSource:
         self._flight = flight
         self._nav_index = flight.nav.index()
         self._nav_sigma = flight.nav_sigma
+        #: After a full pass: observations left out (outside the image), rows read, first.
+        self.outside: tuple[int, int, str] = (0, 0, "")
 
     def __len__(self) -> int:
         return len(self._flight.nav)
@@ -506,8 +521,11 @@ class FrameSource:
             n_obs += len(group.point_ids)
             n_images += 1
             points.update(group.point_ids)
+        dropped, total, first = self.outside
+        warnings = ((outside_warning(self._flight.observations_path, dropped, total, first),)
+                    if dropped else ())
         return ObservationStats(n_observations=n_obs, n_points=len(points),
-                                n_images_observed=n_images)
+                                n_images_observed=n_images, warnings=warnings)
 
     def _frame(self, row: int, point_ids: tuple[str, ...], uv_px: FloatArray) -> Frame:
         nav_eop, nav_sigma = self._flight.frame_nav(row)
@@ -527,7 +545,10 @@ class FrameSource:
         nav_name = self._flight.config.nav.file
         left_out = {s.image for s in self._flight.skipped}  # nav.dropout: skip
         assert self._flight.observations_path is not None
+        tolerance = outside_tolerance_px(self._flight.config.sigma_image_px)
+        dropped, total, first = 0, 0, ""
         for row in read_csv(self._flight.observations_path, OBSERVATION_COLUMNS):
+            total += 1
             image = row.ident("image")
             if image in left_out and image not in self._nav_index:
                 continue
@@ -549,36 +570,66 @@ class FrameSource:
                                     "acquisition order")
                 current, current_row = image, nav_row
                 point_line, uvs = {}, []
-            point, u, v = observation_row(row, image, point_line, cam)
-            uvs.append((u, v))
             last_line = row.line
+            try:
+                point, u, v = observation_row(row, image, point_line, cam, tolerance)
+            except PixelOutsideImage as err:
+                dropped += 1
+                first = first or str(err)
+                continue
+            uvs.append((u, v))
+        self.outside = (dropped, total, first)
+        if dropped > MAX_OUTSIDE_FRACTION * total:
+            raise InputDataError(f"{self._flight.observations_path}: {dropped} of {total} "
+                                 "observations lie outside the image (first: "
+                                 f"{first}); the file does not fit the camera of the flight")
         if current is not None:
             yield _Group(image_id=current, nav_row=current_row, point_ids=tuple(point_line),
                          uv_px=np.asarray(uvs))
 
 
+class PixelOutsideImage(InputDataError):
+    """An observation further outside the image than the tolerance (:func:`observation_row`)."""
+
+
 def observation_row(row: CsvRow, image: str, point_line: dict[str, int],
-                    camera: CameraConfig) -> tuple[str, float, float]:
+                    camera: CameraConfig, tolerance_px: float = 0.0) -> tuple[str, float, float]:
     """Point id and pixel of an ``observations.csv`` row of ``image``, checked.
 
     ``point_line`` (point -> line) holds the image's earlier rows; the row is added to it.
+    A pixel up to ``tolerance_px`` outside the image border is accepted as it is.
 
     Raises
     ------
     InputDataError
-        A point observed twice in the image, a pixel outside the image.
+        A point observed twice in the image.
+    PixelOutsideImage
+        A pixel more than ``tolerance_px`` outside the image (the row is not added).
     """
     point = row.ident("point")
     if point in point_line:
         raise row.error(f"duplicate observation of point {point!r} in image {image!r} "
                         f"(first at line {point_line[point]})")
     u, v = row.number("x_px"), row.number("y_px")
-    if not (-HALF_PIXEL <= u <= camera.width_px - HALF_PIXEL
-            and -HALF_PIXEL <= v <= camera.height_px - HALF_PIXEL):
-        raise row.error(f"pixel ({u!r}, {v!r}) of point {point!r} lies outside the "
-                        f"{camera.width_px} x {camera.height_px} px image")
+    lo = -HALF_PIXEL - tolerance_px
+    if not (lo <= u <= camera.width_px - lo and lo <= v <= camera.height_px - lo):
+        raise PixelOutsideImage(f"{row.path}:{row.line}: pixel ({u!r}, {v!r}) of point "
+                                f"{point!r} lies outside the {camera.width_px} x "
+                                f"{camera.height_px} px image")
     point_line[point] = row.line
     return point, u, v
+
+
+def outside_tolerance_px(sigma_image_px: float) -> float:
+    """How far outside the image border an observation is still accepted (5 sigma)."""
+    return OUTSIDE_TOLERANCE_SIGMAS * sigma_image_px
+
+
+def outside_warning(path: object, dropped: int, total: int, first: str) -> str:
+    """The warning of observations dropped for lying outside the image."""
+    return (f"{path}: {dropped} of {total} observation(s) lie more than "
+            f"{OUTSIDE_TOLERANCE_SIGMAS:g} sigma_image_px outside the image and were left out "
+            f"(first: {first})")
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

@@ -314,6 +314,31 @@ class LasCloud:
     crs_from_file: bool
 
 
+def las_truncation(path: Path) -> str | None:
+    """Why a LAS/LAZ file that laspy cannot read looks truncated (points announced in the
+    header vs bytes present), or None when it does not."""
+    try:
+        with laspy.open(path) as reader:
+            header = reader.header
+            count = int(header.point_count)
+            offset = int(header.offset_to_point_data)
+            record = int(header.point_format.size)
+            compressed = bool(header.are_points_compressed)
+    except (laspy.errors.LaspyException, OSError, ValueError):
+        return None
+    size = path.stat().st_size
+    if compressed:
+        return (f"truncated or damaged LAZ file: the header announces {count} points; "
+                f"{size - offset} bytes of compressed point data could not be decoded")
+    needed = offset + count * record
+    if size >= needed:
+        return None
+    present = max(size - offset, 0)
+    return (f"truncated LAS file: the header announces {count} points ({count * record} "
+            f"bytes of point data) but the file holds {present} bytes of point data "
+            f"({present // record} whole points)")
+
+
 def read_las(path: Path | str, las_crs: pyproj.CRS | None = None) -> LasCloud:
     """Read a LAS or LAZ file with laspy (LAZ through lazrs).
 
@@ -333,8 +358,11 @@ def read_las(path: Path | str, las_crs: pyproj.CRS | None = None) -> LasCloud:
         raise InputDataError(f"{path}: no such LAS/LAZ file")
     try:
         las = laspy.read(path)
-    except (laspy.errors.LaspyException, OSError, ValueError) as err:
-        raise InputDataError(f"{path}: cannot read LAS/LAZ: {err}") from err
+    except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as err:
+        # RuntimeError: lazrs.LazrsError of a damaged LAZ stream
+        truncated = las_truncation(path)
+        raise InputDataError(f"{path}: {truncated}" if truncated is not None
+                             else f"{path}: cannot read LAS/LAZ: {err}") from err
     if len(las.points) == 0:
         raise InputDataError(f"{path}: the LAS file holds no points")
     try:

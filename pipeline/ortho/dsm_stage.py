@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pyproj
 
+from pipeline.common.outdir import check_not_input
 from pipeline.flight.navigation import resolve_projected_crs, utm_epsg
 from pipeline.ortho.dsm import DsmOptions, DsmResult, build_dsm, parse_las_crs, read_las
 from pipeline.ortho.stage import load_stage_options
@@ -30,6 +31,10 @@ def make_dsm(las_paths: Sequence[Path | str], out_path: Path | str, *, crs: str 
              las_crs: str | None = None, cell_m: float | None = None,
              options_path: Path | str | None = None) -> DsmResult:
     """``seqat dsm``: parse the CRS options and build the DSM COG."""
+    check_not_input(out_path, [*las_paths, options_path])
+    if Path(out_path).is_dir():
+        raise InputDataError(f"{out_path}: is a folder; --out names the DSM file to write "
+                             "(e.g. dsm.tif)")
     options, _, _ = load_stage_options(options_path)
     if cell_m is not None:
         options = DsmOptions(cell_m=cell_m, outlier_neighbors=options.outlier_neighbors,

@@ -28,6 +28,7 @@ from affine import Affine
 from rasterio.enums import ColorInterp
 
 from pipeline.common.atomic import fsync_dir
+from pipeline.common.outdir import output_errors
 from seqat.errors import InputDataError
 
 #: Tile size of every COG, pixels (GDAL's COG default).
@@ -68,16 +69,21 @@ def cog_options(dtype: str) -> dict[str, str | int]:
 def atomic_path(path: Path, suffix: str = ".tif") -> Iterator[Path]:
     """A temporary path beside ``path``, renamed onto it when the block succeeds.
 
-    On failure the temporary file is removed and ``path`` is left as it was.
+    On failure the temporary file is removed and ``path`` is left as it was. Errors of the
+    file system (read-only folder, ``path`` a folder) are InputDataErrors naming ``path``.
     """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
+    if path.is_dir():
+        raise InputDataError(f"{path}: is a folder; give the name of the file to write")
+    with output_errors(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
     os.close(fd)
     tmp = Path(tmp_name)
     try:
         yield tmp
-        os.chmod(tmp, _file_mode())  # mkstemp makes 0600; published files get 0666 & ~umask
-        os.replace(tmp, path)
+        with output_errors(path):
+            os.chmod(tmp, _file_mode())  # mkstemp makes 0600; published: 0666 & ~umask
+            os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()

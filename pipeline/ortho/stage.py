@@ -409,7 +409,7 @@ def orthorectify_run(out_dir: Path | str, *, dsm_path: Path | str | None = None,
     skipped: list[str] = []
     footprints: dict[str, np.ndarray] = {}
     mosaic = MosaicBuilder(run_dir / MOSAIC_FILE, run.crs, feather_px=feather_px)
-    console = Console(stderr=True)
+    console = Console(stderr=True, soft_wrap=True)
     last_error: SeqatError | None = None
     with Orthorectifier(dsm, run.camera, run.crs, run_dir / ORTHO_DIR, options) as ortho, \
             Progress(TextColumn("[bold]ortho"), BarColumn(), MofNCompleteColumn(),

@@ -23,8 +23,9 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from pipeline.common.columns import FLIGHT_YAML
+from pipeline.common.outdir import claim_output_folder, output_errors, release_output_folder
 from pipeline.common.strict_yaml import build_dataclass, load_yaml
-from pipeline.flight.folder import Truth, read_flight, read_truth
+from pipeline.flight.folder import Flight, Truth, read_flight, read_truth
 from pipeline.flight.inputs import RunInputs, SkippedImage
 from pipeline.run.accuracy import Accuracy, compare_with_truth
 from pipeline.run.budget import BudgetReport, LatencyBudget
@@ -54,7 +55,8 @@ from seqat.simultaneous import SimOptions, SimultaneousAT
 from seqat.types import PinholeCamera, Solution
 
 __all__ = ["Estimator", "EstimatorConfig", "ImageListener", "Method", "RunSummary",
-           "estimator_options", "make_estimator", "run_flight"]
+           "estimator_options", "flight_inputs", "load_journal", "make_estimator", "run_flight",
+           "start_journal"]
 
 
 class Method(enum.StrEnum):
@@ -235,17 +237,33 @@ def open_journal(out: Path, fingerprint: dict[str, object], resume: bool,
     InputDataError
         The journal is damaged (other than a torn last record, which is dropped).
     """
+    contents = load_journal(out, fingerprint, resume, console)
+    return start_journal(out, fingerprint, contents), contents
+
+
+def load_journal(out: Path, fingerprint: dict[str, object], resume: bool,
+                 console: Console) -> JournalContents | None:
+    """With ``resume``, the journal in ``out`` checked against ``fingerprint`` (None: none,
+    or not resuming). Reads only: nothing in ``out`` changes."""
     contents = read_journal(out) if resume else None
     if contents is None:
         if resume:
             console.print(f"seqat: no journal in {out}: starting from the first image",
                           highlight=False, markup=False)
-        return Journal.create(out, fingerprint), None
+        return None
     check_fingerprint(contents, fingerprint, out)
     if contents.dropped is not None:
         console.print(f"seqat: journal: dropped the torn last record ({contents.dropped})",
                       highlight=False, markup=False)
-    return Journal.resume(out, contents), contents
+    return contents
+
+
+def start_journal(out: Path, fingerprint: dict[str, object],
+                  contents: JournalContents | None) -> Journal:
+    """A new journal (``contents`` None: an earlier one is replaced), or the one read."""
+    if contents is None:
+        return Journal.create(out, fingerprint)
+    return Journal.resume(out, contents)
 
 
 def replay_journal(session: RunSession, source: ObservationSource | ImageSource,
@@ -269,6 +287,12 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                 truth: Truth | None, t_start: float, mode: str = "run",
                 stopped: str = "", robustness: RobustnessRecord | None = None) -> RunSummary:
     """Write the run folder (atomically, all files or none) and summarise the run."""
+    extra = session.tie_point_warnings(solution)
+    if extra:
+        console = Console(stderr=True, soft_wrap=True)
+        for warning in extra:
+            console.print(f"seqat: warning: {warning}", highlight=False, markup=False)
+        inputs = dataclasses.replace(inputs, warnings=(*inputs.warnings, *extra))
     eops, points = eop_table(solution.eops), point_table(solution.points)
     accuracy = (compare_with_truth(eops, points, truth.eop, truth.points, inputs.nav)
                 if truth is not None else None)
@@ -289,7 +313,8 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                        tracking_options=tracking_options, tracking=tuple(session.tracking),
                        live=tuple(session.live), latency_budget=budget, mode=mode,
                        replayed=session.replayed, robustness=robustness)
-    files = write_run_outputs(out, solution, record, session.observations_text())
+    with output_errors(out):
+        files = write_run_outputs(out, solution, record, session.observations_text())
     return RunSummary(method=method, flight_dir=Path(flight), out_dir=out, files=files,
                       n_images=totals.images, n_points=totals.points,
                       n_observations=session.n_observations, sigma0=solution.sigma0,
@@ -297,6 +322,18 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                       sequential_update_ms=timing_seq, wall_s=time.perf_counter() - t_start,
                       accuracy=accuracy, replayed=session.replayed, latency_ms=latency,
                       budget=budget, skipped=inputs.skipped, stopped=stopped)
+
+
+def flight_inputs(flight: Flight) -> list[Path]:
+    """The paths a run reads (an output folder must stay clear of them)."""
+    paths = [flight.path]
+    if flight.images_dir is not None:
+        paths.append(flight.images_dir)
+    if flight.observations_path is not None:
+        paths.append(flight.observations_path)
+    if flight.config.nav.source == "file":
+        paths.append(flight.path / flight.config.nav.file)
+    return paths
 
 
 def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = Method.SEQ_R,
@@ -370,12 +407,20 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     source: ObservationSource | ImageSource
     if flight.kind == "observations":
         source = ObservationSource(flight)
-        source.validate()
+        stats = source.validate()
+        if stats.warnings:  # observations outside the image, left out
+            flight = dataclasses.replace(flight, warnings=flight.warnings + stats.warnings)
     else:
         source = ImageSource(flight, flight.config.tracking)
-    console = Console(stderr=True)
+    console = Console(stderr=True, soft_wrap=True)
     fingerprint = run_fingerprint(flight.path, method, options, final_only, obs_path)
-    journal, contents = open_journal(out, fingerprint, resume, console)
+    created = claim_output_folder(out, [*flight_inputs(flight), options_path])
+    try:
+        with output_errors(out):
+            journal, contents = open_journal(out, fingerprint, resume, console)
+    except BaseException:
+        release_output_folder(out, created)
+        raise
     skipped = list(contents.skips) if contents is not None else []  # dropouts not bridged
     try:
         if contents is not None:
@@ -405,14 +450,16 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
         solution = session.finish()
     except SeqatError:
         journal.discard()  # deterministic: a resume would fail the same way
+        release_output_folder(out, created)
         raise
     finally:
         journal.close()
     done_ids = {u.image_id for u in session.updates}
     bridged = [iid for row, iid in enumerate(flight.nav.image_ids)
                if iid in done_ids and flight.is_dropout(row)]
+    dropouts = {iid for row, iid in enumerate(flight.nav.image_ids) if flight.is_dropout(row)}
     robustness = robustness_record(session.estimator, options, bridged=bridged,
-                                   skipped=[s.image for s in skipped])
+                                   skipped=[s.image for s in skipped if s.image in dropouts])
     inputs = dataclasses.replace(flight.inputs(), skipped=flight.skipped + tuple(skipped))
     return publish_run(out, session, solution, method=method, flight=str(flight.path),
                        inputs=inputs, options=options, final_only=final_only,

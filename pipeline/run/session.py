@@ -118,6 +118,10 @@ def _set_threshold(estimator: object, threshold: float | None) -> None:
     estimator.set_correlation_threshold(threshold)  # type: ignore[attr-defined]
 
 
+#: Images without tie points named one warning each, then one summary line.
+MAX_IMAGE_WARNINGS = 20
+
+
 class RunSession:
     """Feed frames to an estimator one at a time; journal each; keep the run's records.
 
@@ -155,6 +159,7 @@ class RunSession:
         self.n_observations = 0
         self._lines: list[str] = []
         self._points: set[str] = set()
+        self._image_points: list[tuple[str, tuple[str, ...]]] = []
         self._nav_ids: list[str] = []
         self._nav_times: list[float] = []
         self._nav_eops: list[np.ndarray] = []
@@ -232,6 +237,7 @@ class RunSession:
         self._lines.append(format_observation_lines(frame.image_id, frame.point_ids,
                                                     observed_px))
         self._points.update(frame.point_ids)
+        self._image_points.append((frame.image_id, frame.point_ids))
         self.n_observations += len(frame.point_ids)
         self._nav_ids.append(frame.image_id)
         self._nav_times.append(time_s)
@@ -251,6 +257,24 @@ class RunSession:
     @property
     def images(self) -> int:
         return len(self.updates)
+
+    def tie_point_warnings(self, solution: Solution) -> list[str]:
+        """Warnings for images none of whose observations became a ground point of
+        ``solution``, and for a flight without any ground point."""
+        estimated = {p.point_id for p in solution.points}
+        if not estimated:
+            return [f"the flight has no tie points: no ground point was estimated from its "
+                    f"{len(self._image_points)} images (no overlap, or images that all look "
+                    "alike); its EOPs are the GPS/INS nav"]
+        lonely = [image for image, points in self._image_points
+                  if not estimated.intersection(points)]
+        warnings = [f"{image}: no tie points (none of its observations is a ground point of "
+                    "the solution); its EOP rests on its GPS/INS nav"
+                    for image in lonely[:MAX_IMAGE_WARNINGS]]
+        if len(lonely) > MAX_IMAGE_WARNINGS:
+            warnings.append(f"{len(lonely) - MAX_IMAGE_WARNINGS} more image(s) without tie "
+                            f"points (of {len(self._image_points)})")
+        return warnings
 
     def observations_text(self) -> str:
         """Rows of the run's ``observations.csv`` (no header)."""

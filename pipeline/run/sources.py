@@ -33,6 +33,7 @@ from pipeline.flight.inputs import SkippedImage
 from pipeline.run.resection import Resection, resect_attitude
 from pipeline.tracking.options import TrackerOptions
 from pipeline.tracking.tracker import Tracker, TrackerState, read_gray_image
+from seqat.errors import InputDataError
 from seqat.geometry import rays_world
 from seqat.types import FloatArray, Frame, ImageUpdate, PinholeCamera
 
@@ -308,7 +309,12 @@ class ImageSource(_InitialisedSource):
         flight = self._flight
         cam = flight.camera_config
         t0 = time.perf_counter()
-        gray = read_tracker_image(path, self._tracker, cam.width_px, cam.height_px)
+        try:
+            gray = read_tracker_image(path, self._tracker, cam.width_px, cam.height_px)
+        except InputDataError as err:  # corrupt image data: this image only is left out
+            skip = SkippedImage(image=image_id, reason=str(err))
+            self.skipped.append(skip)
+            return skip
         read_ms = (time.perf_counter() - t0) * 1e3
         if nav_sigma is None:
             nav_sigma = flight.nav_sigma

@@ -40,15 +40,18 @@ from rich.text import Text
 
 from pipeline.common.columns import FLIGHT_YAML, NAV_GEODETIC_COLUMNS
 from pipeline.common.csvio import CsvTail
+from pipeline.common.outdir import claim_output_folder, output_errors, release_output_folder
 from pipeline.common.strict_yaml import build_dataclass
 from pipeline.common.tables import NavTable
 from pipeline.flight.camera import PixelCorrector, pinhole_camera
 from pipeline.flight.folder import (
     Flight,
+    PixelOutsideImage,
     camera_from_exif,
     check_image_size,
     geodetic_nav_eop,
     observation_row,
+    outside_tolerance_px,
     read_truth,
 )
 from pipeline.flight.image_metadata import (
@@ -79,12 +82,13 @@ from pipeline.run.runner import (
     RunSummary,
     estimator_options,
     load_estimator_config,
+    load_journal,
     make_budget,
     make_estimator,
-    open_journal,
     publish_run,
     replay_journal,
     run_fingerprint,
+    start_journal,
 )
 from pipeline.run.session import ImageListener, ImageLive, RunSession
 from pipeline.run.sources import ImageSource, ObservationSource, PreparedFrame
@@ -361,7 +365,12 @@ class GrowingFlight:
                 self._groups[image] = ({}, [])
                 self._current_group = image
             point_line, uvs = self._groups[image]
-            _, u, v = observation_row(row, image, point_line, self.camera)
+            try:
+                _, u, v = observation_row(row, image, point_line, self.camera,
+                                          outside_tolerance_px(self.config.sigma_image_px))
+            except PixelOutsideImage as err:  # left out (a streamed file: no share known)
+                self.warnings.append(f"{err}; left out")
+                continue
             uvs.append((u, v))
         return bool(rows)
 
@@ -553,18 +562,31 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
     if out.exists() and not out.is_dir():
         raise InputDataError(f"{out}: exists and is not a folder")
     flight_config = load_flight_config(yaml_path)
-    console = console or Console(stderr=True)
-    journal, contents = open_journal(out, run_fingerprint(folder, method, options, False, None),
-                                     resume, console)
+    console = console or Console(stderr=True, soft_wrap=True)
+    fingerprint = run_fingerprint(folder, method, options, False, None)
+    # everything is checked before OUT is touched: a config error never replaces the journal
+    contents = load_journal(out, fingerprint, resume, console)
     skipped = list(contents.skips) if contents is not None else []
     done = {s.image for s in skipped}
     if contents is not None:
         done |= {r.frame.image_id for r in contents.images}
+    grow = GrowingFlight(folder, flight_config, done, watch.wait_timeout_s,
+                         dict(contents.setup) if contents and contents.setup else None)
+    inputs_read = [folder, grow.images_dir, options_path,
+                   None if flight_config.observations is None
+                   else folder / flight_config.observations,
+                   folder / flight_config.nav.file if flight_config.nav.source == "file"
+                   else None]
+    created = claim_output_folder(out, inputs_read)
+    try:
+        with output_errors(out):
+            journal = start_journal(out, fingerprint, contents)
+    except BaseException:
+        release_output_folder(out, created)
+        raise
     stop = stop or threading.Event()
     stopped = "interrupted"
     try:
-        grow = GrowingFlight(folder, flight_config, done, watch.wait_timeout_s,
-                             dict(contents.setup) if contents and contents.setup else None)
         session: RunSession | None = None
         source: ObservationSource | ImageSource | None = None
         printer = on_image or (lambda live, _: console.print(live_line(live, budget_ms),
@@ -607,7 +629,14 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
                     if session is None:
                         session, source = start()
                     assert source is not None
-                    session.add(_prepare(source, item, grow))
+                    prepared = _prepare(source, item, grow)
+                    if isinstance(prepared, SkippedImage):  # unreadable image data
+                        journal.append_skip(prepared)
+                        skipped.append(prepared)
+                        console.print(f"seqat: skipped: {prepared.reason}", highlight=False,
+                                      markup=False)
+                        continue
+                    session.add(prepared)
                     last_activity = time.monotonic()
                 if (watch.idle_timeout_s is not None
                         and time.monotonic() - last_activity > watch.idle_timeout_s):
@@ -636,7 +665,7 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
 
 
 def _prepare(source: ObservationSource | ImageSource, item: Arrival,
-             grow: GrowingFlight) -> PreparedFrame:
+             grow: GrowingFlight) -> PreparedFrame | SkippedImage:
     flight = grow.flight
     assert flight is not None
     if isinstance(source, ObservationSource):

@@ -55,6 +55,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.tracking.decode import jpeg_scan_problem
 from pipeline.tracking.options import MIN_MODEL_POINTS, TrackerOptions
 from seqat.errors import InputDataError
 from seqat.geometry import rays_world
@@ -718,7 +719,15 @@ def read_gray_image(path: Path | str, decode_factor: int = 1) -> NDArray[np.uint
     if decode_factor not in REDUCED_GRAY_FLAGS:
         raise ValueError(f"decode_factor must be one of {sorted(REDUCED_GRAY_FLAGS)}, "
                          f"got {decode_factor!r}")
-    image = cv2.imread(str(path), REDUCED_GRAY_FLAGS[decode_factor])
-    if image is None:
-        raise InputDataError(f"{path}: cannot read or decode the image")
+    name = Path(path).name
+    try:
+        data = Path(path).read_bytes()
+    except OSError as err:
+        raise InputDataError(f"{name}: cannot read: {err.strerror or err}") from err
+    problem = jpeg_scan_problem(data)
+    if problem is not None:
+        raise InputDataError(f"{name}: {problem}")
+    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), REDUCED_GRAY_FLAGS[decode_factor])
+    if image is None or image.ndim != 2 or image.size == 0:
+        raise InputDataError(f"{name}: cannot decode the image (corrupt image data)")
     return np.asarray(image, dtype=np.uint8)

@@ -85,9 +85,8 @@ BAD_INPUTS = [
      "line 2)"),
     ("observations.csv", "img_1,", "img_3,", InputDataError,
      "observations.csv:3: image 'img_1' comes after image 'img_3' but was acquired before it"),
-    ("observations.csv", "img_4,p4,10.0,11.0", "img_4,p4,700.0,11.0", InputDataError,
-     "observations.csv:8: pixel (700.0, 11.0) of point 'p4' lies outside the 640 x 480 px "
-     "image"),
+    ("flight.yaml", "width_px: 640", "width_px: 64", InputDataError,  # mostly outside
+     "observations.csv: 6 of 7 observations lie outside the image (first: "),
     ("observations.csv", "image,point,x_px,y_px", "image,point,u_px,v_px", InputDataError,
      "observations.csv:1: wrong columns (missing x_px, y_px; unexpected u_px, v_px)"),
     ("observations.csv", "img_4,p4,10.0,11.0", 'img_4,"p4,10.0,11.0', InputDataError,

@@ -107,7 +107,7 @@ def test_unusable_images_are_skipped_with_the_reason(tmp_path: Path) -> None:
     assert "truncated JPEG" in reasons[paths[1].stem]
     assert "no GPS position" in reasons["nogps"]
     assert flight.nav.image_ids == tuple(p.stem for p in (paths[0], paths[3], paths[4]))
-    out = tmp_path / "out"
+    out = tmp_path.with_name(tmp_path.name + "-out")  # never inside the flight folder
     run_flight(tmp_path, out, progress=False)
     doc = json.loads((out / "run.json").read_text())
     assert {s["image"] for s in doc["skipped"]} == set(reasons)

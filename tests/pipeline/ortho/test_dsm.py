@@ -253,3 +253,27 @@ def test_sparse_cloud_gets_a_larger_cell() -> None:
     assert density_cell_m(xyz, DsmOptions()) == pytest.approx(2.0)
     assert density_cell_m(xyz, DsmOptions(cell_m=3.0)) == 3.0  # never finer than asked
     assert density_cell_m(xyz, DsmOptions(min_points_per_cell=0)) == 1.0
+
+
+def test_truncated_las_says_so(tmp_path: Path) -> None:
+    import laspy
+
+    from pipeline.ortho.dsm import read_las
+    from seqat.errors import InputDataError
+
+    las = laspy.read("sample_data/autzen_rendered/lidar/surface.laz")
+    path = tmp_path / "cut.las"
+    las.write(path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) - 1000 - 3])  # not a whole number of points
+    n, size = len(las.points), las.header.point_format.size
+    with pytest.raises(InputDataError) as err:
+        read_las(path)
+    assert str(err.value).startswith(
+        f"{path}: truncated LAS file: the header announces {n} points ({n * size} bytes of "
+        f"point data) but the file holds ")
+    laz = tmp_path / "cut.laz"
+    raw = Path("sample_data/autzen_rendered/lidar/surface.laz").read_bytes()
+    laz.write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(InputDataError, match="truncated or damaged LAZ file|cannot read"):
+        read_las(laz)
