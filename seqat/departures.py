@@ -18,7 +18,7 @@ from seqat.geometry import wrap_angle
 from seqat.simultaneous import sigma_scale
 from seqat.types import EOP_SIZE, GP_SIZE, EopEstimate, FloatArray, PointEstimate
 from seqat.update import spd_inverse
-from seqat.window import Key, correlations_from_columns, first_over_threshold
+from seqat.window import Key, correlations_from_columns, first_over_threshold, keys_of
 
 #: A GP stays in the Seq-R window only while this many window images (new one included) see it.
 MIN_WINDOW_RAYS = 2
@@ -168,11 +168,7 @@ class DepartureMixin:
             L = w.L[np.ix_(keep, keep)] + 0.5 * (fill + fill.T)
             # GPs the marginal prior now ties to other GPs are no longer eliminable alone
             support = np.flatnonzero(np.any(L_fw != 0.0, axis=0))
-            gps = {keep_keys[int(np.searchsorted(self._starts(keep_keys), c, side="right")) - 1]
-                   for c in support}
-            gps = {k for k in gps if k[0] == "p"}
-            if len(gps) > 1:
-                w.coupled |= gps
+            w.couple(keys_of(keep_keys, support))
             w.L = L
         if w.L is not None and self._records:
             self._departures.append(
@@ -191,13 +187,6 @@ class DepartureMixin:
         w.coupled -= leaving
         w.x = w.x[keep]
         w.relayout(keep_keys)
-
-    @staticmethod
-    def _starts(keys: list[Key]) -> np.ndarray:
-        """Offsets of ``keys`` laid out in that order."""
-        sizes = np.fromiter((EOP_SIZE if k[0] == "e" else GP_SIZE for k in keys),
-                            dtype=np.int64, count=len(keys))
-        return np.cumsum(sizes) - sizes
 
     def _hold_pending_rays(self, start: int, frame_points: set[int]) -> int:
         """Never lose tie rays by waiting: shorten the cut before the first leaving image that
@@ -355,10 +344,7 @@ class DepartureMixin:
             w.Q = Q
         if w.L is not None:
             # the prior ties the re-opened keys to the window keys its chain refers to
-            support = [k for k in w.keys if k[0] == "p" and np.any(J[:, w.index(k)] != 0.0)]
-            gps = set(support) | {k for k in keys if k[0] == "p"}
-            if len(gps) > 1:
-                w.coupled |= gps
+            w.couple(keys_of(w.keys, np.flatnonzero(np.any(J != 0.0, axis=0))) + keys)
             Ci = spd_inverse(C, "conditional cofactor of the re-opened parameters")
             CiJ = Ci @ J
             L = np.empty((n + m, n + m))

@@ -96,12 +96,11 @@ def linearise(
     # Points the data do not determine here (parallel rays, an iterate sent far off by a
     # blunder): their rows get no weight in this linearisation and their block is the
     # identity (no step), instead of a singular system that rounding decides.
-    Jp_w = Jp * w[:, None, None]
-    Npp0 = np.zeros((m, GP_SIZE, GP_SIZE))
-    np.add.at(Npp0, pt, np.einsum("kri,krj->kij", Jp_w, Jp))
+    Npp = np.zeros((m, GP_SIZE, GP_SIZE))
+    np.add.at(Npp, pt, np.einsum("kri,krj->kij", Jp * w[:, None, None], Jp))
     undetermined = np.zeros(m, dtype=bool)
     if m:
-        ev = np.linalg.eigvalsh(Npp0)
+        ev = np.linalg.eigvalsh(Npp)
         undetermined = ~(ev[:, 0] > 1e-12 * np.maximum(ev[:, -1], 1e-300)) | ~np.isfinite(
             ev[:, 0])
         if undetermined.any():
@@ -114,9 +113,7 @@ def linearise(
     b_e = np.zeros((n, EOP_SIZE))
     np.add.at(b_e, img, np.einsum("kri,kr->ki", wJe, ell))
     b_e += eop_residual(data.nav_eop, eop) / data.nav_sigma**2
-    Npp = np.zeros((m, GP_SIZE, GP_SIZE))
-    np.add.at(Npp, pt, np.einsum("kri,krj->kij", wJp, Jp))
-    Npp[undetermined] = np.eye(GP_SIZE)
+    Npp[undetermined] = np.eye(GP_SIZE)  # the other blocks keep their rows' weights
     b_p = np.zeros((m, GP_SIZE))
     np.add.at(b_p, pt, np.einsum("kri,kr->ki", wJp, ell))
     if damping > 0.0:

@@ -17,7 +17,7 @@ from seqat.information import (
     split_indices,
 )
 from seqat.robust import cauchy_weight
-from seqat.rows import factor_blocks, gradient_from_factors, normal_from_factors
+from seqat.rows import factor_blocks, gradient_from_factors, scatter_blocks
 from seqat.types import EOP_SIZE, FloatArray
 
 #: Times a re-linearisation is tried again after taking out singular GPs.
@@ -94,17 +94,14 @@ class RelinearisationMixin:
         if not self._inverse:
             # the GP-eliminated blocks of H_p once; each step adds its rows' blocks to them
             # (no n x n matrix per step: docs/algorithm.md, *Re-linearising the window*)
-            gp = np.fromiter((w.offset[k] for k in w.keys
-                              if k[0] == "p" and k not in w.coupled), dtype=np.int64)
-            kept = np.fromiter((w.offset[k] for k in w.coupled), dtype=np.int64)
+            gp, kept = w.elimination()
             r_idx, p_blk = split_indices(n, gp)
             base = gather_parts(H_p, r_idx, p_blk)
 
         def solver_at(Je: FloatArray, Jp: FloatArray,
                       wf: FloatArray) -> Callable[[FloatArray], FloatArray]:
             if self._inverse:
-                H, _ = normal_from_factors(Je, Jp, np.zeros((Je.shape[0], 2)), wf, cols, n)
-                H += H_p
+                H = scatter_blocks(factor_blocks(Je, Jp, wf), cols, n) + H_p
                 return lambda g: np.linalg.solve(H, g)
             parts = add_block_parts(base, factor_blocks(Je, Jp, wf), cols, r_idx, p_blk, n)
             return InformationFactor(None, gp, kept, parts=parts, n=n).solve
@@ -147,8 +144,7 @@ class RelinearisationMixin:
             if np.max(np.abs(w_new - wf) / f.w0) < ROBUST_WEIGHT_TOLERANCE:
                 break
             wf = w_new
-        H, _ = normal_from_factors(Je, Jp, r, wf, cols, x.size)
-        H += H_p
+        H = scatter_blocks(factor_blocks(Je, Jp, wf), cols, n) + H_p
         H = 0.5 * (H + H.T)
         prior_new = prior(xk, Hp_x)
         ssr_new_factors = float(np.sum(wf[:, None] * r**2))

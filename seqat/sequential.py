@@ -444,9 +444,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
         if self.options.smoothing or not self._inverse:
             # the initial block's normal matrix itself (not the inverse of its cofactor:
             # inverting that would cost digits and blur the GPs' block-diagonal structure)
-            L = res.full_normal if res.full_normal is not None else np.linalg.inv(
-                res.full_cofactor)
-            w.L = 0.5 * (L + L.T)
+            assert res.full_normal is not None  # Covariance.FULL exports it
+            w.L = 0.5 * (res.full_normal + res.full_normal.T)
         self._window_images.extend(range(n))
         selected = set(int(j) for j in st.selected)
         self._gp_order = [int(j) for j in st.selected]

@@ -67,6 +67,14 @@ def first_over_threshold(correlations: FloatArray, threshold: float) -> int:
     return int(over[0]) if over.size else len(correlations) - 1
 
 
+def keys_of(keys: list[Key], indices: np.ndarray) -> list[Key]:
+    """The key of each parameter index, for ``keys`` laid out in that order."""
+    sizes = np.fromiter((EOP_SIZE if k[0] == "e" else GP_SIZE for k in keys),
+                        dtype=np.int64, count=len(keys))
+    starts = np.cumsum(sizes) - sizes
+    return [keys[int(b)] for b in np.searchsorted(starts, indices, side="right") - 1]
+
+
 @dataclass(eq=False)
 class Window:
     """Parameters being updated: estimates, information or cofactor, and their block layout.
@@ -125,9 +133,7 @@ class Window:
         """Factorisation of ``L`` (information engine), cached until :meth:`changed`."""
         assert self.L is not None
         while self._factor is None:
-            gp = np.fromiter((self.offset[k] for k in self.keys
-                              if k[0] == "p" and k not in self.coupled), dtype=np.int64)
-            kept = np.fromiter((self.offset[k] for k in self.coupled), dtype=np.int64)
+            gp, kept = self.elimination()
             try:
                 self._factor = InformationFactor(self.L, gp, kept)
             except RankDeficiency as err:
@@ -136,6 +142,20 @@ class Window:
                     raise
                 self.on_singular(keys)  # removes them: the loop factorises the rest
         return self._factor
+
+    def couple(self, keys: list[Key]) -> None:
+        """A prior now ties ``keys`` together: if two or more are GPs, those are no longer
+        eliminable one by one."""
+        gps = {k for k in keys if k[0] == "p"}
+        if len(gps) > 1:
+            self.coupled |= gps
+
+    def elimination(self) -> tuple[np.ndarray, np.ndarray]:
+        """Offsets of the GP blocks the factorisation eliminates, and of the coupled ones it
+        keeps with the EOPs."""
+        gp = np.fromiter((self.offset[k] for k in self.keys
+                          if k[0] == "p" and k not in self.coupled), dtype=np.int64)
+        return gp, np.fromiter((self.offset[k] for k in self.coupled), dtype=np.int64)
 
     def keys_at(self, offsets: np.ndarray) -> list[Key]:
         """The keys whose blocks start at ``offsets``."""
@@ -168,8 +188,7 @@ class Window:
         if self._diag is None:
             d = np.diagonal(self.Q).copy() if self.inverse else self.factor().diagonal()
             if d.size and not np.all(d > 0):
-                bad = [self.keys[int(np.searchsorted(self._offsets(), q, side="right")) - 1]
-                       for q in np.flatnonzero(~(d > 0))[:3]]
+                bad = keys_of(self.keys, np.flatnonzero(~(d > 0))[:3])
                 raise EstimationError(f"the window's cofactor has non-positive variances "
                                       f"(parameters {bad})")
             self._diag = d
@@ -180,9 +199,6 @@ class Window:
         if self.inverse:
             return self.Q[np.ix_(idx, idx)].copy()
         return self.factor().block(idx)
-
-    def _offsets(self) -> np.ndarray:
-        return np.fromiter((self.offset[k] for k in self.keys), dtype=np.int64)
 
     def relayout(self, keys: list[Key]) -> None:
         self.changed()
