@@ -86,8 +86,7 @@ class DepartureMixin:
         if thr is None or len(self._window_images) < 2:
             return 0
         w = self._w
-        if w.L is not None and not w.inverse:
-            w.factor()  # an undetermined GP leaves now, before the offsets are read
+        w.settle()  # an undetermined GP leaves now, before the offsets are read
         offs = np.fromiter(
             (w.offset[("e", j)] for j in self._window_images),
             dtype=np.int64,

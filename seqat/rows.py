@@ -116,7 +116,7 @@ class RowBuilder:
     nav, nav_sigma : (6,) float
         GPS/INS constraint of the new image (local), its sigma.
     robust_scale : float or None
-        Cauchy loss scale of the image rows in sigma (:mod:`seqat.robust`): their weights
+        Robust loss scale of the image rows in sigma (:mod:`seqat.robust`): their weights
         are re-computed from the residuals at every linearisation (IRLS).
     """
 

@@ -536,13 +536,10 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
         held: set[int] = set()  # points whose birth made the update singular (wait)
         rounds = 0
         while True:
-            if not self._inverse:
-                w.factor()  # an undetermined GP leaves now, before the rows are laid out
+            w.settle()  # an undetermined GP leaves now, before the rows are laid out
             y21 = [(p, uv) for p, uv in seen if p not in rejected_new
                    and (("p", p) in w.offset or self._reopenable(("p", p), i))]
-            y21_pts = [p for p, _ in y21]
-            y21_uv = [uv for _, uv in y21]
-            reopen: list[Key] = [("p", p) for p in y21_pts if ("p", p) not in w.offset]
+            reopen: list[Key] = [("p", p) for p, _ in y21 if ("p", p) not in w.offset]
             ready = [p for p in candidates if p in self._pending and p not in held
                      and len(self._pending[p]) >= opts.min_rays]
             born, born_xyz = self._birth(ready, i, init, use_new=init_known)
@@ -552,11 +549,10 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
             if reopen:
                 self._reopen(reopen)
                 reopened += reopen
-                if not self._inverse:
-                    w.factor()
-                    keep = [k for k, (p, _) in enumerate(y21) if ("p", p) in w.offset]
-                    y21_pts = [y21_pts[k] for k in keep]
-                    y21_uv = [y21_uv[k] for k in keep]
+                w.settle()
+                y21 = [(p, uv) for p, uv in y21 if ("p", p) in w.offset]
+            y21_pts = [p for p, _ in y21]
+            y21_uv = [uv for _, uv in y21]
 
             # --- layout of the new parameters: [EOP of image i, born GPs]
             n2 = EOP_SIZE + GP_SIZE * len(born)
@@ -568,7 +564,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
             touched_keys: list[Key] = [("p", p) for p in y21_pts]
             touched_keys += list(dict.fromkeys(("e", j) for (j, _, _, _) in y12))
             touched = w.indices(touched_keys)
-            Qc = w.Q[:, touched] if self._inverse else w.q_columns(touched)  # Q[:, touched]
+            Qc = w.q_columns(touched)
             col_of = {}
             c = 0
             for k in touched_keys:

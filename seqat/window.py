@@ -143,6 +143,12 @@ class Window:
                 self.on_singular(keys)  # removes them: the loop factorises the rest
         return self._factor
 
+    def settle(self) -> None:
+        """Information engine: factorise now, so that GPs the data do not determine leave
+        (:attr:`on_singular`) before offsets are read; no-op for the inverse engine."""
+        if not self.inverse and self.L is not None:
+            self.factor()
+
     def couple(self, keys: list[Key]) -> None:
         """A prior now ties ``keys`` together: if two or more are GPs, those are no longer
         eliminable one by one."""
