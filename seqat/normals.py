@@ -64,9 +64,9 @@ class Normals:
     Npp_inv: FloatArray  # (m, 3, 3)
     b_p: FloatArray  # (3m,)
     size: int
-    Nee: FloatArray | None = None  # (n, 6, 6) EOP diagonal blocks (nav included)
-    Npp: FloatArray | None = None  # (m, 3, 3)
-    undetermined: np.ndarray | None = None  # (m,) bool: points out of this linearisation
+    Nee: FloatArray  # (n, 6, 6) EOP diagonal blocks (nav included)
+    Npp: FloatArray  # (m, 3, 3)
+    undetermined: np.ndarray  # (m,) bool: points out of this linearisation
 
 
 def eop_residual(nav_eop: FloatArray, eop: FloatArray) -> FloatArray:
@@ -235,7 +235,6 @@ def gp_cofactors(nrm: Normals, data: BlockData) -> FloatArray:
 def full_normal(nrm: Normals, n: int, m: int) -> FloatArray:
     """Dense normal matrix over ``[EOPs, GPs]``: its GP-GP part is exactly block diagonal
     (the sequential information engine eliminates those blocks)."""
-    assert nrm.Nee is not None and nrm.Npp is not None
     ne = EOP_SIZE * n
     N = np.zeros((ne + GP_SIZE * m, ne + GP_SIZE * m))
     for i in range(n):

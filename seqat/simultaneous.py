@@ -206,14 +206,14 @@ def adjust_block(
                 and max_ang < options.angle_tolerance_rad):
             converged = True
             break
-    # cofactors (and the normal matrix) of the undamped system, with the robust weights, at
-    # the solution
-    nrm, _, _ = linearise(camera, data, eop, gp, 0.0, robust)
+    if was_damped:
+        nrm, _, _ = linearise(camera, data, eop, gp, 0.0, robust)  # the undamped system
+    assert nrm is not None
     img, pt = data.obs_image, data.obs_point
     res_img = data.obs_uv - project(eop[img], gp[pt], camera)
     res_nav = eop_residual(data.nav_eop, eop)
     weight = cauchy_weight(res_img, data.obs_sigma_px, robust)
-    und = nrm.undetermined if nrm.undetermined is not None else np.zeros(m, dtype=bool)
+    und = nrm.undetermined
     weight = np.where(und[pt], 0.0, weight)
     ssr = float(
         np.sum(weight[:, None] * res_img**2 / data.obs_sigma_px[:, None] ** 2)
