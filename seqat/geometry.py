@@ -7,7 +7,9 @@ Conventions (DESIGN.md, docs/conventions.md)
 * ``R_world_from_cam = Rx(omega) @ Ry(phi) @ Rz(kappa)`` (active, right-handed). A nadir camera
   with omega = phi = kappa = 0 has the image top to the north.
 * A world point ``X`` maps to ``p = R^T (X - X0)``, photo coordinates ``x = -f p_x / p_z``,
-  ``y = -f p_y / p_z`` and OpenCV pixels ``u = cx + x``, ``v = cy - y``.
+  ``y = -f p_y / p_z`` and OpenCV pixels ``u = cx + x``, ``v = cy - y``. With lens
+  distortion the normalised OpenCV coordinates ``xn = -p_x / p_z``, ``yn = p_y / p_z`` are
+  distorted first (:class:`seqat.types.PinholeCamera`): ``u = cx + f xd``, ``v = cy + f yd``.
 * EOP vector: ``[X0_m, Y0_m, Z0_m, omega_rad, phi_rad, kappa_rad]``.
 
 All functions are vectorised over a leading axis; shapes are given in the docstrings.
@@ -17,10 +19,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from seqat.types import FloatArray, PinholeCamera
+from seqat.types import INTRINSICS, FloatArray, PinholeCamera
 
 #: Rays whose largest pairwise angle is below this are treated as parallel (radians).
 MIN_INTERSECTION_ANGLE_RAD = 1e-6
+#: Newton iterations of the inverse distortion (:func:`undistort_normalized`); it converges
+#: quadratically from the distorted point within the field of view.
+UNDISTORT_ITERATIONS = 8
 
 
 def wrap_angle(angle_rad: FloatArray | float) -> FloatArray:
@@ -104,6 +109,59 @@ def _rotation_axes(eop: FloatArray) -> tuple[FloatArray, FloatArray]:
     return R, axes
 
 
+def distort_normalized(
+    xn: FloatArray, yn: FloatArray, camera: PinholeCamera, *, jacobians: bool = False
+) -> tuple[FloatArray, ...]:
+    """OpenCV distortion of normalised camera coordinates (:class:`PinholeCamera`).
+
+    Parameters
+    ----------
+    xn, yn : (n,) float
+        Normalised coordinates in the OpenCV camera frame.
+    camera : PinholeCamera
+    jacobians : bool
+        Also return ``D`` (n, 2, 2), ``d[xd, yd]/d[xn, yn]``, and ``K`` (n, 2, 5),
+        ``d[xd, yd]/d[k1, k2, p1, p2, k3]``.
+
+    Returns
+    -------
+    xd, yd : (n,) float
+    """
+    k1, k2, p1, p2, k3 = camera.k1, camera.k2, camera.p1, camera.p2, camera.k3
+    r2 = xn * xn + yn * yn
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xy2 = 2.0 * xn * yn
+    xd = xn * radial + p1 * xy2 + p2 * (r2 + 2.0 * xn * xn)
+    yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + p2 * xy2
+    if not jacobians:
+        return xd, yd
+    dr = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2))  # d radial / d r2, times 2
+    D = np.empty(xn.shape + (2, 2))
+    D[..., 0, 0] = radial + xn * xn * dr + 2.0 * p1 * yn + 6.0 * p2 * xn
+    D[..., 0, 1] = xn * yn * dr + 2.0 * p1 * xn + 2.0 * p2 * yn
+    D[..., 1, 0] = xn * yn * dr + 2.0 * p1 * xn + 2.0 * p2 * yn
+    D[..., 1, 1] = radial + yn * yn * dr + 6.0 * p1 * yn + 2.0 * p2 * xn
+    K = np.empty(xn.shape + (2, 5))
+    K[..., 0, :] = np.stack([xn * r2, xn * r2 * r2, xy2, r2 + 2.0 * xn * xn, xn * r2**3], -1)
+    K[..., 1, :] = np.stack([yn * r2, yn * r2 * r2, r2 + 2.0 * yn * yn, xy2, yn * r2**3], -1)
+    return xd, yd, D, K
+
+
+def undistort_normalized(xd: FloatArray, yd: FloatArray,
+                         camera: PinholeCamera) -> tuple[FloatArray, FloatArray]:
+    """Inverse of :func:`distort_normalized` (Newton's method, vectorised)."""
+    if not camera.has_distortion:
+        return xd.copy(), yd.copy()
+    xn, yn = xd.copy(), yd.copy()
+    for _ in range(UNDISTORT_ITERATIONS):
+        fx, fy, D, _ = distort_normalized(xn, yn, camera, jacobians=True)
+        rx, ry = xd - fx, yd - fy
+        det = D[:, 0, 0] * D[:, 1, 1] - D[:, 0, 1] * D[:, 1, 0]
+        xn = xn + (D[:, 1, 1] * rx - D[:, 0, 1] * ry) / det
+        yn = yn + (D[:, 0, 0] * ry - D[:, 1, 0] * rx) / det
+    return xn, yn
+
+
 def project(eop: FloatArray, X_world_m: FloatArray, camera: PinholeCamera) -> FloatArray:
     """Project world points into pixels.
 
@@ -124,10 +182,11 @@ def project(eop: FloatArray, X_world_m: FloatArray, camera: PinholeCamera) -> Fl
     X = np.atleast_2d(np.asarray(X_world_m, dtype=np.float64))
     R = rotation_matrix(eop[:, 3], eop[:, 4], eop[:, 5])
     p = np.einsum("nji,nj->ni", R, X - eop[:, :3])
+    xn, yn = -p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]
+    if camera.has_distortion:
+        xn, yn = distort_normalized(xn, yn, camera)
     f = camera.f_px
-    u = camera.cx_px - f * p[:, 0] / p[:, 2]
-    v = camera.cy_px + f * p[:, 1] / p[:, 2]
-    return np.stack([u, v], axis=-1)
+    return np.stack([camera.cx_px + f * xn, camera.cy_px + f * yn], axis=-1)
 
 
 def depth(eop: FloatArray, X_world_m: FloatArray) -> FloatArray:
@@ -149,8 +208,9 @@ def depth(eop: FloatArray, X_world_m: FloatArray) -> FloatArray:
 
 
 def project_with_jacobians(
-    eop: FloatArray, X_world_m: FloatArray, camera: PinholeCamera
-) -> tuple[FloatArray, FloatArray, FloatArray]:
+    eop: FloatArray, X_world_m: FloatArray, camera: PinholeCamera, *,
+    intrinsics: bool = False,
+) -> tuple[FloatArray, ...]:
     """Project world points and return the analytic Jacobians of ``[u, v]``.
 
     Parameters
@@ -158,6 +218,8 @@ def project_with_jacobians(
     eop : (n, 6) float
     X_world_m : (n, 3) float
     camera : PinholeCamera
+    intrinsics : bool
+        Also return ``J_camera``.
 
     Returns
     -------
@@ -166,6 +228,8 @@ def project_with_jacobians(
         ``d[u, v] / d[X0, Y0, Z0, omega, phi, kappa]`` (pixels per metre / per radian).
     J_point : (n, 2, 3) float
         ``d[u, v] / d[X, Y, Z]`` (pixels per metre).
+    J_camera : (n, 2, 8) float, with ``intrinsics``
+        ``d[u, v] / d`` :data:`seqat.types.INTRINSICS`.
     """
     eop = np.atleast_2d(np.asarray(eop, dtype=np.float64))
     X = np.atleast_2d(np.asarray(X_world_m, dtype=np.float64))
@@ -174,20 +238,35 @@ def project_with_jacobians(
     p = np.einsum("nji,nj->ni", R, d)  # R^T d
     f = camera.f_px
     inv_z = 1.0 / p[:, 2]
-    # d[u, v]/dp: u = cx - f px/pz, v = cy + f py/pz
-    dudp = np.stack([-f * inv_z, np.zeros_like(inv_z), f * p[:, 0] * inv_z**2], axis=-1)
-    dvdp = np.stack([np.zeros_like(inv_z), f * inv_z, -f * p[:, 1] * inv_z**2], axis=-1)
-    duv_dp = np.stack([dudp, dvdp], axis=1)  # (n, 2, 3)
+    xn, yn = -p[:, 0] * inv_z, p[:, 1] * inv_z
+    # d[xn, yn]/dp: xn = -px/pz, yn = py/pz
+    zero = np.zeros_like(inv_z)
+    dn_dp = np.stack([np.stack([-inv_z, zero, p[:, 0] * inv_z**2], axis=-1),
+                      np.stack([zero, inv_z, -p[:, 1] * inv_z**2], axis=-1)], axis=1)
+    n = eop.shape[0]
+    if camera.has_distortion or intrinsics:
+        xd, yd, D, K = distort_normalized(xn, yn, camera, jacobians=True)
+        duv_dp = f * (D @ dn_dp)
+    else:
+        xd, yd = xn, yn
+        duv_dp = f * dn_dp  # (n, 2, 3)
     Rt = np.swapaxes(R, 1, 2)
     J_point = duv_dp @ Rt  # dp/dX = R^T
     # dp/dtheta_k = -R^T (a_k x d)
     cross = np.cross(axes, d[:, None, :])  # (n, 3 angles, 3)
     dp_dangles = -np.einsum("nij,nkj->nik", Rt, cross)  # (n, 3 comps, 3 angles)
-    J_eop = np.empty((eop.shape[0], 2, 6))
+    J_eop = np.empty((n, 2, 6))
     J_eop[:, :, :3] = -J_point
     J_eop[:, :, 3:] = duv_dp @ dp_dangles
-    uv = np.stack([camera.cx_px - f * p[:, 0] * inv_z, camera.cy_px + f * p[:, 1] * inv_z], axis=-1)
-    return uv, J_eop, J_point
+    uv = np.stack([camera.cx_px + f * xd, camera.cy_px + f * yd], axis=-1)
+    if not intrinsics:
+        return uv, J_eop, J_point
+    J_cam = np.zeros((n, 2, len(INTRINSICS)))
+    J_cam[:, 0, 0], J_cam[:, 1, 0] = xd, yd
+    J_cam[:, 0, 1] = 1.0
+    J_cam[:, 1, 2] = 1.0
+    J_cam[:, :, 3:] = f * K
+    return uv, J_eop, J_point, J_cam
 
 
 def rays_world(eop: FloatArray, uv_px: FloatArray, camera: PinholeCamera) -> FloatArray:
@@ -205,10 +284,9 @@ def rays_world(eop: FloatArray, uv_px: FloatArray, camera: PinholeCamera) -> Flo
     eop = np.atleast_2d(np.asarray(eop, dtype=np.float64))
     uv = np.atleast_2d(np.asarray(uv_px, dtype=np.float64))
     R = rotation_matrix(eop[:, 3], eop[:, 4], eop[:, 5])
-    ray_cam = np.stack(
-        [uv[:, 0] - camera.cx_px, camera.cy_px - uv[:, 1], np.full(uv.shape[0], -camera.f_px)],
-        axis=-1,
-    )
+    xn, yn = undistort_normalized((uv[:, 0] - camera.cx_px) / camera.f_px,
+                                  (uv[:, 1] - camera.cy_px) / camera.f_px, camera)
+    ray_cam = np.stack([xn, -yn, np.full(uv.shape[0], -1.0)], axis=-1)
     ray = np.einsum("nij,nj->ni", R, ray_cam)
     return ray / np.linalg.norm(ray, axis=1, keepdims=True)
 

@@ -1,8 +1,10 @@
 """Sim's normal equations: one linearisation of a block, GP-reduced, and its cofactors.
 
-The reduced EOP normal matrix ``N_r = N_ee + N_z - N_ep N_pp^-1 N_ep^T`` (sparse, banded along
+The reduced normal matrix ``N_r = N_RR + N_z - N_Rp N_pp^-1 N_Rp^T`` (sparse, banded along
 a strip) is factorised by sparse LU; GP corrections follow by back-substitution (seed 000
-Eq. 5-6). Used by :func:`seqat.simultaneous.adjust_block`.
+Eq. 5-6). ``R`` are the parameters kept in the reduced system: the EOPs (``6 n``, image by
+image) and, with self-calibration, the free interior parameters of the camera (``c``, last;
+:mod:`seqat.calibration`). Used by :func:`seqat.simultaneous.adjust_block`.
 """
 
 from __future__ import annotations
@@ -54,17 +56,35 @@ class BlockData:
         return int(self.nav_eop.shape[0])
 
 
+@dataclass(frozen=True, kw_only=True, eq=False)
+class CameraBlock:
+    """The free interior parameters of a self-calibrating block: their positions in
+    :data:`seqat.types.INTRINSICS` and their prior (stochastic constraint)."""
+
+    index: np.ndarray  # (c,) int
+    prior: FloatArray  # (c,) prior values
+    sigma: FloatArray  # (c,) prior standard deviations
+
+    @property
+    def size(self) -> int:
+        return int(self.index.size)
+
+    def residual(self, camera: PinholeCamera) -> FloatArray:
+        """``prior - current`` of the free parameters."""
+        return self.prior - camera.intrinsics[self.index]
+
+
 @dataclass(eq=False)
 class Normals:
     """Normal equations of one linearisation, GP-reduced."""
 
     lu: spla.SuperLU
-    N_ep: sp.csr_matrix  # (6n, 3m)
-    Nep_blocks: FloatArray  # (k, 6, 3) the block of each observation
+    N_Rp: sp.csr_matrix  # (r, 3m)
+    N_RR: sp.csr_matrix  # (r, r) EOPs and camera (nav and camera prior included)
     Npp_inv: FloatArray  # (m, 3, 3)
     b_p: FloatArray  # (3m,)
-    size: int
-    Nee: FloatArray  # (n, 6, 6) EOP diagonal blocks (nav included)
+    size: int  # r = 6 n + c
+    n_camera: int  # c: free interior parameters (last in R)
     Npp: FloatArray  # (m, 3, 3)
     undetermined: np.ndarray  # (m,) bool: points out of this linearisation
 
@@ -79,18 +99,27 @@ def eop_residual(nav_eop: FloatArray, eop: FloatArray) -> FloatArray:
 def linearise(
     camera: PinholeCamera, data: BlockData, eop: FloatArray, gp: FloatArray,
     damping: float = 0.0, robust_scale: float | None = None,
+    calib: CameraBlock | None = None,
 ) -> tuple[Normals, FloatArray, FloatArray]:
-    """Build and factorise the reduced normal equations at ``(eop, gp)``.
+    """Build and factorise the reduced normal equations at ``(eop, gp, camera)``.
 
     ``damping`` > 0 adds Marquardt's ``damping * diag(N)`` to the normal matrix (a
-    Levenberg-Marquardt step); 0 is the Gauss-Newton system.
+    Levenberg-Marquardt step); 0 is the Gauss-Newton system. ``calib``: the camera's free
+    interior parameters are unknowns too (columns ``6 n ...`` of the reduced system).
 
-    Returns the factorisation and the reduced right-hand side, plus the right-hand side of
-    the points.
+    Returns the factorisation and the reduced right-hand side, plus the image residuals.
     """
     n, m = data.n_images, data.n_points
     img, pt = data.obs_image, data.obs_point
-    uv, Je, Jp = project_with_jacobians(eop[img], gp[pt], camera)
+    c = calib.size if calib is not None else 0
+    if c:
+        uv, Je, Jp, Jc = project_with_jacobians(eop[img], gp[pt], camera, intrinsics=True)
+        JR = np.concatenate([Je, Jc[:, :, calib.index]], axis=2)  # type: ignore[union-attr]
+    else:
+        uv, JR, Jp = project_with_jacobians(eop[img], gp[pt], camera)
+    r = EOP_SIZE * n + c
+    rcol = np.concatenate([EOP_SIZE * img[:, None] + np.arange(EOP_SIZE),
+                           np.broadcast_to(EOP_SIZE * n + np.arange(c), (img.size, c))], axis=1)
     ell = data.obs_uv - uv  # (k, 2)
     w = cauchy_weight(ell, data.obs_sigma_px, robust_scale) / data.obs_sigma_px**2
     # Points the data do not determine here (parallel rays, an iterate sent far off by a
@@ -105,40 +134,43 @@ def linearise(
             ev[:, 0])
         if undetermined.any():
             w = np.where(undetermined[pt], 0.0, w)
-    wJe = Je * w[:, None, None]
+    wJR = JR * w[:, None, None]
     wJp = Jp * w[:, None, None]
-    Nee = np.zeros((n, EOP_SIZE, EOP_SIZE))
-    np.add.at(Nee, img, np.einsum("kri,krj->kij", wJe, Je))
-    Nee[:, np.arange(EOP_SIZE), np.arange(EOP_SIZE)] += 1.0 / data.nav_sigma**2
-    b_e = np.zeros((n, EOP_SIZE))
-    np.add.at(b_e, img, np.einsum("kri,kr->ki", wJe, ell))
-    b_e += eop_residual(data.nav_eop, eop) / data.nav_sigma**2
+    # N_RR: the observations' (6 + c)^2 blocks, the nav on the EOP diagonal, the camera prior
+    blocks = np.einsum("kri,krj->kij", wJR, JR)
+    diag_w = np.concatenate([(1.0 / data.nav_sigma**2).ravel(),
+                             1.0 / calib.sigma**2 if c else np.zeros(0)])  # type: ignore[union-attr]
+    b_R = np.bincount(rcol.ravel(), weights=np.einsum("kri,kr->ki", wJR, ell).ravel(),
+                      minlength=r).astype(np.float64)
+    b_R[: EOP_SIZE * n] += (eop_residual(data.nav_eop, eop) / data.nav_sigma**2).ravel()
+    if c:
+        b_R[EOP_SIZE * n :] += calib.residual(camera) / calib.sigma**2  # type: ignore[union-attr]
     Npp[undetermined] = np.eye(GP_SIZE)  # the other blocks keep their rows' weights
     b_p = np.zeros((m, GP_SIZE))
     np.add.at(b_p, pt, np.einsum("kri,kr->ki", wJp, ell))
+    N_RR = sp.coo_matrix(
+        (np.concatenate([blocks.ravel(), diag_w]),
+         (np.concatenate([np.repeat(rcol, rcol.shape[1], axis=1).ravel(), np.arange(r)]),
+          np.concatenate([np.tile(rcol, (1, rcol.shape[1])).ravel(), np.arange(r)]))),
+        shape=(r, r)).tocsr()
     if damping > 0.0:
-        diag3, diag6 = np.arange(GP_SIZE), np.arange(EOP_SIZE)
+        diag3 = np.arange(GP_SIZE)
         Npp[:, diag3, diag3] *= 1.0 + damping
-        Nee[:, diag6, diag6] *= 1.0 + damping
-    Nep_blocks = np.einsum("kri,krj->kij", wJe, Jp)  # (k, 6, 3)
+        N_RR = N_RR + sp.diags(damping * N_RR.diagonal())
+    NRp_blocks = np.einsum("kri,krj->kij", wJR, Jp)  # (k, 6 + c, 3)
     try:
         Npp_inv = np.linalg.inv(Npp)
     except np.linalg.LinAlgError as err:
         raise EstimationError(f"singular 3x3 ground point normal block ({m} points)") from err
-    rows = (EOP_SIZE * img[:, None, None] + np.arange(EOP_SIZE)[None, :, None]).repeat(GP_SIZE, 2)
-    cols = (GP_SIZE * pt[:, None, None] + np.arange(GP_SIZE)[None, None, :]).repeat(EOP_SIZE, 1)
-    N_ep = sp.csr_matrix(
-        (Nep_blocks.ravel(), (rows.ravel(), cols.ravel())), shape=(EOP_SIZE * n, GP_SIZE * m)
-    )
-    Npp_inv_sp = sp.bsr_matrix(
-        (Npp_inv, np.arange(m), np.arange(m + 1)), shape=(GP_SIZE * m, GP_SIZE * m)
-    ).tocsr()
-    U1 = N_ep @ Npp_inv_sp  # N_ep N_pp^-1  (Eq. 5, U_1)
-    Nee_sp = sp.bsr_matrix(
-        (Nee, np.arange(n), np.arange(n + 1)), shape=(EOP_SIZE * n, EOP_SIZE * n)
-    ).tocsr()
-    N_r = (Nee_sp - U1 @ N_ep.T).tocsc()
-    rhs = b_e.ravel() - U1 @ b_p.ravel()
+    rows = np.repeat(rcol[:, :, None], GP_SIZE, axis=2)
+    cols = np.repeat((GP_SIZE * pt[:, None, None] + np.arange(GP_SIZE)[None, None, :]),
+                     rcol.shape[1], axis=1)
+    N_Rp = sp.csr_matrix((NRp_blocks.ravel(), (rows.ravel(), cols.ravel())),
+                         shape=(r, GP_SIZE * m))
+    Npp_inv_sp = _block_diagonal(Npp_inv)
+    U1 = N_Rp @ Npp_inv_sp  # N_Rp N_pp^-1  (Eq. 5, U_1)
+    N_r = (N_RR - U1 @ N_Rp.T).tocsc()
+    rhs = b_R - U1 @ b_p.ravel()
     try:
         lu = spla.splu(N_r)
     except RuntimeError as err:
@@ -146,12 +178,12 @@ def linearise(
     return (
         Normals(
             lu=lu,
-            N_ep=N_ep,
-            Nep_blocks=Nep_blocks,
+            N_Rp=N_Rp,
+            N_RR=N_RR,
             Npp_inv=Npp_inv,
             b_p=b_p.ravel(),
-            size=N_r.shape[0],
-            Nee=Nee,
+            size=r,
+            n_camera=c,
             Npp=Npp,
             undetermined=undetermined,
         ),
@@ -160,103 +192,107 @@ def linearise(
     )
 
 
+def _block_diagonal(blocks: FloatArray) -> sp.csr_matrix:
+    """(m, 3, 3) blocks as a sparse block-diagonal matrix."""
+    m = blocks.shape[0]
+    return sp.bsr_matrix((blocks, np.arange(m), np.arange(m + 1)),
+                         shape=(GP_SIZE * m, GP_SIZE * m)).tocsr()
+
+
 def weighted_ssr(camera: PinholeCamera, data: BlockData, eop: FloatArray,
-                  gp: FloatArray, robust_scale: float | None = None) -> float:
-    """Weighted sum of squared residuals (image points and nav) at ``(eop, gp)``; with a
-    ``robust_scale`` the image points' Cauchy cost (:mod:`seqat.robust`)."""
+                  gp: FloatArray, robust_scale: float | None = None,
+                  calib: CameraBlock | None = None) -> float:
+    """Weighted sum of squared residuals (image points, nav, camera prior) at ``(eop, gp,
+    camera)``; with a ``robust_scale`` the image points' Cauchy cost (:mod:`seqat.robust`)."""
     img, pt = data.obs_image, data.obs_point
     if np.any(depth(eop[img], gp[pt]) <= 0.0):
         return math.inf  # a point behind a camera that sees it: not a solution
     res = data.obs_uv - project(eop[img], gp[pt], camera)
     ssr = cauchy_cost(res, data.obs_sigma_px, robust_scale)
     ssr += float(np.sum(eop_residual(data.nav_eop, eop) ** 2 / data.nav_sigma**2))
+    if calib is not None:
+        ssr += float(np.sum((calib.residual(camera) / calib.sigma) ** 2))
     return ssr if np.isfinite(ssr) else math.inf
 
 
-def back_substitute(nrm: Normals, delta_e: FloatArray) -> FloatArray:
-    """GP corrections ``N_pp^-1 (b_p - N_ep^T delta_e)`` (Eq. 6)."""
-    r = (nrm.b_p - nrm.N_ep.T @ delta_e).reshape(-1, GP_SIZE)
+def back_substitute(nrm: Normals, delta_r: FloatArray) -> FloatArray:
+    """GP corrections ``N_pp^-1 (b_p - N_Rp^T delta_R)`` (Eq. 6)."""
+    r = (nrm.b_p - nrm.N_Rp.T @ delta_r).reshape(-1, GP_SIZE)
     return np.einsum("mij,mj->mi", nrm.Npp_inv, r)
 
 
-def eop_cofactor_blocks(
-    nrm: Normals, n: int, pairs: tuple[np.ndarray, np.ndarray] | None = None
-) -> tuple[FloatArray, FloatArray]:
-    """Diagonal 6x6 blocks of ``N_r^-1`` and, optionally, its blocks ``(a[k], b[k])``.
+def eop_cofactor_blocks(nrm: Normals, n: int) -> FloatArray:
+    """Diagonal 6x6 blocks of ``N_r^-1``, (n, 6, 6).
 
     ``N_r^-1`` is solved ``COVARIANCE_CHUNK_IMAGES`` images (columns) at a time, so memory stays
     ``O(n * chunk)``.
-
-    Returns
-    -------
-    diag : (n, 6, 6) float
-    pair_blocks : (len(a), 6, 6) float
     """
     diag = np.empty((n, EOP_SIZE, EOP_SIZE))
-    a, b = pairs if pairs is not None else (np.zeros(0, np.int64), np.zeros(0, np.int64))
-    pair_blocks = np.empty((a.size, EOP_SIZE, EOP_SIZE))
     for start in range(0, n, COVARIANCE_CHUNK_IMAGES):
         stop = min(n, start + COVARIANCE_CHUNK_IMAGES)
         cols = np.arange(EOP_SIZE * start, EOP_SIZE * stop)
-        rhs = np.zeros((EOP_SIZE * n, cols.size))
+        rhs = np.zeros((nrm.size, cols.size))
         rhs[cols, np.arange(cols.size)] = 1.0
-        X = nrm.lu.solve(rhs)  # (6n, 6c) columns of N_r^-1
+        X = nrm.lu.solve(rhs)[: EOP_SIZE * n]  # (6n, 6c) columns of N_r^-1
         Xb = X.reshape(n, EOP_SIZE, stop - start, EOP_SIZE)
         idx = np.arange(start, stop)
         diag[start:stop] = Xb[idx, :, idx - start, :]
-        sel = (b >= start) & (b < stop)
-        pair_blocks[sel] = Xb[a[sel], :, b[sel] - start, :]
-    return diag, pair_blocks
+    return diag
+
+
+def camera_cofactor(nrm: Normals) -> FloatArray:
+    """(c, c) cofactor of the free interior parameters (the last ``c`` columns of
+    ``N_r^-1``)."""
+    c = nrm.n_camera
+    rhs = np.zeros((nrm.size, c))
+    rhs[nrm.size - c + np.arange(c), np.arange(c)] = 1.0
+    Q = nrm.lu.solve(rhs)[nrm.size - c :]
+    return 0.5 * (Q + Q.T)
+
+
+#: Points whose cofactors are solved at once by :func:`gp_cofactors`.
+GP_COFACTOR_CHUNK = 1000
 
 
 def gp_cofactors(nrm: Normals, data: BlockData) -> FloatArray:
-    """3x3 cofactor of every GP (Eq. 5, ``U_3``).
-
-    ``N_pp^-1 + V^T N_r^-1 V`` with ``V = N_ep N_pp^-1``.
-    """
-    n, m = data.n_images, data.n_points
-    img, pt = data.obs_image, data.obs_point
-    U = nrm.Nep_blocks @ nrm.Npp_inv[pt]  # 6x3 block N_ep(i, p) N_pp^-1(p) per observation
-    # All ordered pairs (o1, o2) of observations of the same point.
-    order = np.argsort(pt, kind="stable")
-    counts = np.bincount(pt, minlength=m)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    rep = counts[pt[order]]
-    o1 = np.repeat(order, rep)
-    within = np.arange(o1.size) - np.repeat(np.cumsum(rep) - rep, rep)
-    o2 = order[np.repeat(starts[pt[order]], rep) + within]
-    _, Qpairs = eop_cofactor_blocks(nrm, n, (img[o1], img[o2]))
-    contrib = np.einsum("kia,kij,kjb->kab", U[o1], Qpairs, U[o2])
+    """3x3 cofactor of every GP (Eq. 5, ``U_3``): the diagonal blocks of
+    ``N_pp^-1 + V^T N_r^-1 V`` with ``V = N_Rp N_pp^-1``, solved for
+    :data:`GP_COFACTOR_CHUNK` points at a time."""
+    m = data.n_points
+    V = (nrm.N_Rp @ _block_diagonal(nrm.Npp_inv)).tocsc()
     Qp = nrm.Npp_inv.copy()
-    np.add.at(Qp, pt[o1], contrib)
+    r = nrm.size
+    for start in range(0, m, GP_COFACTOR_CHUNK):
+        stop = min(m, start + GP_COFACTOR_CHUNK)
+        Vc = V[:, GP_SIZE * start : GP_SIZE * stop].toarray()
+        Y = nrm.lu.solve(Vc)
+        Qp[start:stop] += np.einsum("rca,rcb->cab", Vc.reshape(r, -1, GP_SIZE),
+                                    Y.reshape(r, -1, GP_SIZE))
     return Qp
 
 
 def full_normal(nrm: Normals, n: int, m: int) -> FloatArray:
-    """Dense normal matrix over ``[EOPs, GPs]``: its GP-GP part is exactly block diagonal
-    (the sequential information engine eliminates those blocks)."""
-    ne = EOP_SIZE * n
-    N = np.zeros((ne + GP_SIZE * m, ne + GP_SIZE * m))
-    for i in range(n):
-        N[EOP_SIZE * i : EOP_SIZE * (i + 1), EOP_SIZE * i : EOP_SIZE * (i + 1)] = nrm.Nee[i]
+    """Dense normal matrix over ``[EOPs, camera, GPs]``: its GP-GP part is exactly block
+    diagonal (the sequential information engine eliminates those blocks)."""
+    r = nrm.size
+    N = np.zeros((r + GP_SIZE * m, r + GP_SIZE * m))
+    N[:r, :r] = nrm.N_RR.toarray()
     for j in range(m):
-        o = ne + GP_SIZE * j
+        o = r + GP_SIZE * j
         N[o : o + GP_SIZE, o : o + GP_SIZE] = nrm.Npp[j]
-    Nep = nrm.N_ep.toarray()
-    N[:ne, ne:] = Nep
-    N[ne:, :ne] = Nep.T
+    NRp = nrm.N_Rp.toarray()
+    N[:r, r:] = NRp
+    N[r:, :r] = NRp.T
     return N
 
 
 def full_cofactor(nrm: Normals, n: int, m: int) -> FloatArray:
-    """Dense inverse normal matrix over ``[EOPs, GPs]`` (Eq. 5)."""
-    Qee = nrm.lu.solve(np.eye(EOP_SIZE * n))
-    Qee = 0.5 * (Qee + Qee.T)
-    Npp_inv_sp = sp.bsr_matrix(
-        (nrm.Npp_inv, np.arange(m), np.arange(m + 1)), shape=(GP_SIZE * m, GP_SIZE * m)
-    ).tocsr()
-    U1 = (nrm.N_ep @ Npp_inv_sp).toarray()  # N_ep N_pp^-1
-    Qep = -Qee @ U1  # U_2
-    Qpp = Npp_inv_sp.toarray() + U1.T @ Qee @ U1  # U_3
+    """Dense inverse normal matrix over ``[EOPs, camera, GPs]`` (Eq. 5)."""
+    Qrr = nrm.lu.solve(np.eye(nrm.size))
+    Qrr = 0.5 * (Qrr + Qrr.T)
+    Npp_inv_sp = _block_diagonal(nrm.Npp_inv)
+    U1 = (nrm.N_Rp @ Npp_inv_sp).toarray()  # N_Rp N_pp^-1
+    Qrp = -Qrr @ U1  # U_2
+    Qpp = Npp_inv_sp.toarray() + U1.T @ Qrr @ U1  # U_3
     Qpp = 0.5 * (Qpp + Qpp.T)
-    return np.block([[Qee, Qep], [Qep.T, Qpp]])
+    return np.block([[Qrr, Qrp], [Qrp.T, Qpp]])

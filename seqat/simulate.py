@@ -59,6 +59,8 @@ class StripSimConfig:
     sigma_position_m: float = 0.3
     sigma_attitude_deg: float = 0.1
     sigma_px: float = 1.0
+    # Lens distortion of the simulated camera (OpenCV k1, k2, p1, p2, k3; seqat/types.py).
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
     origin_e_m: float = 500000.0
     origin_n_m: float = 4090000.0
     edge_margin_px: float = 10.0
@@ -94,6 +96,9 @@ class StripSimConfig:
         if self.strip_spacing_m is not None and not self.strip_spacing_m > 0:
             raise ConfigError(f"simulation.strip_spacing_m: expected a positive number or "
                               f"null, got {self.strip_spacing_m!r}")
+        if len(self.distortion) != 5 or not all(np.isfinite(v) for v in self.distortion):
+            raise ConfigError(f"simulation.distortion: expected 5 numbers (k1, k2, p1, p2, "
+                              f"k3), got {self.distortion!r}")
         if not self.turn_s >= 0:
             raise ConfigError(f"simulation.turn_s: expected >= 0, got {self.turn_s!r}")
 
@@ -114,12 +119,14 @@ class StripSimConfig:
 
     @property
     def camera(self) -> PinholeCamera:
+        k1, k2, p1, p2, k3 = (float(v) for v in self.distortion)
         return PinholeCamera(
             f_px=self.focal_mm * 1e3 / self.pixel_um,
             cx_px=(self.width_px - 1) / 2.0,
             cy_px=(self.height_px - 1) / 2.0,
             width_px=self.width_px,
             height_px=self.height_px,
+            k1=k1, k2=k2, p1=p1, p2=p2, k3=k3,
         )
 
 

@@ -19,12 +19,15 @@ from enum import Enum
 import numpy as np
 
 from seqat import snooping
+from seqat.calibration import SelfCalibration, correlation, undetermined
 from seqat.errors import EstimationError
 from seqat.geometry import depth, intersect_rays, project, project_with_jacobians
 from seqat.normals import (
     BlockData,
+    CameraBlock,
     Normals,
     back_substitute,
+    camera_cofactor,
     eop_cofactor_blocks,
     eop_residual,
     full_cofactor,
@@ -37,6 +40,7 @@ from seqat.robust import cauchy_weight
 from seqat.types import (
     EOP_SIZE,
     GP_SIZE,
+    CameraEstimate,
     EopEstimate,
     FloatArray,
     Frame,
@@ -56,6 +60,9 @@ LINE_SEARCH_STEPS = (1.0, 0.5, 0.25, 0.125)
 #: A step is accepted when it does not raise the weighted SSR by more than this (relative):
 #: round-off at the minimum must not count as a rise.
 COST_TOLERANCE = 1e-10
+#: Convergence of the camera's free interior parameters: correction below this fraction of
+#: each one's prior sigma.
+CAMERA_TOLERANCE = 1e-6
 
 
 #: Sigma given to free GPS/INS components (Frame.nav_sigma inf): metres and radians.
@@ -90,6 +97,9 @@ class SimOptions:
     # Robust loss of the image points: least squares within this many sigma, a Cauchy tail
     # beyond (seqat/robust.py, 3 recommended); None: least squares.
     robust_scale: float | None = None
+    # Self-calibration: the camera's interior parameters it sets free are estimated too,
+    # with the camera as their prior (seqat/calibration.py); None: the camera is fixed.
+    calibration: SelfCalibration | None = None
 
     def __post_init__(self) -> None:
         from seqat.errors import ConfigError
@@ -122,6 +132,11 @@ class SimResult:
     full_cofactor: FloatArray | None = None
     full_normal: FloatArray | None = None  # its inverse, the normal matrix (Covariance.FULL)
     undetermined: np.ndarray | None = None  # (m,) bool: points the data do not determine
+    #: The camera at the solution (the input camera unless self-calibrating) and the
+    #: cofactor of its free interior parameters, (c, c); ``full_*`` then hold them between
+    #: the EOPs and the GPs.
+    camera: PinholeCamera | None = None
+    camera_cofactor: FloatArray | None = None
 
 
 def adjust_block(
@@ -131,6 +146,7 @@ def adjust_block(
     gp0: FloatArray,
     options: SimOptions = SimOptions(),
     covariance: Covariance = Covariance.BLOCKS,
+    calib: CameraBlock | None = None,
 ) -> SimResult:
     """Simultaneous adjustment by Gauss-Newton (seed 000 §2.1).
 
@@ -145,6 +161,9 @@ def adjust_block(
         Initial GP coordinates (local), all finite.
     options : SimOptions
     covariance : Covariance
+    calib : CameraBlock, optional
+        Self-calibration: these interior parameters of ``camera`` (its values the initial
+        ones) are estimated too, with their prior.
 
     Returns
     -------
@@ -160,32 +179,46 @@ def adjust_block(
         raise EstimationError("initial ground point coordinates must be finite")
     eop = np.array(eop0, dtype=np.float64)
     gp = np.array(gp0, dtype=np.float64)
+    c = calib.size if calib is not None else 0
+    cam_index = calib.index if calib is not None else np.zeros(0, dtype=np.int64)
+    intr = camera.intrinsics
+
+    def camera_at(values: FloatArray) -> PinholeCamera:
+        if not c:
+            return camera
+        full = intr.copy()
+        full[cam_index] = values
+        return camera.with_intrinsics(full)
+
+    cam_x = intr[cam_index].copy()
+    cam = camera
     converged = False
     iterations = 0
     nrm: Normals | None = None
     damping = 0.0
     was_damped = False
     robust = options.robust_scale
-    cost = weighted_ssr(camera, data, eop, gp, robust)
+    cost = weighted_ssr(cam, data, eop, gp, robust, calib)
     for iterations in range(1, options.max_iterations + 1):
         # Gauss-Newton while it lowers the cost, shortened by a line search when the full
         # step overshoots, Levenberg-Marquardt damping when no shortened step helps (bad
         # initial values of real flights). Near the minimum the full Gauss-Newton step is
         # taken, so the solution is Gauss-Newton's wherever Gauss-Newton converges.
         while True:
-            nrm, rhs, _ = linearise(camera, data, eop, gp, damping, robust)
-            delta_e = nrm.lu.solve(rhs)
-            if not np.all(np.isfinite(delta_e)):
+            nrm, rhs, _ = linearise(cam, data, eop, gp, damping, robust, calib)
+            delta_r = nrm.lu.solve(rhs)
+            if not np.all(np.isfinite(delta_r)):
                 raise EstimationError(
                     f"non-finite correction in iteration {iterations} "
                     f"(reduced system of order {nrm.size})"
                 )
-            delta_p = back_substitute(nrm, delta_e).reshape(m, GP_SIZE)
-            de = delta_e.reshape(n, EOP_SIZE)
+            delta_p = back_substitute(nrm, delta_r).reshape(m, GP_SIZE)
+            de = delta_r[: EOP_SIZE * n].reshape(n, EOP_SIZE)
+            dc = delta_r[EOP_SIZE * n :]
             new_cost, step = math.inf, 1.0
             for step in LINE_SEARCH_STEPS:
-                new_cost = weighted_ssr(camera, data, eop + step * de, gp + step * delta_p,
-                                         robust)
+                new_cost = weighted_ssr(camera_at(cam_x + step * dc), data, eop + step * de,
+                                        gp + step * delta_p, robust, calib)
                 if new_cost <= cost * (1.0 + COST_TOLERANCE):
                     break
             if new_cost <= cost * (1.0 + COST_TOLERANCE) or damping >= MAX_DAMPING:
@@ -194,23 +227,27 @@ def adjust_block(
         if new_cost > cost * (1.0 + COST_TOLERANCE):
             raise EstimationError(f"adjustment diverges (cost {new_cost:.4g} > {cost:.4g} even "
                                   f"with damping {damping:g}, iteration {iterations})")
-        de, delta_p = step * de, step * delta_p
+        de, delta_p, dc = step * de, step * delta_p, step * dc
         eop += de
         gp += delta_p
+        cam_x = cam_x + dc
+        cam = camera_at(cam_x)
         cost = new_cost
         was_damped = damping > 0.0 or step < 1.0
         damping = damping / DAMPING_FACTOR if damping > MIN_DAMPING else 0.0
         max_pos = max(np.max(np.abs(de[:, :3]), initial=0.0), np.max(np.abs(delta_p), initial=0.0))
         max_ang = np.max(np.abs(de[:, 3:]), initial=0.0)
+        # the camera: its correction small against its own prior sigma
+        max_cam = np.max(np.abs(dc) / calib.sigma, initial=0.0) if c else 0.0  # type: ignore[union-attr]
         if (not was_damped and max_pos < options.position_tolerance_m
-                and max_ang < options.angle_tolerance_rad):
+                and max_ang < options.angle_tolerance_rad and max_cam < CAMERA_TOLERANCE):
             converged = True
             break
     if was_damped:
-        nrm, _, _ = linearise(camera, data, eop, gp, 0.0, robust)  # the undamped system
+        nrm, _, _ = linearise(cam, data, eop, gp, 0.0, robust, calib)  # the undamped system
     assert nrm is not None
     img, pt = data.obs_image, data.obs_point
-    res_img = data.obs_uv - project(eop[img], gp[pt], camera)
+    res_img = data.obs_uv - project(eop[img], gp[pt], cam)
     res_nav = eop_residual(data.nav_eop, eop)
     weight = cauchy_weight(res_img, data.obs_sigma_px, robust)
     und = nrm.undetermined
@@ -219,15 +256,18 @@ def adjust_block(
         np.sum(weight[:, None] * res_img**2 / data.obs_sigma_px[:, None] ** 2)
         + np.sum(res_nav**2 / data.nav_sigma**2)
     )
+    if calib is not None:
+        ssr += float(np.sum((calib.residual(cam) / calib.sigma) ** 2))
     redundancy = 2 * int(np.count_nonzero(~und[pt])) - GP_SIZE * int(np.count_nonzero(~und))
     sigma0 = float(np.sqrt(ssr / redundancy)) if redundancy > 0 else float("nan")
     rms_px = float(np.sqrt(np.mean(res_img**2))) if img.size else float("nan")
     eop_cof = gp_cof = full = normal = None
+    cam_cof = camera_cofactor(nrm) if c else None
     if covariance is Covariance.FULL:
         full = full_cofactor(nrm, n, m)
         normal = full_normal(nrm, n, m)
         eop_cof = np.stack([full[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] for i in range(n)])
-        off = EOP_SIZE * n
+        off = EOP_SIZE * n + c
         gp_cof = (
             np.stack(
                 [
@@ -239,7 +279,7 @@ def adjust_block(
             else np.zeros((0, 3, 3))
         )
     elif covariance is Covariance.BLOCKS:
-        eop_cof, _ = eop_cofactor_blocks(nrm, n)
+        eop_cof = eop_cofactor_blocks(nrm, n)
         gp_cof = gp_cofactors(nrm, data) if m else np.zeros((0, 3, 3))
     return SimResult(
         eop=eop,
@@ -256,6 +296,8 @@ def adjust_block(
         full_cofactor=full,
         full_normal=normal,
         undetermined=und,
+        camera=cam,
+        camera_cofactor=cam_cof,
     )
 
 
@@ -345,6 +387,10 @@ class SimultaneousAT:
         self.camera = camera
         self.options = options
         self.refit_every_frame = refit_every_frame
+        #: The camera at the last solution (the prior ``camera`` until self-calibrated).
+        self.camera_now = camera
+        self._held: tuple[str, ...] = ()  # free parameters the last solution held at the prior
+        self._calibration = options.calibration  # ... and those it estimated
         self._cat = _Catalogue()
         self._origin: FloatArray | None = None
         self._result: SimResult | None = None
@@ -420,7 +466,7 @@ class SimultaneousAT:
         if np.any(need):
             mask = need[op]
             X, spread = intersect_rays(self._eop_est[oi[mask]], uv[mask], op[mask], n_pts,
-                                       self.camera)
+                                       self.camera_now)
             if self.options.min_ray_angle_deg > 0:
                 X[spread < np.radians(self.options.min_ray_angle_deg)] = np.nan
             gp_init[need] = X[need]
@@ -471,7 +517,7 @@ class SimultaneousAT:
         critical = self.options.snooping_critical
         for rounds in range(MAX_SNOOPING_ROUNDS + 1):
             data, sel, eop0, gp0, cat_idx = self._block()
-            res = adjust_block(self.camera, data, eop0, gp0, self.options,
+            res = self._adjust(data, eop0, gp0,
                                Covariance.FULL if critical is not None else covariance)
             self._result, self._point_sel = res, sel
             self._eop_est, self._gp_est = res.eop.copy(), res.gp.copy()
@@ -482,6 +528,56 @@ class SimultaneousAT:
         self._dirty = False
         return res
 
+    def calibration_block(self, calibration: SelfCalibration) -> CameraBlock:
+        """The prior of ``calibration``'s free parameters: the values of :attr:`camera`."""
+        idx = calibration.index
+        return CameraBlock(index=idx, prior=self.camera.intrinsics[idx],
+                           sigma=calibration.prior_sigma(self.camera)[idx])
+
+    def _adjust(self, data: BlockData, eop0: FloatArray, gp0: FloatArray,
+                covariance: Covariance) -> SimResult:
+        """:func:`adjust_block`, self-calibrating with :attr:`SimOptions.calibration`:
+        parameters the block does not determine (:func:`seqat.calibration.undetermined`) are
+        held at their prior and the block adjusted again without them."""
+        calibration = self.options.calibration
+        held: tuple[str, ...] = ()
+        while True:
+            calib = None
+            start = self.camera
+            if calibration is not None and calibration.free:
+                calib = self.calibration_block(calibration)
+                # start from the last estimate of the free parameters, the prior of the others
+                intr = self.camera.intrinsics
+                intr[calib.index] = self.camera_now.intrinsics[calib.index]
+                start = self.camera.with_intrinsics(intr)
+            res = adjust_block(start, data, eop0, gp0, self.options, covariance, calib)
+            if calib is None or calibration is None or not calibration.hold_undetermined:
+                break
+            assert res.camera_cofactor is not None
+            bad = undetermined(res.camera_cofactor, calib.sigma)
+            if not bad.any():
+                break
+            names = tuple(n for n, b in zip(calibration.names, bad, strict=True) if b)
+            held += names
+            calibration = calibration.holding(names)
+        self._held = held
+        self._calibration = calibration
+        assert res.camera is not None
+        self.camera_now = res.camera
+        return res
+
+    def camera_estimate(self) -> CameraEstimate | None:
+        """The self-calibrated camera of the last solution (None without self-calibration)."""
+        res = self._result
+        cal = self._calibration
+        if self.options.calibration is None or res is None or cal is None:
+            return None
+        scale = sigma_scale(res.sigma0, res.redundancy)
+        Q = res.camera_cofactor if res.camera_cofactor is not None else np.zeros((0, 0))
+        return CameraEstimate(camera=self.camera_now, prior=self.camera, free=cal.names,
+                              sigma=np.sqrt(np.diagonal(Q)) * scale,
+                              correlation=correlation(Q), held=self._held)
+
     def _snoop(self, res: SimResult, data: BlockData, sel: np.ndarray, cat_idx: np.ndarray,
                critical: float) -> bool:
         """One round of data snooping (seqat.snooping); True when something was rejected or
@@ -490,11 +586,9 @@ class SimultaneousAT:
         assert full is not None
         n = data.n_images
         img, pt = data.obs_image, data.obs_point
-        uv, Je, Jp = project_with_jacobians(res.eop[img], res.gp[pt], self.camera)
-        cols = np.concatenate([EOP_SIZE * img[:, None] + np.arange(EOP_SIZE),
-                               EOP_SIZE * n + GP_SIZE * pt[:, None] + np.arange(GP_SIZE)],
-                              axis=1)
-        worst = snooping.point_w(np.concatenate([Je, Jp], axis=2),
+        J, cols = self._design(res, img, pt, n)
+        uv = project(res.eop[img], res.gp[pt], self.camera_now)
+        worst = snooping.point_w(J,
                                  full[cols[:, :, None], cols[:, None, :]],
                                  data.obs_uv - uv, data.obs_sigma_px)
         cat = self._cat
@@ -547,11 +641,9 @@ class SimultaneousAT:
         n = res.eop.shape[0]
         uv = np.asarray(cat.obs_uv, dtype=np.float64).reshape(-1, 2)[idx]
         sigma = np.asarray(cat.obs_sigma, dtype=np.float64)[idx]
-        proj, Je, Jp = project_with_jacobians(res.eop[img], res.gp[pt], self.camera)
-        cols = np.concatenate([EOP_SIZE * img[:, None] + np.arange(EOP_SIZE),
-                               EOP_SIZE * n + GP_SIZE * pt[:, None] + np.arange(GP_SIZE)],
-                              axis=1)
-        w = snooping.predicted_w(np.concatenate([Je, Jp], axis=2),
+        J, cols = self._design(res, img, pt, n)
+        proj = project(res.eop[img], res.gp[pt], self.camera_now)
+        w = snooping.predicted_w(J,
                                  full[cols[:, :, None], cols[:, None, :]], uv - proj, sigma)
         back = idx[w < critical]
         if back.size == 0:
@@ -561,6 +653,21 @@ class SimultaneousAT:
                 for i, p in zip(img[w < critical], pt[w < critical], strict=True)}
         self.rejections = [r for r in self.rejections if (r[0], r[1]) not in gone]
         return True
+
+    def _design(self, res: SimResult, img: np.ndarray, pt: np.ndarray,
+                n: int) -> tuple[FloatArray, np.ndarray]:
+        """Jacobians (k, 2, 6 + c + 3) of the observations ``(img, pt)`` and their columns in
+        the full cofactor ``[EOPs, camera, GPs]``."""
+        cal = self._calibration
+        c = len(cal.free) if cal is not None and res.camera_cofactor is not None else 0
+        _, Je, Jp, Jc = project_with_jacobians(res.eop[img], res.gp[pt], self.camera_now,
+                                               intrinsics=True)
+        parts = [Je, Jc[:, :, cal.index]] if c and cal is not None else [Je]
+        cols = np.concatenate([EOP_SIZE * img[:, None] + np.arange(EOP_SIZE),
+                               np.broadcast_to(EOP_SIZE * n + np.arange(c), (img.size, c)),
+                               EOP_SIZE * n + c + GP_SIZE * pt[:, None] + np.arange(GP_SIZE)],
+                              axis=1)
+        return np.concatenate([*parts, Jp], axis=2), cols
 
     def _update_record(self, frame: Frame, i: int, ms: float, iterations: int) -> ImageUpdate:
         res = self._result if not self._dirty else None
@@ -633,5 +740,6 @@ class SimultaneousAT:
                 )
             )
         return Solution(
-            eops=tuple(eops), points=tuple(pts), sigma0=res.sigma0, redundancy=res.redundancy
+            eops=tuple(eops), points=tuple(pts), sigma0=res.sigma0, redundancy=res.redundancy,
+            camera=self.camera_estimate(),
         )

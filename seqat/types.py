@@ -3,11 +3,13 @@
 Conventions (docs/conventions.md): world frame east-north-up in metres; EOP vector
 ``[X0_m, Y0_m, Z0_m, omega_rad, phi_rad, kappa_rad]`` with the camera->world rotation
 ``R = Rx(omega) Ry(phi) Rz(kappa)``; image points in OpenCV pixels (u right, v down, origin
-at the centre of the top-left pixel) of an ideal pinhole camera (distortion removed upstream).
+at the centre of the top-left pixel) of a central-projection camera with square pixels and,
+optionally, OpenCV (Brown) lens distortion (:class:`PinholeCamera`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,17 +23,48 @@ FloatArray = NDArray[np.float64]
 EOP_SIZE = 6
 #: Number of coordinates per ground point.
 GP_SIZE = 3
+#: The camera's interior parameters, in the order of :attr:`PinholeCamera.intrinsics`
+#: (COLMAP's OPENCV model with ``fx = fy = f``; docs/conventions.md, *Camera*).
+INTRINSICS = ("f_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3")
 
 
 @dataclass(frozen=True, kw_only=True)
 class PinholeCamera:
-    """Ideal pinhole camera in pixels (square pixels; distortion is removed before seqat)."""
+    """Central-projection camera in pixels: square pixels, OpenCV lens distortion.
+
+    With every distortion coefficient 0 (the default) it is the ideal pinhole camera the
+    image points of a flight without self-calibration are mapped to before seqat. With
+    coefficients it is COLMAP's ``OPENCV`` model with ``fx = fy = f_px``: normalised camera
+    coordinates ``(xn, yn)`` (OpenCV frame), ``r2 = xn^2 + yn^2``,
+    ``xd = xn (1 + k1 r2 + k2 r2^2 + k3 r2^3) + 2 p1 xn yn + p2 (r2 + 2 xn^2)``,
+    ``yd = yn (1 + ...) + p1 (r2 + 2 yn^2) + 2 p2 xn yn``, ``u = cx + f xd``, ``v = cy + f yd``.
+    """
 
     f_px: float
     cx_px: float
     cy_px: float
     width_px: int
     height_px: int
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    k3: float = 0.0
+
+    @property
+    def intrinsics(self) -> FloatArray:
+        """(8,) ``[f_px, cx_px, cy_px, k1, k2, p1, p2, k3]`` (:data:`INTRINSICS`)."""
+        return np.array([float(getattr(self, n)) for n in INTRINSICS])
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(getattr(self, n) != 0.0 for n in ("k1", "k2", "p1", "p2", "k3"))
+
+    def with_intrinsics(self, values: FloatArray) -> PinholeCamera:
+        """The same camera with the :data:`INTRINSICS` ``values`` (8,)."""
+        v = np.asarray(values, dtype=np.float64).reshape(len(INTRINSICS))
+        return dataclasses.replace(self, **{n: float(x) for n, x in zip(INTRINSICS, v,
+                                                                        strict=True)})
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.f_px) and self.f_px > 0):
@@ -40,7 +73,7 @@ class PinholeCamera:
             raise InputDataError(
                 f"camera size must be positive, got {self.width_px} x {self.height_px} px"
             )
-        for name in ("cx_px", "cy_px"):
+        for name in ("cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3"):
             if not np.isfinite(getattr(self, name)):
                 raise InputDataError(f"camera {name} must be finite, got {getattr(self, name)!r}")
 
@@ -131,6 +164,33 @@ class PointEstimate:
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
+class CameraEstimate:
+    """The estimated camera with the standard deviations and correlations of its free
+    parameters (scaled by the a posteriori sigma0); ``held`` are those the block did not
+    determine (fixed at their prior)."""
+
+    camera: PinholeCamera
+    prior: PinholeCamera
+    free: tuple[str, ...]
+    sigma: FloatArray  # (len(free),)
+    correlation: FloatArray  # (len(free), len(free))
+    held: tuple[str, ...] = ()
+
+    def as_dict(self) -> dict[str, object]:
+        """JSON-ready summary (docs/formats.md, run.json ``camera``)."""
+        values = {n: float(getattr(self.camera, n)) for n in INTRINSICS}
+        prior = {n: float(getattr(self.prior, n)) for n in INTRINSICS}
+        return {
+            "values": values,
+            "prior": prior,
+            "free": list(self.free),
+            "held": list(self.held),
+            "sigma": {n: float(s) for n, s in zip(self.free, self.sigma, strict=True)},
+            "correlation": np.round(self.correlation, 4).tolist(),
+        }
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
 class Solution:
     """All parameters known so far (window and frozen), in first-seen order."""
 
@@ -138,6 +198,8 @@ class Solution:
     points: tuple[PointEstimate, ...]
     sigma0: float
     redundancy: int
+    #: The self-calibrated camera (None: the camera was fixed).
+    camera: CameraEstimate | None = None
 
 
 @dataclass(frozen=True, kw_only=True)

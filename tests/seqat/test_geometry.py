@@ -99,3 +99,77 @@ def test_intersection_of_single_ray_is_undefined() -> None:
     eop = np.array([[0.0, 0.0, 100.0, 0.0, 0.0, 0.0]])
     X, spread = intersect_rays(eop, np.array([[100.0, 200.0]]), np.array([0]), 1, CAM)
     assert np.all(np.isnan(X)) and spread[0] == 0.0
+
+
+#: A strongly distorted camera (a consumer wide angle: 3 % barrel at the corners, decentring).
+DISTORTED = PinholeCamera(f_px=2500.0, cx_px=1810.0, cy_px=1340.0, width_px=3600,
+                          height_px=2700, k1=-0.08, k2=0.03, p1=4e-4, p2=-6e-4, k3=-0.01)
+
+
+def _points_in_view(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    eop = _random_pose(rng, n)
+    X = np.column_stack([eop[:, :2] + rng.normal(0, 60, (n, 2)), rng.uniform(-10, 20, n)])
+    return eop, X
+
+
+def test_distorted_projection_equals_opencv() -> None:
+    import cv2
+
+    rng = np.random.default_rng(11)
+    eop, X = _points_in_view(rng, 40)
+    uv = project(eop, X, DISTORTED)
+    R = rotation_matrix(eop[:, 3], eop[:, 4], eop[:, 5])
+    cv_from_cam = np.diag([1.0, -1.0, -1.0])
+    c = DISTORTED
+    K = np.array([[c.f_px, 0, c.cx_px], [0, c.f_px, c.cy_px], [0, 0, 1.0]])
+    dist = np.array([c.k1, c.k2, c.p1, c.p2, c.k3])
+    for i in range(len(X)):
+        Rcv = cv_from_cam @ R[i].T
+        rvec, _ = cv2.Rodrigues(Rcv)
+        tvec = -Rcv @ eop[i, :3]
+        ref, _ = cv2.projectPoints(X[i : i + 1], rvec, tvec, K, dist)
+        np.testing.assert_allclose(uv[i], ref.reshape(2), atol=1e-6)
+
+
+def test_distorted_jacobians_match_finite_differences() -> None:
+    rng = np.random.default_rng(12)
+    eop, X = _points_in_view(rng, 30)
+    _, Je, Jp, Jc = project_with_jacobians(eop, X, DISTORTED, intrinsics=True)
+    _, Je0, Jp0 = project_with_jacobians(eop, X, DISTORTED)
+    np.testing.assert_array_equal(Je, Je0)
+    np.testing.assert_array_equal(Jp, Jp0)
+    for k in range(6):
+        h = STEP_M if k < 3 else STEP_RAD
+        d = np.zeros(6)
+        d[k] = h
+        fd = (project(eop + d, X, DISTORTED) - project(eop - d, X, DISTORTED)) / (2 * h)
+        np.testing.assert_allclose(Je[:, :, k], fd, rtol=JACOBIAN_RTOL, atol=1e-3)
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = STEP_M
+        fd = (project(eop, X + d, DISTORTED) - project(eop, X - d, DISTORTED)) / (2 * STEP_M)
+        np.testing.assert_allclose(Jp[:, :, k], fd, rtol=JACOBIAN_RTOL, atol=1e-3)
+    base = DISTORTED.intrinsics
+    for k, h in enumerate([1e-3, 1e-3, 1e-3, 1e-7, 1e-7, 1e-8, 1e-8, 1e-7]):
+        d = np.zeros(8)
+        d[k] = h
+        fd = (project(eop, X, DISTORTED.with_intrinsics(base + d))
+              - project(eop, X, DISTORTED.with_intrinsics(base - d))) / (2 * h)
+        np.testing.assert_allclose(Jc[:, :, k], fd, rtol=JACOBIAN_RTOL, atol=1e-3)
+
+
+def test_distorted_project_intersect_round_trip() -> None:
+    rng = np.random.default_rng(13)
+    n_pts, n_img = 30, 5
+    eop = _random_pose(rng, n_img)
+    eop[:, :2] = np.column_stack([np.linspace(-40, 40, n_img), np.zeros(n_img)])
+    X = np.column_stack([rng.uniform(-60, 60, (n_pts, 2)), rng.uniform(-5, 5, n_pts)])
+    img = np.repeat(np.arange(n_img), n_pts)
+    pt = np.tile(np.arange(n_pts), n_img)
+    uv = project(eop[img], X[pt], DISTORTED)
+    X_hat, _ = intersect_rays(eop[img], uv, pt, n_pts, DISTORTED)
+    np.testing.assert_allclose(X_hat, X, atol=1e-7)
+    # the same pixels through the undistorted camera miss by metres: distortion is applied
+    X_bad, _ = intersect_rays(eop[img], uv, pt, n_pts, DISTORTED.with_intrinsics(
+        np.r_[DISTORTED.intrinsics[:3], np.zeros(5)]))
+    assert np.max(np.abs(X_bad - X)) > 0.5

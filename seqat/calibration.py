@@ -1,0 +1,120 @@
+"""Self-calibration: the camera's interior parameters as unknowns shared by all images.
+
+Seed 003 §3.3: the additional parameters of self-calibration "should be included" in the
+sequential estimation. The interior parameters (:data:`seqat.types.INTRINSICS`: focal length,
+principal point, radial ``k1 k2 k3`` and decentring ``p1 p2`` distortion of COLMAP's OPENCV
+model) that :class:`SelfCalibration` sets free are estimated with every image's EOPs, with
+a prior (the EXIF or ``flight.yaml`` value, a standard deviation each) as a stochastic
+constraint. The prior keeps the normal equations regular; a parameter the block cannot
+determine is *held*: fixed at its prior and reported as such (:func:`undetermined`), as
+Metashape and COLMAP warn of over-parameterisation. docs/algorithm.md, *Self-calibration*.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from seqat.errors import ConfigError
+from seqat.types import INTRINSICS, FloatArray, PinholeCamera
+
+#: Parameters estimated by default: focal length, principal point, k1, k2, p1, p2 (k3 is
+#: rarely determinable from an aerial block and correlates with k1/k2).
+DEFAULT_FREE = ("f_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2")
+
+#: Default prior standard deviations: f as a fraction of f (EXIF focal lengths are nominal,
+#: a few per cent off), the principal point as a fraction of the larger image side, the
+#: distortion coefficients in their own (normalised) units.
+PRIOR_F_FRACTION = 0.05
+PRIOR_C_FRACTION = 0.02
+PRIOR_K = 0.2
+PRIOR_P = 0.01
+
+#: A free parameter is undetermined (held at its prior) when the block's data shrink its
+#: prior standard deviation by less than this factor: they add less than ``1/r^2 - 1 = 3``
+#: times the prior's information.
+HOLD_RATIO = 0.5
+
+
+@dataclass(frozen=True, kw_only=True)
+class SelfCalibration:
+    """Which interior parameters are estimated, and their prior standard deviations.
+
+    Parameters
+    ----------
+    free : tuple of str
+        Names from :data:`seqat.types.INTRINSICS`, estimated in the order of that tuple.
+    sigma : dict of str to float, optional
+        Prior standard deviation per parameter (pixels for ``f_px cx_px cy_px``, normalised
+        units for the distortion); missing ones get the defaults (:meth:`prior_sigma`).
+    hold_undetermined : bool
+        Hold parameters the block does not determine at their prior (:data:`HOLD_RATIO`).
+    """
+
+    free: tuple[str, ...] = DEFAULT_FREE
+    sigma: tuple[tuple[str, float], ...] = ()
+    hold_undetermined: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "free", tuple(self.free))
+        sig = dict(self.sigma) if not isinstance(self.sigma, dict) else self.sigma
+        object.__setattr__(self, "sigma", tuple(sorted(sig.items())))
+        unknown = [n for n in (*self.free, *sig) if n not in INTRINSICS]
+        if unknown:
+            raise ConfigError(f"self-calibration: unknown parameter {unknown[0]!r}, expected "
+                              f"one of {', '.join(INTRINSICS)}")
+        if len(set(self.free)) != len(self.free):
+            raise ConfigError("self-calibration: a parameter is listed twice")
+        for name, s in sig.items():
+            if not (np.isfinite(s) and s > 0):
+                raise ConfigError(f"self-calibration: sigma of {name} must be a positive "
+                                  f"number, got {s!r}")
+
+    @property
+    def index(self) -> np.ndarray:
+        """Positions of the free parameters in :data:`INTRINSICS`, in INTRINSICS order."""
+        return np.array([i for i, n in enumerate(INTRINSICS) if n in self.free],
+                        dtype=np.int64)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The free parameters in :data:`INTRINSICS` order (the estimator's column order)."""
+        return tuple(n for n in INTRINSICS if n in self.free)
+
+    def prior_sigma(self, camera: PinholeCamera) -> FloatArray:
+        """(8,) prior standard deviation of every :data:`INTRINSICS` parameter."""
+        side = float(max(camera.width_px, camera.height_px))
+        default = {"f_px": PRIOR_F_FRACTION * camera.f_px, "cx_px": PRIOR_C_FRACTION * side,
+                   "cy_px": PRIOR_C_FRACTION * side, "k1": PRIOR_K, "k2": PRIOR_K,
+                   "k3": PRIOR_K, "p1": PRIOR_P, "p2": PRIOR_P}
+        default.update(dict(self.sigma))
+        return np.array([default[n] for n in INTRINSICS])
+
+    def holding(self, names: tuple[str, ...]) -> SelfCalibration:
+        """The same calibration with ``names`` no longer free."""
+        return SelfCalibration(free=tuple(n for n in self.free if n not in names),
+                               sigma=self.sigma, hold_undetermined=self.hold_undetermined)
+
+
+def undetermined(cofactor: FloatArray, prior_sigma: FloatArray) -> np.ndarray:
+    """Free parameters the data do not determine: a posteriori sigma (a priori units, the
+    cofactor's square root) above :data:`HOLD_RATIO` times the prior sigma.
+
+    Parameters
+    ----------
+    cofactor : (c, c) float
+        Cofactor block of the free parameters.
+    prior_sigma : (c,) float
+
+    Returns
+    -------
+    (c,) bool
+    """
+    return np.sqrt(np.maximum(np.diagonal(cofactor), 0.0)) > HOLD_RATIO * prior_sigma
+
+
+def correlation(cofactor: FloatArray) -> FloatArray:
+    """Correlation matrix of a cofactor block."""
+    sd = np.sqrt(np.maximum(np.diagonal(cofactor), 1e-300))
+    return cofactor / np.outer(sd, sd)
