@@ -103,7 +103,7 @@ class BirthMixin:
         if not idx:
             return [], np.zeros((0, GP_SIZE))
         E, UV, I = np.asarray(eops), np.asarray(uvs), np.asarray(idx)
-        X, spread = intersect_rays(E, UV, I, len(candidates), self.camera)
+        X, spread = intersect_rays(E, UV, I, len(candidates), self._camera_now())
         min_angle = np.radians(
             [
                 MIN_FORCED_RAY_ANGLE_DEG if p in self._forced else self.options.min_ray_angle_deg
@@ -141,16 +141,17 @@ class BirthMixin:
         sig = np.asarray([s for p in candidates for (_, _, s) in self._pending[p]])
         limit = SCREEN_SIGMAS * crit * sig
         alive = old.copy()
+        cam = self._camera_now()
         for _ in range(MAX_SCREEN_ROUNDS):
             n_old = np.bincount(I[alive], minlength=len(candidates))
             if not np.any(n_old >= 3):
                 break
-            X, _ = intersect_rays(E[alive], UV[alive], I[alive], len(candidates), self.camera)
+            X, _ = intersect_rays(E[alive], UV[alive], I[alive], len(candidates), cam)
             res = np.full(I.size, -np.inf)
             sel = alive & (n_old[I] >= 3) & np.all(np.isfinite(X[I]), axis=1)
             if not np.any(sel):
                 break
-            res[sel] = (np.linalg.norm(UV[sel] - project(E[sel], X[I[sel]], self.camera),
+            res[sel] = (np.linalg.norm(UV[sel] - project(E[sel], X[I[sel]], cam),
                                        axis=1) - limit[sel])
             order = np.lexsort((-res, I))
             first = order[np.r_[True, I[order][1:] != I[order][:-1]]]

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from seqat.errors import ConfigError
-from seqat.types import INTRINSICS, FloatArray, PinholeCamera
+from seqat.geometry import project, project_with_jacobians
+from seqat.types import EOP_SIZE, INTRINSICS, FloatArray, PinholeCamera
 
 #: Parameters estimated by default: focal length, principal point, k1, k2, p1, p2 (k3 is
 #: rarely determinable from an aerial block and correlates with k1/k2).
@@ -118,3 +119,55 @@ def correlation(cofactor: FloatArray) -> FloatArray:
     """Correlation matrix of a cofactor block."""
     sd = np.sqrt(np.maximum(np.diagonal(cofactor), 1e-300))
     return cofactor / np.outer(sd, sd)
+
+
+@dataclass(frozen=True, eq=False)
+class FreeCamera:
+    """A camera whose free interior parameters ride along with each observation's EOP.
+
+    The sequential estimator addresses an image point's parameters as an *image block*
+    ``[EOP (6), free interior parameters (c)]`` and its GP (3): the camera's columns are
+    appended to every observation's EOP columns, so every factor, Jacobian and scatter
+    of the fixed-camera code applies unchanged (``c = 0`` is the fixed camera).
+
+    Parameters
+    ----------
+    base : PinholeCamera
+        The camera (its values of the parameters that are not free are used).
+    index : (c,) int
+        Positions of the free parameters in :data:`seqat.types.INTRINSICS`.
+    """
+
+    base: PinholeCamera
+    index: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return int(self.index.size)
+
+    def at(self, values: FloatArray) -> PinholeCamera:
+        """The camera with the free parameters at ``values`` (c,)."""
+        if not self.size:
+            return self.base
+        intr = self.base.intrinsics
+        intr[self.index] = values
+        return self.base.with_intrinsics(intr)
+
+    def _camera_of(self, e_ext: FloatArray) -> PinholeCamera:
+        if not self.size or e_ext.shape[0] == 0:
+            return self.base
+        return self.at(e_ext[0, EOP_SIZE:])  # one camera: every row holds the same values
+
+    def project(self, e_ext: FloatArray, X: FloatArray) -> FloatArray:
+        """Pixels of ``X`` (k, 3) from image blocks ``e_ext`` (k, 6 + c)."""
+        return project(e_ext[:, :EOP_SIZE], X, self._camera_of(e_ext))
+
+    def project_with_jacobians(self, e_ext: FloatArray,
+                               X: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Pixels and Jacobians ``d uv / d e_ext`` (k, 2, 6 + c) and ``d uv / d X``."""
+        cam = self._camera_of(e_ext)
+        if not self.size:
+            uv, Je, Jp = project_with_jacobians(e_ext, X, cam)
+            return uv, Je, Jp
+        uv, Je, Jp, Jc = project_with_jacobians(e_ext[:, :EOP_SIZE], X, cam, intrinsics=True)
+        return uv, np.concatenate([Je, Jc[:, :, self.index]], axis=2), Jp

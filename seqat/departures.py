@@ -16,9 +16,15 @@ import scipy.linalg
 
 from seqat.geometry import wrap_angle
 from seqat.simultaneous import sigma_scale
-from seqat.types import EOP_SIZE, GP_SIZE, EopEstimate, FloatArray, PointEstimate
+from seqat.types import EOP_SIZE, EopEstimate, FloatArray, PointEstimate
 from seqat.update import spd_inverse
-from seqat.window import Key, correlations_from_columns, first_over_threshold, keys_of
+from seqat.window import (
+    Key,
+    correlations_from_columns,
+    first_over_threshold,
+    key_size,
+    keys_of,
+)
 
 #: A GP stays in the Seq-R window only while this many window images (new one included) see it.
 MIN_WINDOW_RAYS = 2
@@ -73,7 +79,7 @@ class DepartureMixin:
             x_f = dep.x_leaving + dep.gain @ (x_w - dep.x_staying)
             off = 0
             for k in dep.leaving:
-                size = EOP_SIZE if k[0] == "e" else GP_SIZE
+                size = key_size(k)
                 # a key that re-entered the window left again later (or is in it): the
                 # newer departure, processed first, already holds its final value
                 value.setdefault(k, x_f[off : off + size])
@@ -97,11 +103,25 @@ class DepartureMixin:
         # rule would cut the whole window. Then the newest image that is tied (correlated
         # over the threshold with another window image) is the reference as well.
         diag = w.q_diagonal()
+        # Self-calibration: the camera, shared by every image and never leaving, correlates
+        # all EOPs with each other; the rule reads the correlations given the camera (what
+        # the tie structure couples), else the window would never be cut.
+        given_camera = None
+        if self._cam_key is not None:
+            cam = w.index(self._cam_key)
+            q_cam = w.q_columns(cam)
+            gain = np.linalg.solve(q_cam[cam], q_cam.T).T  # Q[:, c] Q_cc^-1
+            given_camera = (gain, q_cam)
+            diag = np.where(np.isin(np.arange(diag.size), cam), diag,
+                            diag - np.einsum("nc,nc->n", gain, q_cam))
         rho = np.zeros(len(offs))
         for r in range(len(offs) - 1, -1, -1):
             o = int(offs[r])
-            rho_r = correlations_from_columns(w.q_columns(o + np.arange(EOP_SIZE)), diag,
-                                              offs, o)
+            cols = w.q_columns(o + np.arange(EOP_SIZE))
+            if given_camera is not None:
+                gain, q_cam = given_camera
+                cols = cols - gain @ q_cam[o + np.arange(EOP_SIZE)].T
+            rho_r = correlations_from_columns(cols, diag, offs, o)
             rho = np.maximum(rho, rho_r)
             rho_r[r] = 0.0
             if np.any(rho_r >= thr):
@@ -315,7 +335,7 @@ class DepartureMixin:
         """
         w = self._w
         n = w.x.size
-        sizes = [EOP_SIZE if k[0] == "e" else GP_SIZE for k in keys]
+        sizes = [key_size(k) for k in keys]
         m = sum(sizes)
         if w.L is None:
             J = np.zeros((m, n))
@@ -378,7 +398,7 @@ class DepartureMixin:
             nonlocal buf, ncol
             c = col_of.get(key)
             if c is None:
-                size = EOP_SIZE if key[0] == "e" else GP_SIZE
+                size = key_size(key)
                 if ncol + size > buf.shape[1]:
                     buf = np.concatenate([buf, np.zeros_like(buf)], axis=1)
                 c = col_of[key] = ncol
@@ -399,10 +419,9 @@ class DepartureMixin:
             rec = min(pending)
             members = pending.pop(rec)
             dep = self._departures[rec]
-            src = np.concatenate([self._departed[k][2] + np.arange(EOP_SIZE if k[0] == "e"
-                                                                   else GP_SIZE)
+            src = np.concatenate([self._departed[k][2] + np.arange(key_size(k))
                                   for k in members])
-            cols = np.concatenate([col_of[k] + np.arange(EOP_SIZE if k[0] == "e" else GP_SIZE)
+            cols = np.concatenate([col_of[k] + np.arange(key_size(k))
                                    for k in members])
             JK = buf[:, cols].copy()
             buf[:, cols] = 0.0
@@ -413,7 +432,7 @@ class DepartureMixin:
             ucols = np.empty(JG.shape[1], dtype=np.int64)
             off = 0
             for sk in dep.staying:
-                size = EOP_SIZE if sk[0] == "e" else GP_SIZE
+                size = key_size(sk)
                 c = column(sk)
                 ucols[off : off + size] = c + np.arange(size)
                 off += size
@@ -448,7 +467,7 @@ class DepartureMixin:
             by_record.setdefault(self._departed.pop(key)[1], []).append(key)
         for rec, reopened in by_record.items():
             dep = self._departures[rec]
-            sizes = {k: EOP_SIZE if k[0] == "e" else GP_SIZE for k in dep.leaving}
+            sizes = {k: key_size(k) for k in dep.leaving}
             starts = dict(zip(dep.leaving, np.cumsum([0] + list(sizes.values()))[:-1],
                               strict=True))
             chosen = set(reopened)

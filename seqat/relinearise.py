@@ -76,7 +76,7 @@ class RelinearisationMixin:
         e_idx, p_idx = f.columns(w)
         x = w.x
         limit = opts.relinearise_px if threshold_px is None else threshold_px
-        self._drift_px = f.linearisation_error(x[e_idx], x[p_idx], self.camera)
+        self._drift_px = f.linearisation_error(x[e_idx], x[p_idx], self._cam)
         if self._drift_px <= limit and not force:
             return
         self.relinearisations += 1
@@ -117,7 +117,7 @@ class RelinearisationMixin:
         ssr_old_factors = f.linearised_ssr(x[e_idx], x[p_idx])
         Hp_x = H_p @ xk
         prior_old = prior(x, Hp_x)
-        Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self.camera)
+        Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self._cam)
         for _ in range(1 if robust is None else ROBUST_ROUNDS):
             cost = 0.5 * float(np.sum(wf[:, None] * r**2)) + prior(xk, Hp_x)
             for _ in range(opts.relinearise_iterations):
@@ -128,7 +128,7 @@ class RelinearisationMixin:
                 for _ in range(MAX_STEP_HALVINGS):
                     trial = xk + delta
                     Hp_t = H_p @ trial
-                    Je_t, Jp_t, r_t = f.evaluate(trial[e_idx], trial[p_idx], self.camera)
+                    Je_t, Jp_t, r_t = f.evaluate(trial[e_idx], trial[p_idx], self._cam)
                     cost_t = 0.5 * float(np.sum(wf[:, None] * r_t**2)) + prior(trial, Hp_t)
                     if np.isfinite(cost_t) and cost_t <= cost + 1e-9 * abs(cost):
                         break

@@ -15,9 +15,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from seqat import snooping
-from seqat.geometry import project, project_with_jacobians, wrap_angle
+from seqat.calibration import FreeCamera
+from seqat.geometry import wrap_angle
 from seqat.robust import cauchy_weight
-from seqat.types import EOP_SIZE, GP_SIZE, FloatArray, PinholeCamera
+from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 from seqat.update import LinearRows, UpdateSolution
 
 if TYPE_CHECKING:
@@ -106,7 +107,9 @@ class RowBuilder:
 
     Parameters
     ----------
-    cam : PinholeCamera
+    cam : FreeCamera
+        The camera; with free interior parameters (self-calibration) their block is at
+        column ``cam_col`` of ``z`` and joins every observation's EOP columns.
     t, n2 : int
         Numbers of touched existing and of new parameters.
     obs : list of (eop_col, point_col, uv, sigma_px, in_y2, (image, point))
@@ -122,13 +125,14 @@ class RowBuilder:
 
     def __init__(
         self,
-        cam: PinholeCamera,
+        cam: FreeCamera,
         t: int,
         n2: int,
         obs: list[tuple[int, int, FloatArray, float, bool, tuple[int, int]]],
         nav: FloatArray,
         nav_sigma: FloatArray,
         robust_scale: float | None = None,
+        cam_col: int = 0,
     ) -> None:
         self.cam, self.t, self.n2 = cam, t, n2
         self.robust_scale = robust_scale
@@ -142,10 +146,12 @@ class RowBuilder:
         k = len(ordered)
         ecol = np.asarray([o[0] for o in ordered], dtype=np.int64).reshape(k)
         pcol = np.asarray([o[1] for o in ordered], dtype=np.int64).reshape(k)
-        self.eidx = ecol[:, None] + np.arange(EOP_SIZE)
+        self.eidx = np.concatenate([ecol[:, None] + np.arange(EOP_SIZE), np.broadcast_to(
+            cam_col + np.arange(cam.size), (k, cam.size))], axis=1)
         self.pidx = pcol[:, None] + np.arange(GP_SIZE)
         rows = np.arange(2 * k).reshape(k, 2)
-        # Flat indices of each observation's 2x6 EOP and 2x3 GP Jacobians in the design.
+        # Flat indices of each observation's 2x(6+c) image-block and 2x3 GP Jacobians in the
+        # design.
         self.flat_e = (rows[:, :, None] * ncol + self.eidx[:, None, :]).ravel()
         self.flat_p = (rows[:, :, None] * ncol + self.pidx[:, None, :]).ravel()
         self.obs = np.asarray([o[2] for o in ordered], dtype=np.float64).reshape(2 * k)
@@ -167,7 +173,7 @@ class RowBuilder:
         A = np.zeros((2 * k + EOP_SIZE, self.ncol))
         ell = np.empty(2 * k + EOP_SIZE)
         if k:
-            uv, Je, Jp = project_with_jacobians(z[self.eidx], z[self.pidx], self.cam)
+            uv, Je, Jp = self.cam.project_with_jacobians(z[self.eidx], z[self.pidx])
             A.flat[self.flat_e] = Je.ravel()
             A.flat[self.flat_p] = Jp.ravel()
             ell[: 2 * k] = self.obs - uv.ravel()
@@ -217,7 +223,7 @@ class RowBuilder:
         if k == 0:
             return 0.0
         z = np.concatenate([x1t + d1t, x2_0 + d2])
-        true_resid = self.obs - project(z[self.eidx], z[self.pidx], self.cam).ravel()
+        true_resid = self.obs - self.cam.project(z[self.eidx], z[self.pidx]).ravel()
         lin_resid = self._ell[: 2 * k] - self._A[: 2 * k] @ np.concatenate([d1t, d2])
         return float(np.max(np.abs(true_resid - lin_resid)))
 
@@ -261,14 +267,15 @@ class FactorSet:
     uv: FloatArray  # (k, 2) ideal pixels
     w: FloatArray  # (k,) weight: 1/sigma^2 times the robust factor at the linearisation
     w0: FloatArray  # (k,) least-squares weight 1/sigma^2
-    e_lin: FloatArray  # (k, 6) EOP where the factor was linearised (local)
+    e_lin: FloatArray  # (k, 6 + c) image block (EOP, local; camera) where linearised
     p_lin: FloatArray  # (k, 3)
-    Je: FloatArray  # (k, 2, 6) Jacobians there
+    Je: FloatArray  # (k, 2, 6 + c) Jacobians there
     Jp: FloatArray  # (k, 2, 3)
     r_lin: FloatArray  # (k, 2) residual there
 
     def columns(self, w: Window) -> tuple[np.ndarray, np.ndarray]:
-        """Window columns of every factor's EOP (k, 6) and GP (k, 3)."""
+        """Window columns of every factor's image block (k, 6 + c: EOP, then the camera's
+        free parameters when the window holds them) and GP (k, 3)."""
         e_keys = {k[1]: off for k, off in w.offset.items() if k[0] == "e"}
         p_keys = {k[1]: off for k, off in w.offset.items() if k[0] == "p"}
         e_ids, e_offs = (np.fromiter(d, dtype=np.int64, count=len(d)) for d in
@@ -278,7 +285,11 @@ class FactorSet:
         e_order, p_order = np.argsort(e_ids), np.argsort(p_ids)
         e = e_offs[e_order][np.searchsorted(e_ids[e_order], self.img)]
         p = p_offs[p_order][np.searchsorted(p_ids[p_order], self.pt)]
-        return e[:, None] + np.arange(EOP_SIZE), p[:, None] + np.arange(GP_SIZE)
+        cam = [k for k in w.keys if k[0] == "c"]
+        cam_cols = w.indices(cam)
+        e_cols = np.concatenate([e[:, None] + np.arange(EOP_SIZE),
+                                 np.broadcast_to(cam_cols, (e.size, cam_cols.size))], axis=1)
+        return e_cols, p[:, None] + np.arange(GP_SIZE)
 
     def predicted(self, e: FloatArray, p: FloatArray) -> FloatArray:
         """Residuals the linearised factors predict at ``(e, p)``."""
@@ -286,12 +297,12 @@ class FactorSet:
                 - np.einsum("kri,ki->kr", self.Jp, p - self.p_lin))
 
     def evaluate(self, e: FloatArray, p: FloatArray,
-                 cam: PinholeCamera) -> tuple[FloatArray, FloatArray, FloatArray]:
-        uv, Je, Jp = project_with_jacobians(e, p, cam)
+                 cam: FreeCamera) -> tuple[FloatArray, FloatArray, FloatArray]:
+        uv, Je, Jp = cam.project_with_jacobians(e, p)
         return Je, Jp, self.uv - uv
 
-    def linearisation_error(self, e: FloatArray, p: FloatArray, cam: PinholeCamera) -> float:
-        true = self.uv - project(e, p, cam)
+    def linearisation_error(self, e: FloatArray, p: FloatArray, cam: FreeCamera) -> float:
+        true = self.uv - cam.project(e, p)
         return float(np.max(np.abs(true - self.predicted(e, p))))
 
     def linearised_ssr(self, e: FloatArray, p: FloatArray) -> float:
@@ -319,11 +330,11 @@ class Factors:
         self._chunks: list[tuple[np.ndarray, ...]] = []
 
     def add(self, img: np.ndarray, pt: np.ndarray, uv: FloatArray, sigma: FloatArray,
-            e_lin: FloatArray, p_lin: FloatArray, cam: PinholeCamera,
+            e_lin: FloatArray, p_lin: FloatArray, cam: FreeCamera,
             robust_scale: float | None = None) -> None:
         if len(img) == 0:
             return
-        proj, Je, Jp = project_with_jacobians(e_lin, p_lin, cam)
+        proj, Je, Jp = cam.project_with_jacobians(e_lin, p_lin)
         r = np.asarray(uv, dtype=np.float64).reshape(-1, 2) - proj
         w0 = 1.0 / np.asarray(sigma, dtype=np.float64).reshape(-1) ** 2
         self.add_linearised(img, pt, uv, sigma, e_lin, p_lin, Je, Jp, r,

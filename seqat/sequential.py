@@ -56,6 +56,7 @@ from threadpoolctl import ThreadpoolController
 
 from seqat import snooping
 from seqat.births import BirthMixin, degenerate_points
+from seqat.calibration import FreeCamera, SelfCalibration, correlation, undetermined
 from seqat.departures import Departure, DepartureMixin
 from seqat.errors import EstimationError
 from seqat.geometry import wrap_angle
@@ -77,6 +78,7 @@ from seqat.simultaneous import (
 from seqat.types import (
     EOP_SIZE,
     GP_SIZE,
+    CameraEstimate,
     EopEstimate,
     FloatArray,
     Frame,
@@ -86,7 +88,7 @@ from seqat.types import (
     Solution,
 )
 from seqat.update import LinearRows, solve_update, update_cofactor
-from seqat.window import Key, Window
+from seqat.window import CAMERA, Key, Window, key_size
 
 #: BLAS threads used by an update: the matrices are small (a few hundred), where OpenBLAS's
 #: thread start-up costs milliseconds (measured: 6 ms with 2 threads vs 0.3 ms with 1).
@@ -138,6 +140,10 @@ class SequentialOptions:
     # beyond (seqat/robust.py, 3 recommended; the initial Sim uses the same); None: least
     # squares (the paper's estimator). docs/algorithm.md, *Robust loss*.
     robust_scale: float | None = None
+    # Self-calibration (seqat/calibration.py): the camera's free interior parameters are
+    # estimated with the EOPs, in the initial Sim and then in the window, which they never
+    # leave; None: the camera is fixed. docs/algorithm.md, *Self-calibration*.
+    calibration: SelfCalibration | None = None
     sim: SimOptions = SimOptions()
 
     def __post_init__(self) -> None:
@@ -222,9 +228,14 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
     ) -> None:
         self.camera = camera
         self.options = options
+        # The initial block hands every free interior parameter to the window (none held:
+        # later images may determine what the first few do not; the prior keeps it regular).
+        calibration = (None if options.calibration is None else
+                       dataclasses.replace(options.calibration, hold_undetermined=False))
         sim_opts = dataclasses.replace(options.sim, min_rays=options.min_rays,
                                        snooping_critical=options.snooping_critical,
-                                       robust_scale=options.robust_scale)
+                                       robust_scale=options.robust_scale,
+                                       calibration=calibration)
         if options.snooping_critical is not None:  # the initial block's points as births
             sim_opts = dataclasses.replace(sim_opts, min_ray_angle_deg=options.min_ray_angle_deg)
         # With data snooping the initial block is adjusted once, when complete: refits of its
@@ -235,6 +246,10 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
         self._initial: SimultaneousAT | None = SimultaneousAT(
             camera, sim_opts, refit_every_frame=options.snooping_critical is None)
         self._origin: FloatArray | None = None
+        # The camera as the rows see it: with self-calibration its free interior parameters
+        # are the window block ``_cam_key`` (set by the initial stage).
+        self._cam = FreeCamera(camera, np.zeros(0, dtype=np.int64))
+        self._cam_key: Key | None = None
         self._w = Window()
         self._window_images: deque[int] = deque()
         self._image_ids: list[str] = []
@@ -369,8 +384,43 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
                 PointEstimate(point_id=self._point_ids[p], xyz_m=xyz, sigma_m=sig, n_obs=nobs)
             )
         return Solution(
-            eops=tuple(eops), points=tuple(pts), sigma0=self.sigma0, redundancy=self._redundancy
+            eops=tuple(eops), points=tuple(pts), sigma0=self.sigma0, redundancy=self._redundancy,
+            camera=self.camera_estimate(),
         )
+
+    def camera_now(self) -> PinholeCamera:
+        """The camera at the current estimate (the prior :attr:`camera` unless
+        self-calibrating)."""
+        if self._initial is not None:
+            return self._initial.camera_now
+        return self._camera_now()
+
+    def _camera_now(self) -> PinholeCamera:
+        key = self._cam_key
+        if key is None or key not in self._w.offset:
+            return self.camera
+        return self._cam.at(self._w.x[self._w.index(key)])
+
+    def camera_estimate(self) -> CameraEstimate | None:
+        """The self-calibrated camera with the sigmas and correlations of its free
+        parameters (None without self-calibration)."""
+        if self._initial is not None:
+            return self._initial.camera_estimate()
+        key = self._cam_key
+        if key is None:
+            return None
+        w = self._w
+        idx = w.index(key)
+        Q = w.q_block(idx)
+        assert self.options.calibration is not None
+        names = self.options.calibration.names
+        prior = self.options.calibration.prior_sigma(self.camera)[self._cam.index]
+        weak = undetermined(Q, prior)
+        return CameraEstimate(
+            camera=self._camera_now(), prior=self.camera, free=names,
+            sigma=np.sqrt(np.diagonal(Q)) * sigma_scale(self.sigma0, self._redundancy),
+            correlation=correlation(Q),
+            undetermined=tuple(n for n, b in zip(names, weak, strict=True) if b))
 
     def window_solution(self) -> Solution:
         """Current estimates of the window's images and GPs with sigmas: O(window), any time.
@@ -390,7 +440,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
                 val[:3] += origin
                 val[3:] = wrap_angle(val[3:])
                 eops.append(EopEstimate(image_id=self._image_ids[k[1]], eop=val, sigma=sd[idx]))
-            else:
+            elif k[0] == "p":
                 pts.append(
                     PointEstimate(
                         point_id=self._point_ids[k[1]],
@@ -400,7 +450,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
                     )
                 )
         return Solution(
-            eops=tuple(eops), points=tuple(pts), sigma0=self.sigma0, redundancy=self._redundancy
+            eops=tuple(eops), points=tuple(pts), sigma0=self.sigma0, redundancy=self._redundancy,
+            camera=self.camera_estimate(),
         )
 
 
@@ -431,6 +482,15 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
         self._origin = st.origin
         n = len(st.image_ids)
         keys: list[Key] = [("e", i) for i in range(n)]
+        cam_values = np.zeros(0)
+        if st.calibration is not None and st.calibration.free:
+            # the free interior parameters: a block between the EOPs and the GPs (the layout
+            # of Sim's normal matrix), in every image row from now on
+            self._cam = FreeCamera(self.camera, st.calibration.index)
+            self._cam_key = (CAMERA, self._cam.size)
+            keys.append(self._cam_key)
+            assert res.camera is not None
+            cam_values = res.camera.intrinsics[self._cam.index]
         for pid in st.point_ids:
             self._point_index[pid] = len(self._point_ids)
             self._point_ids.append(pid)
@@ -438,7 +498,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
         w = self._w
         w.inverse = self._inverse
         w.relayout(keys)
-        w.x = np.concatenate([res.eop.ravel(), res.gp.ravel()])
+        w.x = np.concatenate([res.eop.ravel(), cam_values, res.gp.ravel()])
         if self._inverse:
             w.Q = res.full_cofactor
         if self.options.smoothing or not self._inverse:
@@ -469,9 +529,12 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
             img = np.asarray(st.obs_image, dtype=np.int64)[use]
             pt = np.asarray(st.obs_point, dtype=np.int64)[use]
             gp_row = np.array([sel_of[int(j)] for j in pt], dtype=np.int64)
+            e_lin = np.concatenate([res.eop[img], np.broadcast_to(cam_values, (img.size,
+                                                                           cam_values.size))],
+                                   axis=1)
             self._factors.add(img, pt, np.asarray(st.obs_uv)[use],
-                              np.asarray(st.obs_sigma_px)[use], res.eop[img], res.gp[gp_row],
-                              self.camera, self.options.robust_scale)
+                              np.asarray(st.obs_sigma_px)[use], e_lin, res.gp[gp_row],
+                              self._cam, self.options.robust_scale)
         self.initial_state = (keys, self._w.x.copy(), res.full_cofactor.copy())
         if res.undetermined is not None and res.undetermined.any():
             self._drop_undetermined([("p", int(j)) for j, bad
@@ -485,7 +548,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
 
     def _add_sequential(self, frame: Frame) -> ImageUpdate:
         t0 = time.perf_counter()
-        opts, cam, w = self.options, self.camera, self._w
+        opts, w = self.options, self._w
         assert self._origin is not None
         i = len(self._image_ids)
         self._image_ids.append(frame.image_id)
@@ -561,7 +624,9 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
                    for (j, uv, s) in self._pending[p] if j != i]
             y22 = [(b, uv, s) for b, p in enumerate(born)
                    for (j, uv, s) in self._pending[p] if j == i]
-            touched_keys: list[Key] = [("p", p) for p in y21_pts]
+            # the camera block first (every image row has it), then the GPs and images
+            touched_keys: list[Key] = [self._cam_key] if self._cam_key is not None else []
+            touched_keys += [("p", p) for p in y21_pts]
             touched_keys += list(dict.fromkeys(("e", j) for (j, _, _, _) in y12))
             touched = w.indices(touched_keys)
             Qc = w.q_columns(touched)
@@ -569,7 +634,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
             c = 0
             for k in touched_keys:
                 col_of[k] = c
-                c += EOP_SIZE if k[0] == "e" else GP_SIZE
+                c += key_size(k)
 
             # One entry per image row: (EOP column, GP column, uv, sigma, in y2, (image,
             # point)) in z = [x1t, x2].
@@ -582,9 +647,11 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
                 (col_of[("e", j)], t + EOP_SIZE + GP_SIZE * b, uv, s, True, (j, born[b]))
                 for (j, b, uv, s) in y12
             ]
-            obs += [(t, t + EOP_SIZE + GP_SIZE * b, uv, s, False, (i, born[b]))
-                    for (b, uv, s) in y22]
-            builder = RowBuilder(cam, t, n2, obs, nav, nav_sigma, opts.robust_scale)
+            # y22 rows touch an existing parameter too when the camera is estimated
+            obs += [(t, t + EOP_SIZE + GP_SIZE * b, uv, s, self._cam_key is not None,
+                     (i, born[b])) for (b, uv, s) in y22]
+            builder = RowBuilder(self._cam, t, n2, obs, nav, nav_sigma, opts.robust_scale,
+                                 cam_col=0)
             x1t = w.x[touched]
             d1t = np.zeros(touched.size)
             d2 = np.zeros(n2)
@@ -724,7 +791,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
     ) -> None:
         cols: list[tuple[str, int, int]] = []
         for k in touched_keys + [("e", i)] + [("p", p) for p in born]:
-            cols += [(k[0], k[1], c) for c in range(EOP_SIZE if k[0] == "e" else GP_SIZE)]
+            cols += [(k[0], k[1], c) for c in range(key_size(k))]
         m2, m3 = rows.l2.size, rows.l3.size
         A = np.zeros((m2 + m3, len(cols)))
         A[:m2, : touched.size] = rows.A21
@@ -768,7 +835,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin):
             window_first_image=self._image_ids[self._window_images[0]],
             window_params=w.x.size,
             window_eop_params=EOP_SIZE * n_img,
-            window_gp_params=w.x.size - EOP_SIZE * n_img,
+            window_gp_params=w.x.size - EOP_SIZE * n_img - self._cam.size,
             inverse_sizes=(rows.l2.size, n2),
             sim_reduced_size=0,
             sigma0=self.sigma0,

@@ -364,6 +364,9 @@ class SimState:
     obs_uv: FloatArray
     obs_sigma_px: FloatArray
     result: SimResult
+    #: The self-calibration of ``result`` (its free parameters sit between the EOPs and the
+    #: GPs of the full matrices); None: the camera was fixed.
+    calibration: SelfCalibration | None = None
 
 
 class SimultaneousAT:
@@ -511,6 +514,7 @@ class SimultaneousAT:
             obs_uv=uv,
             obs_sigma_px=sg,
             result=res,
+            calibration=self._calibration if res.camera_cofactor is not None else None,
         )
 
     def _solve(self, covariance: Covariance) -> SimResult:

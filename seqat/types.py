@@ -166,8 +166,12 @@ class PointEstimate:
 @dataclass(frozen=True, kw_only=True, eq=False)
 class CameraEstimate:
     """The estimated camera with the standard deviations and correlations of its free
-    parameters (scaled by the a posteriori sigma0); ``held`` are those the block did not
-    determine (fixed at their prior)."""
+    parameters (scaled by the a posteriori sigma0).
+
+    ``held``: parameters set free that the block did not determine, fixed at their prior
+    (Sim). ``undetermined``: free parameters the data determine no better than the
+    prior does (sequential: they stay estimated, constrained by their prior, since later
+    images may determine them); ``seqat.calibration.HOLD_RATIO``."""
 
     camera: PinholeCamera
     prior: PinholeCamera
@@ -175,6 +179,7 @@ class CameraEstimate:
     sigma: FloatArray  # (len(free),)
     correlation: FloatArray  # (len(free), len(free))
     held: tuple[str, ...] = ()
+    undetermined: tuple[str, ...] = ()
 
     def as_dict(self) -> dict[str, object]:
         """JSON-ready summary (docs/formats.md, run.json ``camera``)."""
@@ -185,6 +190,7 @@ class CameraEstimate:
             "prior": prior,
             "free": list(self.free),
             "held": list(self.held),
+            "undetermined": list(self.undetermined),
             "sigma": {n: float(s) for n, s in zip(self.free, self.sigma, strict=True)},
             "correlation": np.round(self.correlation, 4).tolist(),
         }

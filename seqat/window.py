@@ -21,8 +21,17 @@ from seqat.errors import EstimationError
 from seqat.information import InformationFactor, RankDeficiency
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 
-#: Parameter key: (kind, index) with kind "e" (EOP of image index) or "p" (GP index).
+#: Parameter key: (kind, index) with kind "e" (EOP of image index), "p" (GP index) or "c"
+#: (the camera's free interior parameters, self-calibration; its index is their number).
 Key = tuple[str, int]
+#: The camera's key kind (one block per camera, never leaves the window).
+CAMERA = "c"
+
+
+def key_size(key: Key) -> int:
+    """Number of parameters of a key's block."""
+    kind = key[0]
+    return EOP_SIZE if kind == "e" else GP_SIZE if kind == "p" else key[1]
 
 
 def eop_correlations(Q: FloatArray, eop_offsets: np.ndarray, last_offset: int) -> FloatArray:
@@ -69,7 +78,7 @@ def first_over_threshold(correlations: FloatArray, threshold: float) -> int:
 
 def keys_of(keys: list[Key], indices: np.ndarray) -> list[Key]:
     """The key of each parameter index, for ``keys`` laid out in that order."""
-    sizes = np.fromiter((EOP_SIZE if k[0] == "e" else GP_SIZE for k in keys),
+    sizes = np.fromiter((key_size(k) for k in keys),
                         dtype=np.int64, count=len(keys))
     starts = np.cumsum(sizes) - sizes
     return [keys[int(b)] for b in np.searchsorted(starts, indices, side="right") - 1]
@@ -213,11 +222,11 @@ class Window:
         off = 0
         for k in keys:
             self.offset[k] = off
-            off += EOP_SIZE if k[0] == "e" else GP_SIZE
+            off += key_size(k)
 
     def index(self, key: Key) -> np.ndarray:
         off = self.offset[key]
-        return np.arange(off, off + (EOP_SIZE if key[0] == "e" else GP_SIZE))
+        return np.arange(off, off + (key_size(key)))
 
     def indices(self, keys: list[Key]) -> np.ndarray:
         """Parameter indices of several blocks, concatenated in the order of ``keys``."""
@@ -225,7 +234,7 @@ class Window:
             return np.zeros(0, dtype=np.int64)
         offs = np.fromiter((self.offset[k] for k in keys), dtype=np.int64, count=len(keys))
         sizes = np.fromiter(
-            (EOP_SIZE if k[0] == "e" else GP_SIZE for k in keys), dtype=np.int64, count=len(keys)
+            (key_size(k) for k in keys), dtype=np.int64, count=len(keys)
         )
         starts = np.cumsum(sizes) - sizes
         return np.repeat(offs - starts, sizes) + np.arange(int(sizes.sum()))
