@@ -136,23 +136,31 @@ def linearise(
             w = np.where(undetermined[pt], 0.0, w)
     wJR = JR * w[:, None, None]
     wJp = Jp * w[:, None, None]
-    # N_RR: the observations' (6 + c)^2 blocks, the nav on the EOP diagonal, the camera prior
-    blocks = np.einsum("kri,krj->kij", wJR, JR)
-    diag_w = np.concatenate([(1.0 / data.nav_sigma**2).ravel(),
-                             1.0 / calib.sigma**2 if c else np.zeros(0)])  # type: ignore[union-attr]
-    b_R = np.bincount(rcol.ravel(), weights=np.einsum("kri,kr->ki", wJR, ell).ravel(),
-                      minlength=r).astype(np.float64)
-    b_R[: EOP_SIZE * n] += (eop_residual(data.nav_eop, eop) / data.nav_sigma**2).ravel()
+    # N_RR: the EOP blocks per image (nav on their diagonal), the camera rows (camera x EOP
+    # per image, camera x camera with its prior), summed per image before scattering
+    Nee = np.zeros((n, EOP_SIZE, EOP_SIZE))
+    np.add.at(Nee, img, np.einsum("kri,krj->kij", wJR[:, :, :EOP_SIZE], JR[:, :, :EOP_SIZE]))
+    Nee[:, np.arange(EOP_SIZE), np.arange(EOP_SIZE)] += 1.0 / data.nav_sigma**2
+    b_R = np.zeros(r)
+    be = np.zeros((n, EOP_SIZE))
+    np.add.at(be, img, np.einsum("kri,kr->ki", wJR[:, :, :EOP_SIZE], ell))
+    b_R[: EOP_SIZE * n] = (be + eop_residual(data.nav_eop, eop) / data.nav_sigma**2).ravel()
+    N_RR = sp.bsr_matrix((Nee, np.arange(n), np.arange(n + 1)),
+                         shape=(EOP_SIZE * n, EOP_SIZE * n)).tocsr()
     if c:
-        b_R[EOP_SIZE * n :] += calib.residual(camera) / calib.sigma**2  # type: ignore[union-attr]
+        assert calib is not None
+        Nce = np.zeros((n, c, EOP_SIZE))
+        np.add.at(Nce, img, np.einsum("kri,krj->kij", wJR[:, :, EOP_SIZE:], JR[:, :, :EOP_SIZE]))
+        Ncc = np.einsum("kri,krj->ij", wJR[:, :, EOP_SIZE:], JR[:, :, EOP_SIZE:])
+        Ncc[np.arange(c), np.arange(c)] += 1.0 / calib.sigma**2
+        Nce_flat = Nce.transpose(1, 0, 2).reshape(c, EOP_SIZE * n)
+        N_RR = sp.bmat([[N_RR, sp.csr_matrix(Nce_flat.T)],
+                        [sp.csr_matrix(Nce_flat), sp.csr_matrix(Ncc)]], format="csr")
+        b_R[EOP_SIZE * n :] = (np.einsum("kri,kr->i", wJR[:, :, EOP_SIZE:], ell)
+                               + calib.residual(camera) / calib.sigma**2)
     Npp[undetermined] = np.eye(GP_SIZE)  # the other blocks keep their rows' weights
     b_p = np.zeros((m, GP_SIZE))
     np.add.at(b_p, pt, np.einsum("kri,kr->ki", wJp, ell))
-    N_RR = sp.coo_matrix(
-        (np.concatenate([blocks.ravel(), diag_w]),
-         (np.concatenate([np.repeat(rcol, rcol.shape[1], axis=1).ravel(), np.arange(r)]),
-          np.concatenate([np.tile(rcol, (1, rcol.shape[1])).ravel(), np.arange(r)]))),
-        shape=(r, r)).tocsr()
     if damping > 0.0:
         diag3 = np.arange(GP_SIZE)
         Npp[:, diag3, diag3] *= 1.0 + damping

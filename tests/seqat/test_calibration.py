@@ -1,0 +1,150 @@
+"""Self-calibration: interior parameters estimated with the EOPs (Sim, Seq-F, Seq-R).
+
+Seeded simulations with a distorted camera whose prior (the "EXIF" camera) has f 1 % and
+cx 5 px off and no distortion: the estimate must lie within a few sigma of the truth,
+parameters the block cannot determine must be held at their prior, and the sequential
+estimators must equal Sim on the same parameters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from seqat.calibration import HOLD_RATIO, SelfCalibration
+from seqat.errors import ConfigError
+from seqat.sequential import SequentialAT, SequentialOptions
+from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
+from seqat.simultaneous import SimOptions, SimultaneousAT
+from seqat.types import INTRINSICS, PinholeCamera, Solution
+
+DISTORTION = (-0.08, 0.02, 2e-4, -3e-4, 0.0)
+
+
+def _prior(true: PinholeCamera) -> PinholeCamera:
+    return dataclasses.replace(true, f_px=true.f_px * 1.01, cx_px=true.cx_px + 5.0,
+                               k1=0.0, k2=0.0, p1=0.0, p2=0.0, k3=0.0)
+
+
+@pytest.fixture(scope="module")
+def block() -> SimulatedFlight:
+    """Two strips of 24 images, 400 points (f and the principal point determinable)."""
+    return simulate_strip(StripSimConfig(n_images=24, strips=2, n_points=400,
+                                         distortion=DISTORTION), seed=3)
+
+
+@pytest.fixture(scope="module")
+def small_block() -> SimulatedFlight:
+    """Two strips of 14 images, 250 points: Seq-F against Sim (every parameter determined)."""
+    return simulate_strip(StripSimConfig(n_images=14, strips=2, n_points=250,
+                                         distortion=DISTORTION), seed=3)
+
+
+@pytest.fixture(scope="module")
+def strip() -> SimulatedFlight:
+    """One strip of 100 images: the principal point is not determinable against the EOPs."""
+    return simulate_strip(StripSimConfig(n_images=100, n_points=150, distortion=DISTORTION),
+                          seed=1)
+
+
+def _sim(flight: SimulatedFlight, calibration: SelfCalibration | None) -> Solution:
+    sim = SimultaneousAT(_prior(flight.camera), SimOptions(calibration=calibration),
+                         refit_every_frame=False)
+    for f in flight.frames():
+        sim.add_frame(f)
+    return sim.solution()
+
+
+def _rmse(sol: Solution, flight: SimulatedFlight) -> np.ndarray:
+    d = np.array([e.eop for e in sol.eops]) - flight.truth_eop
+    return np.sqrt(np.mean(d[:, :3] ** 2, axis=0))
+
+
+def test_sim_recovers_the_camera_within_its_sigma(block: SimulatedFlight) -> None:
+    fixed = _sim(block, None)
+    cal = _sim(block, SelfCalibration())
+    est = cal.camera
+    assert est is not None and fixed.camera is None
+    assert est.held == ()
+    true = block.camera
+    # the error against the truth, in its estimated covariance: chi-square with one degree
+    # of freedom per parameter (a test at alpha 0.001, whatever the correlations)
+    err = np.array([getattr(est.camera, n) - getattr(true, n) for n in est.free])
+    cov = np.outer(est.sigma, est.sigma) * est.correlation
+    d2 = float(err @ np.linalg.solve(cov, err))
+    assert d2 < chi2.ppf(0.999, err.size), dict(zip(est.free, err / est.sigma, strict=True))
+    # and each within 3 sigma
+    assert np.all(np.abs(err / est.sigma) < 3.0)
+    # the image noise alone is left: sigma0 ~ 1 (fixed: the model error raises it)
+    assert cal.sigma0 == pytest.approx(1.0, abs=0.05)
+    assert fixed.sigma0 > 1.1
+    rc, rf = _rmse(cal, block), _rmse(fixed, block)
+    assert np.all(rc < rf) and np.linalg.norm(rc) < 0.7 * np.linalg.norm(rf)
+    assert np.all(np.isfinite(est.correlation)) and np.allclose(np.diagonal(est.correlation), 1)
+
+
+def test_undetermined_parameters_are_held_at_their_prior(strip: SimulatedFlight) -> None:
+    est = _sim(strip, SelfCalibration()).camera
+    assert est is not None
+    assert {"cx_px", "cy_px"} <= set(est.held)
+    prior = _prior(strip.camera)
+    for n in est.held:
+        assert getattr(est.camera, n) == getattr(prior, n)
+        assert n not in est.free
+    assert "k1" in est.free and est.camera.k1 != prior.k1
+    # the others are estimated: the data shrink their prior sigma below HOLD_RATIO of it
+    # (est.sigma is scaled by sigma0 ~ 1: a 10 % margin)
+    sig = dict(zip(INTRINSICS, SelfCalibration().prior_sigma(prior), strict=True))
+    for n, s in zip(est.free, est.sigma, strict=True):
+        assert s < 1.1 * HOLD_RATIO * sig[n], n
+
+
+@pytest.mark.parametrize("engine", ["information", "inverse"])
+def test_seq_f_equals_sim_with_self_calibration(small_block: SimulatedFlight,
+                                                engine: str) -> None:
+    block = small_block
+    cal = SelfCalibration(hold_undetermined=False)
+    ref = _sim(block, cal)
+    seq = SequentialAT(_prior(block.camera), SequentialOptions(
+        correlation_threshold=None, calibration=cal, engine=engine))
+    for f in block.frames():
+        seq.add_frame(f)
+    seq.finish()
+    sol = seq.solution()
+    d = np.array([e.eop for e in sol.eops]) - np.array([e.eop for e in ref.eops])
+    d[:, 3:] = (d[:, 3:] + np.pi) % (2 * np.pi) - np.pi
+    assert np.max(np.abs(d[:, :3])) < 1e-3 and np.degrees(np.max(np.abs(d[:, 3:]))) < 1e-3
+    assert sol.camera is not None and ref.camera is not None
+    # equal to the convergence of the final re-linearisation: 1e-3 of a sigma
+    diff = [(getattr(sol.camera.camera, n) - getattr(ref.camera.camera, n)) / s
+            for n, s in zip(ref.camera.free, ref.camera.sigma, strict=True)]
+    assert np.max(np.abs(diff)) < 1e-3
+    np.testing.assert_allclose(sol.camera.sigma, ref.camera.sigma, rtol=1e-3)
+    assert sol.sigma0 == pytest.approx(ref.sigma0, rel=1e-6)
+
+
+def test_seq_r_window_is_cut_with_self_calibration(strip: SimulatedFlight) -> None:
+    """The shared camera correlates every image with every other; the window rule reads
+    the correlations given the camera, so the window stays short as without it."""
+    prior = _prior(strip.camera)
+    sizes = {}
+    for name, cal in (("fixed", None), ("cal", SelfCalibration())):
+        seq = SequentialAT(prior, SequentialOptions(calibration=cal))
+        sizes[name] = max(seq.add_frame(f).window_images for f in strip.frames())
+        sol = seq.solution()
+        assert all(np.all(np.isfinite(e.sigma)) and np.all(e.sigma > 0) for e in sol.eops)
+    assert sizes["cal"] < len(strip.image_ids) / 2
+    assert sizes["cal"] <= sizes["fixed"] + 3
+    est = sol.camera
+    assert est is not None and set(est.undetermined) >= {"cx_px", "cy_px"}
+    assert abs(est.camera.f_px - strip.camera.f_px) < 3 * est.sigma[est.free.index("f_px")]
+
+
+def test_calibration_options_are_checked() -> None:
+    with pytest.raises(ConfigError, match="unknown parameter 'k4'"):
+        SelfCalibration(free=("f_px", "k4"))
+    with pytest.raises(ConfigError, match="sigma of f_px"):
+        SelfCalibration(sigma={"f_px": -1.0})  # type: ignore[arg-type]
