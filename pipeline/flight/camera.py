@@ -11,6 +11,7 @@ the OpenCV model in closed form, vectorised over whole grids.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -38,6 +39,42 @@ def pinhole_camera(camera: CameraConfig) -> PinholeCamera:
     """The ideal pinhole camera seqat uses for ``camera`` (``f_px = fx_px``)."""
     return PinholeCamera(f_px=camera.fx_px, cx_px=camera.cx_px, cy_px=camera.cy_px,
                          width_px=camera.width_px, height_px=camera.height_px)
+
+
+def self_calibrating_camera(camera: CameraConfig) -> tuple[PinholeCamera, CameraConfig]:
+    """seqat's camera and the pixel camera of a self-calibrating flight.
+
+    Self-calibration estimates the distortion in the model (docs/algorithm.md,
+    *Self-calibration*): image points reach seqat as observed pixels with only the pixel
+    aspect made square (``v`` scaled by ``fx / fy`` about ``cy``), and seqat's camera carries
+    ``camera``'s distortion as the prior. Returns that camera and the distortion-free camera
+    whose :class:`PixelCorrector` maps observed pixels to seqat's.
+    """
+    prior = PinholeCamera(f_px=camera.fx_px, cx_px=camera.cx_px, cy_px=camera.cy_px,
+                          width_px=camera.width_px, height_px=camera.height_px,
+                          k1=camera.k1, k2=camera.k2, p1=camera.p1, p2=camera.p2, k3=camera.k3)
+    square = dataclasses.replace(camera, model="OPENCV", k1=0.0, k2=0.0, p1=0.0, p2=0.0,
+                                 k3=0.0)
+    return prior, square
+
+
+def frame_camera(camera: CameraConfig, self_calibrating: bool) -> (
+        tuple[PinholeCamera, PixelCorrector]):
+    """seqat's camera of a flight and the corrector from observed pixels to its frames'."""
+    if self_calibrating:
+        prior, square = self_calibrating_camera(camera)
+        return prior, PixelCorrector(camera=square)
+    return pinhole_camera(camera), PixelCorrector(camera=camera)
+
+
+def estimated_camera(prior: CameraConfig, estimate: PinholeCamera) -> CameraConfig:
+    """The ``flight.yaml``-style camera of a self-calibrated seqat camera ``estimate``
+    (:func:`self_calibrating_camera` inverted: the aspect of ``prior`` restored)."""
+    aspect = prior.fy_px / prior.fx_px
+    return dataclasses.replace(
+        prior, model="OPENCV", fx_px=estimate.f_px, fy_px=estimate.f_px * aspect,
+        cx_px=estimate.cx_px, cy_px=prior.cy_px + (estimate.cy_px - prior.cy_px) * aspect,
+        k1=estimate.k1, k2=estimate.k2, p1=estimate.p1, p2=estimate.p2, k3=estimate.k3)
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

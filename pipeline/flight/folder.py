@@ -24,7 +24,7 @@ import pyproj
 from pipeline.common.columns import FLIGHT_YAML, IMAGES_DIR, TRUTH_DIR
 from pipeline.common.csvio import CsvRow, read_csv
 from pipeline.common.tables import GroundPoints, NavTable
-from pipeline.flight.camera import PixelCorrector, pinhole_camera
+from pipeline.flight.camera import PixelCorrector, frame_camera
 from pipeline.flight.consistency import check_one_camera, crs_area_warning, duplicate_images
 from pipeline.flight.dropout import dropout_sigma, predict_missing
 from pipeline.flight.image_metadata import (
@@ -49,6 +49,7 @@ from pipeline.flight.navigation import (
     resolve_working_crs,
 )
 from pipeline.flight.schema import CameraConfig, FlightConfig, NavConfig, load_flight_config
+from seqat.calibration import SelfCalibration
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import FloatArray, Frame, PinholeCamera
 
@@ -81,9 +82,12 @@ class Flight:
     camera_approximate : bool
         The camera comes from EXIF, not from ``flight.yaml``.
     camera : PinholeCamera
-        Ideal camera of the frames (distortion removed).
+        Camera of the frames: the ideal pinhole camera (distortion removed), or with
+        ``calibration`` the prior of the self-calibration, distortion included.
     corrector : PixelCorrector
-        Observed -> ideal pixels.
+        Observed -> frame pixels (ideal ones; with ``calibration`` only the aspect squared).
+    calibration : SelfCalibration or None
+        Self-calibration (``flight.yaml`` ``self_calibration:``); None: the camera is fixed.
     nav : NavTable
         GPS/INS EOPs in the working CRS, acquisition order, usable images only; NaN for the
         position or attitude of a GNSS dropout (``nav.dropout: bridge``).
@@ -113,6 +117,7 @@ class Flight:
     image_paths: tuple[Path, ...] = ()
     skipped: tuple[SkippedImage, ...] = ()
     warnings: tuple[str, ...] = ()
+    calibration: SelfCalibration | None = None
 
     def __post_init__(self) -> None:
         # start values of dropout components, from earlier rows only (pipeline.flight.dropout)
@@ -366,9 +371,11 @@ def read_flight(flight_dir: Path | str) -> Flight:
     if crs_warning is not None:
         warnings.append(crs_warning)
     paths = tuple(metas[i].path for i in nav.image_ids) if obs_path is None else ()
+    calibration = config.self_calibration.resolve(approximate)
+    camera, corrector = frame_camera(camera_config, calibration is not None)
     return Flight(path=folder, config=config, crs=crs, camera_config=camera_config,
-                  camera_approximate=approximate, camera=pinhole_camera(camera_config),
-                  corrector=PixelCorrector(camera=camera_config), nav=nav,
+                  camera_approximate=approximate, camera=camera, calibration=calibration,
+                  corrector=corrector, nav=nav,
                   nav_sigma=config.nav.sigma_eop, observations_path=obs_path,
                   images_dir=images_dir, image_paths=paths, skipped=tuple(skipped),
                   warnings=tuple(warnings))

@@ -6,7 +6,7 @@ Loaded with the strict loader of :mod:`pipeline.common.strict_yaml`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -15,6 +15,7 @@ import numpy as np
 from pipeline.common.strict_yaml import build_dataclass, load_yaml
 from pipeline.flight.navigation import BoresightConfig
 from pipeline.tracking.options import TrackerOptions
+from seqat.calibration import DEFAULT_FREE, SelfCalibration
 from seqat.errors import ConfigError
 from seqat.types import FloatArray
 
@@ -127,6 +128,33 @@ class NavConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
+class SelfCalibrationConfig:
+    """``self_calibration:`` section of ``flight.yaml`` (docs/formats.md, docs/algorithm.md).
+
+    ``enabled``: ``null`` (default, "auto") self-calibrates a camera taken from EXIF (a
+    nominal focal length, no distortion known) and keeps a ``flight.yaml`` camera fixed (it
+    is a calibration); ``true`` / ``false`` force it. ``free`` lists the interior parameters
+    estimated (``f_px cx_px cy_px k1 k2 p1 p2 k3``), ``sigma`` their prior standard
+    deviations (pixels; normalised units for the distortion) where not the defaults.
+    """
+
+    enabled: bool | None = None
+    free: tuple[str, ...] = DEFAULT_FREE
+    sigma: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.calibration()  # checks the names and sigmas
+
+    def calibration(self) -> SelfCalibration:
+        return SelfCalibration(free=self.free, sigma=tuple(self.sigma.items()))
+
+    def resolve(self, camera_from_exif: bool) -> SelfCalibration | None:
+        """The self-calibration of a flight whose camera is (not) from EXIF; None: fixed."""
+        on = camera_from_exif if self.enabled is None else self.enabled
+        return self.calibration() if on and self.free else None
+
+
+@dataclass(frozen=True, kw_only=True)
 class FlightConfig:
     """``flight.yaml`` of a flight folder (docs/formats.md).
 
@@ -142,6 +170,7 @@ class FlightConfig:
     checkpoints: str | None = None
     lidar: str | tuple[str, ...] | None = None
     tracking: TrackerOptions = TrackerOptions()
+    self_calibration: SelfCalibrationConfig = SelfCalibrationConfig()
 
     def __post_init__(self) -> None:
         if not self.sigma_image_px > 0:

@@ -49,6 +49,7 @@ from pipeline.run.store import (
     write_run_outputs,
 )
 from pipeline.tracking.options import TrackerOptions
+from seqat.calibration import SelfCalibration
 from seqat.errors import ConfigError, InputDataError, SeqatError
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simultaneous import SimOptions, SimultaneousAT
@@ -56,7 +57,7 @@ from seqat.types import PinholeCamera, Solution
 
 __all__ = ["Estimator", "EstimatorConfig", "ImageListener", "Method", "RunSummary",
            "estimator_options", "flight_inputs", "load_journal", "make_estimator", "run_flight",
-           "start_journal"]
+           "start_journal", "with_calibration"]
 
 
 class Method(enum.StrEnum):
@@ -126,6 +127,13 @@ def estimator_options(method: Method, config: EstimatorConfig, *, threshold: flo
     if initial_images is not None:
         opts = dataclasses.replace(opts, initial_images=initial_images)
     return opts
+
+
+def with_calibration(options: SequentialOptions | SimOptions,
+                     calibration: SelfCalibration | None) -> SequentialOptions | SimOptions:
+    """``options`` with the flight's self-calibration (``flight.yaml`` ``self_calibration:``,
+    on by default for a camera from EXIF)."""
+    return dataclasses.replace(options, calibration=calibration)
 
 
 def make_estimator(method: Method, camera: PinholeCamera, options: SequentialOptions | SimOptions,
@@ -312,7 +320,8 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                        final_only=final_only, images=tuple(updates), totals=totals,
                        tracking_options=tracking_options, tracking=tuple(session.tracking),
                        live=tuple(session.live), latency_budget=budget, mode=mode,
-                       replayed=session.replayed, robustness=robustness)
+                       replayed=session.replayed, robustness=robustness,
+                       camera_estimate=solution.camera)
     with output_errors(out):
         files = write_run_outputs(out, solution, record, session.observations_text())
     return RunSummary(method=method, flight_dir=Path(flight), out_dir=out, files=files,
@@ -397,6 +406,7 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     if out.exists() and not out.is_dir():
         raise InputDataError(f"{out}: exists and is not a folder")
     flight = read_flight(flight_dir)
+    options = with_calibration(options, flight.calibration)
     obs_path = None
     if observations is not None:
         obs_path = Path(observations)

@@ -48,12 +48,13 @@ from pipeline.common.columns import (
 from pipeline.common.csvio import format_csv_line, read_csv
 from pipeline.common.strict_yaml import build_dataclass
 from pipeline.common.tables import EopTable, NavTable, PointTable
+from pipeline.flight.camera import estimated_camera
 from pipeline.flight.inputs import RunInputs, SkippedImage
 from pipeline.flight.schema import CameraConfig
 from pipeline.run.accuracy import Accuracy
 from pipeline.run.robustness import RobustnessRecord
 from seqat.errors import ConfigError, InputDataError
-from seqat.types import EopEstimate, ImageUpdate, PointEstimate, Solution
+from seqat.types import CameraEstimate, EopEstimate, ImageUpdate, PointEstimate, Solution
 
 #: Version of the ``run.json`` layout (bumped on incompatible changes).
 RUN_JSON_VERSION = 1
@@ -267,6 +268,8 @@ class RunRecord:
         Images replayed from the journal (``--resume``).
     robustness : RobustnessRecord or None
         Data snooping and GNSS dropouts (:mod:`pipeline.run.robustness`).
+    camera_estimate : CameraEstimate or None
+        The self-calibrated camera.
     """
 
     method: str
@@ -283,6 +286,15 @@ class RunRecord:
     mode: str = "run"
     replayed: int = 0
     robustness: RobustnessRecord | None = None
+    #: The self-calibrated camera (None: the camera was fixed).
+    camera_estimate: CameraEstimate | None = None
+
+
+def camera_estimate_json(inputs: RunInputs, est: CameraEstimate) -> dict[str, object]:
+    """run.json ``camera_estimate``: the estimate with its sigmas and correlations, and the
+    camera in ``flight.yaml`` form that later stages use (docs/formats.md)."""
+    camera = to_jsonable(estimated_camera(inputs.camera, est.camera))
+    return {**est.as_dict(), "camera": camera}
 
 
 def eop_json(eop: EopEstimate) -> dict[str, object]:
@@ -356,6 +368,8 @@ def format_run_json(record: RunRecord) -> str:
            "latency_budget": to_jsonable(record.latency_budget),
            "images": images, "totals": to_jsonable(record.totals),
            "robustness": to_jsonable(record.robustness)}
+    if record.camera_estimate is not None:
+        doc["camera_estimate"] = camera_estimate_json(record.inputs, record.camera_estimate)
     return json.dumps(doc, indent=JSON_INDENT, allow_nan=False) + "\n"
 
 
@@ -424,6 +438,7 @@ class RunFolder:
     points: PointTable
     observations_path: Path
     record: Mapping[str, object]
+    estimated_camera: CameraConfig | None = None
 
     @property
     def crs(self) -> pyproj.CRS:
@@ -431,6 +446,13 @@ class RunFolder:
 
     @property
     def camera(self) -> CameraConfig:
+        """The camera of the results: the self-calibrated one when the run estimated it
+        (run.json ``camera_estimate``), else the input camera."""
+        return self.estimated_camera if self.estimated_camera is not None else self.inputs.camera
+
+    @property
+    def camera_prior(self) -> CameraConfig:
+        """The input camera (EXIF or ``flight.yaml``)."""
         return self.inputs.camera
 
     @property
@@ -529,7 +551,18 @@ def read_run(out_dir: Path | str) -> RunFolder:
     obs_path = out / OBSERVATIONS_FILE
     if not obs_path.is_file():
         raise InputDataError(f"{obs_path}: no such file")
+    estimated = None
+    est_doc = doc.get("camera_estimate")
+    if est_doc is not None:
+        if not isinstance(est_doc, dict) or not isinstance(est_doc.get("camera"), dict):
+            raise InputDataError(f"{run_path}: camera_estimate: expected an object with a "
+                                 f"'camera' object")
+        try:
+            estimated = build_dataclass(CameraConfig, est_doc["camera"], str(run_path),
+                                        key="camera_estimate.camera")
+        except ConfigError as err:
+            raise InputDataError(str(err)) from err
     return RunFolder(path=out, method=str(_json_field(doc, "method", run_path)),
                      flight_dir=Path(str(_json_field(doc, "flight", run_path))), inputs=inputs,
                      eop=read_eop_csv(out / EOP_FILE), points=read_points_csv(out / POINTS_FILE),
-                     observations_path=obs_path, record=doc)
+                     observations_path=obs_path, record=doc, estimated_camera=estimated)

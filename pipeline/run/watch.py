@@ -43,7 +43,7 @@ from pipeline.common.csvio import CsvTail
 from pipeline.common.outdir import claim_output_folder, output_errors, release_output_folder
 from pipeline.common.strict_yaml import build_dataclass
 from pipeline.common.tables import NavTable
-from pipeline.flight.camera import PixelCorrector, pinhole_camera
+from pipeline.flight.camera import frame_camera
 from pipeline.flight.folder import (
     Flight,
     PixelOutsideImage,
@@ -89,6 +89,7 @@ from pipeline.run.runner import (
     replay_journal,
     run_fingerprint,
     start_journal,
+    with_calibration,
 )
 from pipeline.run.session import ImageListener, ImageLive, RunSession
 from pipeline.run.sources import ImageSource, ObservationSource, PreparedFrame
@@ -293,9 +294,11 @@ class GrowingFlight:
         cam = self.camera
         empty = NavTable(image_ids=(), times_s=np.zeros(0), eop=np.zeros((0, 6)))
         obs = self.folder / self.config.observations if self.config.observations else None
+        calibration = self.config.self_calibration.resolve(self.camera_approximate)
+        camera, corrector = frame_camera(cam, calibration is not None)
         self.flight = Flight(path=self.folder, config=self.config, crs=self.crs,
                              camera_config=cam, camera_approximate=self.camera_approximate,
-                             camera=pinhole_camera(cam), corrector=PixelCorrector(camera=cam),
+                             camera=camera, corrector=corrector, calibration=calibration,
                              nav=empty, nav_sigma=self.config.nav.sigma_eop,
                              observations_path=obs, images_dir=self.images_dir)
 
@@ -600,7 +603,8 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
             src: ObservationSource | ImageSource = (
                 ObservationSource(flight) if grow.kind == "observations"
                 else ImageSource(flight, flight_config.tracking))
-            s = RunSession(estimator=make_estimator(method, flight.camera, options), source=src,
+            s = RunSession(estimator=make_estimator(
+                method, flight.camera, with_calibration(options, flight.calibration)), source=src,
                            listeners=listeners, journal=journal, budget=budget, on_image=printer)
             replay_journal(s, src, journal, contents)
             if s.replayed:
@@ -659,7 +663,7 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
     inputs = dataclasses.replace(flight, nav=session.nav(), skipped=tuple(skipped),
                                  warnings=tuple(grow.warnings)).inputs()
     return publish_run(out, session, solution, method=method, flight=str(folder), inputs=inputs,
-                       options=options, final_only=False,
+                       options=with_calibration(options, flight.calibration), final_only=False,
                        tracking_options=source.tracking_options, truth=read_truth(folder),
                        t_start=t_start, mode="watch", stopped=stopped)
 
