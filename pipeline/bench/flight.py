@@ -1,7 +1,9 @@
 """``seqat bench FLIGHT``: the real-flight benchmark of an image flight (issue 3).
 
 One Seq-R run tracks the images; Sim and Seq-F then replay the *same* tie points
-(``--observations``), so the three estimators are compared on one set of observations.
+(``--observations``), so the three estimators are compared on one set of observations; Sim
+and Seq-R once more with the other camera model (fixed if the flight self-calibrates, else
+self-calibrated), for what self-calibration changes (issue 17).
 Reported: tracks (count, lengths), image residuals, σ0, per-image latency (read, detect,
 match, AT) and the differences Seq-R − Sim and Seq-F − Sim of the camera positions and
 attitudes. Written to ``OUT/bench_flight.json`` and ``OUT/latency.png``; the numbers go to
@@ -92,6 +94,12 @@ class FlightBench:
     seq_r_minus_sim: Difference
     seq_f_minus_sim: Difference
     nav_minus_sim: Difference
+    #: The runs above as the flight configures them (a camera from EXIF: self-calibrated);
+    #: run.json ``camera_estimate`` of each method (None: camera fixed).
+    camera_estimate: dict[str, object]
+    #: Sim and Seq-R again on the same tie points with the camera held fixed (or, when the
+    #: runs above kept it fixed, self-calibrated): sigma0, Seq-R - Sim, Seq-R update time.
+    other_camera: dict[str, object]
 
 
 def _difference(a: FloatArray, b: FloatArray) -> Difference:
@@ -149,6 +157,22 @@ def run_flight_bench(flight: Path | str, out: Path | str) -> FlightBench:
     for m in (Method.SIM, Method.SEQ_F):
         run_flight(flight, runs[m], method=m, observations=obs, progress=True)
     seq_r, sim, seq_f = (read_run(runs[m]) for m in (Method.SEQ_R, Method.SIM, Method.SEQ_F))
+    calibrated = seq_r.record.get("camera_estimate") is not None
+    other = {m: out / f"{m.value}-{'fixed' if calibrated else 'selfcal'}"
+             for m in (Method.SEQ_R, Method.SIM)}
+    for m, path in other.items():
+        run_flight(flight, path, method=m, observations=obs, progress=True,
+                   self_calibration=not calibrated)
+    o_seq_r, o_sim = read_run(other[Method.SEQ_R]), read_run(other[Method.SIM])
+    o_at = [float(im["update_ms"]) for im in o_seq_r.record["images"]]  # type: ignore[index]
+    other_camera = {
+        "self_calibration": not calibrated,
+        "sigma0": {r.method: float(r.record["totals"]["sigma0"])  # type: ignore[index]
+                   for r in (o_seq_r, o_sim)},
+        "seq_r_minus_sim": _difference(o_seq_r.eop.eop, o_sim.eop.eop),
+        "at_ms": Stats.of(o_at),
+        "camera_estimate": {r.method: r.record.get("camera_estimate") for r in (o_seq_r, o_sim)},
+    }
     record = seq_r.record
     images = record["images"]  # type: ignore[index]
     tracking = [im["tracking"] for im in images]  # type: ignore[index]
@@ -185,6 +209,8 @@ def run_flight_bench(flight: Path | str, out: Path | str) -> FlightBench:
         seq_r_minus_sim=_difference(seq_r.eop.eop, sim.eop.eop),
         seq_f_minus_sim=_difference(seq_f.eop.eop, sim.eop.eop),
         nav_minus_sim=_difference(seq_r.nav.eop, sim.eop.eop),
+        camera_estimate={r.method: r.record.get("camera_estimate") for r in (seq_r, sim, seq_f)},
+        other_camera=other_camera,
     )
     doc = {"version": 1, **to_jsonable(bench)}  # type: ignore[dict-item]
     atomic_write_text(out / "bench_flight.json",

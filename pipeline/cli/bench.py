@@ -154,6 +154,27 @@ def _faults_bench(out: Path, seeds: list[int] | None, cases: list[str] | None,
     console().print(f"benchmark written to {out / 'faults.json'} and {out / 'faults.md'}")
 
 
+def _camera_rows(b: object) -> list[tuple[str, str]]:
+    """Rows of the flight bench about the camera: its estimate, and the other model."""
+    rows = []
+    for method, est in b.camera_estimate.items():  # type: ignore[attr-defined]
+        if est:
+            v, sg = est["values"], est["sigma"]
+            rows.append((f"camera ({method})", ", ".join(
+                f"{n} {v[n]:.4g}±{sg[n]:.2g}" for n in est["free"])))
+    other = b.other_camera  # type: ignore[attr-defined]
+    label = "self-calibrated" if other["self_calibration"] else "fixed camera"
+    rows.append((f"{label}: sigma0 (seq-r / sim)", " / ".join(
+        f"{other['sigma0'][m]:.3f}" for m in ("seq-r", "sim"))))
+    d = other["seq_r_minus_sim"]
+    rows.append((f"{label}: Seq-R - Sim rms", f"{fmt(d.pos_rms_m, METRE_FORMAT)} m, "
+                 f"{fmt(d.att_rms_deg, DEGREE_FORMAT)} deg"))
+    s = other["at_ms"]
+    rows.append((f"{label}: AT ms (median, p95, max)",
+                 f"{s.median:.0f} / {s.p95:.0f} / {s.max:.0f}"))
+    return rows
+
+
 def _flight_bench(flight: Path, out: Path) -> None:
     from pipeline.bench.flight import run_flight_bench
 
@@ -182,6 +203,7 @@ def _flight_bench(flight: Path, out: Path) -> None:
         ("Seq-R - Sim rms", diff(b.seq_r_minus_sim)),
         ("Seq-F - Sim rms", diff(b.seq_f_minus_sim)),
         ("nav - Sim rms", diff(b.nav_minus_sim)),
+        *_camera_rows(b),
         ("written", str(out)),
     ]
     console().print(table(f"seqat bench {flight}", rows))

@@ -60,6 +60,10 @@ def run(
         "--resume", help="Continue an interrupted run from OUT/journal/ (same results as an "
         "uninterrupted run).")] = False,
     budget_ms: BudgetOption = None,
+    self_calibration: Annotated[bool | None, typer.Option(
+        "--self-calibration/--fixed-camera", help="Estimate the camera's interior parameters "
+        "with the EOPs, or keep the camera fixed (default: flight.yaml self_calibration:, on "
+        "for a camera from EXIF).", show_default=False)] = None,
 ) -> None:
     """Adjust a flight folder and write eop.csv, points.csv, run.json, nav.csv and
     observations.csv."""
@@ -84,7 +88,7 @@ def run(
                                  options_path=options, threshold=threshold,
                                  initial_images=initial_images, progress=progress,
                                  observations=observations, resume=resume,
-                                 budget_ms=budget_ms,
+                                 budget_ms=budget_ms, self_calibration=self_calibration,
                                  listeners=(live,) if live is not None else ())
     except BaseException:
         from pipeline.common.outdir import release_output_folder

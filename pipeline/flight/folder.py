@@ -12,6 +12,7 @@ value. File formats: docs/formats.md.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -156,6 +157,19 @@ class Flight:
                          nav_sigma=self.nav_sigma, sigma_image_px=self.config.sigma_image_px,
                          images_dir=self.images_dir, skipped=self.skipped,
                          warnings=self.warnings)
+
+
+def with_self_calibration(flight: Flight, enabled: bool | None) -> Flight:
+    """``flight`` with its self-calibration switched on or off (``None``: as configured,
+    ``flight.yaml`` ``self_calibration:``)."""
+    if enabled is None:
+        return flight
+    cfg = dataclasses.replace(flight.config.self_calibration, enabled=enabled)
+    calibration = cfg.resolve(flight.camera_approximate)
+    camera, corrector = frame_camera(flight.camera_config, calibration is not None)
+    return dataclasses.replace(flight, config=dataclasses.replace(flight.config,
+                                                                  self_calibration=cfg),
+                               calibration=calibration, camera=camera, corrector=corrector)
 
 
 def _in_folder(folder: Path, name: str) -> Path:

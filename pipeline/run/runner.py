@@ -25,7 +25,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from pipeline.common.columns import FLIGHT_YAML
 from pipeline.common.outdir import claim_output_folder, output_errors, release_output_folder
 from pipeline.common.strict_yaml import build_dataclass, load_yaml
-from pipeline.flight.folder import Flight, Truth, read_flight, read_truth
+from pipeline.flight.folder import Flight, Truth, read_flight, read_truth, with_self_calibration
 from pipeline.flight.inputs import RunInputs, SkippedImage
 from pipeline.run.accuracy import Accuracy, compare_with_truth
 from pipeline.run.budget import BudgetReport, LatencyBudget
@@ -350,7 +350,8 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
                threshold: float | None = None, initial_images: int | None = None,
                progress: bool = True, observations: Path | str | None = None,
                listeners: Sequence[ImageListener] = (), resume: bool = False,
-               budget_ms: float | None = None) -> RunSummary:
+               budget_ms: float | None = None,
+               self_calibration: bool | None = None) -> RunSummary:
     """Adjust a flight folder with one method and write the results to ``out_dir``.
 
     Parameters
@@ -383,6 +384,9 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     budget_ms : float or None
         Latency budget per image (Seq-R): over it, the window threshold tightens
         (:class:`pipeline.run.budget.LatencyBudget`).
+    self_calibration : bool or None
+        Estimate the camera's interior parameters (``True``) or keep the camera fixed
+        (``False``); ``None``: as ``flight.yaml`` says (by default on for a camera from EXIF).
 
     Returns
     -------
@@ -405,7 +409,7 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     budget = make_budget(budget_ms, method, options)
     if out.exists() and not out.is_dir():
         raise InputDataError(f"{out}: exists and is not a folder")
-    flight = read_flight(flight_dir)
+    flight = with_self_calibration(read_flight(flight_dir), self_calibration)
     options = with_calibration(options, flight.calibration)
     obs_path = None
     if observations is not None:

@@ -220,6 +220,13 @@ def test_flight_bench_compares_methods_on_the_same_tie_points(tmp_path: Path) ->
     # sigma_image_px is 1 px; the matches fit to ~0.5 px (0.48-0.86 over FLANN seeds)
     assert 0.4 < b.sigma0["sim"] < 2.0 and b.rms_residual_px["sim"] < 2.0
     assert b.latency_ms.median >= b.at_ms.median > 0
+    # a camera from EXIF is self-calibrated by default; the bench reruns it fixed
+    for m in ("seq-r", "sim", "seq-f"):
+        est = b.camera_estimate[m]
+        assert est is not None and "f_px" in est["free"]  # type: ignore[operator]
+    assert b.other_camera["self_calibration"] is False
+    fixed = b.other_camera["sigma0"]
+    assert fixed["sim"] > 0.95 * b.sigma0["sim"]  # type: ignore[index]
 
 
 def test_run_with_ortho_and_report_writes_the_whole_chain(tmp_path: Path) -> None:
