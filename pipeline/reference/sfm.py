@@ -34,8 +34,10 @@ from __future__ import annotations
 import dataclasses
 import enum
 import math
+import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -405,21 +407,19 @@ def run_sfm(data: SfmInput, work: Path, options: SfmOptions | None = None,
     return _model(pycolmap, rec, data, len(models), n_pairs, distance, seconds)
 
 
-def quiet_colmap(pycolmap: object) -> object:
-    """COLMAP's INFO lines off while it works (warnings stay)."""
-    from contextlib import contextmanager
-
-    @contextmanager
-    def quiet():  # type: ignore[no-untyped-def]
-        logging = pycolmap.logging
-        previous = logging.minloglevel
-        logging.minloglevel = int(logging.WARNING)
-        try:
-            yield
-        finally:
-            logging.minloglevel = previous
-
-    return quiet()
+@contextmanager
+def quiet_colmap(pycolmap: object) -> Iterator[None]:
+    """COLMAP's log off while it works, errors included: its normal course logs warnings
+    ("Discarding reconstruction due to insufficient size") and an error when no model forms,
+    which :func:`run_sfm` reports itself, in one line. ``SEQAT_DEBUG=1`` keeps the log."""
+    logging = pycolmap.logging
+    previous = logging.minloglevel
+    if os.environ.get("SEQAT_DEBUG", "") in ("", "0"):
+        logging.minloglevel = int(logging.FATAL)
+    try:
+        yield
+    finally:
+        logging.minloglevel = previous
 
 
 def _model(pycolmap: object, rec: pycolmap.Reconstruction, data: SfmInput, n_models: int,
