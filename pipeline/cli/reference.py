@@ -37,6 +37,9 @@ def reference(
     threads: Annotated[int, typer.Option("--threads", help="--sfm: CPU threads.")] = 2,
     images: Annotated[Path | None, typer.Option(
         "--images", help="--sfm: the flight's images, if not where run.json says.")] = None,
+    realign: Annotated[bool, typer.Option(
+        "--realign", help="--sfm: keep the earlier SfM model, only align it again (after "
+                          "adding --compare runs or the bundle adjustment).")] = False,
     compare: Annotated[list[Path] | None, typer.Option(
         "--compare", help="--sfm: another run of the same flight to compare (repeatable).")
         ] = None,
@@ -50,7 +53,7 @@ def reference(
 
     if sfm:
         _sfm(out, matching, max_image_size, max_features, refine_principal_point, threads,
-             images, compare or [])
+             images, compare or [], realign)
         return
     from pipeline.reference.colmap_ba import PriorKind, ReferenceOptions, RobustLoss
     from pipeline.reference.stage import run_reference
@@ -86,7 +89,7 @@ def _camera_text(cam: object) -> str:
 
 def _sfm(out: Path, matching: str, max_image_size: int, max_features: int,
          refine_principal_point: bool, threads: int, images: Path | None,
-         compare: list[Path]) -> None:
+         compare: list[Path], realign: bool) -> None:
     from pipeline.reference.sfm import Matching, SfmOptions
     from pipeline.reference.sfm_stage import run_sfm_check
     from seqat.errors import ConfigError
@@ -97,7 +100,7 @@ def _sfm(out: Path, matching: str, max_image_size: int, max_features: int,
     options = SfmOptions(matching=Matching(matching), max_image_size_px=max_image_size,
                          max_num_features=max_features,
                          refine_principal_point=refine_principal_point, num_threads=threads)
-    s = run_sfm_check(out, options, compare=compare, images_dir=images)
+    s = run_sfm_check(out, options, compare=compare, images_dir=images, realign=realign)
     rows = [
         ("images registered", f"{s.n_registered} of {s.n_images}"),
         ("points / mean track length", f"{s.n_points} / {s.mean_track_length:.2f}"),

@@ -404,7 +404,8 @@ def run_sfm(data: SfmInput, work: Path, options: SfmOptions | None = None,
         raise EstimationError(
             f"SfM of {image_dir}: registered {rec.num_reg_images()} of {n} images "
             f"(needs >= {needed}; {len(models)} models, {n_pairs} image pairs matched)")
-    return _model(pycolmap, rec, data, len(models), n_pairs, distance, seconds)
+    return model_from_reconstruction(rec, data, n_models=len(models), n_pairs=n_pairs,
+                                     distance=distance, seconds=seconds)
 
 
 @contextmanager
@@ -422,14 +423,24 @@ def quiet_colmap(pycolmap: object) -> Iterator[None]:
         logging.minloglevel = previous
 
 
-def _model(pycolmap: object, rec: pycolmap.Reconstruction, data: SfmInput, n_models: int,
-           n_pairs: int, distance: float | None, seconds: dict[str, float]) -> SfmModel:
+def model_from_reconstruction(rec: pycolmap.Reconstruction, data: SfmInput, *, n_models: int,
+                              n_pairs: int, distance: float | None,
+                              seconds: dict[str, float]) -> SfmModel:
+    """The :class:`SfmModel` of a reconstruction of ``data``'s images (images by file name).
+
+    Raises
+    ------
+    EstimationError
+        Not one camera, or an image that is not one of ``data``'s.
+    """
     id_of_file = dict(zip(data.file_names, data.image_ids, strict=True))
     order = {iid: i for i, iid in enumerate(data.image_ids)}
     poses: dict[str, tuple[FloatArray, FloatArray]] = {}
     for image in rec.images.values():
         if not image.has_pose:
             continue
+        if image.name not in id_of_file:
+            raise EstimationError(f"SfM model: image {image.name!r} is not one of the run's")
         pose = image.cam_from_world()
         poses[id_of_file[image.name]] = (
             np.asarray(pose.rotation.matrix(), dtype=np.float64),

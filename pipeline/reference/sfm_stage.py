@@ -36,7 +36,13 @@ from pipeline.common.csvio import format_csv_line
 from pipeline.common.outdir import output_errors
 from pipeline.flight.navigation import image_files
 from pipeline.flight.schema import CameraConfig
-from pipeline.reference.sfm import SfmInput, SfmModel, SfmOptions, run_sfm
+from pipeline.reference.sfm import (
+    SfmInput,
+    SfmModel,
+    SfmOptions,
+    model_from_reconstruction,
+    run_sfm,
+)
 from pipeline.reference.similarity import (
     AgreementStats,
     PoseAgreement,
@@ -257,6 +263,38 @@ def sfm_record(run: RunFolder, data: SfmInput, model: SfmModel, options: SfmOpti
         "pycolmap_version": str(pycolmap.__version__)}
 
 
+def load_model(folder: Path, data: SfmInput) -> tuple[SfmModel, SfmOptions]:
+    """The SfM model of an earlier check (``--realign``) and the options it was made with.
+
+    Raises
+    ------
+    InputDataError
+        No earlier check in ``folder``, or an unreadable one.
+    """
+    import pycolmap
+
+    from pipeline.common.strict_yaml import build_dataclass
+    from pipeline.run.store import read_json_object
+    from seqat.errors import ConfigError
+
+    record = folder / SFM_JSON
+    if not record.is_file() or not (folder / SFM_MODEL_DIR).is_dir():
+        raise InputDataError(f"{folder}: no earlier SfM check to realign (run `seqat reference "
+                             "OUT --sfm` first)")
+    doc = read_json_object(record)
+    try:
+        options = build_dataclass(SfmOptions, doc["options"], str(record), key="options")
+        rec = pycolmap.Reconstruction(str(folder / SFM_MODEL_DIR))
+        seconds = {k: float(v) for k, v in doc["seconds"].items() if k != "total"}
+        model = model_from_reconstruction(
+            rec, data, n_models=int(doc["n_models"]), n_pairs=int(doc["n_matched_pairs"]),
+            distance=doc["spatial_max_distance_m"], seconds=seconds)
+    except (KeyError, TypeError, ValueError, AttributeError, ConfigError,
+            EstimationError) as err:
+        raise InputDataError(f"{record}: cannot realign: {err}") from err
+    return model, options
+
+
 def _progress_bar(console: Console, enabled: bool) -> Progress:
     return Progress(TextColumn("[bold]sfm {task.description}"), BarColumn(),
                     MofNCompleteColumn(), TimeElapsedColumn(), console=console,
@@ -278,7 +316,7 @@ def _remove_if_created_empty(folder: Path):  # type: ignore[no-untyped-def]
 
 def run_sfm_check(out_dir: Path | str, options: SfmOptions | None = None, *,
                   compare: Sequence[Path | str] = (), images_dir: Path | str | None = None,
-                  progress: bool = True) -> SfmSummary:
+                  realign: bool = False, progress: bool = True) -> SfmSummary:
     """SfM of a run's images, aligned to each method; publishes ``OUT/reference/sfm/``.
 
     Parameters
@@ -290,6 +328,10 @@ def run_sfm_check(out_dir: Path | str, options: SfmOptions | None = None, *,
         Further runs of the same flight (one method each) to compare with the SfM.
     images_dir : Path or str, optional
         Where the images are, if not where ``run.json`` says.
+    realign : bool
+        Keep the SfM model of an earlier check (and its options) and only align it again, to
+        the methods there are now (``compare``, a new ``OUT/reference/``); no images are read
+        but the folder must still hold them.
     progress : bool
         Transient progress bars on a terminal (stderr).
 
@@ -309,20 +351,26 @@ def run_sfm_check(out_dir: Path | str, options: SfmOptions | None = None, *,
     methods = methods_of(run, others)
     console = Console(stderr=True, soft_wrap=True)
     target = out / REFERENCE_DIR / SFM_DIR
+    earlier: SfmModel | None = None
+    if realign:
+        earlier, options = load_model(target, data)
     with _remove_if_created_empty(out / REFERENCE_DIR), building_folder(target) as tmp:
-        work = tmp / WORK_DIR
-        work.mkdir()
-        with _progress_bar(console, progress) as bar:
-            tasks: dict[str, int] = {}
+        if earlier is not None:
+            model = earlier
+        else:
+            work = tmp / WORK_DIR
+            work.mkdir()
+            with _progress_bar(console, progress) as bar:
+                tasks: dict[str, int] = {}
 
-            def report(stage: str, done: int, total: int) -> None:
-                if stage not in tasks:
-                    tasks[stage] = bar.add_task(stage, total=total)
-                bar.update(tasks[stage], completed=done, total=total)
+                def report(stage: str, done: int, total: int) -> None:
+                    if stage not in tasks:
+                        tasks[stage] = bar.add_task(stage, total=total)
+                    bar.update(tasks[stage], completed=done, total=total)
 
-            model = run_sfm(data, work, options, report)
+                model = run_sfm(data, work, options, report)
+            shutil.rmtree(work)
         results = [align(model, m) for m in methods]
-        shutil.rmtree(work)
         with output_errors(target):
             (tmp / SFM_MODEL_DIR).mkdir()
             model.reconstruction.write_binary(str(tmp / SFM_MODEL_DIR))

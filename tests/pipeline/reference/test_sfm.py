@@ -177,6 +177,22 @@ def test_sfm_files_are_complete_and_consistent(mini_sfm: SfmSummary) -> None:
     assert {p.name for p in (folder / SFM_MODEL_DIR).iterdir()} >= {"cameras.bin", "images.bin"}
 
 
+def test_realign_keeps_the_model_and_adds_a_method(mini_sfm: SfmSummary,
+                                                    mini_run: Path, tmp_path: Path) -> None:
+    """--realign: the same model aligned again, here also to a second run (a copy)."""
+    other = _copy_run(mini_run, tmp_path)
+    again = run_sfm_check(mini_sfm.out_dir, SfmOptions(max_num_features=1), compare=[other],
+                          realign=True, progress=False)
+    assert again.n_registered == mini_sfm.n_registered
+    assert again.camera == mini_sfm.camera
+    labels = [label for label, _ in again.methods]
+    assert labels == ["seq-r", "seq-r (run)", DIRECT]
+    first, copy = dict(again.methods)["seq-r"], dict(again.methods)["seq-r (run)"]
+    assert first == dict(mini_sfm.methods)["seq-r"] == copy
+    doc = json.loads((again.sfm_dir / SFM_JSON).read_text(encoding="utf-8"))
+    assert doc["options"]["max_num_features"] == FAST.max_num_features  # the model's options
+
+
 def test_report_shows_the_agreement(mini_sfm: SfmSummary) -> None:
     from pipeline.report.stage import make_report
 
