@@ -235,7 +235,8 @@ def plot_residuals(results: Sequence[MethodAgreement], path: Path) -> None:
 
 
 def sfm_record(run: RunFolder, data: SfmInput, model: SfmModel, options: SfmOptions,
-               results: Sequence[MethodAgreement], wall_s: float) -> dict[str, object]:
+               results: Sequence[MethodAgreement], wall_s: float,
+               realigned: bool = False) -> dict[str, object]:
     """``sfm.json`` (docs/formats.md, *SfM check*)."""
     import pycolmap
 
@@ -259,7 +260,8 @@ def sfm_record(run: RunFolder, data: SfmInput, model: SfmModel, options: SfmOpti
         "mean_track_length": model.mean_track_length, "camera_model": "OPENCV",
         "camera": model.camera, "run_camera": run.camera,
         "run_camera_approximate": run.inputs.camera_approximate,
-        "seconds": {**model.seconds, "total": wall_s}, "methods": methods,
+        "seconds": model.seconds if realigned else {**model.seconds, "total": wall_s},
+        "realigned": realigned, "methods": methods,
         "pycolmap_version": str(pycolmap.__version__)}
 
 
@@ -285,7 +287,7 @@ def load_model(folder: Path, data: SfmInput) -> tuple[SfmModel, SfmOptions]:
     try:
         options = build_dataclass(SfmOptions, doc["options"], str(record), key="options")
         rec = pycolmap.Reconstruction(str(folder / SFM_MODEL_DIR))
-        seconds = {k: float(v) for k, v in doc["seconds"].items() if k != "total"}
+        seconds = {k: float(v) for k, v in doc["seconds"].items()}
         model = model_from_reconstruction(
             rec, data, n_models=int(doc["n_models"]), n_pairs=int(doc["n_matched_pairs"]),
             distance=doc["spatial_max_distance_m"], seconds=seconds)
@@ -376,7 +378,7 @@ def run_sfm_check(out_dir: Path | str, options: SfmOptions | None = None, *,
             model.reconstruction.write_binary(str(tmp / SFM_MODEL_DIR))
             plot_residuals(results, tmp / SFM_PLOT)
         wall = time.perf_counter() - t0
-        record = sfm_record(run, data, model, options, results, wall)
+        record = sfm_record(run, data, model, options, results, wall, realigned=realign)
         atomic_write_text(tmp / SFM_IMAGES_CSV, format_images_csv(results))
         atomic_write_text(tmp / SFM_JSON, json.dumps(to_jsonable(record), indent=JSON_INDENT,
                                                      allow_nan=False) + "\n")
