@@ -14,8 +14,9 @@ length is 694 px).
   linked there unchanged.
 * **Features**: SIFT (``pycolmap.extract_features``, first octave 0 by default, not COLMAP's
   upsampling -1: a quarter of the CPU time on 2 shared cores) on a copy at most
-  ``max_image_size_px`` wide (keypoints are returned at full resolution), one ``OPENCV`` camera shared by every
-  image (``CameraMode.SINGLE``). Extracted in batches so the stage can show progress.
+  ``max_image_size_px`` wide (keypoints are returned at full resolution), one ``OPENCV``
+  camera shared by every image (``CameraMode.SINGLE``). Extracted in batches so the stage can
+  show progress.
 * **Pairs**: spatial (``pycolmap.match_spatial``) on the nav positions, written to the
   database as Cartesian pose priors in local coordinates of the working CRS (the EXIF GPS the
   extractor reads is WGS 84 and absent for a ``nav.csv`` flight). Neighbours within
@@ -27,7 +28,7 @@ length is 694 px).
   ``refine_principal_point``. The largest model is kept.
 
 CPU only; every thread count is ``num_threads``. Seeds are fixed, but COLMAP's multi-threaded
-parts may still differ between runs in the last digits.
+parts may still make runs differ slightly (not measured).
 """
 
 from __future__ import annotations
@@ -365,7 +366,7 @@ def _map(pycolmap: object, db: Path, data: SfmInput, work: Path, options: SfmOpt
     models = pycolmap.incremental_mapping(db, data.image_dir, out, pipeline,
                                           initial_image_pair_callback=initial_pair,
                                           next_image_callback=next_image)
-    progress("mapping", n, n)
+    progress("mapping", max((r.num_reg_images() for r in models.values()), default=0), n)
     return models
 
 

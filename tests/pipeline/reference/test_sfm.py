@@ -18,6 +18,7 @@ from pipeline.common.csvio import read_csv
 from pipeline.reference.sfm import SfmOptions
 from pipeline.reference.sfm_stage import (
     DIRECT,
+    REFERENCE,
     SFM_IMAGE_COLUMNS,
     SFM_IMAGES_CSV,
     SFM_JSON,
@@ -191,6 +192,21 @@ def test_realign_keeps_the_model_and_adds_a_method(mini_sfm: SfmSummary,
     assert first == dict(mini_sfm.methods)["seq-r"] == copy
     doc = json.loads((again.sfm_dir / SFM_JSON).read_text(encoding="utf-8"))
     assert doc["options"]["max_num_features"] == FAST.max_num_features  # the model's options
+
+
+def test_bundle_adjustment_keeps_the_check_and_realign_adds_it(mini_sfm: SfmSummary,
+                                                               tmp_path: Path) -> None:
+    """`seqat reference OUT` rewrites OUT/reference/ whole but keeps sfm/; --realign then
+    compares the SfM with the bundle adjustment (`colmap`) too."""
+    from pipeline.reference.stage import run_reference
+
+    out = tmp_path / "run"
+    shutil.copytree(mini_sfm.out_dir, out)
+    run_reference(out)
+    assert (out / REFERENCE_DIR / SFM_DIR / SFM_JSON).is_file()
+    again = run_sfm_check(out, realign=True, progress=False)
+    assert [label for label, _ in again.methods] == ["seq-r", REFERENCE, DIRECT]
+    assert dict(again.methods)[REFERENCE].attitude_rms_deg < SEQ_R_ATT_RMS_DEG
 
 
 def test_report_shows_the_agreement(mini_sfm: SfmSummary) -> None:
