@@ -31,3 +31,5 @@ CHECKPOINTS_FILE = "checkpoints.csv"
 CHECKPOINT_OBS_FILE = "checkpoint_obs.csv"
 #: The COLMAP reference of a run, inside its run folder (``seqat reference``).
 REFERENCE_DIR = "reference"
+#: The independent SfM check inside it (``seqat reference OUT --sfm``).
+SFM_DIR = "sfm"

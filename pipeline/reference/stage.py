@@ -4,19 +4,21 @@ Reads the run folder (nav = priors, observed pixels, the run's estimates as init
 adjusts with :func:`pipeline.reference.colmap_ba.adjust_reference` (COLMAP's Ceres bundle adjuster
 under Sim's stochastic model) and publishes ``OUT/reference/`` whole: ``colmap/`` (the COLMAP
 model, binary and text, world coordinates), ``eop.csv`` and ``points.csv`` (our formats) and
-``reference.json`` (docs/formats.md).
+``reference.json`` (docs/formats.md). An SfM check already there (``sfm/``, written by
+``seqat reference OUT --sfm``) is kept.
 """
 
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.common.atomic import atomic_write_text, building_folder
-from pipeline.common.columns import EOP_FILE, POINTS_FILE, REFERENCE_DIR
+from pipeline.common.columns import EOP_FILE, POINTS_FILE, REFERENCE_DIR, SFM_DIR
 from pipeline.common.csvio import read_csv
 from pipeline.flight.camera import PixelCorrector, pinhole_camera
 from pipeline.flight.nav_files import OBSERVATION_COLUMNS
@@ -214,6 +216,8 @@ def write_reference(out_dir: Path, result: ReferenceResult, record: ReferenceRec
     """
     target = out_dir / REFERENCE_DIR
     with building_folder(target) as tmp:
+        if (target / SFM_DIR).is_dir():  # the SfM check (seqat reference --sfm) stays
+            shutil.copytree(target / SFM_DIR, tmp / SFM_DIR)
         model = tmp / COLMAP_MODEL_DIR
         model.mkdir()
         result.reconstruction.write_binary(str(model))

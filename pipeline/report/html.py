@@ -10,11 +10,13 @@ import html
 import io
 import math
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pipeline.report.model import DIRECT, REFERENCE, CheckpointReport, LiveOperation, Report
+from pipeline.report.sfm_section import sfm_section_html
 from pipeline.run.robustness import robustness_rows
 
 if TYPE_CHECKING:
@@ -225,6 +227,8 @@ def render_html(report: Report, extras: Mapping[str, object]) -> str:
                                                for r in report.realtime}))
     if report.live is not None:
         parts += _live_section(report.live)
+    if report.sfm_agreement is not None:
+        parts.append(sfm_section_html(report.sfm_agreement, Path(report.run)))
     if report.robustness is not None:
         parts.append("<h2>Blunders and GNSS faults</h2>")
         parts.append(_table(["", "value"], robustness_rows(report.robustness)))

@@ -38,6 +38,7 @@ from pipeline.flight.folder import read_truth
 from pipeline.flight.nav_files import read_ground_points
 from pipeline.flight.schema import load_flight_config
 from pipeline.reference.stage import REFERENCE_JSON, read_observations
+from pipeline.report.sfm_section import read_sfm_agreement
 from pipeline.run.accuracy import eop_differences, point_differences
 from pipeline.run.latency import LatencyTable, latency_table, read_ortho_json
 from pipeline.run.robustness import RobustnessSummary, summarise
@@ -205,6 +206,7 @@ class Report:
     checkpoint_reports: tuple[CheckpointReport, ...]
     notes: tuple[str, ...]
     robustness: RobustnessSummary | None = None  # data snooping, GNSS dropouts
+    sfm_agreement: Mapping[str, object] | None = None  # report/sfm_section.py
 
 
 # --------------------------------------------------------------------------------------------
@@ -577,7 +579,8 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
         realtime=realtime, live=live_operation(run.record),
         latency=latency_table(run.record, read_ortho_json(run.path)),
         checkpoints=checkpoints, checkpoint_reports=tuple(cps),
-        notes=tuple(notes), robustness=summarise(run.record))
+        notes=tuple(notes), robustness=summarise(run.record),
+        sfm_agreement=read_sfm_agreement(run.path))
     extras: dict[str, object] = {
         "errors": errors,
         "series": {m.label: m.record.get("images", []) for m in methods if m.record is not None},
