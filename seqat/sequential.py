@@ -100,6 +100,11 @@ _BLAS = ThreadpoolController()
 #: Data snooping: at most this many reject-and-resolve rounds per image.
 MAX_SNOOPING_ROUNDS = 40
 
+#: Self-calibration: a parameter held at its prior after the last image gets this many times
+#: its information (its sigma shrinks a hundredfold: the final re-linearisation moves it by
+#: ~1 % of its sigma at most, and the reduced system stays far from the rank tolerance).
+HOLD_WEIGHT = 1e4
+
 #: Window engines (SequentialOptions.engine).
 ENGINES = ("information", "inverse")
 
@@ -237,6 +242,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         # are the window block ``_cam_key`` (set by the initial stage).
         self._cam = FreeCamera(camera, np.zeros(0, dtype=np.int64))
         self._cam_key: Key | None = None
+        self._camera_held: tuple[str, ...] = ()  # held at their prior by finish()
         self._w = Window()
         self._window_images: deque[int] = deque()
         self._image_ids: list[str] = []
@@ -313,9 +319,11 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         :data:`FINAL_RELINEARISE_PX`), so the final window values are those of the
         collinearity equations, not of rows linearised on the way (Seq-F then equals Sim).
         No-op without ``relinearise_px``; :meth:`solution` itself never changes the state."""
-        if self._initial is None and self.options.relinearise_px is not None:
+        if self._initial is None:
             with _BLAS.limit(limits=UPDATE_BLAS_THREADS, user_api="blas"):
-                self._relinearise_if_needed(FINAL_RELINEARISE_PX)
+                held = self._hold_undetermined_camera()
+                if self.options.relinearise_px is not None:
+                    self._relinearise_if_needed(FINAL_RELINEARISE_PX, force=held)
 
     def solution(self, *, smoothed: bool | None = None) -> Solution:
         """Estimates of every image and point so far (window and departed), with sigmas.
@@ -375,6 +383,41 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             camera=self.camera_estimate(),
         )
 
+    def _hold_undetermined_camera(self) -> bool:
+        """After the last image: interior parameters the flight did not determine
+        (:func:`seqat.calibration.undetermined`, as Sim decides) are held at their prior.
+
+        The window is conditioned on them: its mean moves by ``Q[:, h] Q_hh^-1 (prior - x_h)``
+        (the exact conditional of the linearised problem; departed parameters follow through
+        their smoothing gains, the camera being in every record's window), and an information
+        :data:`HOLD_WEIGHT` times theirs locks them there for the final re-linearisation.
+        True when any was held."""
+        key, calibration = self._cam_key, self.options.calibration
+        if key is None or calibration is None or not calibration.hold_undetermined:
+            return False
+        w = self._w
+        idx = w.index(key)
+        cols = w.q_columns(idx)
+        prior_sigma = calibration.prior_sigma(self.camera)[self._cam.index]
+        bad = undetermined(cols[idx], prior_sigma)
+        if not bad.any():
+            return False
+        h = idx[bad]
+        target = self.camera.intrinsics[self._cam.index][bad]
+        Qh = cols[:, bad]
+        Qhh = Qh[h]
+        w.x = w.x + Qh @ np.linalg.solve(Qhh, target - w.x[h])
+        w.x[h] = target
+        if w.L is not None:
+            w.L[h, h] += HOLD_WEIGHT * np.diagonal(w.L)[h]
+        if self._inverse:
+            w.Q = w.Q - Qh @ np.linalg.solve(Qhh, Qh.T)
+            w.Q[np.ix_(h, h)] = np.diag(prior_sigma[bad] ** 2 / HOLD_WEIGHT)
+        w.changed()
+        names = calibration.names
+        self._camera_held = tuple(n for n, b in zip(names, bad, strict=True) if b)
+        return True
+
     def camera_now(self) -> PinholeCamera:
         """The camera at the current estimate (the prior :attr:`camera` unless
         self-calibrating)."""
@@ -397,17 +440,20 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         if key is None:
             return None
         w = self._w
-        idx = w.index(key)
-        Q = w.q_block(idx)
         assert self.options.calibration is not None
         names = self.options.calibration.names
-        prior = self.options.calibration.prior_sigma(self.camera)[self._cam.index]
+        held = self._camera_held
+        keep = np.array([n not in held for n in names], dtype=bool)
+        idx = w.index(key)[keep]
+        Q = w.q_block(idx)
+        prior = self.options.calibration.prior_sigma(self.camera)[self._cam.index][keep]
+        free = tuple(n for n in names if n not in held)
         weak = undetermined(Q, prior)
         return CameraEstimate(
-            camera=self._camera_now(), prior=self.camera, free=names,
+            camera=self._camera_now(), prior=self.camera, free=free,
             sigma=np.sqrt(np.diagonal(Q)) * sigma_scale(self.sigma0, self._redundancy),
-            correlation=correlation(Q),
-            undetermined=tuple(n for n, b in zip(names, weak, strict=True) if b))
+            correlation=correlation(Q), held=held,
+            undetermined=tuple(n for n, b in zip(free, weak, strict=True) if b))
 
     def window_solution(self) -> Solution:
         """Current estimates of the window's images and GPs with sigmas: O(window), any time.
