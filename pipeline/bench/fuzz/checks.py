@@ -128,8 +128,8 @@ def check_run_outputs(out: Path) -> list[str]:
         key = row.get("point", "?")
         xyz = _check_values("points.csv", key, row, problems)
         if lo and all(math.isfinite(c) for c in xyz):
-            d = math.sqrt(sum(max(low - c, 0.0, c - h) ** 2
-                              for c, low, h in zip(xyz, lo, hi, strict=True)))
+            d = math.hypot(*(max(low - c, 0.0, c - h)
+                             for c, low, h in zip(xyz, lo, hi, strict=True)))
             if d > reach:
                 problems.append(f"points.csv: {key} lies {d:.4g} m from the nav's extent")
     if isinstance(run, dict):
@@ -160,6 +160,8 @@ def check_dsm(path: Path) -> list[str]:
         return [f"{path.name}: unreadable: {err}"]
     values = np.ma.compressed(a)
     values = values[~np.isnan(values)] if values.dtype.kind == "f" else values
+    if not values.size:
+        return [f"{path.name}: no valid height (every cell is nodata)"]
     if values.size and (not np.all(np.isfinite(values)) or np.abs(values).max() > MAX_Z_M):
         return [f"{path.name}: heights out of range ({values.min():.4g} to {values.max():.4g})"]
     return []

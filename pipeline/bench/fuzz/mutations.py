@@ -324,6 +324,78 @@ def csv_encoding(case: CaseFolder, rng: np.random.Generator) -> Mutation:
     return Mutation("csv_encoding", _rel(case, path), mode)
 
 
+# --- targeted fields of binary files ----------------------------------------------------------
+
+#: LAS header fields: name, byte offset, struct format (LAS 1.0-1.4 public header block).
+LAS_FIELDS = (("header size", 94, "<H"), ("offset to point data", 96, "<I"),
+              ("legacy point count", 107, "<I"), ("x scale", 131, "<d"),
+              ("y scale", 139, "<d"), ("z scale", 147, "<d"), ("x offset", 155, "<d"),
+              ("y offset", 163, "<d"), ("z offset", 171, "<d"), ("max x", 179, "<d"),
+              ("min z", 211, "<d"))
+#: Values written into a LAS header's float fields.
+LAS_FLOATS = (0.0, float("nan"), float("inf"), -float("inf"), 1e300, -1e300, 1e-300, 1e12,
+              -1.0, 1000.0)
+
+
+def las_header(case: CaseFolder, rng: np.random.Generator) -> Mutation:
+    import struct
+
+    path = _pick(rng, las_files(case.flight))
+    data = bytearray(path.read_bytes())
+    name, offset, fmt = _pick(rng, LAS_FIELDS)
+    size = struct.calcsize(fmt)
+    if len(data) < offset + size:
+        raise NotApplicable
+    (old,) = struct.unpack_from(fmt, data, offset)
+    if fmt == "<d":
+        value: float = _pick(rng, LAS_FLOATS)
+        if value == 1000.0:
+            value = old * 1000.0
+    else:
+        value = int(_pick(rng, (0, 1, old + 1, max(old - 1, 0), old * 2 + 7,
+                                2 ** (8 * size) - 1)))
+    struct.pack_into(fmt, data, offset, value)
+    if bytes(data) == path.read_bytes():
+        raise NotApplicable
+    path.write_bytes(bytes(data))
+    return Mutation("las_header", _rel(case, path), f"{name}: {old!r} -> {value!r}")
+
+
+#: Values written into an XMP number (padded to the length of the number they replace).
+BAD_XMP_VALUES = ("nan", "inf", "-inf", "1e300", "-1e300", "1e12", "abc", "", "1e999",
+                  "9999999")
+
+
+def xmp_value(case: CaseFolder, rng: np.random.Generator) -> Mutation:
+    """Edit one number of a JPEG's XMP packet in place (same length, so the APP1 segment
+    stays valid), or break the packet's XML."""
+    import re
+
+    path = _pick(rng, jpeg_files(case.flight))
+    data = path.read_bytes()
+    head = data[:262144]
+    numbers = list(re.finditer(rb"<([A-Za-z-]+:[A-Za-z]+)>(-?[0-9.]+)</", head)) + \
+        list(re.finditer(rb'([A-Za-z-]+:[A-Za-z]+)="(-?[0-9.]+)"', head))
+    if not numbers:
+        raise NotApplicable
+    if rng.integers(5) == 0:
+        m = _pick(rng, numbers)
+        at = m.start() + 1 if head[m.start()] == ord("<") else m.start()
+        new = data[:at] + b"?" + data[at + 1:]
+        path.write_bytes(new)
+        return Mutation("xmp_value", _rel(case, path),
+                        f"XMP packet broken at {m.group(1).decode()}")
+    m = _pick(rng, numbers)
+    old = m.group(2)
+    value = str(_pick(rng, BAD_XMP_VALUES)).encode()
+    if len(value) > len(old):
+        raise NotApplicable
+    padded = value + b" " * (len(old) - len(value))
+    path.write_bytes(data[:m.start(2)] + padded + data[m.end(2):])
+    return Mutation("xmp_value", _rel(case, path),
+                    f"XMP {m.group(1).decode()}: {old.decode()} -> {value.decode()!r}")
+
+
 # --- YAML ------------------------------------------------------------------------------------
 
 def yaml_edit(case: CaseFolder, rng: np.random.Generator) -> Mutation:
@@ -446,7 +518,7 @@ def symlinks(case: CaseFolder, rng: np.random.Generator) -> Mutation:
         folder = images[0].parent
         moved = case.input / "moved images"
         shutil.move(str(folder), str(moved))
-        folder.symlink_to(moved, target_is_directory=True)
+        folder.symlink_to(os.path.relpath(moved, folder.parent), target_is_directory=True)
         return Mutation("symlink", _rel(case, folder), "the images folder is a symlink")
     path = _pick(rng, csvs)
     if mode == "csv_self":
@@ -456,7 +528,7 @@ def symlinks(case: CaseFolder, rng: np.random.Generator) -> Mutation:
     moved = case.input / "elsewhere" / path.name
     moved.parent.mkdir(exist_ok=True)
     shutil.move(str(path), str(moved))
-    path.symlink_to(moved)
+    path.symlink_to(os.path.relpath(moved, path.parent))
     return Mutation("symlink", _rel(case, path), "a symlink to a file outside the flight")
 
 
@@ -514,6 +586,8 @@ MUTATIONS: dict[str, tuple[float, Callable[..., object]]] = {
     "csv_shuffle_rows": (0.7, csv_shuffle_rows),
     "csv_encoding": (1.0, csv_encoding),
     "yaml_edit": (2.0, yaml_edit),
+    "las_header": (1.0, las_header),
+    "xmp_value": (1.0, xmp_value),
     "delete": (1.5, delete_path),
     "duplicate_image": (0.7, duplicate_image),
     "rename_flight": (0.5, rename_flight),

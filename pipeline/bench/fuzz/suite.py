@@ -224,6 +224,13 @@ def run_command(argv: list[str], timeout_s: float, cwd: Path) -> tuple[int | Non
 
 
 def _check(name: str, case: CaseFolder) -> list[str]:
+    try:
+        return _check_outputs(name, case)
+    except Exception as err:  # noqa: BLE001 - an output the checks cannot read is a finding
+        return [f"outputs not checkable: {type(err).__name__}: {err}"]
+
+
+def _check_outputs(name: str, case: CaseFolder) -> list[str]:
     if name == "run":
         return check_run_outputs(case.out)
     if name == "dsm":
