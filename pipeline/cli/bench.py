@@ -167,8 +167,9 @@ def _faults_bench(out: Path, seeds: list[int] | None, cases: list[str] | None,
 
 def _fuzz_bench(out: Path, seeds: list[int] | None, cases: list[str] | None,
                 extra: list[str]) -> None:
+    from pipeline.bench.fuzz.cases import CaseResult
     from pipeline.bench.fuzz.report import SUMMARY_HEADER, failing_rows, summary_row
-    from pipeline.bench.fuzz.suite import CaseResult, main
+    from pipeline.bench.fuzz.suite import main
 
     argv = ["--out", str(out), *(a for s in seed_args(seeds) for a in s),
             *(a for c in cases or () for a in ("--case", c)), *extra]

@@ -4,15 +4,14 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING
 
+from pipeline.bench.fuzz.cases import FuzzReport
 from pipeline.common.atomic import write_files_atomically
-
-if TYPE_CHECKING:
-    from pipeline.bench.fuzz.suite import FuzzReport
+from pipeline.run.store import to_jsonable
 
 CSV_COLUMNS = ("seed", "case", "flight", "mutation", "target", "description", "command",
                "exit", "seconds", "traceback", "absurd", "inputs_changed", "leftover",
@@ -86,9 +85,11 @@ def render_markdown(report: FuzzReport) -> str:
     return "\n".join(lines)
 
 
-def write_outputs(report: FuzzReport, out: Path) -> None:
-    from pipeline.bench.fuzz.suite import report_dict
+def report_dict(report: FuzzReport) -> dict:
+    return to_jsonable(dataclasses.asdict(report))  # type: ignore[no-any-return]
 
+
+def write_outputs(report: FuzzReport, out: Path) -> None:
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, lineterminator="\n")
     w.writeheader()

@@ -19,9 +19,7 @@ folder left behind by a failed command. A failing case is replayed with
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import datetime
-import json
 import os
 import shutil
 import signal
@@ -34,9 +32,9 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from pipeline.bench.common import load_average, machine
+from pipeline.bench.fuzz.cases import CaseResult, CommandResult, FuzzReport, summarise
 from pipeline.bench.fuzz.checks import check_dsm, check_json_file, check_run_outputs
 from pipeline.bench.fuzz.mutations import CaseFolder, Mutation, case_rng, mutate, tree_digest
-from pipeline.run.store import to_jsonable
 from seqat.errors import ConfigError
 
 #: The repository's sample flights.
@@ -52,81 +50,6 @@ CLI = ("-m", "pipeline.cli")
 DEFAULT_SEEDS = (1, 2, 3)
 DEFAULT_CASES = 40
 DEFAULT_TIMEOUT_S = 300.0
-
-
-@dataclasses.dataclass(kw_only=True)
-class CommandResult:
-    name: str
-    argv: list[str]
-    exit_code: int | None  # None: timed out
-    seconds: float
-    first_stderr_line: str
-    error_line: str
-    traceback: bool
-    absurd: list[str]
-    stderr: str = ""
-
-
-@dataclasses.dataclass(kw_only=True)
-class CaseResult:
-    seed: int
-    index: int
-    flight: str
-    mutation: Mutation
-    commands: list[CommandResult]
-    inputs_changed: list[str]
-    leftover: list[str]
-
-    @property
-    def defects(self) -> list[str]:
-        out = []
-        for c in self.commands:
-            if c.exit_code not in (0, 2):
-                out.append(f"{c.name}: exit {c.exit_code}")
-            if c.traceback:
-                out.append(f"{c.name}: traceback")
-            out += [f"{c.name}: {a}" for a in c.absurd]
-        out += [f"input changed: {p}" for p in self.inputs_changed]
-        return out
-
-
-@dataclasses.dataclass(kw_only=True)
-class FuzzSummary:
-    cases: int
-    commands: int
-    exit_0: int
-    exit_2: int
-    exit_other: int
-    tracebacks: int
-    absurd_outputs: int
-    inputs_changed: int
-    leftovers: int
-    failing_cases: int
-
-
-@dataclasses.dataclass(kw_only=True)
-class FuzzReport:
-    date: str
-    seeds: list[int]
-    cases_per_seed: int
-    machine: object
-    wall_s: float
-    summary: FuzzSummary
-    sample_data_changed: list[str]
-    cases: list[CaseResult]
-
-
-def summarise(cases: Sequence[CaseResult]) -> FuzzSummary:
-    cmds = [c for case in cases for c in case.commands]
-    return FuzzSummary(
-        cases=len(cases), commands=len(cmds),
-        exit_0=sum(c.exit_code == 0 for c in cmds), exit_2=sum(c.exit_code == 2 for c in cmds),
-        exit_other=sum(c.exit_code not in (0, 2) for c in cmds),
-        tracebacks=sum(c.traceback for c in cmds),
-        absurd_outputs=sum(bool(c.absurd) for c in cmds),
-        inputs_changed=sum(bool(case.inputs_changed) for case in cases),
-        leftovers=sum(bool(case.leftover) for case in cases),
-        failing_cases=sum(bool(case.defects) for case in cases))
 
 
 # --- the base flights ------------------------------------------------------------------------
@@ -326,10 +249,6 @@ def run_fuzz_bench(out: Path, *, seeds: Sequence[int] = DEFAULT_SEEDS,
     return report
 
 
-def report_dict(report: FuzzReport) -> dict:
-    return to_jsonable(dataclasses.asdict(report))  # type: ignore[no-any-return]
-
-
 def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="seqat bench fuzz", description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("out/bench_fuzz"))
@@ -367,7 +286,3 @@ def main(argv: Sequence[str], progress: Callable[[CaseResult], None] | None = No
         kinds=tuple(args.kind) if args.kind else None,
         flights=tuple(args.flight) if args.flight else None, sample_data=args.sample_data,
         keep=args.keep or bool(args.case), progress=progress)
-
-
-def dumps(report: FuzzReport) -> str:
-    return json.dumps(report_dict(report), indent=1, allow_nan=False)
