@@ -34,6 +34,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from pipeline.common.atomic import atomic_write_text
 from pipeline.common.columns import EOP_FILE, REFERENCE_DIR
+from pipeline.common.paths import exists_as_anything, file_problem
 from pipeline.common.strict_yaml import build_dataclass, load_yaml
 from pipeline.common.tables import EopTable, PointTable
 from pipeline.flight.schema import load_flight_config
@@ -226,6 +227,8 @@ def _flight_lidar(flight_dir: Path) -> tuple[Path, ...]:
     """The flight's ``lidar:`` files (none when the flight folder is gone or has none)."""
     yaml_path = flight_dir / "flight.yaml"
     if not yaml_path.is_file():
+        if exists_as_anything(yaml_path):
+            raise InputDataError(f"{yaml_path}: {file_problem(yaml_path)}")
         return ()
     lidar = load_flight_config(yaml_path).lidar
     if lidar is None:

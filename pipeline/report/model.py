@@ -31,6 +31,7 @@ from pipeline.common.columns import (
     POINTS_FILE,
     REFERENCE_DIR,
 )
+from pipeline.common.paths import exists_as_anything, file_problem
 from pipeline.common.rmse import Triple, rmse
 from pipeline.common.tables import EopTable, PointTable
 from pipeline.flight.camera import PixelCorrector, pinhole_camera
@@ -440,12 +441,13 @@ def find_checkpoints(flight_dir: Path) -> tuple[Path, Path] | None:
         name = configured if configured is not None else name
     path = Path(name) if Path(name).is_absolute() else flight_dir / name
     if not path.is_file():
-        if name != CHECKPOINTS_FILE:
-            raise InputDataError(f"{path}: no such file (checkpoints in {yaml_path})")
+        if name != CHECKPOINTS_FILE or exists_as_anything(path):
+            raise InputDataError(f"{path}: {file_problem(path)} (checkpoints in {yaml_path})")
         return None
     obs = path.parent / CHECKPOINT_OBS_FILE
     if not obs.is_file():
-        raise InputDataError(f"{obs}: no such file (observations of the check points in {path})")
+        raise InputDataError(f"{obs}: {file_problem(obs)} (observations of the check points "
+                             f"in {path})")
     return path, obs
 
 
