@@ -326,7 +326,8 @@ def image_residuals_px(run: RunFolder, obs: tuple[np.ndarray, tuple[str, ...], n
     est = run.points.index()
     sel = np.array([point_ids[j] in est for j in obs_point], dtype=bool)
     eop_index = run.eop.index()
-    img_rows = np.array([eop_index.get(run.nav.image_ids[i], -1) for i in obs_image])
+    img_rows = np.array([eop_index.get(run.nav.image_ids[i], -1) for i in obs_image],
+                        dtype=np.int64)
     sel &= img_rows >= 0
     if not np.any(sel):
         return np.zeros((0, 2))
@@ -467,7 +468,8 @@ def checkpoint_report(method: str, eop: EopTable, run: RunFolder, known_path: Pa
         if pid not in kindex:
             raise InputDataError(f"{obs_path}: check point {pid!r} is not in {known_path}")
     eindex = eop.index()
-    eop_rows = np.array([eindex.get(run.nav.image_ids[i], -1) for i in obs_image])
+    eop_rows = np.array([eindex.get(run.nav.image_ids[i], -1) for i in obs_image],
+                        dtype=np.int64)
     sel = eop_rows >= 0
     ideal = PixelCorrector(camera=run.camera).ideal_pixels(uv[sel])
     X, _ = intersect_rays(eop.eop[eop_rows[sel]], ideal, obs_point[sel], len(point_ids),
