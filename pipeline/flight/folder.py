@@ -43,6 +43,7 @@ from pipeline.flight.nav_files import (
 )
 from pipeline.flight.navigation import (
     MIN_IMAGES,
+    clashing_image_files,
     geodetic_to_eop,
     image_files,
     read_image_folder_nav,
@@ -387,6 +388,8 @@ def _image_metadata_for_nav(images_dir: Path, nav: NavTable, skipped: list[Skipp
     value; their metadata is in the first).
     """
     files = {p.stem: p for p in image_files(images_dir)}
+    skipped += [SkippedImage(image=name, reason=reason)
+                for name, reason in clashing_image_files(images_dir)]
     metas: dict[str, ImageMetadata] = {}
     for image in nav.image_ids:
         path = files.pop(image, None)

@@ -163,3 +163,18 @@ def test_a_looping_symlink_is_named(make_flight: FlightMaker) -> None:
     (folder / "observations.csv").symlink_to("observations.csv")
     with pytest.raises(InputDataError, match="is a broken or looping symbolic link"):
         read_flight(folder)
+
+
+def test_two_files_with_one_image_id_keep_the_first(tmp_path: Path) -> None:
+    """Found by seqat bench fuzz: IMG_0462.jpg beside IMG_0462.JPEG was a KeyError (exit 1)."""
+    src = Path(__file__).resolve().parents[3] / "sample_data" / "seneca_mini" / "images"
+    folder = tmp_path / "flight"
+    folder.mkdir()
+    for p in sorted(src.glob("*.jpg"))[:3]:
+        shutil.copy2(p, folder / p.name)
+    first = sorted(folder.glob("*.jpg"))[1]
+    shutil.copy2(first, first.with_suffix(".JPEG"))
+    flight = read_flight(folder)
+    assert len(flight.nav) == 3
+    assert [s.image for s in flight.skipped] == [first.name]
+    assert f"same image id {first.stem!r} as {first.stem}.JPEG" in flight.skipped[0].reason
