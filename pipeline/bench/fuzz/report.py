@@ -66,6 +66,19 @@ def failing_rows(report: FuzzReport) -> list[tuple[str, ...]]:
     return out
 
 
+def by_mutation(report: FuzzReport) -> dict[str, tuple[int, int, int, int]]:
+    """Per mutation class: cases, ``seqat run`` exits 0 and 2, failing cases."""
+    out: dict[str, list[int]] = {}
+    for case in report.cases:
+        row = out.setdefault(case.mutation.kind, [0, 0, 0, 0])
+        run = next((c for c in case.commands if c.name == "run"), None)
+        row[0] += 1
+        row[1] += run is not None and run.exit_code == 0
+        row[2] += run is not None and run.exit_code == 2
+        row[3] += bool(case.defects or case.leftover)
+    return {k: tuple(v) for k, v in sorted(out.items())}  # type: ignore[misc]
+
+
 def render_markdown(report: FuzzReport) -> str:
     m = report.machine
     lines = [f"# seqat bench fuzz ({report.date})", "",
@@ -75,6 +88,10 @@ def render_markdown(report: FuzzReport) -> str:
              "| " + " | ".join(SUMMARY_HEADER) + " |",
              "|" + "---|" * len(SUMMARY_HEADER),
              "| " + " | ".join(summary_row(report)) + " |", ""]
+    lines += ["| mutation | cases | run exit 0 | run exit 2 | failing |", "|---|---|---|---|---|"]
+    for kind, row in by_mutation(report).items():
+        lines.append(f"| {kind} | " + " | ".join(str(v) for v in row) + " |")
+    lines.append("")
     if report.sample_data_changed:
         lines += [f"sample data changed: {', '.join(report.sample_data_changed)}", ""]
     fails = failing_rows(report)
