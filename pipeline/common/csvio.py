@@ -33,9 +33,11 @@ NAN_TEXT = frozenset({"nan", "NaN", "NAN", "-nan", "+nan"})
 def magnitude_limit(field: str) -> tuple[float, str]:
     """The largest magnitude a value of column ``field`` can have, and what it is: no
     projected coordinate in metres exceeds 1e8 (the equator is 4e7 m long), no height
-    1e5 m, no angle 1e4 degrees, no pixel 1e6, no time 1e11 s (3000 years); latitudes and
-    longitudes are bounded as such. A finite value beyond it is a corrupt field (a byte
-    error, a missing decimal point), refused before it reaches the adjustment."""
+    1e5 m, no angle 1e4 degrees, no time 1e11 s (3000 years); latitudes and longitudes are
+    bounded as such. A finite value beyond it is a corrupt field (a byte error, a missing
+    decimal point), refused before it reaches the adjustment. Pixels have no bound here:
+    the observations reader measures them against the image frame (one pixel far outside
+    is left out with a warning, docs/formats.md)."""
     if field == "lat_deg":
         return 90.0, "latitude"
     if field == "lon_deg":
@@ -46,8 +48,6 @@ def magnitude_limit(field: str) -> tuple[float, str]:
         return 1e8, "coordinate"
     if field.endswith("_deg"):
         return 1e4, "angle"
-    if field.endswith("_px"):
-        return 1e6, "pixel coordinate"
     if field.endswith("_s"):
         return 1e11, "time"
     return math.inf, "number"

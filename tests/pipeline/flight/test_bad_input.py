@@ -125,10 +125,12 @@ def test_implausible_and_non_ascii_numbers_are_refused(make_flight: FlightMaker,
     assert str(err.value).startswith(f"{folder / 'nav.csv'}:3: {message}")
 
 
-def test_observation_pixels_beyond_any_image_are_refused(make_flight: FlightMaker) -> None:
-    obs = OBSERVATIONS_CSV.replace("img_4,p4,10.0,11.0", "img_4,p4,1e300,11.0")
-    with pytest.raises(InputDataError, match="'x_px': '1e300' is not a plausible pixel"):
-        list(read_flight(make_flight(**{"observations.csv": obs})).frames())
+def test_a_pixel_far_beyond_the_image_is_left_out_not_refused(make_flight: FlightMaker) -> None:
+    """Pixels are measured against the frame, not a magnitude bound: one corrupt value is
+    left out with a warning like any observation far outside."""
+    obs = OBSERVATIONS_CSV.replace("img_4,p4,10.0,11.0", "img_4,p4,-9e15,11.0")
+    frames = list(read_flight(make_flight(**{"observations.csv": obs})).frames())
+    assert frames[3].point_ids == ("p3",)
 
 
 @pytest.mark.parametrize(("old", "new", "message"), [
