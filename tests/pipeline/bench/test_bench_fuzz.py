@@ -116,3 +116,20 @@ def test_a_seeded_subset_exits_0_or_2_without_tracebacks_or_damage(tmp_path: Pat
         assert (tmp_path / "bench" / name).is_file()
     rows = (tmp_path / "bench" / "fuzz.csv").read_text(encoding="utf-8").splitlines()
     assert rows[0].startswith("seed,case,flight,mutation") and len(rows) == s.commands + 1
+
+
+def test_cli_replays_one_case_and_keeps_its_folder(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+
+    # case 6 of seed 12: strip_demo's nav.csv replaced by a folder
+    result = CliRunner().invoke(app, ["bench", "fuzz", "--seed", "12", "--case", "6",
+                                      "--out", str(tmp_path / "b")])
+    assert result.exit_code == 0, result.output
+    assert "12/6 strip_demo folder_for_file strip_demo/nav.csv: run=2 ok" in result.output
+    assert "$ seqat run CASE/input/strip_demo --out CASE/out/run" in result.output
+    assert "nav.csv: cannot read: Is a directory" in result.output  # the case's stderr
+    assert (tmp_path / "b" / "cases" / "case_12_6" / "input" / "strip_demo").is_dir()
+    doc = json.loads((tmp_path / "b" / "fuzz.json").read_text(encoding="utf-8"))
+    assert [(c["seed"], c["index"]) for c in doc["cases"]] == [(12, 6)]
