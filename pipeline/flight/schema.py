@@ -32,6 +32,11 @@ MAX_DISTORTION = 100.0
 MAX_SIGMA_IMAGE_PX = 1000.0
 MAX_SIGMA_POSITION_M = 1e5
 MAX_SIGMA_ATTITUDE_DEG = 180.0
+#: Smallest sigmas: below them the weights (1 / sigma^2) overflow the adjustment's algebra
+#: (sigma_image_px 1e-300 ended in a LinAlgError).
+MIN_SIGMA_IMAGE_PX = 1e-3
+MIN_SIGMA_POSITION_M = 1e-4
+MIN_SIGMA_ATTITUDE_DEG = 1e-5
 MAX_LEVER_ARM_M = 100.0
 MAX_BORESIGHT_DEG = 360.0
 
@@ -46,15 +51,16 @@ def check_range(value: float, name: str, low: float, high: float, *,
                           f"got {value!r}")
 
 
-def _triple(value: SigmaTriple, name: str, high: float = math.inf) -> tuple[float, float, float]:
-    """Expand a scalar-or-3-list sigma and check every component is positive, finite and at
-    most ``high``."""
+def _triple(value: SigmaTriple, name: str, high: float = math.inf,
+            low: float = 0.0) -> tuple[float, float, float]:
+    """Expand a scalar-or-3-list sigma and check every component is positive, finite and in
+    ``[low, high]``."""
     trip = (value,) * AXES if isinstance(value, int | float) else tuple(value)
     if len(trip) != AXES or not all(math.isfinite(v) and v > 0 for v in trip):
         raise ConfigError(f"{name}: expected a positive number or a list of {AXES} positive "
                           f"numbers, got {value!r}")
-    if any(v > high for v in trip):
-        raise ConfigError(f"{name}: expected sigmas of at most {high:g}, got {value!r}")
+    if any(v > high or v < low for v in trip):
+        raise ConfigError(f"{name}: expected sigmas in [{low:g}, {high:g}], got {value!r}")
     return (float(trip[0]), float(trip[1]), float(trip[2]))
 
 
@@ -150,8 +156,10 @@ class NavConfig:
     dropout: Literal["bridge", "skip"] = "bridge"
 
     def __post_init__(self) -> None:
-        _triple(self.sigma_position_m, "sigma_position_m", MAX_SIGMA_POSITION_M)
-        _triple(self.sigma_attitude_deg, "sigma_attitude_deg", MAX_SIGMA_ATTITUDE_DEG)
+        _triple(self.sigma_position_m, "sigma_position_m", MAX_SIGMA_POSITION_M,
+                MIN_SIGMA_POSITION_M)
+        _triple(self.sigma_attitude_deg, "sigma_attitude_deg", MAX_SIGMA_ATTITUDE_DEG,
+                MIN_SIGMA_ATTITUDE_DEG)
         for axis, v in zip("xyz", self.lever_arm_m, strict=True):
             check_range(v, f"lever_arm_m ({axis})", -MAX_LEVER_ARM_M, MAX_LEVER_ARM_M)
         for name in ("roll_deg", "pitch_deg", "yaw_deg"):
@@ -187,8 +195,8 @@ class FlightConfig:
         if not self.sigma_image_px > 0:
             raise ConfigError(f"sigma_image_px: expected a positive number, "
                               f"got {self.sigma_image_px!r}")
-        check_range(self.sigma_image_px, "sigma_image_px", 0.0, MAX_SIGMA_IMAGE_PX,
-                    low_open=True)
+        check_range(self.sigma_image_px, "sigma_image_px", MIN_SIGMA_IMAGE_PX,
+                    MAX_SIGMA_IMAGE_PX)
         if not self.crs.strip():
             raise ConfigError("crs: expected a CRS such as 'EPSG:32652', got an empty string")
 

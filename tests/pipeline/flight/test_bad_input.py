@@ -138,9 +138,11 @@ def test_a_pixel_far_beyond_the_image_is_left_out_not_refused(make_flight: Fligh
     ("fx_px: 1000.0", "fx_px: 1e300", "camera.fx_px: expected a number in"),
     ("cx_px: 319.5", "cx_px: 1e12", "camera.cx_px: expected a number in"),
     ("sigma_attitude_deg: [0.1, 0.1, 0.2]", "sigma_attitude_deg: 1e300",
-     "nav.sigma_attitude_deg: expected sigmas of at most 180"),
+     r"nav.sigma_attitude_deg: expected sigmas in \[1e-05, 180\]"),
     ("sigma_position_m: 0.3", "sigma_position_m: [0.3, 0.3, 1e9]",
-     "nav.sigma_position_m: expected sigmas of at most"),
+     "nav.sigma_position_m: expected sigmas in"),
+    ("sigma_image_px: 1.5", "sigma_image_px: 1e-300", "sigma_image_px: expected a number in"),
+    ("sigma_position_m: 0.3", "sigma_position_m: 1e-300", "nav.sigma_position_m: expected"),
 ])
 def test_implausible_flight_yaml_numbers_name_the_key(make_flight: FlightMaker, old: str,
                                                       new: str, message: str) -> None:
