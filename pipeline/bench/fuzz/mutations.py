@@ -190,6 +190,41 @@ def csv_field(case: CaseFolder, rng: np.random.Generator) -> Mutation:
                     f"line {r + 2} field {name}: {old[:20]!r} -> {value!r}")
 
 
+#: Finite values no real field has (huge, tiny, a decimal point lost), for numeric fields.
+HUGE_VALUES = ("1e300", "-1e300", "1e20", "-1e12", "1e9", "5e-324", "1.7976931348623157e308")
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def huge_value(case: CaseFolder, rng: np.random.Generator) -> Mutation:
+    """A numeric CSV field set to a finite value no real one has, or multiplied by 10^k."""
+    path = _pick(rng, csv_files(case.flight))
+    header, rows = _rows(path)
+    cols = [c for c in range(len(header)) if all(c < len(r) and _is_number(r[c])
+                                                  for r in rows[:5])]
+    if not cols:
+        raise NotApplicable
+    r = int(rng.integers(len(rows)))
+    c = int(_pick(rng, cols))
+    old = rows[r][c]
+    if rng.integers(3) == 0:
+        value = repr(float(old) * 10.0 ** int(rng.integers(1, 8)))
+    else:
+        value = str(_pick(rng, HUGE_VALUES))
+    if value == old:
+        raise NotApplicable
+    rows[r][c] = value
+    _write_rows(path, header, rows)
+    return Mutation("huge_value", _rel(case, path),
+                    f"line {r + 2} field {header[c]}: {old[:20]!r} -> {value!r}")
+
+
 def csv_row_width(case: CaseFolder, rng: np.random.Generator) -> Mutation:
     path = _pick(rng, csv_files(case.flight))
     header, rows = _rows(path)
@@ -398,6 +433,33 @@ def xmp_value(case: CaseFolder, rng: np.random.Generator) -> Mutation:
 
 # --- YAML ------------------------------------------------------------------------------------
 
+#: Values a YAML number is replaced with: huge, tiny, negative, zero.
+YAML_NUMBERS = ("1e300", "-1e300", "1e12", "-1", "0", "1e-300", "-0.5", "1e6", "3.0e+20")
+
+
+def yaml_number(case: CaseFolder, rng: np.random.Generator) -> Mutation:
+    """One number of a YAML file (a scalar or a list item) replaced by an implausible one."""
+    import re
+
+    path = _pick(rng, yaml_files(case.flight))
+    lines = path.read_text(encoding="utf-8").splitlines()
+    number = re.compile(r"(?<![\w.])-?\d+(?:\.\d+)?(?:[eE][+-]?\d+)?(?![\w.:])")
+    spots = [(i, m) for i, x in enumerate(lines) if not x.lstrip().startswith("#")
+             and ":" in x or x.lstrip().startswith("- ") for m in number.finditer(x)
+             if not x[:m.start()].rstrip().endswith(("EPSG", "EPSG:"))]
+    if not spots:
+        raise NotApplicable
+    i, m = _pick(rng, spots)
+    value = str(_pick(rng, YAML_NUMBERS))
+    if value == m.group(0):
+        raise NotApplicable
+    key = lines[i].split(":", 1)[0].strip()
+    lines[i] = lines[i][:m.start()] + value + lines[i][m.end():]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return Mutation("yaml_number", _rel(case, path),
+                    f"line {i + 1} ({key}): {m.group(0)} -> {value}")
+
+
 def yaml_edit(case: CaseFolder, rng: np.random.Generator) -> Mutation:
     path = _pick(rng, yaml_files(case.flight))
     lines = path.read_text(encoding="utf-8").splitlines()
@@ -578,6 +640,7 @@ MUTATIONS: dict[str, tuple[float, Callable[..., object]]] = {
     "truncate": (2.0, truncate),
     "empty_file": (1.0, empty_file),
     "csv_field": (4.0, csv_field),
+    "huge_value": (2.0, huge_value),
     "csv_row_width": (1.5, csv_row_width),
     "csv_delete_rows": (1.5, csv_delete_rows),
     "csv_delete_column": (1.0, csv_delete_column),
@@ -586,6 +649,7 @@ MUTATIONS: dict[str, tuple[float, Callable[..., object]]] = {
     "csv_shuffle_rows": (0.7, csv_shuffle_rows),
     "csv_encoding": (1.0, csv_encoding),
     "yaml_edit": (2.0, yaml_edit),
+    "yaml_number": (1.5, yaml_number),
     "las_header": (1.0, las_header),
     "xmp_value": (1.0, xmp_value),
     "delete": (1.5, delete_path),
