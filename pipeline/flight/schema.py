@@ -160,10 +160,10 @@ class NavConfig:
                 MIN_SIGMA_POSITION_M)
         _triple(self.sigma_attitude_deg, "sigma_attitude_deg", MAX_SIGMA_ATTITUDE_DEG,
                 MIN_SIGMA_ATTITUDE_DEG)
-        for axis, v in zip("xyz", self.lever_arm_m, strict=True):
-            check_range(v, f"lever_arm_m ({axis})", -MAX_LEVER_ARM_M, MAX_LEVER_ARM_M)
+        for v in self.lever_arm_m:
+            check_range(v, "lever_arm_m", -MAX_LEVER_ARM_M, MAX_LEVER_ARM_M)
         for name in ("roll_deg", "pitch_deg", "yaw_deg"):
-            check_range(getattr(self.boresight, name), f"boresight.{name}",
+            check_range(getattr(self.boresight, name), "boresight",
                         -MAX_BORESIGHT_DEG, MAX_BORESIGHT_DEG)
 
     @property
