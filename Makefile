@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.seqat-installed
 DEMO := out/demo
 
-.PHONY: demo test bench bench-faults sysdeps clean
+.PHONY: demo test bench bench-faults bench-fuzz sysdeps clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -52,6 +52,12 @@ bench: $(STAMP) sysdeps
 # rendered sample (docs/benchmarks.md, *Faults*).
 bench-faults: $(STAMP) sysdeps
 	$(BIN)/seqat bench faults --out out/bench_faults --seed 1 --seed 2 --seed 3
+
+# Seeded bad inputs: mutated copies of the sample flights run as subprocesses
+# (docs/benchmarks.md, *Fuzz bench*; replay one case with --seed S --case K).
+bench-fuzz: $(STAMP) sysdeps
+	nice -n 10 $(BIN)/seqat bench fuzz --out out/bench_fuzz --seed 1 --seed 2 --seed 3 \
+		--cases 40 --jobs 2
 
 clean:
 	rm -rf out .pytest_cache

@@ -25,11 +25,16 @@ ORTHO_BENCH = "ortho"
 #: [--extra-updates N]``: GTSAM's fixed-lag smoother beside Seq-R on simulated strips
 #: (:mod:`pipeline.bench.gtsam`, optional package gtsam; its own arguments follow).
 GTSAM_BENCH = "gtsam"
+#: ``seqat bench fuzz [--seed S ...] [--cases N] [--case K ...] [--jobs J] [--timeout-s T]
+#: [--kind KIND ...] [--flight NAME ...] [--keep]``: seeded mutations of the sample flights run
+#: as subprocesses (:mod:`pipeline.bench.fuzz.suite`; its own arguments follow).
+FUZZ_BENCH = "fuzz"
 
 
 def _passes_arguments(config: Path) -> bool:
-    """Only the rendered, ortho and gtsam benchmarks take arguments of their own."""
-    return not config.exists() and str(config) in (RENDERED_BENCH, ORTHO_BENCH, GTSAM_BENCH)
+    """Only the rendered, ortho, gtsam and fuzz benchmarks take arguments of their own."""
+    return not config.exists() and str(config) in (RENDERED_BENCH, ORTHO_BENCH, GTSAM_BENCH,
+                                                   FUZZ_BENCH)
 
 
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
@@ -39,8 +44,9 @@ def bench(
         help="Simulation config (configs/*_sim.yaml), an image flight folder, or 'long' "
              "(memory and time along a 10,000-image strip); 'faults' (seeded faults), "
              "'rendered RUN --config CONFIG.yaml' (a rendered flight's products against its "
-             "truth), 'ortho' (timing of the ortho stage) or 'gtsam' (GTSAM's fixed-lag "
-             "smoother beside Seq-R; --lag, --config; see docs/benchmarks.md).")],
+             "truth), 'ortho' (timing of the ortho stage), 'gtsam' (GTSAM's fixed-lag "
+             "smoother beside Seq-R; --lag, --config) or 'fuzz' (seeded bad inputs; --cases, "
+             "--case K replays one; see docs/benchmarks.md).")],
     out: Annotated[Path, typer.Option("--out", help="Benchmark output folder.")] = Path(
         "out/bench"),
     seed: Annotated[list[int] | None, typer.Option(
@@ -48,7 +54,8 @@ def bench(
     threshold: Annotated[list[float] | None, typer.Option(
         "--threshold", help="Seq-R correlation threshold (repeat for several).")] = None,
     case: Annotated[list[str] | None, typer.Option(
-        "--case", help="bench faults: strip, block or rendered (repeat; default all).")] = None,
+        "--case", help="bench faults: strip, block or rendered (repeat; default all); bench "
+                       "fuzz: a case index to replay (with --seed).")] = None,
     strip_config: Annotated[Path, typer.Option(
         "--strip-config", help="bench faults: config of the strip case.")] = Path(
         "configs/paper_sim.yaml"),
@@ -79,7 +86,8 @@ def _bench(*, ctx: typer.Context, config: Path, out: Path, seed: list[int] | Non
 
     name = str(config) if not config.exists() else None
     check_not_input(out, [config if config.exists() else None,
-                          *((strip_config, rendered) if name == FAULTS_BENCH else ())])
+                          *((strip_config, rendered) if name == FAULTS_BENCH else ()),
+                          *(_fuzz_inputs() if name == FUZZ_BENCH else ())])
     if name == RENDERED_BENCH:
         from pipeline.bench.rendered import main as rendered_main
 
@@ -95,6 +103,9 @@ def _bench(*, ctx: typer.Context, config: Path, out: Path, seed: list[int] | Non
 
         seeds = [arg for s in seed or () for arg in ("--seed", str(s))]
         gtsam_main(["--out", str(out), *seeds, *ctx.args])
+        return
+    if name == FUZZ_BENCH:
+        _fuzz_bench(out, seed, case, ctx.args)
         return
     if str(config) == "long":
         _long_bench(out)
@@ -173,6 +184,70 @@ def _camera_rows(b: object) -> list[tuple[str, str]]:
     rows.append((f"{label}: AT ms (median, p95, max)",
                  f"{s.median:.0f} / {s.p95:.0f} / {s.max:.0f}"))
     return rows
+
+
+def _fuzz_bench(out: Path, seeds: list[int] | None, cases: list[str] | None,
+                extra: list[str]) -> None:
+    from pipeline.bench.fuzz.cases import CaseResult
+    from pipeline.bench.fuzz.report import SUMMARY_HEADER, failing_rows, summary_row
+    from pipeline.bench.fuzz.suite import main
+
+    argv = ["--out", str(out), *(a for s in seed_args(seeds) for a in s),
+            *(a for c in cases or () for a in ("--case", c)), *extra]
+    replay = bool(cases)
+    out_console = console()
+
+    def progress(case: CaseResult) -> None:
+        codes = " ".join(f"{c.name}={'timeout' if c.exit_code is None else c.exit_code}"
+                         for c in case.commands)
+        mark = "[red]FAIL[/red]" if case.defects or case.leftover else "ok"
+        out_console.print(f"{case.seed}/{case.index} {case.flight} {case.mutation.kind} "
+                          f"{case.mutation.target}: {codes} {mark}", markup=True,
+                          highlight=False, soft_wrap=True)
+        if replay:
+            out_console.print(f"  {case.mutation.description}", soft_wrap=True, markup=False)
+            for c in case.commands:
+                out_console.print(f"  $ seqat {' '.join(c.argv)}  -> exit {c.exit_code}",
+                                  soft_wrap=True, markup=False)
+                if c.stderr:
+                    out_console.print(c.stderr.rstrip(), soft_wrap=True, markup=False,
+                                      highlight=False)
+                for a in c.absurd:
+                    out_console.print(f"  absurd: {a}", soft_wrap=True, markup=False)
+            for p in case.inputs_changed:
+                out_console.print(f"  input changed: {p}", soft_wrap=True, markup=False)
+
+    report = main(argv, progress=progress)
+    summary = Table(title="seqat bench fuzz", title_justify="left")
+    for col in SUMMARY_HEADER:
+        summary.add_column(col)
+    summary.add_row(*summary_row(report))
+    out_console.print(summary)
+    fails = failing_rows(report)
+    if fails:
+        t = Table(title="failing cases (replay: seqat bench fuzz --seed S --case K)",
+                  title_justify="left")
+        for col in ("seed/case", "flight", "mutation", "defects", "message"):
+            t.add_column(col)
+        for row in fails:
+            t.add_row(*row)
+        out_console.print(t)
+    if report.sample_data_changed:
+        out_console.print(f"sample data changed: {', '.join(report.sample_data_changed)}")
+    where = f"{out / 'fuzz.csv'}, {out / 'fuzz.json'} and {out / 'fuzz.md'}"
+    if replay:
+        where += f"; case folders in {out / 'cases'}"
+    out_console.print(f"benchmark written to {where}")
+
+
+def _fuzz_inputs() -> tuple[Path, ...]:
+    from pipeline.bench.fuzz.suite import SAMPLE_DATA
+
+    return (SAMPLE_DATA,)
+
+
+def seed_args(seeds: list[int] | None) -> list[tuple[str, str]]:
+    return [("--seed", str(s)) for s in seeds or ()]
 
 
 def _flight_bench(flight: Path, out: Path) -> None:

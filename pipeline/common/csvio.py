@@ -23,6 +23,34 @@ from seqat.errors import InputDataError
 
 #: Allowed image, point and track ids: no whitespace, commas or quotes.
 ID_PATTERN = re.compile(r"""^[^\s,"']+$""")
+#: A number as spreadsheets and other CSV tools write it: ASCII decimal, optional exponent
+#: (not Python's extras: ``1_000``, non-ASCII digits such as ``１２``, ``infinity``).
+NUMBER_PATTERN = re.compile(r"^[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?$", re.ASCII)
+#: ``nan`` as written by seqat, numpy, pandas and spreadsheets.
+NAN_TEXT = frozenset({"nan", "NaN", "NAN", "-nan", "+nan"})
+
+
+def magnitude_limit(field: str) -> tuple[float, str]:
+    """The largest magnitude a value of column ``field`` can have, and what it is: no
+    projected coordinate in metres exceeds 1e8 (the equator is 4e7 m long), no height
+    1e5 m, no angle 1e4 degrees, no time 1e11 s (3000 years); latitudes and longitudes are
+    bounded as such. A finite value beyond it is a corrupt field (a byte error, a missing
+    decimal point), refused before it reaches the adjustment. Pixels have no bound here:
+    the observations reader measures them against the image frame (one pixel far outside
+    is left out with a warning, docs/formats.md)."""
+    if field == "lat_deg":
+        return 90.0, "latitude"
+    if field == "lon_deg":
+        return 360.0, "longitude"
+    if field in ("z_m", "h_m"):
+        return 1e5, "height"
+    if field.endswith("_m"):
+        return 1e8, "coordinate"
+    if field.endswith("_deg"):
+        return 1e4, "angle"
+    if field.endswith("_s"):
+        return 1e11, "time"
+    return math.inf, "number"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -46,14 +74,18 @@ class CsvRow:
         return value
 
     def number(self, field: str, *, allow_nan: bool = False) -> float:
-        """The finite number in ``field`` (``nan`` accepted only with ``allow_nan``)."""
+        """The finite number in ``field`` (``nan`` accepted only with ``allow_nan``), within
+        :func:`magnitude_limit` of its column."""
         value = self.values[field]
-        try:
-            number = float(value)
-        except ValueError:
-            number = math.inf  # reported below
-        if math.isfinite(number) or (allow_nan and math.isnan(number)):
-            return number
+        if allow_nan and value in NAN_TEXT:
+            return math.nan
+        number = float(value) if NUMBER_PATTERN.match(value) else math.inf
+        if math.isfinite(number):
+            limit, what = magnitude_limit(field)
+            if abs(number) <= limit:
+                return number
+            raise self.error(f"field {field!r}: {value!r} is not a plausible {what} "
+                             f"(magnitude above {limit:g})")
         wanted = "a finite number or nan" if allow_nan else "a finite number"
         raise self.error(f"field {field!r}: expected {wanted}, got {value!r}")
 

@@ -24,6 +24,7 @@ import pyproj
 
 from pipeline.common.columns import FLIGHT_YAML, IMAGES_DIR, TRUTH_DIR
 from pipeline.common.csvio import CsvRow, read_csv
+from pipeline.common.paths import exists_as_anything, file_problem, folder_problem
 from pipeline.common.tables import GroundPoints, NavTable
 from pipeline.flight.camera import PixelCorrector, frame_camera
 from pipeline.flight.consistency import check_one_camera, crs_area_warning, duplicate_images
@@ -43,6 +44,7 @@ from pipeline.flight.nav_files import (
 )
 from pipeline.flight.navigation import (
     MIN_IMAGES,
+    clashing_image_files,
     geodetic_to_eop,
     image_files,
     read_image_folder_nav,
@@ -322,9 +324,11 @@ def read_flight(flight_dir: Path | str) -> Flight:
     """
     folder = Path(flight_dir)
     yaml_path = folder / FLIGHT_YAML
-    if not folder.is_dir():
-        raise InputDataError(f"{folder}: no such flight folder")
+    if folder_problem(folder) is not None:
+        raise InputDataError(f"{folder}: {folder_problem(folder, 'no such flight folder')}")
     warnings: list[str] = []
+    if exists_as_anything(yaml_path) and file_problem(yaml_path) is not None:
+        raise InputDataError(f"{yaml_path}: {file_problem(yaml_path)}")
     if yaml_path.is_file():
         config = load_flight_config(yaml_path)
     else:
@@ -335,7 +339,8 @@ def read_flight(flight_dir: Path | str) -> Flight:
                           "of images to track)")
     images_dir = _in_folder(folder, config.images) if config.images is not None else None
     if images_dir is not None and not images_dir.is_dir():
-        raise InputDataError(f"{images_dir}: no such image folder (images in {source})")
+        raise InputDataError(f"{images_dir}: {folder_problem(images_dir, 'no such image folder')} "
+                             f"(images in {source})")
     skipped: list[SkippedImage] = []
     metas: dict[str, ImageMetadata] = {}
     bridge = config.nav.dropout == "bridge"
@@ -360,7 +365,8 @@ def read_flight(flight_dir: Path | str) -> Flight:
     if config.observations is not None:
         obs_path = _in_folder(folder, config.observations)
         if not obs_path.is_file():
-            raise InputDataError(f"{obs_path}: no such file (observations in {source})")
+            raise InputDataError(f"{obs_path}: {file_problem(obs_path)} (observations in "
+                                 f"{source})")
     elif images_dir is not None and config.nav.source == "file":
         metas, no_row = _image_metadata_for_nav(images_dir, nav, skipped, bridge=bridge)
         nav = _insert_rows(nav, no_row)
@@ -403,6 +409,8 @@ def _image_metadata_for_nav(images_dir: Path, nav: NavTable, skipped: list[Skipp
     value; their metadata is in the first).
     """
     files = {p.stem: p for p in image_files(images_dir)}
+    skipped += [SkippedImage(image=name, reason=reason)
+                for name, reason in clashing_image_files(images_dir)]
     metas: dict[str, ImageMetadata] = {}
     for image in nav.image_ids:
         path = files.pop(image, None)

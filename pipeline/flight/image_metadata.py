@@ -188,6 +188,11 @@ def read_image_metadata(path: Path | str) -> ImageMetadata:
     )
 
 
+#: Largest plausible EXIF GPS height and XMP angle (as nav.csv's, pipeline.common.csvio).
+MAX_HEIGHT_M = 1e5
+MAX_ANGLE_DEG = 1e4
+
+
 def _positive_int(value: object) -> int | None:
     number = _number(value)
     return int(number) if number is not None and number >= 1 else None
@@ -320,6 +325,9 @@ def _gps_position(path: Path, gps: dict[int, object]) -> tuple[float | None, flo
     ref = ref[0] if isinstance(ref, bytes) and ref else ref  # a BYTE tag: b"\x01"
     if h is not None and _number(ref) == _GPS_ALT_BELOW:
         h = -h
+    if h is not None and abs(h) > MAX_HEIGHT_M:
+        raise InputDataError(f"{path.name}: EXIF GPSAltitude: {h!r} m is not a plausible "
+                             f"height (magnitude above {MAX_HEIGHT_M:g} m)")
     return lat, lon, h
 
 
@@ -443,6 +451,9 @@ def _attitude(path: Path, xmp: dict[str, str]) -> tuple[
             if value is None:
                 raise InputDataError(f"{path.name}: XMP {tag}: expected a number, "
                                      f"got {xmp[tag]!r}")
+            if abs(value) > MAX_ANGLE_DEG:
+                raise InputDataError(f"{path.name}: XMP {tag}: {xmp[tag]!r} is not a plausible "
+                                     f"angle (magnitude above {MAX_ANGLE_DEG:g} degrees)")
             angles.append(value)
         return angles[0], angles[1], angles[2], frame, source
     return None, None, None, None, None

@@ -469,10 +469,32 @@ class ImageFolderNav:
         return NavTable(image_ids=tuple(r.image for r in self.records), times_s=times, eop=eop)
 
 
-def image_files(folder: Path) -> list[Path]:
-    """The JPEGs of a folder (``*.jpg``, ``*.jpeg``, any case), sorted by name."""
+def _all_image_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir()
                   if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+
+
+def image_files(folder: Path) -> list[Path]:
+    """The JPEGs of a folder (``*.jpg``, ``*.jpeg``, any case), sorted by name, one per image
+    id (the file name without suffix): of files sharing an id (``a.jpg`` and ``a.JPEG``) the
+    first by name; :func:`clashing_image_files` names the others."""
+    first: dict[str, Path] = {}
+    for p in _all_image_files(folder):
+        first.setdefault(p.stem, p)
+    return sorted(first.values())
+
+
+def clashing_image_files(folder: Path) -> list[tuple[str, str]]:
+    """``(file name, reason)`` of each JPEG left out because an earlier file (by name) has its
+    image id."""
+    first: dict[str, Path] = {}
+    out = []
+    for p in _all_image_files(folder):
+        kept = first.setdefault(p.stem, p)
+        if kept is not p:
+            out.append((p.name, f"{p.name}: same image id {p.stem!r} as {kept.name} (an image's "
+                                f"id is its file name without suffix); left out"))
+    return out
 
 
 def read_image_folder_nav(folder: Path | str, crs: str = "auto",
@@ -517,7 +539,7 @@ def read_image_folder_nav(folder: Path | str, crs: str = "auto",
         raise InputDataError(f"{folder}: no such image folder")
     paths = image_files(folder)
     metas: list[ImageMetadata] = []
-    skipped: list[tuple[str, str]] = []
+    skipped: list[tuple[str, str]] = clashing_image_files(folder)
     for p in paths:
         try:
             meta = read_image_metadata(p)

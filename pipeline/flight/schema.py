@@ -24,13 +24,44 @@ AXES = 3
 
 SigmaTriple = float | tuple[float, float, float]
 
+#: Plausible ranges of the numbers of ``flight.yaml`` (docs/formats.md): a finite value
+#: outside them is a typo or a corrupt file, refused naming the key before it makes the
+#: adjustment singular or its results absurd.
+MAX_IMAGE_SIDE_PX = 100_000
+MAX_FOCAL_PX = 1e6
+MAX_DISTORTION = 100.0
+MAX_SIGMA_IMAGE_PX = 1000.0
+MAX_SIGMA_POSITION_M = 1e5
+MAX_SIGMA_ATTITUDE_DEG = 180.0
+#: Smallest sigmas: below them the weights (1 / sigma^2) overflow the adjustment's algebra
+#: (sigma_image_px 1e-300 ended in a LinAlgError).
+MIN_SIGMA_IMAGE_PX = 1e-3
+MIN_SIGMA_POSITION_M = 1e-4
+MIN_SIGMA_ATTITUDE_DEG = 1e-5
+MAX_LEVER_ARM_M = 100.0
+MAX_BORESIGHT_DEG = 360.0
 
-def _triple(value: SigmaTriple, name: str) -> tuple[float, float, float]:
-    """Expand a scalar-or-3-list sigma and check every component is positive and finite."""
+
+def check_range(value: float, name: str, low: float, high: float, *,
+                low_open: bool = False) -> None:
+    """Refuse a value outside ``[low, high]`` (``(low, high]`` with ``low_open``)."""
+    ok = (value > low if low_open else value >= low) and value <= high
+    if not (math.isfinite(value) and ok):
+        bracket = "(" if low_open else "["
+        raise ConfigError(f"{name}: expected a number in {bracket}{low:g}, {high:g}], "
+                          f"got {value!r}")
+
+
+def _triple(value: SigmaTriple, name: str, high: float = math.inf,
+            low: float = 0.0) -> tuple[float, float, float]:
+    """Expand a scalar-or-3-list sigma and check every component is positive, finite and in
+    ``[low, high]``."""
     trip = (value,) * AXES if isinstance(value, int | float) else tuple(value)
     if len(trip) != AXES or not all(math.isfinite(v) and v > 0 for v in trip):
         raise ConfigError(f"{name}: expected a positive number or a list of {AXES} positive "
                           f"numbers, got {value!r}")
+    if any(v > high or v < low for v in trip):
+        raise ConfigError(f"{name}: expected sigmas in [{low:g}, {high:g}], got {value!r}")
     return (float(trip[0]), float(trip[1]), float(trip[2]))
 
 
@@ -60,9 +91,19 @@ class CameraConfig:
         for name in ("width_px", "height_px"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name}: expected a positive integer, got {getattr(self, name)}")
+            if getattr(self, name) > MAX_IMAGE_SIDE_PX:
+                raise ConfigError(f"{name}: expected at most {MAX_IMAGE_SIDE_PX} px, got "
+                                  f"{getattr(self, name)}")
         for name in ("fx_px", "fy_px"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name}: expected a positive number, got {getattr(self, name)}")
+            check_range(getattr(self, name), name, 0.0, MAX_FOCAL_PX, low_open=True)
+        # the principal point lies near the image (within 10 image sizes: crops, typos in
+        # the size are left to the observation checks)
+        check_range(self.cx_px, "cx_px", -10.0 * self.width_px, 11.0 * self.width_px)
+        check_range(self.cy_px, "cy_px", -10.0 * self.height_px, 11.0 * self.height_px)
+        for name in ("k1", "k2", "p1", "p2", "k3"):
+            check_range(getattr(self, name), name, -MAX_DISTORTION, MAX_DISTORTION)
         if self.model == "PINHOLE":
             if self.fx_px != self.fy_px:
                 raise ConfigError(
@@ -116,8 +157,15 @@ class NavConfig:
     dropout: Literal["bridge", "skip"] = "bridge"
 
     def __post_init__(self) -> None:
-        _triple(self.sigma_position_m, "sigma_position_m")
-        _triple(self.sigma_attitude_deg, "sigma_attitude_deg")
+        _triple(self.sigma_position_m, "sigma_position_m", MAX_SIGMA_POSITION_M,
+                MIN_SIGMA_POSITION_M)
+        _triple(self.sigma_attitude_deg, "sigma_attitude_deg", MAX_SIGMA_ATTITUDE_DEG,
+                MIN_SIGMA_ATTITUDE_DEG)
+        for v in self.lever_arm_m:
+            check_range(v, "lever_arm_m", -MAX_LEVER_ARM_M, MAX_LEVER_ARM_M)
+        for name in ("roll_deg", "pitch_deg", "yaw_deg"):
+            check_range(getattr(self.boresight, name), "boresight",
+                        -MAX_BORESIGHT_DEG, MAX_BORESIGHT_DEG)
 
     @property
     def sigma_eop(self) -> FloatArray:
@@ -176,6 +224,8 @@ class FlightConfig:
         if not self.sigma_image_px > 0:
             raise ConfigError(f"sigma_image_px: expected a positive number, "
                               f"got {self.sigma_image_px!r}")
+        check_range(self.sigma_image_px, "sigma_image_px", MIN_SIGMA_IMAGE_PX,
+                    MAX_SIGMA_IMAGE_PX)
         if not self.crs.strip():
             raise ConfigError("crs: expected a CRS such as 'EPSG:32652', got an empty string")
 

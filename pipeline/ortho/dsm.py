@@ -37,6 +37,7 @@ from pyproj.exceptions import CRSError, ProjError
 from rasterio.transform import from_origin
 from scipy import ndimage
 
+from pipeline.common.paths import file_problem
 from pipeline.ortho.raster import write_cog
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import FloatArray
@@ -231,7 +232,7 @@ def read_dsm(path: Path | str, crs: pyproj.CRS) -> Dsm:
     """
     path = Path(path)
     if not path.is_file():
-        raise InputDataError(f"{path}: no such DSM file")
+        raise InputDataError(f"{path}: {file_problem(path, 'no such DSM file')}")
     try:
         with rasterio.open(path) as src:
             if src.crs is None:
@@ -355,7 +356,7 @@ def read_las(path: Path | str, las_crs: pyproj.CRS | None = None) -> LasCloud:
     """
     path = Path(path)
     if not path.is_file():
-        raise InputDataError(f"{path}: no such LAS/LAZ file")
+        raise InputDataError(f"{path}: {file_problem(path, 'no such LAS/LAZ file')}")
     try:
         las = laspy.read(path)
     except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as err:
@@ -373,9 +374,36 @@ def read_las(path: Path | str, las_crs: pyproj.CRS | None = None) -> LasCloud:
     if crs is None:
         raise InputDataError(f"{path}: no CRS in the LAS file (no WKT or GeoTIFF VLR); "
                              "give one with --las-crs EPSG:XXXX or --las-crs FILE.wkt")
+    check_las_header(path, las.header)
     xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
+    bad = ~np.isfinite(xyz) | (np.abs(xyz) > [MAX_LAS_XY, MAX_LAS_XY, MAX_LAS_Z])
+    if bad.any():
+        k = int(np.argmax(bad.any(axis=1)))
+        raise InputDataError(f"{path}: point {k}: coordinates {xyz[k].tolist()} are not "
+                             f"plausible (non-finite, or beyond {MAX_LAS_XY:g} / {MAX_LAS_Z:g} "
+                             "units); the header's scales or offsets are damaged")
     return LasCloud(path=path, xyz=xyz.astype(np.float64), crs=crs,
                     crs_from_file=las_crs is None)
+
+
+#: Largest plausible height in the working CRS, metres.
+MAX_HEIGHT_M = 1e5
+#: Largest plausible LAS easting / northing and height, in the file's units (feet, metres
+#: or degrees): beyond them the header's scale or offset is damaged.
+MAX_LAS_XY = 1e9
+MAX_LAS_Z = 1e6
+
+
+def check_las_header(path: Path, header: object) -> None:
+    """Refuse a LAS header whose scales are zero or not finite, or whose offsets are not
+    finite: every coordinate would be the offset, or garbage."""
+    scales = np.asarray(header.scales, dtype=np.float64)  # type: ignore[attr-defined]
+    offsets = np.asarray(header.offsets, dtype=np.float64)  # type: ignore[attr-defined]
+    if not (np.all(np.isfinite(scales)) and np.all(scales != 0.0)
+            and np.all(np.isfinite(offsets))):
+        raise InputDataError(f"{path}: damaged LAS header: scales {scales.tolist()}, offsets "
+                             f"{offsets.tolist()} (scales must be finite and non-zero, "
+                             "offsets finite)")
 
 
 def _vertical_sub_crs(crs: pyproj.CRS) -> pyproj.CRS | None:
@@ -431,6 +459,10 @@ def to_working_crs(cloud: LasCloud, crs: pyproj.CRS) -> tuple[np.ndarray, tuple[
     if not np.all(np.isfinite(xyz)):
         raise InputDataError(f"{cloud.path}: transformation from {cloud.crs.name!r} to "
                              f"{crs.name!r} gave non-finite coordinates")
+    if np.abs(xyz[:, 2]).max() > MAX_HEIGHT_M:
+        raise InputDataError(f"{cloud.path}: heights up to {np.abs(xyz[:, 2]).max():.4g} m in "
+                             f"{crs.name!r} are not plausible (above {MAX_HEIGHT_M:g} m); the "
+                             "header's z scale or offset is damaged")
     return xyz, tuple(warnings)
 
 

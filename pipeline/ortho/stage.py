@@ -34,8 +34,10 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from pipeline.common.atomic import atomic_write_text
 from pipeline.common.columns import EOP_FILE, REFERENCE_DIR
+from pipeline.common.paths import exists_as_anything, file_problem
 from pipeline.common.strict_yaml import build_dataclass, load_yaml
 from pipeline.common.tables import EopTable, PointTable
+from pipeline.flight.navigation import image_files as flight_image_files
 from pipeline.flight.schema import load_flight_config
 from pipeline.ortho.base import OrthoOptions, OrthoResult
 from pipeline.ortho.dsm import Dsm, DsmOptions, build_dsm, flat_dsm, read_dsm
@@ -212,8 +214,7 @@ def image_files(images_dir: Path) -> dict[str, Path]:
     """The JPEGs of an image folder by image id (file stem)."""
     if not images_dir.is_dir():
         raise InputDataError(f"{images_dir}: no such image folder")
-    return {p.stem: p for p in sorted(images_dir.iterdir())
-            if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES}
+    return {p.stem: p for p in flight_image_files(images_dir)}
 
 
 def camera_warnings(camera_approximate: bool) -> tuple[str, ...]:
@@ -226,6 +227,8 @@ def _flight_lidar(flight_dir: Path) -> tuple[Path, ...]:
     """The flight's ``lidar:`` files (none when the flight folder is gone or has none)."""
     yaml_path = flight_dir / "flight.yaml"
     if not yaml_path.is_file():
+        if exists_as_anything(yaml_path):
+            raise InputDataError(f"{yaml_path}: {file_problem(yaml_path)}")
         return ()
     lidar = load_flight_config(yaml_path).lidar
     if lidar is None:

@@ -31,6 +31,7 @@ from pipeline.common.columns import (
     POINTS_FILE,
     REFERENCE_DIR,
 )
+from pipeline.common.paths import exists_as_anything, file_problem
 from pipeline.common.rmse import Triple, rmse
 from pipeline.common.tables import EopTable, PointTable
 from pipeline.flight.camera import PixelCorrector, pinhole_camera
@@ -327,7 +328,8 @@ def image_residuals_px(run: RunFolder, obs: tuple[np.ndarray, tuple[str, ...], n
     est = run.points.index()
     sel = np.array([point_ids[j] in est for j in obs_point], dtype=bool)
     eop_index = run.eop.index()
-    img_rows = np.array([eop_index.get(run.nav.image_ids[i], -1) for i in obs_image])
+    img_rows = np.array([eop_index.get(run.nav.image_ids[i], -1) for i in obs_image],
+                        dtype=np.int64)
     sel &= img_rows >= 0
     if not np.any(sel):
         return np.zeros((0, 2))
@@ -442,12 +444,13 @@ def find_checkpoints(flight_dir: Path) -> tuple[Path, Path] | None:
         name = configured if configured is not None else name
     path = Path(name) if Path(name).is_absolute() else flight_dir / name
     if not path.is_file():
-        if name != CHECKPOINTS_FILE:
-            raise InputDataError(f"{path}: no such file (checkpoints in {yaml_path})")
+        if name != CHECKPOINTS_FILE or exists_as_anything(path):
+            raise InputDataError(f"{path}: {file_problem(path)} (checkpoints in {yaml_path})")
         return None
     obs = path.parent / CHECKPOINT_OBS_FILE
     if not obs.is_file():
-        raise InputDataError(f"{obs}: no such file (observations of the check points in {path})")
+        raise InputDataError(f"{obs}: {file_problem(obs)} (observations of the check points "
+                             f"in {path})")
     return path, obs
 
 
@@ -467,7 +470,8 @@ def checkpoint_report(method: str, eop: EopTable, run: RunFolder, known_path: Pa
         if pid not in kindex:
             raise InputDataError(f"{obs_path}: check point {pid!r} is not in {known_path}")
     eindex = eop.index()
-    eop_rows = np.array([eindex.get(run.nav.image_ids[i], -1) for i in obs_image])
+    eop_rows = np.array([eindex.get(run.nav.image_ids[i], -1) for i in obs_image],
+                        dtype=np.int64)
     sel = eop_rows >= 0
     ideal = PixelCorrector(camera=run.camera).ideal_pixels(uv[sel])
     X, _ = intersect_rays(eop.eop[eop_rows[sel]], ideal, obs_point[sel], len(point_ids),

@@ -24,6 +24,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from pipeline.common.columns import FLIGHT_YAML
 from pipeline.common.outdir import claim_output_folder, output_errors, release_output_folder
+from pipeline.common.paths import file_problem
 from pipeline.common.strict_yaml import build_dataclass, load_yaml
 from pipeline.flight.folder import Flight, Truth, read_flight, read_truth, with_self_calibration
 from pipeline.flight.inputs import RunInputs, SkippedImage
@@ -415,7 +416,7 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     if observations is not None:
         obs_path = Path(observations)
         if not obs_path.is_file():
-            raise InputDataError(f"{obs_path}: no such file (--observations)")
+            raise InputDataError(f"{obs_path}: {file_problem(obs_path)} (--observations)")
         flight = dataclasses.replace(flight, observations_path=obs_path)
     truth = read_truth(flight.path)
     source: ObservationSource | ImageSource

@@ -41,6 +41,7 @@ from rich.text import Text
 from pipeline.common.columns import FLIGHT_YAML, NAV_GEODETIC_COLUMNS
 from pipeline.common.csvio import CsvTail
 from pipeline.common.outdir import claim_output_folder, output_errors, release_output_folder
+from pipeline.common.paths import file_problem
 from pipeline.common.strict_yaml import build_dataclass
 from pipeline.common.tables import NavTable
 from pipeline.flight.camera import frame_camera
@@ -560,8 +561,8 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
         raise InputDataError(f"{folder}: no such flight folder")
     yaml_path = folder / FLIGHT_YAML
     if not yaml_path.is_file():
-        raise InputDataError(f"{yaml_path}: no such file (seqat watch needs flight.yaml from "
-                             "the start)")
+        raise InputDataError(f"{yaml_path}: {file_problem(yaml_path)} (seqat watch needs "
+                             "flight.yaml from the start)")
     if out.exists() and not out.is_dir():
         raise InputDataError(f"{out}: exists and is not a folder")
     flight_config = load_flight_config(yaml_path)

@@ -9,7 +9,7 @@ import pytest
 
 from pipeline.common.csvio import CsvTail
 from pipeline.flight.folder import read_flight
-from seqat.errors import InputDataError
+from seqat.errors import ConfigError, InputDataError
 
 from ..sample_flight import FLIGHT_YAML, NAV_CSV, OBSERVATIONS_CSV, FlightMaker
 
@@ -100,3 +100,85 @@ def test_a_flight_outside_the_crs_area_of_use_is_warned_about(make_flight: Fligh
     assert len(flight.warnings) == 1
     assert flight.warnings[0].startswith(f"{folder / 'flight.yaml'}: crs: the flight's centre (")
     assert "lies outside the area of use of 'RGF93 v1 / Lambert-93' (" in flight.warnings[0]
+
+
+# --- found by seqat bench fuzz ----------------------------------------------------------------
+
+@pytest.mark.parametrize(("field", "value", "message"), [
+    ("x_m", "1e300", "field 'x_m': '1e300' is not a plausible coordinate"),
+    ("z_m", "-9e15", "field 'z_m': '-9e15' is not a plausible height"),
+    ("kappa_deg", "1e12", "field 'kappa_deg': '1e12' is not a plausible angle"),
+    ("time_s", "1e300", "field 'time_s': '1e300' is not a plausible time"),
+    ("x_m", "1_000", "field 'x_m': expected a finite number, got '1_000'"),
+    ("y_m", "\uff11\uff12", "field 'y_m': expected a finite number, got '\uff11\uff12'"),
+])
+def test_implausible_and_non_ascii_numbers_are_refused(make_flight: FlightMaker, field: str,
+                                                       value: str, message: str) -> None:
+    lines = NAV_CSV.splitlines()
+    header = lines[0].split(",")
+    row = lines[2].split(",")
+    row[header.index(field)] = value
+    lines[2] = ",".join(row)
+    folder = make_flight(**{"nav.csv": "\n".join(lines) + "\n"})
+    with pytest.raises(InputDataError) as err:
+        read_flight(folder)
+    assert str(err.value).startswith(f"{folder / 'nav.csv'}:3: {message}")
+
+
+def test_a_pixel_far_beyond_the_image_is_left_out_not_refused(make_flight: FlightMaker) -> None:
+    """Pixels are measured against the frame, not a magnitude bound: one corrupt value is
+    left out with a warning like any observation far outside."""
+    obs = OBSERVATIONS_CSV.replace("img_4,p4,10.0,11.0", "img_4,p4,-9e15,11.0")
+    frames = list(read_flight(make_flight(**{"observations.csv": obs})).frames())
+    assert frames[3].point_ids == ("p3",)
+
+
+@pytest.mark.parametrize(("old", "new", "message"), [
+    ("sigma_image_px: 1.5", "sigma_image_px: 1e12", "sigma_image_px: expected a number in"),
+    ("fx_px: 1000.0", "fx_px: 1e300", "camera.fx_px: expected a number in"),
+    ("cx_px: 319.5", "cx_px: 1e12", "camera.cx_px: expected a number in"),
+    ("sigma_attitude_deg: [0.1, 0.1, 0.2]", "sigma_attitude_deg: 1e300",
+     r"nav.sigma_attitude_deg: expected sigmas in \[1e-05, 180\]"),
+    ("sigma_position_m: 0.3", "sigma_position_m: [0.3, 0.3, 1e9]",
+     "nav.sigma_position_m: expected sigmas in"),
+    ("sigma_image_px: 1.5", "sigma_image_px: 1e-300", "sigma_image_px: expected a number in"),
+    ("sigma_position_m: 0.3", "sigma_position_m: 1e-300", "nav.sigma_position_m: expected"),
+])
+def test_implausible_flight_yaml_numbers_name_the_key(make_flight: FlightMaker, old: str,
+                                                      new: str, message: str) -> None:
+    assert old in FLIGHT_YAML, old
+    folder = make_flight(**{"flight.yaml": FLIGHT_YAML.replace(old, new)})
+    with pytest.raises(ConfigError, match=message):
+        read_flight(folder)
+
+
+@pytest.mark.parametrize("name", ["flight.yaml", "observations.csv"])
+def test_a_folder_where_a_file_is_expected_is_named(make_flight: FlightMaker, name: str) -> None:
+    folder = make_flight()
+    (folder / name).unlink()
+    (folder / name).mkdir()
+    with pytest.raises(InputDataError, match=f"{name}: is a folder, expected a file"):
+        read_flight(folder)
+
+
+def test_a_looping_symlink_is_named(make_flight: FlightMaker) -> None:
+    folder = make_flight()
+    (folder / "observations.csv").unlink()
+    (folder / "observations.csv").symlink_to("observations.csv")
+    with pytest.raises(InputDataError, match="is a broken or looping symbolic link"):
+        read_flight(folder)
+
+
+def test_two_files_with_one_image_id_keep_the_first(tmp_path: Path) -> None:
+    """Found by seqat bench fuzz: IMG_0462.jpg beside IMG_0462.JPEG was a KeyError (exit 1)."""
+    src = Path(__file__).resolve().parents[3] / "sample_data" / "seneca_mini" / "images"
+    folder = tmp_path / "flight"
+    folder.mkdir()
+    for p in sorted(src.glob("*.jpg"))[:3]:
+        shutil.copy2(p, folder / p.name)
+    first = sorted(folder.glob("*.jpg"))[1]
+    shutil.copy2(first, first.with_suffix(".JPEG"))
+    flight = read_flight(folder)
+    assert len(flight.nav) == 3
+    assert [s.image for s in flight.skipped] == [first.name]
+    assert f"same image id {first.stem!r} as {first.stem}.JPEG" in flight.skipped[0].reason

@@ -212,3 +212,21 @@ def test_latency_table_adds_the_live_ortho_to_the_end_to_end_time() -> None:
     assert post.ortho == "after the run" and "ortho: AT update -> mosaic" not in names
     assert {s.stage: s for s in post.stages}["end to end"].max_ms == 2.0 + 90.0 + 12.0
     assert latency_table(record, None).ortho == "none"
+
+
+def test_check_points_without_observations_make_a_report(sim_flight: Path,
+                                                         tmp_path: Path) -> None:
+    """Found by seqat bench fuzz: a checkpoint_obs.csv with its header only was an
+    IndexError (exit 1)."""
+    out = tmp_path / "sim"
+    run_flight(sim_flight, out, method=Method.SIM, final_only=True, progress=False)
+    _add_checkpoints(sim_flight, out)
+    obs = sim_flight / CHECKPOINT_OBS_FILE
+    obs.write_text(obs.read_text().splitlines()[0] + "\n")
+    try:
+        make_report(out)
+    finally:
+        (sim_flight / CHECKPOINTS_FILE).unlink()
+        obs.unlink()
+    doc = json.loads((out / REPORT_JSON).read_text())
+    assert doc["checkpoints"]["count"] == 0
