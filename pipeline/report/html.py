@@ -168,7 +168,8 @@ def render_html(report: Report, extras: Mapping[str, object]) -> str:
         ("GSD (cm) / forward overlap (%)", f"{f.gsd_m * 100:.2f} / {f.forward_overlap * 100:.0f}"),
         ("CRS", f.crs_name),
         ("camera", f.camera_model + (" (approximate, from EXIF)" if f.camera_approximate
-                                     else "")),
+                                     else "") + (f"; {f.camera_estimate}" if f.camera_estimate
+                                                 else "")),
         ("tie points / observations", f"{t.count} / {t.observations}"),
         ("track length mean / median / max",
          f"{t.track_length_mean:.1f} / {t.track_length_median:.0f} / {t.track_length_max}"),

@@ -100,6 +100,21 @@ class FlightSummary:
     crs_name: str
     camera_model: str
     camera_approximate: bool
+    #: Self-calibration (run.json ``camera_estimate``): each free parameter with its sigma
+    #: and prior, and those held at the prior; empty: the camera was fixed.
+    camera_estimate: str = ""
+
+
+def camera_estimate_text(run: RunFolder) -> str:
+    """One line on the self-calibrated camera of a run ("" when the camera was fixed)."""
+    est = run.record.get("camera_estimate")
+    if not isinstance(est, dict):
+        return ""
+    v, sg, prior = est["values"], est["sigma"], est["prior"]
+    parts = [f"{n} {v[n]:.5g} ± {sg[n]:.2g} (prior {prior[n]:.5g})" for n in est["free"]]
+    held = est.get("held") or []
+    text = "self-calibrated: " + ", ".join(parts)
+    return text + (f"; held at the prior (not determined): {', '.join(held)}" if held else "")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -370,7 +385,8 @@ def _flight_summary(run: RunFolder) -> FlightSummary:
     return FlightSummary(images=len(nav), duration_s=float(nav.times_s[-1] - nav.times_s[0]),
                          gsd_m=gsd, forward_overlap=float(np.median(overlaps)) if overlaps
                          else float("nan"), crs_name=run.crs.name, camera_model=cam.model,
-                         camera_approximate=run.inputs.camera_approximate)
+                         camera_approximate=run.inputs.camera_approximate,
+                         camera_estimate=camera_estimate_text(run))
 
 
 def _realtime(label: str, record: Mapping[str, object]) -> RealTime:

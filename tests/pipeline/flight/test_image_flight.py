@@ -247,3 +247,9 @@ def test_run_with_ortho_and_report_writes_the_whole_chain(tmp_path: Path) -> Non
     assert report["latency"]["ortho"] == "live"
     assert stages["end to end"]["median_ms"] > stages["AT update"]["median_ms"] > 0
     assert stages["ortho: AT update -> mosaic"]["images"] == 18
+    # the EXIF camera was self-calibrated; run.json, the report and later stages say so
+    est = run.record["camera_estimate"]
+    assert "f_px" in est["free"] and run.camera.model == "OPENCV"  # type: ignore[index,operator]
+    assert run.camera.fx_px == est["values"]["f_px"] != run.camera_prior.fx_px  # type: ignore[index]
+    assert "self-calibrated: f_px" in report["flight_summary"]["camera_estimate"]
+    assert "self-calibrated: f_px" in (out / "report.html").read_text()
