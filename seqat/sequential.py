@@ -511,7 +511,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         except np.linalg.LinAlgError as err:
             raise EstimationError(
                 f"the initial simultaneous block ({len(st.image_ids)} images) is singular or "
-                f"ill-conditioned: its cofactor matrix is not positive definite") from err
+                f"ill-conditioned: its cofactor matrix is not positive definite (its datum is "
+                f"fixed by the GPS/INS constraints alone: are the nav sigmas plausible?)") from err
         self._origin = st.origin
         n = len(st.image_ids)
         keys: list[Key] = [("e", i) for i in range(n)]

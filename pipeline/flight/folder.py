@@ -675,15 +675,18 @@ def read_truth(flight_dir: Path | str) -> Truth | None:
     Returns
     -------
     Truth or None
-        ``None`` when the flight has no ``truth/`` folder (real flights).
+        ``None`` when the flight has no ``truth/`` (real flights).
 
     Raises
     ------
     InputDataError
-        ``truth/`` exists but a file is missing or malformed.
+        ``truth`` is not a folder, or a file in it is missing or malformed.
     """
     truth_dir = Path(flight_dir) / TRUTH_DIR
-    if not truth_dir.is_dir():
+    if not exists_as_anything(truth_dir):
         return None
+    problem = folder_problem(truth_dir)
+    if problem is not None:  # a file or a broken link where the truth folder goes
+        raise InputDataError(f"{truth_dir}: {problem} (the simulated flight's truth)")
     return Truth(eop=read_nav_projected(truth_dir / "eop.csv"),
                  points=read_ground_points(truth_dir / "points.csv"))

@@ -395,14 +395,15 @@ MAX_LAS_Z = 1e6
 
 
 def check_las_header(path: Path, header: object) -> None:
-    """Refuse a LAS header whose scales are zero or not finite, or whose offsets are not
-    finite: every coordinate would be the offset, or garbage."""
+    """Refuse a LAS header whose scales are not positive or not finite, or whose offsets are
+    not finite: every coordinate would be the offset, mirrored, or garbage (the LAS
+    specification's scale factors are positive; a negative one mirrors the cloud)."""
     scales = np.asarray(header.scales, dtype=np.float64)  # type: ignore[attr-defined]
     offsets = np.asarray(header.offsets, dtype=np.float64)  # type: ignore[attr-defined]
-    if not (np.all(np.isfinite(scales)) and np.all(scales != 0.0)
+    if not (np.all(np.isfinite(scales)) and np.all(scales > 0.0)
             and np.all(np.isfinite(offsets))):
         raise InputDataError(f"{path}: damaged LAS header: scales {scales.tolist()}, offsets "
-                             f"{offsets.tolist()} (scales must be finite and non-zero, "
+                             f"{offsets.tolist()} (scales must be finite and positive, "
                              "offsets finite)")
 
 

@@ -182,3 +182,14 @@ def test_two_files_with_one_image_id_keep_the_first(tmp_path: Path) -> None:
     assert len(flight.nav) == 3
     assert [s.image for s in flight.skipped] == [first.name]
     assert f"same image id {first.stem!r} as {first.stem}.JPEG" in flight.skipped[0].reason
+
+
+def test_truth_that_is_a_file_is_an_error(tmp_path: Path) -> None:
+    """Found by seqat bench fuzz: a file named truth was silently taken for no truth."""
+    from pipeline.flight.folder import read_truth
+
+    (tmp_path / "truth").write_text("not a folder\n")
+    with pytest.raises(InputDataError, match=r"truth: is a file, expected a folder"):
+        read_truth(tmp_path)
+    (tmp_path / "truth").unlink()
+    assert read_truth(tmp_path) is None

@@ -282,13 +282,15 @@ def test_truncated_las_says_so(tmp_path: Path) -> None:
 @pytest.mark.parametrize(("offset", "value", "message"), [
     (147, 0.0, "damaged LAS header: scales"),          # z scale
     (131, float("nan"), "damaged LAS header: scales"),  # x scale
+    (139, -0.01, "damaged LAS header: scales"),          # y scale < 0: a mirrored cloud
     (171, float("inf"), "damaged LAS header: scales"),  # z offset
     (171, 1e300, "are not plausible"),                  # z offset
     (147, 1e300, "are not plausible"),                  # z scale
 ])
 def test_damaged_las_header_values_are_errors(tmp_path: Path, offset: int, value: float,
                                               message: str) -> None:
-    """Found by seqat bench fuzz: such headers gave an all-nodata or flat DSM, exit 0."""
+    """Found by seqat bench fuzz: such headers gave an all-nodata, flat or mirrored DSM,
+    exit 0."""
     import struct
 
     las = write_las(tmp_path / "a.las", scene_points(), UTM10)
