@@ -442,6 +442,11 @@ def live_operation(record: Mapping[str, object]) -> LiveOperation | None:
         threshold_changes=tuple(budget["events"]) if isinstance(budget, dict) else ())
 
 
+#: A check point's observation farther than this many image sigmas outside the frame is an
+#: error of the check point file (it cannot have been measured in the image).
+CHECKPOINT_FRAME_SIGMAS = 5.0
+
+
 def find_checkpoints(flight_dir: Path) -> tuple[Path, Path] | None:
     """``checkpoints.csv`` and ``checkpoint_obs.csv`` of a flight, or None.
 
@@ -485,6 +490,17 @@ def checkpoint_report(method: str, eop: EopTable, run: RunFolder, known_path: Pa
     for pid in point_ids:
         if pid not in kindex:
             raise InputDataError(f"{obs_path}: check point {pid!r} is not in {known_path}")
+    cam = run.camera
+    margin = CHECKPOINT_FRAME_SIGMAS * run.inputs.sigma_image_px
+    outside = ~((uv[:, 0] >= -0.5 - margin) & (uv[:, 0] <= cam.width_px - 0.5 + margin)
+                & (uv[:, 1] >= -0.5 - margin) & (uv[:, 1] <= cam.height_px - 0.5 + margin))
+    if outside.any():
+        q = int(np.flatnonzero(outside)[0])
+        raise InputDataError(
+            f"{obs_path}: check point {point_ids[obs_point[q]]!r} in image "
+            f"{run.nav.image_ids[obs_image[q]]!r}: pixel ({uv[q, 0]:.4g}, {uv[q, 1]:.4g}) lies "
+            f"outside the {cam.width_px} x {cam.height_px} px image "
+            f"({int(outside.sum())} such observation(s))")
     eindex = eop.index()
     eop_rows = np.array([eindex.get(run.nav.image_ids[i], -1) for i in obs_image],
                         dtype=np.int64)

@@ -230,3 +230,26 @@ def test_check_points_without_observations_make_a_report(sim_flight: Path,
         obs.unlink()
     doc = json.loads((out / REPORT_JSON).read_text())
     assert doc["checkpoints"]["count"] == 0
+
+
+def test_check_point_pixel_outside_the_image_is_an_error(sim_flight: Path,
+                                                         tmp_path: Path) -> None:
+    """A check point observed outside its image cannot have been measured there: exit-2
+    error naming the point and the image (it used to be intersected as if it were)."""
+    from seqat.errors import InputDataError
+
+    out = tmp_path / "sim"
+    run_flight(sim_flight, out, method=Method.SIM, final_only=True, progress=False)
+    _add_checkpoints(sim_flight, out)
+    obs = sim_flight / CHECKPOINT_OBS_FILE
+    lines = obs.read_text().splitlines()
+    image, point, _, y = lines[1].split(",")
+    lines[1] = f"{image},{point},-40.0,{y}"
+    obs.write_text("\n".join(lines) + "\n")
+    try:
+        with pytest.raises(InputDataError, match=rf"check point '{point}' in image "
+                                                 rf"'{image}': pixel \(-40, .* lies outside"):
+            make_report(out)
+    finally:
+        (sim_flight / CHECKPOINTS_FILE).unlink()
+        obs.unlink()
