@@ -80,15 +80,52 @@ def add_block_parts(parts: tuple[FloatArray, FloatArray, FloatArray], blocks: Fl
     """``parts`` (of :func:`gather_parts`) plus symmetric blocks ``blocks`` (k, c, c) on
     window columns ``cols`` (k, c), each block touching at most one eliminated GP: the parts
     of ``L + sum_k blocks_k`` without forming the n x n matrix."""
+    a = np.broadcast_to(cols[:, :, None], blocks.shape).ravel()
+    b = np.broadcast_to(cols[:, None, :], blocks.shape).ravel()
+    return _add_entries(parts, a, b, blocks.ravel(), r_idx, p_idx, n)
+
+
+def add_factor_parts(parts: tuple[FloatArray, FloatArray, FloatArray], Je: FloatArray,
+                     Jp: FloatArray, w: FloatArray, img: np.ndarray, cols: np.ndarray,
+                     r_idx: np.ndarray, p_idx: np.ndarray, n: int,
+                     ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`add_block_parts` of image-point factors ``J^T W J`` (``J = [Je, Jp]``, one per
+    observation, on window columns ``cols`` (k, ce + 3): image block, then GP), with the
+    image-block x image-block parts summed per image first (the factors of one image share
+    those columns: with a self-calibrated camera 13 x 13 of every 16 x 16 block)."""
+    k, ce = Je.shape[0], Je.shape[2]
+    if k == 0:
+        return parts
+    uniq, first, inv = np.unique(img, return_index=True, return_inverse=True)
+    wJe = Je * w[:, None, None]
+    EE = np.einsum("kri,krj->kij", wJe, Je).reshape(k, ce * ce)
+    flat = (inv[:, None] * (ce * ce) + np.arange(ce * ce)).ravel()
+    S = np.bincount(flat, weights=EE.ravel(), minlength=uniq.size * ce * ce)
+    parts = add_block_parts(parts, S.reshape(uniq.size, ce, ce), cols[first, :ce], r_idx,
+                            p_idx, n)
+    # the entries with a GP row or column: [E, P]^T W P and its transpose without P^T W P twice
+    J = np.concatenate([Je, Jp], axis=2)
+    PJ = np.einsum("kri,krj->kij", Jp * w[:, None, None], J)  # (k, 3, ce + 3): GP rows
+    gp_cols = cols[:, ce:]
+    a = np.concatenate([np.broadcast_to(gp_cols[:, :, None], PJ.shape).ravel(),
+                        np.broadcast_to(cols[:, :ce, None], (k, ce, GP_SIZE)).ravel()])
+    b = np.concatenate([np.broadcast_to(cols[:, None, :], PJ.shape).ravel(),
+                        np.broadcast_to(gp_cols[:, None, :], (k, ce, GP_SIZE)).ravel()])
+    v = np.concatenate([PJ.ravel(), np.swapaxes(PJ[:, :, :ce], 1, 2).ravel()])
+    return _add_entries(parts, a, b, v, r_idx, p_idx, n)
+
+
+def _add_entries(parts: tuple[FloatArray, FloatArray, FloatArray], a: np.ndarray,
+                 b: np.ndarray, v: FloatArray, r_idx: np.ndarray, p_idx: np.ndarray, n: int,
+                 ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``parts`` plus the entries ``v`` at window rows ``a`` and columns ``b`` (each entry
+    once: a symmetric addition lists both triangles)."""
     D, L_RR, L_RP = parts
     r, npt = r_idx.size, p_idx.shape[0]
     rpos = np.full(n, -1, dtype=np.int64)
     rpos[r_idx] = np.arange(r)
     ppos = np.full(n, -1, dtype=np.int64)
     ppos[p_idx.ravel()] = np.arange(GP_SIZE * npt)
-    a = np.broadcast_to(cols[:, :, None], blocks.shape).ravel()
-    b = np.broadcast_to(cols[:, None, :], blocks.shape).ravel()
-    v = blocks.ravel()
     ra, rb, pa, pb = rpos[a], rpos[b], ppos[a], ppos[b]
     sel = (ra >= 0) & (rb >= 0)
     RR = L_RR + np.bincount(ra[sel] * r + rb[sel], weights=v[sel],

@@ -12,7 +12,7 @@ import numpy as np
 from seqat.information import (
     InformationFactor,
     RankDeficiency,
-    add_block_parts,
+    add_factor_parts,
     gather_parts,
     split_indices,
 )
@@ -103,7 +103,7 @@ class RelinearisationMixin:
             if self._inverse:
                 H = scatter_blocks(factor_blocks(Je, Jp, wf), cols, n) + H_p
                 return lambda g: np.linalg.solve(H, g)
-            parts = add_block_parts(base, factor_blocks(Je, Jp, wf), cols, r_idx, p_blk, n)
+            parts = add_factor_parts(base, Je, Jp, wf, f.img, cols, r_idx, p_blk, n)
             return InformationFactor(None, gp, kept, parts=parts, n=n).solve
 
         # Robust loss: the weights are re-computed only where Gauss-Newton has converged with

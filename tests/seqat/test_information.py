@@ -93,3 +93,33 @@ def test_engines_agree_and_sigmas_stay_positive_after_every_update(
     for e, sol in sols.items():
         sig = np.concatenate([p.sigma_m for p in sol.points])
         assert np.all(np.isfinite(sig)) and np.all(sig > 0), e
+
+
+@pytest.mark.parametrize("ce", [6, 13])
+def test_factor_parts_summed_per_image_equal_the_block_scatter(ce: int) -> None:
+    """add_factor_parts (image-block parts summed per image) == add_block_parts of every
+    factor's full block, with eliminated and kept (coupled) GPs and a shared camera block."""
+    from seqat.information import add_block_parts, add_factor_parts, gather_parts, split_indices
+    from seqat.rows import factor_blocks
+
+    rng = np.random.default_rng(4)
+    n_img, n_pts, k = 5, 12, 40
+    cam = ce - 6
+    n = 6 * n_img + cam + 3 * n_pts
+    img = rng.integers(0, n_img, k)
+    pt = rng.integers(0, n_pts, k)
+    e_cols = np.concatenate([6 * img[:, None] + np.arange(6),
+                             np.broadcast_to(6 * n_img + np.arange(cam), (k, cam))], axis=1)
+    p_cols = 6 * n_img + cam + 3 * pt[:, None] + np.arange(3)
+    cols = np.concatenate([e_cols, p_cols], axis=1)
+    Je, Jp = rng.normal(size=(k, 2, ce)), rng.normal(size=(k, 2, 3))
+    w = rng.uniform(0.5, 2.0, k)
+    A = rng.normal(size=(n, n))
+    L = A @ A.T
+    gp = 6 * n_img + cam + 3 * np.arange(2, n_pts)  # points 0 and 1 kept (coupled)
+    r_idx, p_idx = split_indices(n, gp)
+    base = gather_parts(L, r_idx, p_idx)
+    ref = add_block_parts(base, factor_blocks(Je, Jp, w), cols, r_idx, p_idx, n)
+    got = add_factor_parts(base, Je, Jp, w, img, cols, r_idx, p_idx, n)
+    for x, y in zip(got, ref, strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-10)
