@@ -56,7 +56,8 @@ from threadpoolctl import ThreadpoolController
 
 from seqat import snooping
 from seqat.births import BirthMixin, degenerate_points
-from seqat.calibration import FreeCamera, SelfCalibration, correlation, undetermined
+from seqat.calibration import FreeCamera, SelfCalibration
+from seqat.camera_window import CameraMixin
 from seqat.departures import Departure, DepartureMixin
 from seqat.errors import EstimationError
 from seqat.geometry import wrap_angle
@@ -78,7 +79,6 @@ from seqat.simultaneous import (
 from seqat.types import (
     EOP_SIZE,
     GP_SIZE,
-    CameraEstimate,
     EopEstimate,
     FloatArray,
     Frame,
@@ -100,10 +100,6 @@ _BLAS = ThreadpoolController()
 #: Data snooping: at most this many reject-and-resolve rounds per image.
 MAX_SNOOPING_ROUNDS = 40
 
-#: Self-calibration: a parameter held at its prior after the last image gets this many times
-#: its information (its sigma shrinks a hundredfold: the final re-linearisation moves it by
-#: ~1 % of its sigma at most, and the reduced system stays far from the rank tolerance).
-HOLD_WEIGHT = 1e4
 
 #: Window engines (SequentialOptions.engine).
 ENGINES = ("information", "inverse")
@@ -195,7 +191,8 @@ class SequentialOptions:
             )
 
 
-class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin):
+class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin,
+                   CameraMixin):
     """Seq-F / Seq-R sequential aerial triangulation of a stream of frames.
 
     Parameters
@@ -382,78 +379,6 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             eops=tuple(eops), points=tuple(pts), sigma0=self.sigma0, redundancy=self._redundancy,
             camera=self.camera_estimate(),
         )
-
-    def _hold_undetermined_camera(self) -> bool:
-        """After the last image: interior parameters the flight did not determine
-        (:func:`seqat.calibration.undetermined`, as Sim decides) are held at their prior.
-
-        The window is conditioned on them: its mean moves by ``Q[:, h] Q_hh^-1 (prior - x_h)``
-        (the exact conditional of the linearised problem; departed parameters follow through
-        their smoothing gains, the camera being in every record's window), and an information
-        :data:`HOLD_WEIGHT` times theirs locks them there for the final re-linearisation.
-        True when any was held."""
-        key, calibration = self._cam_key, self.options.calibration
-        if key is None or calibration is None or not calibration.hold_undetermined:
-            return False
-        w = self._w
-        idx = w.index(key)
-        cols = w.q_columns(idx)
-        prior_sigma = calibration.prior_sigma(self.camera)[self._cam.index]
-        bad = undetermined(cols[idx], prior_sigma)
-        if not bad.any():
-            return False
-        h = idx[bad]
-        target = self.camera.intrinsics[self._cam.index][bad]
-        Qh = cols[:, bad]
-        Qhh = Qh[h]
-        w.x = w.x + Qh @ np.linalg.solve(Qhh, target - w.x[h])
-        w.x[h] = target
-        if w.L is not None:
-            w.L[h, h] += HOLD_WEIGHT * np.diagonal(w.L)[h]
-        if self._inverse:
-            w.Q = w.Q - Qh @ np.linalg.solve(Qhh, Qh.T)
-            w.Q[np.ix_(h, h)] = np.diag(prior_sigma[bad] ** 2 / HOLD_WEIGHT)
-        w.changed()
-        names = calibration.names
-        self._camera_held = tuple(n for n, b in zip(names, bad, strict=True) if b)
-        return True
-
-    def camera_now(self) -> PinholeCamera:
-        """The camera at the current estimate (the prior :attr:`camera` unless
-        self-calibrating)."""
-        if self._initial is not None:
-            return self._initial.camera_now
-        return self._camera_now()
-
-    def _camera_now(self) -> PinholeCamera:
-        key = self._cam_key
-        if key is None or key not in self._w.offset:
-            return self.camera
-        return self._cam.at(self._w.x[self._w.index(key)])
-
-    def camera_estimate(self) -> CameraEstimate | None:
-        """The self-calibrated camera with the sigmas and correlations of its free
-        parameters (None without self-calibration)."""
-        if self._initial is not None:
-            return self._initial.camera_estimate()
-        key = self._cam_key
-        if key is None:
-            return None
-        w = self._w
-        assert self.options.calibration is not None
-        names = self.options.calibration.names
-        held = self._camera_held
-        keep = np.array([n not in held for n in names], dtype=bool)
-        idx = w.index(key)[keep]
-        Q = w.q_block(idx)
-        prior = self.options.calibration.prior_sigma(self.camera)[self._cam.index][keep]
-        free = tuple(n for n in names if n not in held)
-        weak = undetermined(Q, prior)
-        return CameraEstimate(
-            camera=self._camera_now(), prior=self.camera, free=free,
-            sigma=np.sqrt(np.diagonal(Q)) * sigma_scale(self.sigma0, self._redundancy),
-            correlation=correlation(Q), held=held,
-            undetermined=tuple(n for n, b in zip(free, weak, strict=True) if b))
 
     def window_solution(self) -> Solution:
         """Current estimates of the window's images and GPs with sigmas: O(window), any time.
