@@ -100,7 +100,6 @@ _BLAS = ThreadpoolController()
 #: Data snooping: at most this many reject-and-resolve rounds per image.
 MAX_SNOOPING_ROUNDS = 40
 
-
 #: Window engines (SequentialOptions.engine).
 ENGINES = ("information", "inverse")
 
