@@ -14,7 +14,6 @@
 from __future__ import annotations
 
 import math
-from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -607,16 +606,14 @@ def _fix(meta: ImageMetadata) -> tuple[float, float, float]:
 
 
 def _folder_warnings(metas: list[ImageMetadata]) -> list[str]:
-    sizes = Counter((m.width_px, m.height_px) for m in metas)
-    (cw, ch), count = sizes.most_common(1)[0]
+    first = metas[0]
     warnings = []
     prev_time: float | None = None
     for m in metas:
         name = m.path.name
-        if (m.width_px, m.height_px) != (cw, ch):
-            warnings.append(f"{name}: size {m.width_px} x {m.height_px} px differs from the "
-                            f"folder's most common {cw} x {ch} px ({count} of {len(metas)} "
-                            f"images)")
+        if (m.width_px, m.height_px) != (first.width_px, first.height_px):
+            warnings.append(f"{name}: size {m.width_px} x {m.height_px} px differs from "
+                            f"{first.path.name} ({first.width_px} x {first.height_px} px)")
         if m.time_s is None:
             warnings.append(f"{name}: no acquisition time (found: {found_tags(m)})")
         elif prev_time is not None and m.time_s <= prev_time:
