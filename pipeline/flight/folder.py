@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -189,14 +188,6 @@ def _bare_image_folder(folder: Path) -> FlightConfig:
     raise InputDataError(f"{folder / FLIGHT_YAML}: no such file, and no JPEG images in "
                          f"{folder} or {folder / IMAGES_DIR} (a flight folder needs "
                          f"{FLIGHT_YAML} or images)")
-
-
-def _majority_size(metas: dict[str, ImageMetadata]) -> ImageMetadata:
-    """The first image of the most common size: the camera of the flight (an odd-sized
-    image, e.g. a first frame written at another resolution, is then the one resampled)."""
-    sizes = Counter((m.width_px, m.height_px) for m in metas.values())
-    common = max(sizes.values())
-    return next(m for m in metas.values() if sizes[(m.width_px, m.height_px)] == common)
 
 
 def camera_from_exif(meta: ImageMetadata) -> CameraConfig:
@@ -386,7 +377,7 @@ def read_flight(flight_dir: Path | str) -> Flight:
     if camera_config is None:
         if not metas:
             raise ConfigError(f"{source}: camera: required for an observations flight")
-        camera_config, approximate = camera_from_exif(_majority_size(metas)), True
+        camera_config, approximate = camera_from_exif(next(iter(metas.values()))), True
     if obs_path is None:
         check_one_camera(nav.image_ids, metas)
         for dup in duplicate_images(nav.image_ids, metas):

@@ -256,18 +256,3 @@ def test_run_with_ortho_and_report_writes_the_whole_chain(tmp_path: Path) -> Non
     assert run.camera.k1 == est["values"]["k1"] != run.camera_prior.k1  # type: ignore[index]
     assert "self-calibrated: " in report["flight_summary"]["camera_estimate"]
     assert "k1 " in (out / "report.html").read_text()
-
-
-def test_camera_comes_from_the_most_common_image_size(tmp_path: Path) -> None:
-    """Seneca's first image is 3240 x 2430 px, the others 3600 x 2700: the camera is the
-    majority's, and the odd image is the one resampled (with a warning naming it)."""
-    paths = _copy_images(tmp_path, 4)
-    with Image.open(paths[0]) as im:
-        w, h = im.size
-        small = im.resize((w * 9 // 10, h * 9 // 10))
-        small.save(paths[0], "JPEG", quality=95, exif=im.info.get("exif"),
-                   xmp=im.info.get("xmp"))
-    flight = read_flight(tmp_path)
-    assert (flight.camera_config.width_px, flight.camera_config.height_px) == (w, h)
-    odd = [x for x in flight.warnings if "differs from the camera" in x]
-    assert len(odd) == 1 and odd[0].startswith(paths[0].name)
