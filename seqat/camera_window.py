@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from seqat.calibration import correlation, undetermined
+from seqat.calibration import correlation, to_hold, undetermined
+from seqat.relinearise import FINAL_RELINEARISE_PX
 from seqat.simultaneous import sigma_scale
 from seqat.types import CameraEstimate, PinholeCamera
 
@@ -20,38 +21,50 @@ class CameraMixin:
     """The self-calibrated camera of :class:`seqat.sequential.SequentialAT`."""
 
     def _hold_undetermined_camera(self) -> bool:
-        """After the last image: interior parameters the flight did not determine
-        (:func:`seqat.calibration.undetermined`, as Sim decides) are held at their prior.
+        """After the last image: interior parameters the flight did not determine, or not
+        significantly different from their prior (:func:`seqat.calibration.to_hold`, as Sim
+        decides), are held at their prior.
 
         The window is conditioned on them: its mean moves by ``Q[:, h] Q_hh^-1 (prior - x_h)``
         (the exact conditional of the linearised problem; departed parameters follow through
         their smoothing gains, the camera being in every record's window), and an information
-        :data:`HOLD_WEIGHT` times theirs locks them there for the final re-linearisation.
-        True when any was held."""
+        :data:`HOLD_WEIGHT` times theirs locks them there, and the window is re-linearised;
+        then the next round. True when any was held."""
         key, calibration = self._cam_key, self.options.calibration
         if key is None or calibration is None or not calibration.hold_undetermined:
             return False
         w = self._w
         idx = w.index(key)
-        cols = w.q_columns(idx)
         prior_sigma = calibration.prior_sigma(self.camera)[self._cam.index]
-        bad = undetermined(cols[idx], prior_sigma)
-        if not bad.any():
+        prior = self.camera.intrinsics[self._cam.index]
+        held = np.zeros(idx.size, dtype=bool)
+        while not held.all():  # a round at a time, as Sim holds them
+            cols = w.q_columns(idx)
+            free = ~held
+            bad = np.zeros(idx.size, dtype=bool)
+            bad[free] = to_hold(calibration, cols[idx][np.ix_(free, free)], prior_sigma[free],
+                                w.x[idx][free], prior[free],
+                                sigma_scale(self.sigma0, self._redundancy))
+            if not bad.any():
+                break
+            h = idx[bad]
+            Qh = cols[:, bad]
+            Qhh = Qh[h]
+            w.x = w.x + Qh @ np.linalg.solve(Qhh, prior[bad] - w.x[h])
+            w.x[h] = prior[bad]
+            if w.L is not None:
+                w.L[h, h] += HOLD_WEIGHT * np.diagonal(w.L)[h]
+            if self._inverse:
+                w.Q = w.Q - Qh @ np.linalg.solve(Qhh, Qh.T)
+                w.Q[np.ix_(h, h)] = np.diag(prior_sigma[bad] ** 2 / HOLD_WEIGHT)
+            w.changed()
+            held |= bad
+            if self.options.relinearise_px is not None:  # as Sim adjusts again after a round
+                self._relinearise_if_needed(FINAL_RELINEARISE_PX, force=True)
+        if not held.any():
             return False
-        h = idx[bad]
-        target = self.camera.intrinsics[self._cam.index][bad]
-        Qh = cols[:, bad]
-        Qhh = Qh[h]
-        w.x = w.x + Qh @ np.linalg.solve(Qhh, target - w.x[h])
-        w.x[h] = target
-        if w.L is not None:
-            w.L[h, h] += HOLD_WEIGHT * np.diagonal(w.L)[h]
-        if self._inverse:
-            w.Q = w.Q - Qh @ np.linalg.solve(Qhh, Qh.T)
-            w.Q[np.ix_(h, h)] = np.diag(prior_sigma[bad] ** 2 / HOLD_WEIGHT)
-        w.changed()
         names = calibration.names
-        self._camera_held = tuple(n for n, b in zip(names, bad, strict=True) if b)
+        self._camera_held = tuple(n for n, b in zip(names, held, strict=True) if b)
         return True
 
     def camera_now(self) -> PinholeCamera:

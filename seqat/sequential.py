@@ -317,9 +317,9 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         No-op without ``relinearise_px``; :meth:`solution` itself never changes the state."""
         if self._initial is None:
             with _BLAS.limit(limits=UPDATE_BLAS_THREADS, user_api="blas"):
-                held = self._hold_undetermined_camera()
                 if self.options.relinearise_px is not None:
-                    self._relinearise_if_needed(FINAL_RELINEARISE_PX, force=held)
+                    self._relinearise_if_needed(FINAL_RELINEARISE_PX)
+                self._hold_undetermined_camera()
 
     def solution(self, *, smoothed: bool | None = None) -> Solution:
         """Estimates of every image and point so far (window and departed), with sigmas.

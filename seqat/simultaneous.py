@@ -19,7 +19,7 @@ from enum import Enum
 import numpy as np
 
 from seqat import snooping
-from seqat.calibration import SelfCalibration, correlation, undetermined
+from seqat.calibration import SelfCalibration, correlation, to_hold
 from seqat.errors import EstimationError
 from seqat.geometry import depth, intersect_rays, project, project_with_jacobians
 from seqat.normals import (
@@ -541,8 +541,9 @@ class SimultaneousAT:
     def _adjust(self, data: BlockData, eop0: FloatArray, gp0: FloatArray,
                 covariance: Covariance) -> SimResult:
         """:func:`adjust_block`, self-calibrating with :attr:`SimOptions.calibration`:
-        parameters the block does not determine (:func:`seqat.calibration.undetermined`) are
-        held at their prior and the block adjusted again without them."""
+        parameters the block does not determine, or not significantly different from their
+        prior (:func:`seqat.calibration.to_hold`), are held at their prior and the block
+        adjusted again without them."""
         calibration = self.options.calibration
         held: tuple[str, ...] = ()
         while True:
@@ -557,8 +558,10 @@ class SimultaneousAT:
             res = adjust_block(start, data, eop0, gp0, self.options, covariance, calib)
             if calib is None or calibration is None or not calibration.hold_undetermined:
                 break
-            assert res.camera_cofactor is not None
-            bad = undetermined(res.camera_cofactor, calib.sigma)
+            assert res.camera_cofactor is not None and res.camera is not None
+            bad = to_hold(calibration, res.camera_cofactor, calib.sigma,
+                          res.camera.intrinsics[calib.index], calib.prior,
+                          sigma_scale(res.sigma0, res.redundancy))
             if not bad.any():
                 break
             names = tuple(n for n, b in zip(calibration.names, bad, strict=True) if b)

@@ -68,7 +68,14 @@ def test_sim_recovers_the_camera_within_its_sigma(block: SimulatedFlight) -> Non
     cal = _sim(block, SelfCalibration())
     est = cal.camera
     assert est is not None and fixed.camera is None
-    assert est.held == ()
+    # the strong distortion is significant and estimated; what is held sits at the prior
+    assert "k1" in est.free
+    prior = _prior(block.camera)
+    for n in est.held:
+        assert getattr(est.camera, n) == getattr(prior, n)
+    # without the significance test the block determines every parameter: none held
+    every = _sim(block, SelfCalibration(significance=None)).camera
+    assert every is not None and every.held == () and len(every.free) == 7
     true = block.camera
     # the error against the truth, in its estimated covariance: chi-square with one degree
     # of freedom per parameter (a test at alpha 0.001, whatever the correlations)
