@@ -133,7 +133,17 @@ def estimator_options(method: Method, config: EstimatorConfig, *, threshold: flo
 def with_calibration(options: SequentialOptions | SimOptions,
                      calibration: SelfCalibration | None) -> SequentialOptions | SimOptions:
     """``options`` with the flight's self-calibration (``flight.yaml`` ``self_calibration:``,
-    on by default for a camera from EXIF)."""
+    on by default for a camera from EXIF).
+
+    Raises
+    ------
+    ConfigError
+        The estimator options file set ``calibration`` itself (it belongs to the flight).
+    """
+    if options.calibration is not None and options.calibration != calibration:
+        raise ConfigError("calibration: the self-calibration is set in flight.yaml "
+                          "(self_calibration:) or with --self-calibration/--fixed-camera, "
+                          "not in the estimator options")
     return dataclasses.replace(options, calibration=calibration)
 
 

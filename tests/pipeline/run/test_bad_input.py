@@ -106,3 +106,17 @@ def test_images_and_flights_without_tie_points_are_warned_about(small_sim_dir: P
     assert result.exit_code == 0, result.output
     assert "seqat: warning: the flight has no tie points: no ground point was estimated " \
         "from its 24 images" in result.stderr
+
+
+def test_calibration_in_the_estimator_options_is_refused(small_sim_dir: Path,
+                                                        tmp_path: Path) -> None:
+    """The self-calibration belongs to the flight (flight.yaml, --self-calibration): an
+    estimator options file that sets it would be overridden silently; it is refused."""
+    opts = tmp_path / "opts.yaml"
+    opts.write_text("sequential:\n  calibration:\n    free: [f_px]\n")
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["run", str(small_sim_dir), "--out", str(out),
+                                      "--options", str(opts), "--no-progress"])
+    assert result.exit_code == 2
+    assert "calibration: the self-calibration is set in flight.yaml" in result.output
+    assert not out.exists()
