@@ -114,7 +114,8 @@ def camera_estimate_text(run: RunFolder) -> str:
     parts = [f"{n} {v[n]:.5g} ± {sg[n]:.2g} (prior {prior[n]:.5g})" for n in est["free"]]
     held = est.get("held") or []
     text = "self-calibrated: " + ", ".join(parts)
-    return text + (f"; held at the prior (not determined): {', '.join(held)}" if held else "")
+    return text + (f"; held at the prior (not determined, or not significant): "
+                   f"{', '.join(held)}" if held else "")
 
 
 @dataclass(frozen=True, kw_only=True)
