@@ -61,7 +61,7 @@ class SelfCalibration:
         Hold parameters the block does not determine at their prior (:data:`HOLD_RATIO`)
         and, with ``significance``, those not significantly different from it.
     significance : float or None
-        The test of :func:`insignificant` (:data:`SIGNIFICANCE` sigmas); None: off.
+        The significance test of :func:`to_hold` (:data:`SIGNIFICANCE` sigmas); None: off.
     """
 
     free: tuple[str, ...] = DEFAULT_FREE
@@ -79,6 +79,9 @@ class SelfCalibration:
                               f"one of {', '.join(INTRINSICS)}")
         if len(set(self.free)) != len(self.free):
             raise ConfigError("self-calibration: a parameter is listed twice")
+        if self.significance is not None and not self.significance > 0:
+            raise ConfigError(f"self-calibration: significance must be a positive number of "
+                              f"sigmas or null, got {self.significance!r}")
         for name, s in sig.items():
             if not (np.isfinite(s) and s > 0):
                 raise ConfigError(f"self-calibration: sigma of {name} must be a positive "
