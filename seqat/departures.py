@@ -112,8 +112,9 @@ class DepartureMixin:
             q_cam = w.q_columns(cam)
             gain = np.linalg.solve(q_cam[cam], q_cam.T).T  # Q[:, c] Q_cc^-1
             given_camera = (gain, q_cam)
-            diag = np.where(np.isin(np.arange(diag.size), cam), diag,
-                            diag - np.einsum("nc,nc->n", gain, q_cam))
+            given = diag - np.einsum("nc,nc->n", gain, q_cam)
+            given[cam] = diag[cam]  # the camera's own (0 given itself) are not read
+            diag = given
         rho = np.zeros(len(offs))
         for r in range(len(offs) - 1, -1, -1):
             o = int(offs[r])

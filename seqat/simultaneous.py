@@ -19,7 +19,7 @@ from enum import Enum
 import numpy as np
 
 from seqat import snooping
-from seqat.calibration import SelfCalibration, correlation, to_hold
+from seqat.calibration import FreeCamera, SelfCalibration, correlation, to_hold
 from seqat.errors import EstimationError
 from seqat.geometry import depth, intersect_rays, project, project_with_jacobians
 from seqat.normals import (
@@ -180,17 +180,10 @@ def adjust_block(
     eop = np.array(eop0, dtype=np.float64)
     gp = np.array(gp0, dtype=np.float64)
     c = calib.size if calib is not None else 0
-    cam_index = calib.index if calib is not None else np.zeros(0, dtype=np.int64)
-    intr = camera.intrinsics
-
-    def camera_at(values: FloatArray) -> PinholeCamera:
-        if not c:
-            return camera
-        full = intr.copy()
-        full[cam_index] = values
-        return camera.with_intrinsics(full)
-
-    cam_x = intr[cam_index].copy()
+    free_cam = FreeCamera(camera, calib.index if calib is not None
+                          else np.zeros(0, dtype=np.int64))
+    camera_at = free_cam.at
+    cam_x = camera.intrinsics[free_cam.index]
     cam = camera
     converged = False
     iterations = 0
@@ -393,7 +386,6 @@ class SimultaneousAT:
         #: The camera at the last solution (the prior ``camera`` until self-calibrated).
         self.camera_now = camera
         self._held: tuple[str, ...] = ()  # free parameters the last solution held at the prior
-        self._calibration = options.calibration  # ... and those it estimated
         self._cat = _Catalogue()
         self._origin: FloatArray | None = None
         self._result: SimResult | None = None
@@ -552,9 +544,8 @@ class SimultaneousAT:
             if calibration is not None and calibration.free:
                 calib = self.calibration_block(calibration)
                 # start from the last estimate of the free parameters, the prior of the others
-                intr = self.camera.intrinsics
-                intr[calib.index] = self.camera_now.intrinsics[calib.index]
-                start = self.camera.with_intrinsics(intr)
+                start = FreeCamera(self.camera, calib.index).at(
+                    self.camera_now.intrinsics[calib.index])
             res = adjust_block(start, data, eop0, gp0, self.options, covariance, calib)
             if calib is None or calibration is None or not calibration.hold_undetermined:
                 break
@@ -568,10 +559,15 @@ class SimultaneousAT:
             held += names
             calibration = calibration.holding(names)
         self._held = held
-        self._calibration = calibration
         assert res.camera is not None
         self.camera_now = res.camera
         return res
+
+    @property
+    def _calibration(self) -> SelfCalibration | None:
+        """The parameters the last solution estimated: the options' free ones but the held."""
+        cal = self.options.calibration
+        return cal.holding(self._held) if cal is not None and self._held else cal
 
     def camera_estimate(self) -> CameraEstimate | None:
         """The self-calibrated camera of the last solution (None without self-calibration)."""
@@ -593,8 +589,7 @@ class SimultaneousAT:
         assert full is not None
         n = data.n_images
         img, pt = data.obs_image, data.obs_point
-        J, cols = self._design(res, img, pt, n)
-        uv = project(res.eop[img], res.gp[pt], self.camera_now)
+        uv, J, cols = self._design(res, img, pt, n)
         worst = snooping.point_w(J,
                                  full[cols[:, :, None], cols[:, None, :]],
                                  data.obs_uv - uv, data.obs_sigma_px)
@@ -648,8 +643,7 @@ class SimultaneousAT:
         n = res.eop.shape[0]
         uv = np.asarray(cat.obs_uv, dtype=np.float64).reshape(-1, 2)[idx]
         sigma = np.asarray(cat.obs_sigma, dtype=np.float64)[idx]
-        J, cols = self._design(res, img, pt, n)
-        proj = project(res.eop[img], res.gp[pt], self.camera_now)
+        proj, J, cols = self._design(res, img, pt, n)
         w = snooping.predicted_w(J,
                                  full[cols[:, :, None], cols[:, None, :]], uv - proj, sigma)
         back = idx[w < critical]
@@ -662,19 +656,19 @@ class SimultaneousAT:
         return True
 
     def _design(self, res: SimResult, img: np.ndarray, pt: np.ndarray,
-                n: int) -> tuple[FloatArray, np.ndarray]:
-        """Jacobians (k, 2, 6 + c + 3) of the observations ``(img, pt)`` and their columns in
-        the full cofactor ``[EOPs, camera, GPs]``."""
+                n: int) -> tuple[FloatArray, FloatArray, np.ndarray]:
+        """Projections (k, 2), Jacobians (k, 2, 6 + c + 3) of the observations ``(img, pt)``
+        and their columns in the full cofactor ``[EOPs, camera, GPs]``."""
         cal = self._calibration
         c = len(cal.free) if cal is not None and res.camera_cofactor is not None else 0
-        _, Je, Jp, Jc = project_with_jacobians(res.eop[img], res.gp[pt], self.camera_now,
-                                               intrinsics=True)
+        uv, Je, Jp, Jc = project_with_jacobians(res.eop[img], res.gp[pt], self.camera_now,
+                                                intrinsics=True)
         parts = [Je, Jc[:, :, cal.index]] if c and cal is not None else [Je]
         cols = np.concatenate([EOP_SIZE * img[:, None] + np.arange(EOP_SIZE),
                                np.broadcast_to(EOP_SIZE * n + np.arange(c), (img.size, c)),
                                EOP_SIZE * n + c + GP_SIZE * pt[:, None] + np.arange(GP_SIZE)],
                               axis=1)
-        return np.concatenate([*parts, Jp], axis=2), cols
+        return uv, np.concatenate([*parts, Jp], axis=2), cols
 
     def _update_record(self, frame: Frame, i: int, ms: float, iterations: int) -> ImageUpdate:
         res = self._result if not self._dirty else None

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pipeline.flight.schema import CameraConfig
+from pipeline.flight.schema import CameraConfig, SelfCalibrationConfig
+from seqat.calibration import SelfCalibration
 from seqat.types import FloatArray, PinholeCamera
 
 #: Iterations of OpenCV's iterative undistortion (its default of 5 leaves ~1e-5 px errors).
@@ -50,21 +51,24 @@ def self_calibrating_camera(camera: CameraConfig) -> tuple[PinholeCamera, Camera
     ``camera``'s distortion as the prior. Returns that camera and the distortion-free camera
     whose :class:`PixelCorrector` maps observed pixels to seqat's.
     """
-    prior = PinholeCamera(f_px=camera.fx_px, cx_px=camera.cx_px, cy_px=camera.cy_px,
-                          width_px=camera.width_px, height_px=camera.height_px,
-                          k1=camera.k1, k2=camera.k2, p1=camera.p1, p2=camera.p2, k3=camera.k3)
+    prior = dataclasses.replace(pinhole_camera(camera), k1=camera.k1, k2=camera.k2,
+                                p1=camera.p1, p2=camera.p2, k3=camera.k3)
     square = dataclasses.replace(camera, model="OPENCV", k1=0.0, k2=0.0, p1=0.0, p2=0.0,
                                  k3=0.0)
     return prior, square
 
 
-def frame_camera(camera: CameraConfig, self_calibrating: bool) -> (
-        tuple[PinholeCamera, PixelCorrector]):
-    """seqat's camera of a flight and the corrector from observed pixels to its frames'."""
-    if self_calibrating:
+def frame_camera(camera: CameraConfig, self_calibration: SelfCalibrationConfig,
+                 from_exif: bool) -> tuple[SelfCalibration | None, PinholeCamera,
+                                           PixelCorrector]:
+    """The flight's self-calibration (``flight.yaml`` ``self_calibration:`` for a camera
+    from EXIF or not), seqat's camera and the corrector from observed pixels to its
+    frames'."""
+    calibration = self_calibration.resolve(from_exif)
+    if calibration is not None:
         prior, square = self_calibrating_camera(camera)
-        return prior, PixelCorrector(camera=square)
-    return pinhole_camera(camera), PixelCorrector(camera=camera)
+        return calibration, prior, PixelCorrector(camera=square)
+    return None, pinhole_camera(camera), PixelCorrector(camera=camera)
 
 
 def estimated_camera(prior: CameraConfig, estimate: PinholeCamera) -> CameraConfig:

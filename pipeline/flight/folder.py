@@ -167,8 +167,8 @@ def with_self_calibration(flight: Flight, enabled: bool | None) -> Flight:
     if enabled is None:
         return flight
     cfg = dataclasses.replace(flight.config.self_calibration, enabled=enabled)
-    calibration = cfg.resolve(flight.camera_approximate)
-    camera, corrector = frame_camera(flight.camera_config, calibration is not None)
+    calibration, camera, corrector = frame_camera(flight.camera_config, cfg,
+                                                  flight.camera_approximate)
     return dataclasses.replace(flight, config=dataclasses.replace(flight.config,
                                                                   self_calibration=cfg),
                                calibration=calibration, camera=camera, corrector=corrector)
@@ -391,8 +391,8 @@ def read_flight(flight_dir: Path | str) -> Flight:
     if crs_warning is not None:
         warnings.append(crs_warning)
     paths = tuple(metas[i].path for i in nav.image_ids) if obs_path is None else ()
-    calibration = config.self_calibration.resolve(approximate)
-    camera, corrector = frame_camera(camera_config, calibration is not None)
+    calibration, camera, corrector = frame_camera(camera_config, config.self_calibration,
+                                                  approximate)
     return Flight(path=folder, config=config, crs=crs, camera_config=camera_config,
                   camera_approximate=approximate, camera=camera, calibration=calibration,
                   corrector=corrector, nav=nav,

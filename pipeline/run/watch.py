@@ -295,8 +295,8 @@ class GrowingFlight:
         cam = self.camera
         empty = NavTable(image_ids=(), times_s=np.zeros(0), eop=np.zeros((0, 6)))
         obs = self.folder / self.config.observations if self.config.observations else None
-        calibration = self.config.self_calibration.resolve(self.camera_approximate)
-        camera, corrector = frame_camera(cam, calibration is not None)
+        calibration, camera, corrector = frame_camera(cam, self.config.self_calibration,
+                                                      self.camera_approximate)
         self.flight = Flight(path=self.folder, config=self.config, crs=self.crs,
                              camera_config=cam, camera_approximate=self.camera_approximate,
                              camera=camera, corrector=corrector, calibration=calibration,

@@ -62,32 +62,44 @@ def test_rotation_angle_round_trip() -> None:
     np.testing.assert_allclose(angles_from_rotation(R), ang, atol=1e-12)
 
 
+def _check_eop_and_point_jacobians(eop: np.ndarray, X: np.ndarray, cam: PinholeCamera,
+                                   Je: np.ndarray, Jp: np.ndarray) -> None:
+    """``Je``, ``Jp`` against central differences of :func:`project` with ``cam``."""
+    for k in range(6):
+        h = STEP_M if k < 3 else STEP_RAD
+        d = np.zeros(6)
+        d[k] = h
+        fd = (project(eop + d, X, cam) - project(eop - d, X, cam)) / (2 * h)
+        np.testing.assert_allclose(Je[:, :, k], fd, rtol=JACOBIAN_RTOL, atol=1e-3)
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = STEP_M
+        fd = (project(eop, X + d, cam) - project(eop, X - d, cam)) / (2 * STEP_M)
+        np.testing.assert_allclose(Jp[:, :, k], fd, rtol=JACOBIAN_RTOL, atol=1e-3)
+
+
 def test_jacobians_match_finite_differences() -> None:
     rng = np.random.default_rng(5)
     eop = _random_pose(rng, 20)
     X = np.column_stack([eop[:, :2] + rng.normal(0, 30, (20, 2)), rng.uniform(-10, 20, 20)])
     _, Je, Jp = project_with_jacobians(eop, X, CAM)
-    for k in range(6):
-        h = STEP_M if k < 3 else STEP_RAD
-        d = np.zeros(6)
-        d[k] = h
-        fd = (project(eop + d, X, CAM) - project(eop - d, X, CAM)) / (2 * h)
-        np.testing.assert_allclose(Je[:, :, k], fd, rtol=JACOBIAN_RTOL, atol=1e-3)
-    for k in range(3):
-        d = np.zeros(3)
-        d[k] = STEP_M
-        fd = (project(eop, X + d, CAM) - project(eop, X - d, CAM)) / (2 * STEP_M)
-        np.testing.assert_allclose(Jp[:, :, k], fd, rtol=JACOBIAN_RTOL, atol=1e-3)
+    _check_eop_and_point_jacobians(eop, X, CAM, Je, Jp)
+
+
+def _round_trip_scene(rng: np.random.Generator, half_m: float, n_pts: int = 30,
+                      n_img: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Five cameras along x, points within ``half_m`` of the centre, every point in every
+    image: EOPs, points and the image and point index of each observation."""
+    eop = _random_pose(rng, n_img)
+    eop[:, :2] = np.column_stack([np.linspace(-40, 40, n_img), np.zeros(n_img)])
+    X = np.column_stack([rng.uniform(-half_m, half_m, (n_pts, 2)), rng.uniform(-5, 5, n_pts)])
+    return eop, X, np.repeat(np.arange(n_img), n_pts), np.tile(np.arange(n_pts), n_img)
 
 
 def test_project_intersect_round_trip() -> None:
     rng = np.random.default_rng(9)
-    n_pts, n_img = 30, 5
-    eop = _random_pose(rng, n_img)
-    eop[:, :2] = np.column_stack([np.linspace(-40, 40, n_img), np.zeros(n_img)])
-    X = np.column_stack([rng.uniform(-30, 30, (n_pts, 2)), rng.uniform(-5, 5, n_pts)])
-    img = np.repeat(np.arange(n_img), n_pts)
-    pt = np.tile(np.arange(n_pts), n_img)
+    n_pts = 30
+    eop, X, img, pt = _round_trip_scene(rng, 30.0, n_pts)
     uv = project(eop[img], X[pt], CAM)
     assert np.all(depth(eop[img], X[pt]) > 0)
     X_hat, spread = intersect_rays(eop[img], uv, pt, n_pts, CAM)
@@ -138,17 +150,7 @@ def test_distorted_jacobians_match_finite_differences() -> None:
     _, Je0, Jp0 = project_with_jacobians(eop, X, DISTORTED)
     np.testing.assert_array_equal(Je, Je0)
     np.testing.assert_array_equal(Jp, Jp0)
-    for k in range(6):
-        h = STEP_M if k < 3 else STEP_RAD
-        d = np.zeros(6)
-        d[k] = h
-        fd = (project(eop + d, X, DISTORTED) - project(eop - d, X, DISTORTED)) / (2 * h)
-        np.testing.assert_allclose(Je[:, :, k], fd, rtol=JACOBIAN_RTOL, atol=1e-3)
-    for k in range(3):
-        d = np.zeros(3)
-        d[k] = STEP_M
-        fd = (project(eop, X + d, DISTORTED) - project(eop, X - d, DISTORTED)) / (2 * STEP_M)
-        np.testing.assert_allclose(Jp[:, :, k], fd, rtol=JACOBIAN_RTOL, atol=1e-3)
+    _check_eop_and_point_jacobians(eop, X, DISTORTED, Je, Jp)
     base = DISTORTED.intrinsics
     for k, h in enumerate([1e-3, 1e-3, 1e-3, 1e-7, 1e-7, 1e-8, 1e-8, 1e-7]):
         d = np.zeros(8)
@@ -160,12 +162,8 @@ def test_distorted_jacobians_match_finite_differences() -> None:
 
 def test_distorted_project_intersect_round_trip() -> None:
     rng = np.random.default_rng(13)
-    n_pts, n_img = 30, 5
-    eop = _random_pose(rng, n_img)
-    eop[:, :2] = np.column_stack([np.linspace(-40, 40, n_img), np.zeros(n_img)])
-    X = np.column_stack([rng.uniform(-60, 60, (n_pts, 2)), rng.uniform(-5, 5, n_pts)])
-    img = np.repeat(np.arange(n_img), n_pts)
-    pt = np.tile(np.arange(n_pts), n_img)
+    n_pts = 30
+    eop, X, img, pt = _round_trip_scene(rng, 60.0, n_pts)
     uv = project(eop[img], X[pt], DISTORTED)
     X_hat, _ = intersect_rays(eop[img], uv, pt, n_pts, DISTORTED)
     np.testing.assert_allclose(X_hat, X, atol=1e-7)
