@@ -21,7 +21,9 @@ def reference(
     prior: Annotated[str, typer.Option(
         "--prior", help="GPS/INS prior: pose (6-DoF, as Sim) or position.")] = "pose",
     robust_loss: Annotated[str, typer.Option(
-        "--robust-loss", help="trivial (off), huber, cauchy or soft_l1.")] = "trivial",
+        "--robust-loss", help="run (the run's own: huber at its robust scale, or trivial for "
+                              "a least-squares run), trivial (off), huber, cauchy or soft_l1."
+        )] = "run",
     sfm: Annotated[bool, typer.Option(
         "--sfm", help="Instead: an independent COLMAP SfM of the flight's images, aligned to "
                       "each method by a similarity: OUT/reference/sfm/.")] = False,
@@ -58,19 +60,24 @@ def reference(
     from pipeline.reference.colmap_ba import PriorKind, ReferenceOptions, RobustLoss
     from pipeline.reference.stage import run_reference
 
-    for flag, value, kind in (("--prior", prior, PriorKind),
-                              ("--robust-loss", robust_loss, RobustLoss)):
-        if value not in {k.value for k in kind}:
-            raise ConfigError(f"{flag}: expected one of {', '.join(k.value for k in kind)}, "
-                              f"got {value!r}")
-    options = ReferenceOptions(prior=PriorKind(prior), robust_loss=RobustLoss(robust_loss),
-                               self_calibrate=self_calibrate)
+    prior, robust_loss = prior.lower(), robust_loss.lower()
+    for flag, value, choices in (("--prior", prior, [k.value for k in PriorKind]),
+                                 ("--robust-loss", robust_loss,
+                                  ["run"] + [k.value for k in RobustLoss])):
+        if value not in choices:
+            raise ConfigError(f"{flag}: expected one of {', '.join(choices)}, got {value!r}")
+    options = ReferenceOptions(
+        prior=PriorKind(prior), self_calibrate=self_calibrate,
+        robust_loss=None if robust_loss == "run" else RobustLoss(robust_loss))
     rec = run_reference(out, options).record
     console().print(table(f"seqat reference {out}", [
         ("images / points / observations",
          f"{rec.n_images_adjusted} / {rec.n_points} / {rec.n_observations}"),
         ("prior", f"{rec.options.prior.value} ({rec.n_prior_residuals} residuals of "
                   f"{rec.n_residuals})"),
+        ("loss of the image points", f"{rec.options.robust_loss}"
+         + ("" if rec.options.robust_loss == "trivial"
+            else f" at {rec.options.loss_scale_sigmas:g} sigma")),
         ("sigma0 (redundancy)", f"{fmt(rec.sigma0, '.4f')} ({rec.redundancy})"),
         ("rms image residual (px)", fmt(rec.rms_px, '.3f')),
         ("termination (iterations)", f"{rec.termination} ({rec.iterations})"),

@@ -99,8 +99,11 @@ class ReferenceOptions:
     prior : PriorKind
     self_calibrate : bool
         Also estimate fx, fy, cx, cy, k1, k2, p1, p2 (and k3 for a ``FULL_OPENCV`` camera).
-    robust_loss : RobustLoss
-        Off (``trivial``) by default, as in Sim.
+    robust_loss : RobustLoss or None
+        Loss of the reprojection residuals. ``None`` (the default): the run's own
+        (:func:`loss_of_run`): Huber at the run's ``robust_scale`` when the run was robust
+        (least squares within that many σ, as the run's loss; docs/algorithm.md, *Robust
+        loss*), least squares (``trivial``) when it was not.
     loss_scale_sigmas : float
         Scale of the robust loss in units of the image sigma.
     max_iterations : int
@@ -113,7 +116,7 @@ class ReferenceOptions:
 
     prior: PriorKind = PriorKind.POSE
     self_calibrate: bool = False
-    robust_loss: RobustLoss = RobustLoss.TRIVIAL
+    robust_loss: RobustLoss | None = None
     loss_scale_sigmas: float = 3.0
     max_iterations: int = 100
     function_tolerance: float = 1e-15
@@ -383,8 +386,8 @@ def _ba_options(options: ReferenceOptions, sigma_px: float) -> pycolmap.BundleAd
     ba.refine_focal_length = options.self_calibrate
     ba.refine_principal_point = options.self_calibrate
     ba.refine_extra_params = options.self_calibrate
-    ba.ceres.loss_function_type = getattr(pycolmap.LossFunctionType,
-                                          options.robust_loss.value.upper())
+    loss = RobustLoss.TRIVIAL if options.robust_loss is None else options.robust_loss
+    ba.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, loss.value.upper())
     ba.ceres.loss_function_scale = options.loss_scale_sigmas * sigma_px
     solver = ba.ceres.solver_options
     solver.max_num_iterations = options.max_iterations
@@ -393,6 +396,20 @@ def _ba_options(options: ReferenceOptions, sigma_px: float) -> pycolmap.BundleAd
     solver.parameter_tolerance = options.parameter_tolerance
     ba.ceres.solver_options = solver
     return ba
+
+
+def loss_of_run(robust_scale: float | None) -> tuple[RobustLoss, float]:
+    """The reference's loss for a run whose image points had the robust loss
+    ``robust_scale`` (σ; ``None``: least squares).
+
+    The run's loss is least squares within ``k`` σ and a Cauchy tail beyond
+    (:mod:`seqat.robust`); Ceres has no such loss, and its Huber loss at ``k`` σ has the same
+    core: on residuals within ``k`` σ the two adjust alike, and both bound the pull of a
+    blunder (Huber's linear tail lets it pull a little more than the Cauchy tail).
+    """
+    if robust_scale is None:
+        return RobustLoss.TRIVIAL, ReferenceOptions().loss_scale_sigmas
+    return RobustLoss.HUBER, float(robust_scale)
 
 
 def _prior_cost(kind: PriorKind, nav_local: FloatArray, cov: FloatArray | None,

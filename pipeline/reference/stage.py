@@ -10,8 +10,10 @@ model, binary and text, world coordinates), ``eop.csv`` and ``points.csv`` (our 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +32,7 @@ from pipeline.reference.colmap_ba import (
     ReferenceOptions,
     ReferenceResult,
     adjust_reference,
+    loss_of_run,
 )
 from pipeline.run.store import (
     JSON_INDENT,
@@ -256,6 +259,11 @@ def run_reference(out_dir: Path | str,
     options = options if options is not None else ReferenceOptions()
     out = Path(out_dir)
     run = read_run(out)
+    if options.robust_loss is None:  # the run's own loss
+        rob = run.record.get("robustness")
+        scale = rob.get("robust_scale") if isinstance(rob, Mapping) else None
+        loss, k = loss_of_run(float(scale) if isinstance(scale, int | float) else None)
+        options = dataclasses.replace(options, robust_loss=loss, loss_scale_sigmas=k)
     data, left_out = reference_input(run)
     check_prior_geometry(data, options.prior)
     result = adjust_reference(data, options)
