@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from seqat.calibration import correlation, to_hold, undetermined
+from seqat.information import add_block
 from seqat.relinearise import FINAL_RELINEARISE_PX
 from seqat.simultaneous import sigma_scale
 from seqat.types import CameraEstimate, PinholeCamera
@@ -53,7 +54,7 @@ class CameraMixin:
             w.x = w.x + Qh @ np.linalg.solve(Qhh, prior[bad] - w.x[h])
             w.x[h] = prior[bad]
             if w.L is not None:
-                w.L[h, h] += HOLD_WEIGHT * np.diagonal(w.L)[h]
+                w.L = add_block(w.L, h, np.diag(HOLD_WEIGHT * w.L.diagonal()[h]))
             if self._inverse:
                 w.Q = w.Q - Qh @ np.linalg.solve(Qhh, Qh.T)
                 w.Q[np.ix_(h, h)] = np.diag(prior_sigma[bad] ** 2 / HOLD_WEIGHT)

@@ -15,6 +15,14 @@ import numpy as np
 import scipy.linalg
 
 from seqat.geometry import wrap_angle
+from seqat.information import (
+    add_block,
+    dense_block,
+    nonzero_columns,
+    padded,
+    submatrix,
+    window_matrix,
+)
 from seqat.simultaneous import sigma_scale
 from seqat.types import EOP_SIZE, EopEstimate, FloatArray, PointEstimate
 from seqat.update import spd_inverse
@@ -60,12 +68,43 @@ class DepartureMixin:
             self._dropped_value[k] = w.x[w.index(k)].copy()
         w.drop(keys)
         gone = {k[1] for k in keys if k[0] == "p"}
+        self._factors.forget(gone)
         for p in gone:
             self._gp_count.pop(p, None)
             self._orphans.discard(p)
             self.undetermined.append(self._point_ids[p])
         self._gp_order = [p for p in self._gp_order if p not in gone]
         self._n_points -= len(gone)
+
+    def _dormant_keys(self) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
+        """Departed images and GPs that may still re-enter the window with their exact
+        conditional (departure records kept, within the re-opening age): their factors are
+        kept for re-linearisation after a re-opening."""
+        if not self._records or not self._departed:
+            return None, None
+        now = len(self._image_ids) - 1
+        age = self._reopen_age
+        imgs = [k[1] for k, (t, _, _) in self._departed.items() if k[0] == "e" and now - t <= age]
+        pts = [k[1] for k, (t, _, _) in self._departed.items() if k[0] == "p" and now - t <= age]
+        return np.asarray(imgs, dtype=np.int64), np.asarray(pts, dtype=np.int64)
+
+    def _reopen_departed(self) -> None:
+        """finish(): every departed key that may still re-enter (:meth:`_dormant_keys`)
+        re-enters the window with its exact conditional, so that the final re-linearisation
+        takes its rows too: the nonlinear counterpart of the RTS pass, once per flight
+        (docs/algorithm.md, *What the window costs in accuracy*). Their real-time values stay
+        in :attr:`_frozen_eop` / :attr:`_frozen_gp` for ``solution(smoothed=False)``."""
+        imgs, pts = self._dormant_keys()
+        if imgs is None or pts is None:
+            return
+        keys: list[Key] = [("e", int(j)) for j in sorted(imgs)] + [("p", int(p))
+                                                                   for p in sorted(pts)]
+        keys = [k for k in keys if k in self._departed]
+        if not keys:
+            return
+        self._final_reopened.update(keys)
+        self._reopen(keys)
+        self._w.settle()
 
     def _smoothed_departed(self) -> dict[Key, FloatArray]:
         """RTS backward pass over the departures, newest first: O(sum |F| |W|)."""
@@ -179,15 +218,19 @@ class DepartureMixin:
             off += idx.size
         if w.L is not None:
             # E[x_F | x_W] = x_F - L_FF^-1 L_FW (x_W - x_W0): the RTS gain from the information
-            # matrix; marginalising F out of L is its Schur complement.
-            L_fw = w.L[np.ix_(leave, keep)]
-            cond = spd_inverse(w.L[np.ix_(leave, leave)], "information of the leaving "
-                                "parameters")
-            gain = -cond @ L_fw
-            fill = L_fw.T @ gain
-            L = w.L[np.ix_(keep, keep)] + 0.5 * (fill + fill.T)
+            # matrix; marginalising F out of L is its Schur complement, which changes only
+            # the block of F's neighbours (the support of L_FW: F's Markov blanket).
+            support = nonzero_columns(submatrix(w.L, leave, keep))
+            L_fs = dense_block(w.L, leave, keep[support])
+            cond = spd_inverse(dense_block(w.L, leave, leave), "information of the leaving "
+                               "parameters")
+            gain_s = -cond @ L_fs
+            gain = np.zeros((leave.size, keep.size))
+            gain[:, support] = gain_s
+            fill = L_fs.T @ gain_s
+            L = window_matrix(add_block(submatrix(w.L, keep, keep), support,
+                                        0.5 * (fill + fill.T)))
             # GPs the marginal prior now ties to other GPs are no longer eliminable alone
-            support = np.flatnonzero(np.any(L_fw != 0.0, axis=0))
             w.couple(keys_of(keep_keys, support))
             w.L = L
         if w.L is not None and self._records:
@@ -366,13 +409,12 @@ class DepartureMixin:
             # the prior ties the re-opened keys to the window keys its chain refers to
             w.couple(keys_of(w.keys, np.flatnonzero(np.any(J != 0.0, axis=0))) + keys)
             Ci = spd_inverse(C, "conditional cofactor of the re-opened parameters")
-            CiJ = Ci @ J
-            L = np.empty((n + m, n + m))
-            L[:n, :n] = w.L + J.T @ CiJ
-            L[:n, n:] = -CiJ.T
-            L[n:, :n] = -CiJ
-            L[n:, n:] = Ci
-            w.L = L
+            # [[L + J^T Ci J, -J^T Ci], [-Ci J, Ci]] on the support of J and the new keys
+            support = np.flatnonzero(np.any(J != 0.0, axis=0))
+            cols = np.concatenate([support, n + np.arange(m)])
+            Js = np.hstack([-J[:, support], np.eye(m)])  # x_new - J x_W, on cols
+            M = Js.T @ Ci @ Js
+            w.L = window_matrix(add_block(padded(w.L, n + m), cols, 0.5 * (M + M.T)))
         w.x = np.concatenate([w.x, mean])
         w.relayout(w.keys + keys)
         self.reopened += len(keys)

@@ -67,11 +67,119 @@ def split_indices(n: int, eliminate: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return np.flatnonzero(mask), p_idx
 
 
-def gather_parts(L: FloatArray, r_idx: np.ndarray,
-                 p_idx: np.ndarray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """``D`` (np, 3, 3), ``L_RR`` (r, r) and ``L_RP`` (r, 3 np) of ``L``."""
-    D = L[p_idx[:, :, None], p_idx[:, None, :]]
-    return D, L[np.ix_(r_idx, r_idx)], L[np.ix_(r_idx, p_idx.ravel())]
+#: The window's information matrix of a large window: sparse (CSR). A bundle adjustment's
+#: information is sparse — a GP couples to the few images that see it, GPs to no other GP but
+#: through a marginal prior — and a dense n x n copy per update was most of the cost of a
+#: real flight's window (n ~ 4000 on Seneca: 128 MB touched per update; docs/algorithm.md,
+#: *Engines*).
+SparseMatrix = scipy.sparse.csr_array
+#: Windows of up to this many parameters keep ``L`` dense: there numpy's dense kernels beat
+#: scipy.sparse's per-call overhead (the paper strip's ~250-parameter window: 1.3-1.6x
+#: slower sparse, measured 2026-12-02); beyond it ``L`` is sparse.
+DENSE_UP_TO = 1200
+#: A window's information matrix: dense (small windows) or sparse.
+WindowMatrix = FloatArray | SparseMatrix
+
+
+def sparse_information(L: WindowMatrix) -> SparseMatrix:
+    """``L`` as a sparse information matrix (CSR, explicit zeros dropped)."""
+    out = scipy.sparse.csr_array(L, dtype=np.float64)
+    out.eliminate_zeros()
+    return out
+
+
+def window_matrix(L: WindowMatrix) -> WindowMatrix:
+    """``L`` stored as the window keeps it at its size: dense up to :data:`DENSE_UP_TO`
+    parameters, sparse beyond."""
+    if L.shape[0] <= DENSE_UP_TO:
+        return L.toarray() if scipy.sparse.issparse(L) else np.asarray(L)
+    return L if scipy.sparse.issparse(L) else sparse_information(L)
+
+
+def submatrix(L: WindowMatrix, rows: np.ndarray, cols: np.ndarray) -> WindowMatrix:
+    """``L[np.ix_(rows, cols)]`` of a dense or sparse matrix (outer indexing)."""
+    rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+    if scipy.sparse.issparse(L):
+        return L[rows][:, cols]
+    return L[np.ix_(rows, cols)]
+
+
+def padded(L: WindowMatrix, n: int) -> WindowMatrix:
+    """``L`` (m, m) as the top-left block of an (n, n) matrix, n >= m (zeros elsewhere)."""
+    m = L.shape[0]
+    if n == m:
+        return L
+    if not scipy.sparse.issparse(L):
+        out = np.zeros((n, n))
+        out[:m, :m] = L
+        return out
+    indptr = np.concatenate([L.indptr, np.full(n - m, L.indptr[-1], dtype=L.indptr.dtype)])
+    return scipy.sparse.csr_array((L.data, L.indices, indptr), shape=(n, n))
+
+
+def add_block(L: WindowMatrix, cols: np.ndarray, M: FloatArray) -> WindowMatrix:
+    """``L`` plus the dense block ``M`` on rows and columns ``cols`` (a copy)."""
+    if scipy.sparse.issparse(L):
+        cols = np.asarray(cols, dtype=np.int64)
+        return L + sparse_entries(np.broadcast_to(cols[:, None], M.shape),
+                                  np.broadcast_to(cols[None, :], M.shape), M, L.shape[0])
+    out = np.array(L, dtype=np.float64)
+    out[np.ix_(cols, cols)] += M
+    return out
+
+
+def nonzero_columns(L: WindowMatrix) -> np.ndarray:
+    """Columns of ``L`` with a non-zero entry."""
+    if scipy.sparse.issparse(L):
+        L = L.tocsr()
+        L.eliminate_zeros()
+        return np.unique(L.indices)
+    return np.flatnonzero(np.any(np.asarray(L) != 0.0, axis=0))
+
+
+def sparse_entries(rows: np.ndarray, cols: np.ndarray, values: FloatArray,
+                   n: int) -> SparseMatrix:
+    """An (n, n) sparse matrix of ``values`` at (``rows``, ``cols``), duplicates summed."""
+    rows, cols, values = (np.asarray(a).ravel() for a in (rows, cols, values))
+    nz = values != 0.0
+    return scipy.sparse.coo_array((values[nz], (rows[nz], cols[nz])), shape=(n, n)).tocsr()
+
+
+def sparse_blocks(blocks: FloatArray, cols: np.ndarray, n: int) -> SparseMatrix:
+    """Blocks (k, c, c) on window columns ``cols`` (k, c) summed into a sparse n x n matrix."""
+    a = np.broadcast_to(cols[:, :, None], blocks.shape)
+    b = np.broadcast_to(cols[:, None, :], blocks.shape)
+    return sparse_entries(a, b, blocks, n)
+
+
+def dense_block(L: WindowMatrix, rows: np.ndarray, cols: np.ndarray) -> FloatArray:
+    """``L[np.ix_(rows, cols)]`` as a dense array, for a dense or sparse ``L``."""
+    if scipy.sparse.issparse(L):
+        return submatrix(L, rows, cols).toarray()
+    return np.asarray(L)[np.ix_(rows, cols)]
+
+
+def gather_parts(L: FloatArray | SparseMatrix, r_idx: np.ndarray, p_idx: np.ndarray,
+                 ) -> tuple[FloatArray, FloatArray, FloatArray | SparseMatrix]:
+    """``D`` (np, 3, 3), ``L_RR`` (r, r, dense) and ``L_RP`` (r, 3 np; sparse for a sparse
+    ``L``) of ``L``. Of the GP-GP part only the 3x3 diagonal blocks are read: the caller
+    eliminates GPs that nothing else couples."""
+    if not scipy.sparse.issparse(L):
+        L = np.asarray(L)
+        D = L[p_idx[:, :, None], p_idx[:, None, :]]
+        return D, L[np.ix_(r_idx, r_idx)], L[np.ix_(r_idx, p_idx.ravel())]
+    p_flat = p_idx.ravel()
+    npt = p_idx.shape[0]
+    rows_r = L[r_idx]
+    L_RR = rows_r[:, r_idx].toarray()
+    L_RP = rows_r[:, p_flat].tocsr()
+    Lpp = submatrix(L, p_flat, p_flat).tocoo()
+    i, j = np.asarray(Lpp.row), np.asarray(Lpp.col)
+    same = i // GP_SIZE == j // GP_SIZE
+    flat = (i[same] // GP_SIZE) * GP_SIZE**2 + (i[same] % GP_SIZE) * GP_SIZE + j[same] % GP_SIZE
+    D = np.bincount(flat, weights=Lpp.data[same],
+                    minlength=npt * GP_SIZE**2).reshape(npt, GP_SIZE, GP_SIZE)
+    return D, L_RR, L_RP
 
 
 def add_block_parts(parts: tuple[FloatArray, FloatArray, FloatArray], blocks: FloatArray,
@@ -131,8 +239,12 @@ def _add_entries(parts: tuple[FloatArray, FloatArray, FloatArray], a: np.ndarray
     RR = L_RR + np.bincount(ra[sel] * r + rb[sel], weights=v[sel],
                             minlength=r * r).reshape(r, r)
     sel = (ra >= 0) & (pb >= 0)
-    RP = L_RP + np.bincount(ra[sel] * (GP_SIZE * npt) + pb[sel], weights=v[sel],
-                            minlength=r * GP_SIZE * npt).reshape(r, GP_SIZE * npt)
+    if scipy.sparse.issparse(L_RP):  # a GP couples to few images: O(entries), not O(r np)
+        RP = L_RP + scipy.sparse.coo_array(
+            (v[sel], (ra[sel], pb[sel])), shape=(r, GP_SIZE * npt)).tocsr()
+    else:
+        RP = L_RP + np.bincount(ra[sel] * (GP_SIZE * npt) + pb[sel], weights=v[sel],
+                                minlength=r * GP_SIZE * npt).reshape(r, GP_SIZE * npt)
     sel = (pa >= 0) & (pb >= 0)
     DD = D + np.bincount((pa[sel] // GP_SIZE) * GP_SIZE**2 + (pa[sel] % GP_SIZE) * GP_SIZE
                          + pb[sel] % GP_SIZE, weights=v[sel],
@@ -203,13 +315,26 @@ class InformationFactor:
         # B = L_RP D^-1, block by block; large ones kept sparse (CSR): a point's column block
         # is non-zero only on the EOPs of the images that see it, so the Schur product, the
         # solves and the marginals cost O(nnz r), not O(r^2 np)
-        B = np.matmul(L_RP.reshape(r, npt, GP_SIZE).transpose(1, 0, 2),
-                      self.Dinv).transpose(1, 0, 2).reshape(r, GP_SIZE * npt)
-        if L_RP.size > SPARSE_FROM:
+        if scipy.sparse.issparse(L_RP) and r * GP_SIZE * npt <= SPARSE_FROM:
+            L_RP = L_RP.toarray()  # small windows: dense BLAS beats the sparse bookkeeping
+        if scipy.sparse.issparse(L_RP):
+            k = np.arange(GP_SIZE * npt)
+            Dinv_blocks = scipy.sparse.csr_array(
+                (self.Dinv.ravel(), np.repeat(k.reshape(npt, GP_SIZE), GP_SIZE, axis=0).ravel(),
+                 np.arange(0, GP_SIZE * GP_SIZE * npt + 1, GP_SIZE)),
+                shape=(GP_SIZE * npt, GP_SIZE * npt))
+            self.L_RP = L_RP.tocsr()
+            self.B = (self.L_RP @ Dinv_blocks).tocsr()
+            BL = (self.B @ self.L_RP.T).toarray()
+        elif L_RP.size > SPARSE_FROM:
+            B = np.matmul(L_RP.reshape(r, npt, GP_SIZE).transpose(1, 0, 2),
+                          self.Dinv).transpose(1, 0, 2).reshape(r, GP_SIZE * npt)
             self.L_RP = scipy.sparse.csr_array(L_RP)
             self.B = scipy.sparse.csr_array(B)
             BL = (self.B @ self.L_RP.T).toarray()
-        else:  # small windows: dense BLAS beats the sparse bookkeeping
+        else:
+            B = np.matmul(L_RP.reshape(r, npt, GP_SIZE).transpose(1, 0, 2),
+                          self.Dinv).transpose(1, 0, 2).reshape(r, GP_SIZE * npt)
             self.L_RP, self.B = L_RP, B
             BL = B @ L_RP.T
         S = L_RR - BL

@@ -8,16 +8,20 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+import scipy.sparse
 
+from seqat.geometry import intersect_rays
 from seqat.information import (
     InformationFactor,
     RankDeficiency,
     add_factor_parts,
     gather_parts,
+    sparse_blocks,
     split_indices,
+    window_matrix,
 )
-from seqat.robust import cauchy_weight
-from seqat.rows import factor_blocks, gradient_from_factors, scatter_blocks
+from seqat.robust import cauchy_weight, robust_cost, robust_weight
+from seqat.rows import FactorSet, factor_blocks, gradient_from_factors
 from seqat.types import EOP_SIZE, FloatArray
 
 #: Times a re-linearisation is tried again after taking out singular GPs.
@@ -26,10 +30,22 @@ MAX_SINGULAR_RETRIES = 10
 #: weight factor below which they stop.
 ROBUST_ROUNDS = 3
 ROBUST_WEIGHT_TOLERANCE = 0.05
+#: ... and in finish()'s re-linearisation, until the weights settle as Sim's IRLS does (the
+#: final window minimises the same robust objective as Sim: Seq-F == Sim).
+FINAL_ROBUST_ROUNDS = 20
+FINAL_ROBUST_WEIGHT_TOLERANCE = 1e-4
 #: A re-linearisation step that raises the window's cost is halved at most this many times.
 MAX_STEP_HALVINGS = 8
-#: A window re-linearisation stops when no parameter moves more than this (m or rad).
+#: A window re-linearisation stops when no parameter moves more than this (m or rad) ...
 RELINEARISE_TOLERANCE = 1e-7
+#: ... or, during the flight, when its last step moved no image point by more than
+#: ``SequentialOptions.iteration_tolerance_px`` (the update's own rule: Gauss-Newton on the
+#: window converges linearly, and the last 10-30 steps to 1e-7 moved nothing a pixel could
+#: see; measured on Seneca: 9-35 steps per re-linearisation, 3-6 to 0.01 px). finish()
+#: re-linearises to RELINEARISE_TOLERANCE.
+#: A window GP is re-intersected robustly when more than half of at least this many of its
+#: rays disagree with it beyond the robust scale (docs/algorithm.md, *Robust loss*).
+ASTRAY_MIN_RAYS = 4
 #: finish() re-linearises the window when its rows are this far off (pixels).
 FINAL_RELINEARISE_PX = 1e-3
 
@@ -55,6 +71,66 @@ class RelinearisationMixin:
                 self._drop_undetermined(keys)
         self.relinearisations_skipped += 1
 
+    def _astray_points(self, f: FactorSet, true: FloatArray) -> np.ndarray:
+        """Window GPs (point indices) whose estimate most of their own rays disagree with:
+        at least :data:`ASTRAY_MIN_RAYS` rays and more than half of them beyond the robust
+        scale. A point born on a blunder (two rays, one wrong: an exact but wrong
+        intersection) is such a point once good rays arrive: the redescending loss keeps it
+        where it is and down-weights them instead (a local minimum)."""
+        k = self.options.robust_scale
+        if k is None or f.pt.size == 0:
+            return np.zeros(0, dtype=np.int64)
+        out = (np.sum(true**2, axis=1) * f.w0 > k**2).astype(np.int64)
+        pts, inv, n = np.unique(f.pt, return_inverse=True, return_counts=True)
+        n_out = np.bincount(inv, weights=out, minlength=pts.size)
+        return pts[(n >= ASTRAY_MIN_RAYS) & (2 * n_out > n)]
+
+    def _rescue_points(self, f: FactorSet, astray: np.ndarray, x: FloatArray,
+                       e_idx: np.ndarray, p_idx: np.ndarray, wf: FloatArray) -> FloatArray:
+        """Re-intersect each astray point from its rays robustly and start the
+        re-linearisation there if its robust cost is lower (``x`` is changed in place);
+        returns the weights with those points' rows re-weighted at the new start.
+
+        Robust intersection (as COLMAP re-triangulates): each ray left out in turn, the
+        others intersected, the candidate with most rays within the robust scale wins and
+        is intersected again from those rays."""
+        k = self.options.robust_scale
+        assert k is not None
+        cam = self._camera_now()
+        wf = wf.copy()
+        for p in astray:
+            rows = np.flatnonzero(f.pt == p)
+            e = x[e_idx[rows]]
+            sigma = 1.0 / np.sqrt(f.w0[rows])
+            start = x[p_idx[rows[0]]].copy()
+
+            def u2(X: FloatArray, rows: np.ndarray = rows, e: FloatArray = e,
+                   sigma: FloatArray = sigma) -> FloatArray:
+                res = f.uv[rows] - self._cam.project(e, np.broadcast_to(X, (rows.size, 3)))
+                return np.sum(res**2, axis=1) / sigma**2
+
+            best, best_n = None, 0
+            for leave in range(rows.size):
+                use = np.arange(rows.size) != leave
+                X, _ = intersect_rays(e[use, :EOP_SIZE], f.uv[rows[use]],
+                                      np.zeros(int(use.sum()), dtype=np.int64), 1, cam)
+                if not np.all(np.isfinite(X)):
+                    continue
+                n_in = int(np.count_nonzero(u2(X[0]) <= k**2))
+                if n_in > best_n:
+                    best, best_n = X[0], n_in
+            if best is None or best_n < 2:
+                continue
+            keep = u2(best) <= k**2
+            X, _ = intersect_rays(e[keep, :EOP_SIZE], f.uv[rows[keep]],
+                                  np.zeros(int(keep.sum()), dtype=np.int64), 1, cam)
+            cand = X[0] if np.all(np.isfinite(X)) else best
+            if robust_cost(u2(cand), k) < robust_cost(u2(start), k):
+                x[p_idx[rows[0]]] = cand
+                wf[rows] = f.w0[rows] * robust_weight(u2(cand), k)
+                self.rescued.append(self._point_ids[int(p)])
+        return wf
+
     def _relinearise(self, threshold_px: float | None = None, force: bool = False) -> None:
         """Re-linearise the window when its rows no longer describe the image points.
 
@@ -70,20 +146,25 @@ class RelinearisationMixin:
         """
         w, opts = self._w, self.options
         assert opts.relinearise_px is not None
-        f = self._factors.in_window(w)
+        f = self._factors.in_window(w, *self._dormant_keys())
         if f is None:
             return
         e_idx, p_idx = f.columns(w)
         x = w.x
         limit = opts.relinearise_px if threshold_px is None else threshold_px
-        self._drift_px = f.linearisation_error(x[e_idx], x[p_idx], self._cam)
-        if self._drift_px <= limit and not force:
+        final = threshold_px is not None
+        rounds, weight_tol = ((FINAL_ROBUST_ROUNDS, FINAL_ROBUST_WEIGHT_TOLERANCE) if final
+                              else (ROBUST_ROUNDS, ROBUST_WEIGHT_TOLERANCE))
+        true = f.residuals(x[e_idx], x[p_idx], self._cam)
+        self._drift_px = f.linearisation_error(x[e_idx], x[p_idx], self._cam, true)
+        astray = self._astray_points(f, true)
+        if self._drift_px <= limit and not force and not astray.size:
             return
         self.relinearisations += 1
-        L = w.L if w.L is not None else np.linalg.inv(w.Q)
+        L = w.L if w.L is not None else window_matrix(np.linalg.inv(w.Q))
         cols = np.concatenate([e_idx, p_idx], axis=1)  # (k, 9) window columns per factor
         H_old, eta_old = f.information(cols, x.size)
-        H_p = L - H_old
+        H_p = L - H_old  # sparse throughout: O(entries), never O(n^2)
         del H_old
         eta_p = L @ x - eta_old
 
@@ -101,7 +182,8 @@ class RelinearisationMixin:
         def solver_at(Je: FloatArray, Jp: FloatArray,
                       wf: FloatArray) -> Callable[[FloatArray], FloatArray]:
             if self._inverse:
-                H = scatter_blocks(factor_blocks(Je, Jp, wf), cols, n) + H_p
+                H = sparse_blocks(factor_blocks(Je, Jp, wf), cols, n) + H_p
+                H = H.toarray() if scipy.sparse.issparse(H) else H
                 return lambda g: np.linalg.solve(H, g)
             parts = add_factor_parts(base, Je, Jp, wf, f.img, cols, r_idx, p_blk, n)
             return InformationFactor(None, gp, kept, parts=parts, n=n).solve
@@ -115,16 +197,34 @@ class RelinearisationMixin:
         sigma = 1.0 / np.sqrt(f.w0)
         xk = x.copy()
         ssr_old_factors = f.linearised_ssr(x[e_idx], x[p_idx])
+        prior_old = prior(x, H_p @ x)
+        if astray.size:
+            wf = self._rescue_points(f, astray, xk, e_idx, p_idx, wf)
         Hp_x = H_p @ xk
-        prior_old = prior(x, Hp_x)
         Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self._cam)
-        for _ in range(1 if robust is None else ROBUST_ROUNDS):
+        # The window's estimate ends at the minimum of its quadratic model (``L x = eta``:
+        # everything after takes ``x`` for it): at a Gauss-Newton iterate when the steps have
+        # converged, else at the model's minimum at the last linearisation (the last step,
+        # solved but not taken: rows linearised at ``xk``, estimate ``xk + delta``).
+        step = np.zeros_like(xk)
+
+        def gauss_newton(step_px: float) -> None:
+            """Gauss-Newton steps at the weights ``wf`` until a step moves no parameter more
+            than RELINEARISE_TOLERANCE, or no image point more than ``step_px``."""
+            nonlocal xk, Je, Jp, r, Hp_x, step
+            step = np.zeros_like(xk)
             cost = 0.5 * float(np.sum(wf[:, None] * r**2)) + prior(xk, Hp_x)
             for _ in range(opts.relinearise_iterations):
                 g = gradient_from_factors(Je, Jp, r, wf, cols, n) + eta_p - Hp_x
                 delta = solver_at(Je, Jp, wf)(g)
-                # Gauss-Newton with step halving: the window's cost never goes up (a turn's
-                # rows far from linear would otherwise send it off)
+                moved_px = np.max(np.abs(np.einsum("kri,ki->kr", Je, delta[e_idx])
+                                         + np.einsum("kri,ki->kr", Jp, delta[p_idx])),
+                                  initial=0.0)
+                if moved_px < step_px:
+                    step = delta
+                    return
+                # step halving: the window's cost never goes up (a turn's rows far from
+                # linear would otherwise send it off)
                 for _ in range(MAX_STEP_HALVINGS):
                     trial = xk + delta
                     Hp_t = H_p @ trial
@@ -134,31 +234,51 @@ class RelinearisationMixin:
                         break
                     delta = 0.5 * delta
                 else:
-                    break  # no step lowers the cost: xk is the minimum to rounding
+                    return  # no step lowers the cost: xk is the minimum to rounding
                 xk, cost, Je, Jp, r, Hp_x = trial, cost_t, Je_t, Jp_t, r_t, Hp_t
                 if np.max(np.abs(delta)) < RELINEARISE_TOLERANCE:
-                    break
+                    return
+
+        # During the flight to the update's pixel tolerance; in finish() the robust weights
+        # settle at that tolerance first, then one pass converges to RELINEARISE_TOLERANCE.
+        for _ in range(1 if robust is None else rounds):
+            gauss_newton(opts.iteration_tolerance_px)
             if robust is None:
                 break
             w_new = f.w0 * cauchy_weight(r, sigma, robust)
-            if np.max(np.abs(w_new - wf) / f.w0) < ROBUST_WEIGHT_TOLERANCE:
+            if np.max(np.abs(w_new - wf) / f.w0) < weight_tol:
                 break
             wf = w_new
-        H = scatter_blocks(factor_blocks(Je, Jp, wf), cols, n) + H_p
-        H = 0.5 * (H + H.T)
-        prior_new = prior(xk, Hp_x)
-        ssr_new_factors = float(np.sum(wf[:, None] * r**2))
+            step = np.zeros_like(xk)  # new weights: the model is solved again
+        for _ in range(rounds if final else 0):  # tight, the weights checked again
+            xk = xk + step  # the loose pass's model minimum starts the tight one
+            Hp_x = H_p @ xk
+            Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self._cam)
+            gauss_newton(0.0)
+            if robust is None:
+                break
+            w_new = f.w0 * cauchy_weight(r, sigma, robust)
+            if np.max(np.abs(w_new - wf) / f.w0) < weight_tol:
+                break
+            wf = w_new
+        H = sparse_blocks(factor_blocks(Je, Jp, wf), cols, n) + H_p
+        H = window_matrix(0.5 * (H + H.T))
+        x_new = xk + step
+        r_new = r - (np.einsum("kri,ki->kr", Je, step[e_idx])
+                     + np.einsum("kri,ki->kr", Jp, step[p_idx]))  # rows as linearised
+        prior_new = prior(x_new, H_p @ x_new)
+        ssr_new_factors = float(np.sum(wf[:, None] * r_new**2))
         self._ssr = max(self._ssr + ssr_new_factors - ssr_old_factors
                         + 2.0 * (prior_new - prior_old), 0.0)
-        dx = xk - x
+        dx = x_new - x
         eop_keys = [k for k in w.keys if k[0] == "e"]
         ie = w.indices(eop_keys).reshape(-1, EOP_SIZE)
         self._drift_m = float(np.max(np.abs(dx[ie[:, :3]]), initial=0.0))
         self._drift_deg = float(np.degrees(np.max(np.abs(dx[ie[:, 3:]]), initial=0.0)))
-        w.x = xk
+        w.x = x_new
         w.L = H if w.L is not None else None
         if self._inverse:
-            Q = np.linalg.inv(H)
+            Q = np.linalg.inv(H.toarray() if scipy.sparse.issparse(H) else H)
             w.Q = 0.5 * (Q + Q.T)
         w.changed()
         f.relinearised_at(xk[e_idx], xk[p_idx], Je, Jp, r)

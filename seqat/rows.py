@@ -17,6 +17,14 @@ import numpy as np
 from seqat import snooping
 from seqat.calibration import FreeCamera
 from seqat.geometry import wrap_angle
+from seqat.information import (
+    SparseMatrix,
+    WindowMatrix,
+    add_block,
+    padded,
+    sparse_blocks,
+    window_matrix,
+)
 from seqat.robust import cauchy_weight
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 from seqat.update import LinearRows, UpdateSolution
@@ -82,20 +90,20 @@ def snoop_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows, sol: Upda
     return Verdict(observations=observations, w=wq, nav_groups=[])
 
 
-def add_information(L: FloatArray, touched: np.ndarray, rows: LinearRows) -> FloatArray:
+def add_information(L: WindowMatrix, touched: np.ndarray, rows: LinearRows) -> WindowMatrix:
     """Information matrix after adding new parameters and the rows ``y2``, ``y3`` (Eq. 10).
 
-    ``L`` (n1, n1) is extended by ``n2`` new parameters; ``A^T P A`` of the rows is added on
-    the touched and new columns only.
+    ``L`` (n1, n1; dense or sparse, :func:`seqat.information.window_matrix`) is extended by
+    ``n2`` new parameters; ``A^T P A`` of the rows is added on the touched and new columns
+    only (sparse: O(their entries), never O(n1^2)).
     """
     n1, n2 = L.shape[0], rows.A22.shape[1]
-    out = np.zeros((n1 + n2, n1 + n2))
-    out[:n1, :n1] = L
+    t = touched.size
     cols = np.concatenate([touched, n1 + np.arange(n2)])
     A2 = np.hstack([rows.A21, rows.A22])
-    out[np.ix_(cols, cols)] += A2.T @ (rows.w2[:, None] * A2)
-    out[n1:, n1:] += rows.A32.T @ (rows.w3[:, None] * rows.A32)
-    return out
+    M = A2.T @ (rows.w2[:, None] * A2)
+    M[t:, t:] += rows.A32.T @ (rows.w3[:, None] * rows.A32)
+    return window_matrix(add_block(padded(L, n1 + n2), cols, 0.5 * (M + M.T)))
 
 
 class RowBuilder:
@@ -244,6 +252,13 @@ def gradient_from_factors(Je: FloatArray, Jp: FloatArray, r: FloatArray, w: Floa
                                                        r).ravel(), minlength=n)
 
 
+def normal_from_factors_sparse(Je: FloatArray, Jp: FloatArray, r: FloatArray, w: FloatArray,
+                               cols: np.ndarray, n: int) -> tuple[SparseMatrix, FloatArray]:
+    """:func:`normal_from_factors` with ``J^T W J`` as a sparse matrix."""
+    return (sparse_blocks(factor_blocks(Je, Jp, w), cols, n),
+            gradient_from_factors(Je, Jp, r, w, cols, n))
+
+
 def scatter_blocks(blocks: FloatArray, cols: np.ndarray, n: int) -> FloatArray:
     """Blocks (k, c, c) on window columns ``cols`` (k, c) summed into an n x n matrix
     (bincount over flat indices: an order of magnitude faster than ``np.add.at``)."""
@@ -301,19 +316,26 @@ class FactorSet:
         uv, Je, Jp = cam.project_with_jacobians(e, p)
         return Je, Jp, self.uv - uv
 
-    def linearisation_error(self, e: FloatArray, p: FloatArray, cam: FreeCamera) -> float:
-        true = self.uv - cam.project(e, p)
-        return float(np.max(np.abs(true - self.predicted(e, p))))
+    def residuals(self, e: FloatArray, p: FloatArray, cam: FreeCamera) -> FloatArray:
+        """True residuals ``uv - f(e, p)`` of every factor, (k, 2)."""
+        return self.uv - cam.project(e, p)
+
+    def linearisation_error(self, e: FloatArray, p: FloatArray, cam: FreeCamera,
+                            true: FloatArray | None = None) -> float:
+        if true is None:
+            true = self.residuals(e, p, cam)
+        return float(np.max(np.abs(true - self.predicted(e, p)), initial=0.0))
 
     def linearised_ssr(self, e: FloatArray, p: FloatArray) -> float:
         return float(np.sum(self.w[:, None] * self.predicted(e, p) ** 2))
 
-    def information(self, cols: np.ndarray, n: int) -> tuple[FloatArray, FloatArray]:
-        """``J^T W J`` and ``J^T W (r_lin + J x_lin)`` at the stored linearisation."""
+    def information(self, cols: np.ndarray, n: int) -> tuple[SparseMatrix, FloatArray]:
+        """``J^T W J`` (sparse) and ``J^T W (r_lin + J x_lin)`` at the stored
+        linearisation."""
         x_lin = np.concatenate([self.e_lin, self.p_lin], axis=1)
         J = np.concatenate([self.Je, self.Jp], axis=2)
         rhs = self.r_lin + np.einsum("kri,ki->kr", J, x_lin)
-        return normal_from_factors(self.Je, self.Jp, rhs, self.w, cols, n)
+        return normal_from_factors_sparse(self.Je, self.Jp, rhs, self.w, cols, n)
 
     def relinearised_at(self, e: FloatArray, p: FloatArray, Je: FloatArray, Jp: FloatArray,
                         r: FloatArray) -> None:
@@ -328,6 +350,7 @@ class Factors:
 
     def __init__(self) -> None:
         self._chunks: list[tuple[np.ndarray, ...]] = []
+        self._dormant: tuple[np.ndarray, ...] | None = None
 
     def add(self, img: np.ndarray, pt: np.ndarray, uv: FloatArray, sigma: FloatArray,
             e_lin: FloatArray, p_lin: FloatArray, cam: FreeCamera,
@@ -355,20 +378,49 @@ class Factors:
                              np.array(Je, dtype=np.float64), np.array(Jp, dtype=np.float64),
                              np.array(r, dtype=np.float64)))
 
-    def in_window(self, w: Window) -> FactorSet | None:
-        """The factors whose image and point are both in the window (others are dropped)."""
+    def in_window(self, w: Window, dormant_images: np.ndarray | None = None,
+                  dormant_points: np.ndarray | None = None) -> FactorSet | None:
+        """The factors whose image and point are both in the window.
+
+        Factors of departed keys that may re-enter the window (``dormant_images``,
+        ``dormant_points``: re-openable, their departure records kept) stay stored, so that
+        a re-opened key's rows are re-linearised with the window's (their information is
+        restored exactly by the re-opening's conditional prior: docs/algorithm.md); every
+        other factor is dropped."""
         if not self._chunks:
             return None
         parts = [np.concatenate(col) for col in zip(*self._chunks, strict=True)]
         img, pt = parts[0], parts[1]
         imgs = np.fromiter((k[1] for k in w.keys if k[0] == "e"), dtype=np.int64)
         pts = np.fromiter((k[1] for k in w.keys if k[0] == "p"), dtype=np.int64)
-        keep = np.isin(img, imgs) & np.isin(pt, pts)
-        parts = [a[keep] for a in parts]
-        self._chunks = [tuple(parts)] if keep.any() else []
+        in_img, in_pt = np.isin(img, imgs), np.isin(pt, pts)
+        keep = in_img & in_pt
+        stay = ~keep
+        if dormant_images is not None and dormant_points is not None:
+            stay &= (in_img | np.isin(img, dormant_images)) & (in_pt | np.isin(pt, dormant_points))
+        else:
+            stay[:] = False
+        self._dormant = tuple(a[stay] for a in parts) if stay.any() else None
+        self._chunks = [tuple(a[keep] for a in parts)] if keep.any() else []
+        if self._dormant is not None:
+            self._chunks.append(self._dormant)
         if not keep.any():
             return None
-        return FactorSet(**dict(zip(self._FIELDS, parts, strict=True)))
+        return FactorSet(**dict(zip(self._FIELDS, (a[keep] for a in parts), strict=True)))
+
+    def forget(self, points: set[int]) -> None:
+        """Drop every factor of ``points`` (taken out of the solution; a later observation
+        starts the point anew)."""
+        if not self._chunks or not points:
+            return
+        parts = [np.concatenate(col) for col in zip(*self._chunks, strict=True)]
+        keep = ~np.isin(parts[1], np.fromiter(points, dtype=np.int64))
+        self._chunks = [tuple(a[keep] for a in parts)] if keep.any() else []
+        self._dormant = None
 
     def replace(self, f: FactorSet) -> None:
+        """``f`` (the window's factors, re-linearised) and the dormant ones of the last
+        :meth:`in_window`."""
         self._chunks = [tuple(getattr(f, name) for name in self._FIELDS)]
+        if self._dormant is not None:
+            self._chunks.append(self._dormant)

@@ -61,8 +61,10 @@ from seqat.camera_window import CameraMixin
 from seqat.departures import Departure, DepartureMixin
 from seqat.errors import EstimationError
 from seqat.geometry import wrap_angle
+from seqat.information import window_matrix
 from seqat.relinearise import FINAL_RELINEARISE_PX, RelinearisationMixin
 from seqat.reports import RecordedRows, ReportMixin
+from seqat.robust import ROBUST_SCALE
 from seqat.rows import (
     Factors,
     RowBuilder,
@@ -137,9 +139,14 @@ class SequentialOptions:
     # paper's update of the inverse normal matrix (Eq. 10-14). docs/algorithm.md, *Engines*.
     engine: str = "information"
     # Robust loss of the image points: least squares within this many sigma, a Cauchy tail
-    # beyond (seqat/robust.py, 3 recommended; the initial Sim uses the same); None: least
-    # squares (the paper's estimator). docs/algorithm.md, *Robust loss*.
-    robust_scale: float | None = None
+    # beyond (seqat/robust.py; the initial Sim uses the same); None: least squares (the
+    # paper's estimator). On by default: one wrong tie point must not move the solution.
+    # docs/algorithm.md, *Robust loss*.
+    robust_scale: float | None = ROBUST_SCALE
+    # finish() re-opens the departed images and GPs (within reopen_max_age) and re-linearises
+    # them with the window: the final values are the nonlinear smoother's (real-time values:
+    # solution(smoothed=False)). Needs smoothing. docs/algorithm.md, *What the window costs*.
+    final_reopen: bool = True
     # Self-calibration (seqat/calibration.py): the camera's free interior parameters are
     # estimated with the EOPs, in the initial Sim and then in the window, which they never
     # leave; None: the camera is fixed. docs/algorithm.md, *Self-calibration*.
@@ -272,6 +279,10 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self.diverged: list[str] = []
         #: Points the data do not determine (singular information), taken out: point ids.
         self.undetermined: list[str] = []
+        # GPs most of whose rays disagreed with them, re-intersected robustly (relinearise)
+        self.rescued: list[str] = []
+        # departed keys re-opened by finish() (their real-time values stay frozen)
+        self._final_reopened: set[Key] = set()
         self._dropped_value: dict[Key, FloatArray] = {}
         self._w.on_singular = self._drop_undetermined
         #: Observations removed by data snooping: (image id, point id, w-test value).
@@ -311,14 +322,18 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             return self._add_sequential(frame)
 
     def finish(self) -> None:
-        """After the last image: re-linearise the window at its estimate (to
-        :data:`FINAL_RELINEARISE_PX`), so the final window values are those of the
-        collinearity equations, not of rows linearised on the way (Seq-F then equals Sim).
-        No-op without ``relinearise_px``; :meth:`solution` itself never changes the state."""
+        """After the last image: re-adjust the window by Gauss-Newton to convergence (steps
+        below 1e-7 m / rad; during the flight re-linearisations stop at 0.01 px), so the
+        final window values are the minimum of the collinearity equations, not of rows
+        linearised on the way (Seq-F then equals Sim). One re-linearisation of the window,
+        once per flight. No-op without ``relinearise_px``; :meth:`solution` itself never
+        changes the state."""
         if self._initial is None:
             with _BLAS.limit(limits=UPDATE_BLAS_THREADS, user_api="blas"):
                 if self.options.relinearise_px is not None:
-                    self._relinearise_if_needed(FINAL_RELINEARISE_PX)
+                    if self.options.smoothing and self.options.final_reopen:
+                        self._reopen_departed()
+                    self._relinearise_if_needed(FINAL_RELINEARISE_PX, force=True)
                 self._hold_undetermined_camera()
 
     def solution(self, *, smoothed: bool | None = None) -> Solution:
@@ -345,8 +360,10 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         sd = np.sqrt(w.q_diagonal()) * scale
         final = self._smoothed_departed() if smoothed else {}
         eops = []
+        # finish() re-opened departed keys: their real-time value is the frozen one
+        realtime = set() if smoothed else self._final_reopened
         for i, iid in enumerate(self._image_ids):
-            if ("e", i) in w.offset:
+            if ("e", i) in w.offset and ("e", i) not in realtime:
                 idx = w.index(("e", i))
                 val, sig = w.x[idx].copy(), sd[idx]
             elif i in self._frozen_eop:
@@ -362,7 +379,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             eops.append(EopEstimate(image_id=iid, eop=val, sigma=sig))
         pts = []
         for p in self._gp_order:
-            if ("p", p) in w.offset:
+            if ("p", p) in w.offset and ("p", p) not in realtime:
                 idx = w.index(("p", p))
                 xyz, sig, nobs = w.x[idx] + origin, sd[idx], self._gp_nobs[p]
             elif p in self._frozen_gp:
@@ -463,7 +480,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             # the initial block's normal matrix itself (not the inverse of its cofactor:
             # inverting that would cost digits and blur the GPs' block-diagonal structure)
             assert res.full_normal is not None  # Covariance.FULL exports it
-            w.L = 0.5 * (res.full_normal + res.full_normal.T)
+            w.L = window_matrix(0.5 * (res.full_normal + res.full_normal.T))
         self._window_images.extend(range(n))
         selected = set(int(j) for j in st.selected)
         self._gp_order = [int(j) for j in st.selected]

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from seqat.errors import EstimationError
-from seqat.information import InformationFactor, RankDeficiency
+from seqat.information import InformationFactor, RankDeficiency, WindowMatrix, submatrix
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 
 #: Parameter key: (kind, index) with kind "e" (EOP of image index), "p" (GP index) or "c"
@@ -102,7 +102,7 @@ class Window:
     """
 
     x: FloatArray = field(default_factory=lambda: np.zeros(0))
-    L: FloatArray | None = None
+    L: WindowMatrix | None = None  # dense when small, else sparse (information.window_matrix)
     keys: list[Key] = field(default_factory=list)
     offset: dict[Key, int] = field(default_factory=dict)
     inverse: bool = False
@@ -185,7 +185,7 @@ class Window:
         keep_keys = [k for k in self.keys if k not in gone]
         keep = self.indices(keep_keys)
         if self.L is not None:
-            self.L = self.L[np.ix_(keep, keep)]
+            self.L = submatrix(self.L, keep, keep)
         if self.inverse:
             self._Q = self.Q[np.ix_(keep, keep)]
         self.x = self.x[keep]

@@ -56,6 +56,9 @@ class RobustnessRecord:
     diverged_images : tuple[str, ...]
         Images whose rows sent the update beyond every prior sigma (gross errors in most of
         their points): carried by their GPS/INS alone, their rays left out.
+    rescued_points : tuple[str, ...]
+        Tie points most of whose rays disagreed with their estimate (one born on a blunder),
+        re-intersected robustly from their rays during a window re-linearisation.
     """
 
     snooping_critical: float | None
@@ -67,6 +70,7 @@ class RobustnessRecord:
     robust_scale: float | None = None
     undetermined_points: tuple[str, ...] = ()
     diverged_images: tuple[str, ...] = ()
+    rescued_points: tuple[str, ...] = ()
 
 
 def robustness_record(estimator: object, options: object, *, bridged: Sequence[str] = (),
@@ -92,7 +96,9 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
                             dropout_bridged=tuple(bridged), dropout_skipped=tuple(skipped),
                             robust_scale=getattr(options, "robust_scale", None),
                             undetermined_points=tuple(getattr(estimator, "undetermined", ())),
-                            diverged_images=tuple(getattr(estimator, "diverged", ())))
+                            diverged_images=tuple(getattr(estimator, "diverged", ())),
+                            rescued_points=tuple(dict.fromkeys(getattr(estimator, "rescued",
+                                                                       ()))))
 
 
 @dataclass(frozen=True, kw_only=True)
