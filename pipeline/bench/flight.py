@@ -3,7 +3,8 @@
 One Seq-R run tracks the images; Sim and Seq-F then replay the *same* tie points
 (``--observations``), so the three estimators are compared on one set of observations; Sim
 and Seq-R once more with the other camera model (fixed if the flight self-calibrates, else
-self-calibrated), for what self-calibration changes (issue 17).
+self-calibrated), for what self-calibration changes (issue 17); the COLMAP reference
+(``seqat reference`` of the Sim run) on the same tie points.
 Reported: tracks (count, lengths), image residuals, σ0, per-image latency (read, detect,
 match, AT) and the differences Seq-R − Sim and Seq-F − Sim of the camera positions and
 attitudes. Written to ``OUT/bench_flight.json`` and ``OUT/latency.png``; the numbers go to
@@ -28,22 +29,24 @@ import numpy as np  # noqa: E402
 from pipeline.bench.common import load_average, machine  # noqa: E402
 from pipeline.bench.report import Machine  # noqa: E402
 from pipeline.common.atomic import atomic_write_text
-from pipeline.common.columns import OBS_COLUMNS
+from pipeline.common.columns import EOP_FILE, OBS_COLUMNS
 from pipeline.common.csvio import read_csv  # noqa: E402
+from pipeline.common.tables import EopTable
 from pipeline.report.model import image_residuals_px  # noqa: E402
 from pipeline.run.runner import Method, run_flight  # noqa: E402
-from pipeline.run.store import read_run, to_jsonable  # noqa: E402
+from pipeline.run.store import read_eop_csv, read_run, to_jsonable  # noqa: E402
 from seqat.geometry import wrap_angle
 from seqat.types import FloatArray  # noqa: E402
 
 
 @dataclass(frozen=True, kw_only=True)
 class Stats:
-    """Median, 95th percentile and maximum of a per-image quantity."""
+    """Median, 95th and 99th percentiles and maximum of a per-image quantity."""
 
     median: float
     p95: float
     max: float
+    p99: float = math.nan
 
     @classmethod
     def of(cls, values: list[float] | FloatArray) -> Stats:
@@ -52,7 +55,7 @@ class Stats:
         if v.size == 0:
             return cls(median=math.nan, p95=math.nan, max=math.nan)
         return cls(median=float(np.median(v)), p95=float(np.percentile(v, 95)),
-                   max=float(v.max()))
+                   p99=float(np.percentile(v, 99)), max=float(v.max()))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -100,6 +103,11 @@ class FlightBench:
     #: Sim and Seq-R again on the same tie points with the camera held fixed (or, when the
     #: runs above kept it fixed, self-calibrated): sigma0, Seq-R - Sim, Seq-R update time.
     other_camera: dict[str, object]
+    #: The COLMAP reference (``seqat reference`` of the Sim run: the same tie points, the
+    #: run's loss): its record's sigma0, loss, iterations and time, or the error it met.
+    colmap: dict[str, object]
+    colmap_minus_sim: Difference | None
+    seq_r_minus_colmap: Difference | None
 
 
 def _difference(a: FloatArray, b: FloatArray) -> Difference:
@@ -109,6 +117,30 @@ def _difference(a: FloatArray, b: FloatArray) -> Difference:
     mx = np.max(np.abs(d), axis=0)
     return Difference(pos_rms_m=tuple(rms[:3]), pos_max_m=tuple(mx[:3]),  # type: ignore[arg-type]
                       att_rms_deg=tuple(rms[3:]), att_max_deg=tuple(mx[3:]))  # type: ignore[arg-type]
+
+
+def _aligned(a: EopTable, b: EopTable) -> tuple[FloatArray, FloatArray]:
+    """The EOPs of the images both tables hold, in ``a``'s order."""
+    index = b.index()
+    rows = [(i, index[iid]) for i, iid in enumerate(a.image_ids) if iid in index]
+    return (a.eop[[i for i, _ in rows]].reshape(-1, 6),
+            b.eop[[j for _, j in rows]].reshape(-1, 6))
+
+
+def _colmap(sim_run: Path) -> tuple[dict[str, object], EopTable | None]:
+    """``seqat reference`` of the Sim run: its record and estimates, or the error."""
+    from pipeline.reference.stage import run_reference
+    from seqat.errors import SeqatError
+
+    try:
+        summary = run_reference(sim_run)
+    except SeqatError as err:
+        return {"error": str(err)}, None
+    rec = summary.record
+    return ({"sigma0": rec.sigma0, "loss": str(rec.options.robust_loss),
+             "loss_scale_sigmas": rec.options.loss_scale_sigmas, "iterations": rec.iterations,
+             "ba_s": rec.ba_s, "converged": rec.converged},
+            read_eop_csv(summary.reference_dir / EOP_FILE))
 
 
 def _tracks(obs_path: Path) -> tuple[Counter[str], int]:
@@ -164,6 +196,7 @@ def run_flight_bench(flight: Path | str, out: Path | str) -> FlightBench:
         run_flight(flight, path, method=m, observations=obs, progress=True,
                    self_calibration=not calibrated)
     o_seq_r, o_sim = read_run(other[Method.SEQ_R]), read_run(other[Method.SIM])
+    colmap, colmap_eop = _colmap(runs[Method.SIM])
     o_at = [float(im["update_ms"]) for im in o_seq_r.record["images"]]  # type: ignore[index]
     other_camera = {
         "self_calibration": not calibrated,
@@ -211,6 +244,11 @@ def run_flight_bench(flight: Path | str, out: Path | str) -> FlightBench:
         nav_minus_sim=_difference(seq_r.nav.eop, sim.eop.eop),
         camera_estimate={r.method: r.record.get("camera_estimate") for r in (seq_r, sim, seq_f)},
         other_camera=other_camera,
+        colmap=colmap,
+        colmap_minus_sim=(None if colmap_eop is None
+                          else _difference(*_aligned(colmap_eop, sim.eop))),
+        seq_r_minus_colmap=(None if colmap_eop is None
+                            else _difference(*_aligned(seq_r.eop, colmap_eop))),
     )
     doc = {"version": 1, **to_jsonable(bench)}  # type: ignore[dict-item]
     atomic_write_text(out / "bench_flight.json",

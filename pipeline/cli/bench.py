@@ -275,9 +275,17 @@ def _flight_bench(flight: Path, out: Path) -> None:
         ("read / detect / match ms (median, p95, max)",
          f"{stats(b.read_ms)}; {stats(b.detect_ms)}; {stats(b.match_ms)}"),
         ("AT ms, latency ms (median, p95, max)", f"{stats(b.at_ms)}; {stats(b.latency_ms)}"),
+        ("AT ms p99", f"{b.at_ms.p99:.0f}"),
         ("Seq-R - Sim rms", diff(b.seq_r_minus_sim)),
         ("Seq-F - Sim rms", diff(b.seq_f_minus_sim)),
         ("nav - Sim rms", diff(b.nav_minus_sim)),
+        ("COLMAP reference (sigma0, loss)",
+         str(b.colmap.get("error")) if "error" in b.colmap else
+         f"{float(b.colmap['sigma0']):.3f}, {b.colmap['loss']}"),  # type: ignore[arg-type]
+        ("COLMAP - Sim rms",
+         "-" if b.colmap_minus_sim is None else diff(b.colmap_minus_sim)),
+        ("Seq-R - COLMAP rms",
+         "-" if b.seq_r_minus_colmap is None else diff(b.seq_r_minus_colmap)),
         *_camera_rows(b),
         ("written", str(out)),
     ]

@@ -230,6 +230,11 @@ def test_flight_bench_compares_methods_on_the_same_tie_points(tmp_path: Path) ->
     assert b.other_camera["self_calibration"] is False
     fixed = b.other_camera["sigma0"]
     assert fixed["sim"] > 0.95 * b.sigma0["sim"]  # type: ignore[index]
+    # the COLMAP reference of the same tie points, with the run's (robust) loss, near Sim
+    assert b.colmap.get("loss") == "huber" and b.colmap.get("converged") is True, b.colmap
+    assert b.colmap_minus_sim is not None and b.seq_r_minus_colmap is not None
+    assert max(b.colmap_minus_sim.pos_rms_m) < 0.5
+    assert doc["at_ms"]["p99"] >= doc["at_ms"]["p95"]
 
 
 def test_run_with_ortho_and_report_writes_the_whole_chain(tmp_path: Path) -> None:
