@@ -15,13 +15,8 @@ from pipeline.common.columns import CHECKPOINT_OBS_FILE, CHECKPOINTS_FILE
 from pipeline.flight.camera import pinhole_camera
 from pipeline.flight.folder import read_truth
 from pipeline.reference.stage import run_reference
-from pipeline.report.model import (
-    ASPRS_MIN_CHECKPOINTS,
-    REPORT_HTML,
-    REPORT_JSON,
-    asprs_table,
-    precision_plateau,
-)
+from pipeline.report.asprs import ASPRS_MIN_CHECKPOINTS, asprs_table
+from pipeline.report.model import REPORT_HTML, REPORT_JSON, precision_plateau
 from pipeline.report.stage import make_report
 from pipeline.run.runner import Method, run_flight
 from pipeline.run.store import read_eop_csv, read_run
@@ -190,7 +185,7 @@ def test_report_shows_the_latency_budget_changes(small_sim_dir: Path, tmp_path: 
                for c in live["threshold_changes"]]
     assert changes == [("img_0011", 0.1, 0.2), ("img_0012", 0.2, 0.4), ("img_0013", 0.4, 0.8)]
     html_text = (out / "report.html").read_text()
-    assert "<h2>Live operation</h2>" in html_text and "0.1 → 0.2" in html_text
+    assert "<h3>Live operation</h3>" in html_text and "0.1 → 0.2" in html_text
 def test_latency_table_adds_the_live_ortho_to_the_end_to_end_time() -> None:
     from pipeline.run.latency import latency_table
 
