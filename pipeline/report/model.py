@@ -585,8 +585,8 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
         against, ref_eop_ids, ref_eop = "reference", ref.eop.image_ids, ref.eop.eop
         assert ref.points is not None
         ref_pt_ids, ref_xyz = ref.points.point_ids, ref.points.xyz_m
-        notes.append("the flight has no truth/: accuracy is measured against the COLMAP "
-                     "reference")
+        notes.append("the flight has no truth/: the orientations are compared with the "
+                     "COLMAP reference (agreement on the same tie points, not accuracy)")
     else:
         notes.append("neither truth/ nor a COLMAP reference: no accuracy figures")
     if against is not None:
