@@ -23,7 +23,7 @@ from typing import Annotated, TypeVar
 
 import typer
 
-from pipeline.cli.common import METRE_FORMAT, console, fmt, guarded, table
+from pipeline.cli.common import METRE_FORMAT, console, fmt, guarded
 from pipeline.cli.run import EstimatorOptionsFile, MethodOption, adjust_flight, parse_method
 from seqat.errors import ConfigError, SeqatError
 
@@ -142,7 +142,10 @@ def process(
                      f"{cp['count']}: RMSE_H {fmt(cp['rmse_h_m'], METRE_FORMAT)} m, "
                      f"RMSE_V {fmt(cp['rmse_v_m'], METRE_FORMAT)} m"))
         rows += [("report", str(f)) for f in rep.files if f.suffix in (".html", ".pdf")]
-    con.print(table(f"seqat process {flight}", _map_rows(out) + rows))
+    # plain lines, never cut: the paths are what the user came for
+    con.print(f"[bold]seqat process {flight}: done[/bold]")
+    for what, where in _map_rows(out) + rows:
+        con.print(f"  {what + ':':<38}{where}", highlight=False, soft_wrap=True, markup=False)
 
 
 def _later_stage(name: str, out: Path, stage: Callable[[], T]) -> T:

@@ -15,7 +15,7 @@ from matplotlib.colors import LightSource, TwoSlopeNorm
 from matplotlib.figure import Figure
 
 from pipeline.report.asprs import CM_PER_M
-from pipeline.report.model import DIRECT, CheckpointReport
+from pipeline.report.model import DIRECT, CheckpointReport, Report, main_checkpoints
 from pipeline.report.thumbnails import Thumbnail
 
 #: Figure resolution for the HTML, dots per inch.
@@ -104,6 +104,17 @@ def residual_map(cp: CheckpointReport | None, cameras_xyz_m: np.ndarray,
     ax.set_title(f"Check point residuals ({cp.method})\narrows: horizontal, drawn "
                  f"{factor:.3g} x; colour: vertical", fontsize=9, loc="left")
     return fig
+
+
+def map_figures(report: Report, extras: Mapping[str, object],
+                thumbnails: tuple[Thumbnail | None, Thumbnail | None]) -> tuple[
+                    Figure, Figure | None]:
+    """The residual map and the mosaic / DSM figure (None without either), drawn once for
+    both the HTML and the PDF."""
+    mosaic, dsm = thumbnails
+    cams, pts = extras["cameras_xyz_m"], extras["points_xyz_m"]
+    return (residual_map(main_checkpoints(report), cams, pts, mosaic),  # type: ignore[arg-type]
+            rasters_figure(mosaic, dsm, cams))  # type: ignore[arg-type]
 
 
 def rasters_figure(mosaic: Thumbnail | None, dsm: Thumbnail | None,

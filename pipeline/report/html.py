@@ -13,16 +13,24 @@ import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from matplotlib.figure import Figure
+
 from pipeline.report.asprs import CM_PER_M, AsprsTable
 from pipeline.report.figures import (
     checkpoint_figure,
     error_figure,
+    map_figures,
     png_tag,
-    rasters_figure,
     realtime_figure,
-    residual_map,
 )
-from pipeline.report.model import DIRECT, REFERENCE, CheckpointReport, LiveOperation, Report
+from pipeline.report.model import (
+    DIRECT,
+    REFERENCE,
+    CheckpointReport,
+    LiveOperation,
+    Report,
+    main_checkpoints,
+)
 from pipeline.report.sfm_section import sfm_section_html
 from pipeline.report.thumbnails import DSM_FILE, MOSAIC_FILE, Thumbnail, read_thumbnail
 from pipeline.run.robustness import robustness_rows
@@ -81,12 +89,6 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[object]],
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
-def _main_checkpoints(report: Report) -> CheckpointReport | None:
-    """The check points of the run in OUT (the first method after ``direct``)."""
-    cps = report.checkpoint_reports
-    return next((c for c in cps if c.method == report.methods[1]), None) if cps else None
-
-
 def asprs_rows(tables: Sequence[tuple[str, AsprsTable]]) -> tuple[list[str], list[list[object]]]:
     """Header and rows of the ASPRS table (metres to the millimetre, classes in cm)."""
     header = ["method", "n", "RMSE_H", "RMSE_V", "RMSE x", "RMSE y", "mean x",
@@ -143,15 +145,12 @@ def _warnings(report: Report) -> list[str]:
     return parts
 
 
-def _map(report: Report, extras: Mapping[str, object], main: CheckpointReport | None,
-         mosaic: Thumbnail | None, dsm: Thumbnail | None) -> list[str]:
-    cams, pts = extras["cameras_xyz_m"], extras["points_xyz_m"]
-    parts = ["<h2>Map</h2>", png_tag(residual_map(main, cams, pts, mosaic),  # type: ignore[arg-type]
-                                     "check point residual map")]
+def _map(mosaic: Thumbnail | None, figures: tuple[Figure, Figure | None]) -> list[str]:
+    parts = ["<h2>Map</h2>", png_tag(figures[0], "check point residual map")]
     if mosaic is not None and not mosaic.same_crs:
         parts.append("<p class='note'>The mosaic is in another CRS than the run (seqat ortho "
                      "--crs): drawn beside, not under, the check points.</p>")
-    rasters = rasters_figure(mosaic, dsm, cams)  # type: ignore[arg-type]
+    rasters = figures[1]
     if rasters is not None:
         parts.append(png_tag(rasters, "mosaic and DSM"))
     else:
@@ -323,10 +322,15 @@ def report_thumbnails(report: Report, extras: Mapping[str, object]) -> tuple[
 
 
 def render_html(report: Report, extras: Mapping[str, object],
-                thumbnails: tuple[Thumbnail | None, Thumbnail | None] | None = None) -> str:
-    """The self-contained ``report.html``."""
-    mosaic, dsm = thumbnails if thumbnails is not None else report_thumbnails(report, extras)
-    main = _main_checkpoints(report)
+                thumbnails: tuple[Thumbnail | None, Thumbnail | None] | None = None,
+                figures: tuple[Figure, Figure | None] | None = None) -> str:
+    """The self-contained ``report.html`` (``thumbnails`` and the map ``figures`` are made
+    here unless given)."""
+    if thumbnails is None:
+        thumbnails = report_thumbnails(report, extras)
+    if figures is None:
+        figures = map_figures(report, extras, thumbnails)
+    main = main_checkpoints(report)
     name, sub = title_text(report)
     parts = ["<!doctype html><html><head><meta charset='utf-8'>"
              "<meta name='viewport' content='width=device-width, initial-scale=1'>"
@@ -335,7 +339,7 @@ def render_html(report: Report, extras: Mapping[str, object],
              f"<p class='sub'>{html.escape(sub)}</p>"]
     parts += _verdict(report, main)
     parts += _warnings(report)
-    parts += _map(report, extras, main, mosaic, dsm)
+    parts += _map(thumbnails[0], figures)
     parts += _checkpoints(report, main)
     parts += _accuracy(report, extras)
     parts.append("<h2>Flight</h2>")

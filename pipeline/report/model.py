@@ -649,6 +649,11 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
     return report, extras
 
 
+def main_checkpoints(report: Report) -> CheckpointReport | None:
+    """The check points of the run in OUT (the first method after ``direct``), or None."""
+    return next((c for c in report.checkpoint_reports if c.method == report.methods[1]), None)
+
+
 def format_report_json(report: Report) -> str:
     """Text of ``report.json`` (strict JSON, non-finite numbers as ``null``)."""
     return json.dumps(to_jsonable(report), indent=JSON_INDENT, allow_nan=False) + "\n"

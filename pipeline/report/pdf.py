@@ -9,21 +9,19 @@ from __future__ import annotations
 
 import io
 import textwrap
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 
 from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
 from pipeline.report.asprs import CM_PER_M
-from pipeline.report.figures import rasters_figure, residual_map
 from pipeline.report.html import (
     asprs_rows,
     flight_rows,
     residual_rows,
     title_text,
 )
-from pipeline.report.model import CheckpointReport, Report
-from pipeline.report.thumbnails import Thumbnail
+from pipeline.report.model import CheckpointReport, Report, main_checkpoints
 
 #: A4 portrait, inches.
 PAGE_SIZE = (8.27, 11.69)
@@ -119,18 +117,13 @@ def _first_page(report: Report, main: CheckpointReport | None) -> Figure:
     return fig
 
 
-def render_pdf(report: Report, extras: Mapping[str, object],
-               thumbnails: tuple[Thumbnail | None, Thumbnail | None]) -> bytes:
-    """The bytes of ``report.pdf``."""
-    mosaic, dsm = thumbnails
+def render_pdf(report: Report, figures: tuple[Figure, Figure | None]) -> bytes:
+    """The bytes of ``report.pdf``; ``figures``: :func:`pipeline.report.figures.map_figures`."""
     cps = report.checkpoint_reports
-    main = next((c for c in cps if c.method == report.methods[1]), None) if cps else None
-    pages: list[Figure] = [_first_page(report, main)]
-    cams, pts = extras["cameras_xyz_m"], extras["points_xyz_m"]
-    pages.append(residual_map(main, cams, pts, mosaic))  # type: ignore[arg-type]
-    rasters = rasters_figure(mosaic, dsm, cams)  # type: ignore[arg-type]
-    if rasters is not None:
-        pages.append(rasters)
+    main = main_checkpoints(report)
+    pages: list[Figure] = [_first_page(report, main), figures[0]]
+    if figures[1] is not None:
+        pages.append(figures[1])
     if main is not None and main.table.count:
         header, rows = asprs_rows([(c.method, c.table) for c in cps])
         pages.append(_table_page(

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.common.atomic import write_files_atomically
+from pipeline.report.figures import map_figures
 from pipeline.report.html import render_html, report_thumbnails
 from pipeline.report.model import (
     REPORT_HTML,
@@ -47,9 +48,10 @@ def make_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> Repo
     """
     report, extras = build_report(out_dir, compare)
     thumbnails = report_thumbnails(report, extras)
+    figures = map_figures(report, extras, thumbnails)
     files = write_files_atomically(out_dir, {
         REPORT_JSON: format_report_json(report),
-        REPORT_HTML: render_html(report, extras, thumbnails),
-        REPORT_PDF: render_pdf(report, extras, thumbnails),
+        REPORT_HTML: render_html(report, extras, thumbnails, figures),
+        REPORT_PDF: render_pdf(report, figures),
     })
     return ReportSummary(files=files, report=report)
