@@ -71,8 +71,8 @@ def plan_process(flight: Path, *, ortho: bool | None, dsm: Path | None,
     lidar = flight_lidar(flight)
     if ortho is None:
         ortho = dsm is not None or bool(lidar)
-        why = ("--dsm" if dsm is not None else "the flight's lidar" if lidar else
-               "no DSM or lidar for this flight (--dsm D or --ortho to make one anyway)")
+        why = ("surface: --dsm" if dsm is not None else "surface: the flight's lidar" if lidar
+               else "no ortho: no DSM or lidar known; --dsm D or --ortho")
     else:
         why = "--ortho" if ortho else "--no-ortho"
     if report and flight.is_dir():
@@ -118,7 +118,7 @@ def process(
     def rule(text: str) -> None:
         con.rule(f"[bold]seqat process {next(step)}/{len(stages)}: {text}", align="left")
 
-    rule(f"{stages[0]} (ortho: {plan.ortho_why})")
+    rule(f"{stages[0]} ({plan.ortho_why})")
     summary = adjust_flight(flight, out, method=method, options=options, progress=progress,
                             ortho=plan.ortho, dsm=dsm, ortho_options=ortho_options,
                             self_calibration=self_calibration)

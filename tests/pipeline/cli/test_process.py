@@ -31,7 +31,7 @@ def test_process_runs_every_stage(processed: tuple[Path, str]) -> None:
     for name in ("eop.csv", "run.json", "dsm.tif", "mosaic.tif", "cameras.gpkg", "ortho.json",
                  "reference/reference.json", "report.json", "report.html", "report.pdf"):
         assert (out / name).is_file(), name
-    assert "1/3: run + live ortho (ortho: the flight's lidar)" in stdout
+    assert "1/3: run + live ortho (surface: the flight's lidar)" in stdout
     assert "2/3: COLMAP reference" in stdout and "3/3: report" in stdout
     for name in ("mosaic.tif", "cameras.gpkg", "report.html", "report.pdf"):
         assert str(out / name) in stdout, name
