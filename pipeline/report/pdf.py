@@ -31,7 +31,7 @@ MARGIN = 0.07
 LINE = 0.0175
 WRAP_CHARS = 100
 #: Warnings printed on page 1 (the rest: report.html).
-PDF_WARNINGS = 14
+PDF_WARNINGS = 8
 #: Residual rows per table page.
 ROWS_PER_PAGE = 48
 
@@ -46,6 +46,8 @@ class _Writer:
              indent: float = 0.0, gap: float = 0.3, chars: int = WRAP_CHARS) -> None:
         scale = size / 9
         for line in textwrap.wrap(s, width=int(chars / scale)) or [""]:
+            if self.y < MARGIN:  # the page is full: report.html has the rest
+                return
             self.fig.text(MARGIN + indent, self.y, line, fontsize=size, weight=weight,
                           color=color, va="top")
             self.y -= LINE * scale

@@ -1,9 +1,10 @@
 """Every warning of every stage of a run folder, in one list (the report shows it near the top).
 
 Sources (docs/formats.md): ``run.json`` ``warnings`` and ``skipped``, ``ortho.json``
-``warnings`` and ``skipped``, ``reference/reference.json`` (not converged, observations left
-out), ``reference/sfm/sfm.json`` (images not registered, its note), check points that could
-not be intersected, and the report's own notes (what is missing).
+``warnings`` and ``skipped``, ``reference/reference.json`` (not converged; the observations it
+leaves out are rays without a second one, no warning), ``reference/sfm/sfm.json`` (images not
+registered, its note), check points that could not be intersected, and the report's own notes
+(what is missing).
 """
 
 from __future__ import annotations
@@ -70,11 +71,6 @@ def collect_warnings(run_record: Mapping[str, object], ortho: Mapping[str, objec
             found.append(StageWarning(stage="reference", message=(
                 f"COLMAP bundle adjustment did not converge ({reference.get('termination')}, "
                 f"{reference.get('iterations')} iterations)")))
-        left_out = reference.get("n_observations_left_out")
-        if isinstance(left_out, int) and left_out > 0:
-            found.append(StageWarning(stage="reference", message=(
-                f"{left_out} observation(s) left out of the COLMAP reference (images or "
-                "points the run did not estimate)")))
     if sfm is not None:
         unregistered = _strings(sfm.get("unregistered"))
         if unregistered:
