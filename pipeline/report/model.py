@@ -318,14 +318,15 @@ ABSOLUTE_TIME_S = 1e8
 
 def report_title(run: RunFolder) -> ReportTitle:
     """The flight's name, date and method (:class:`ReportTitle`)."""
-    name = Path(run.record.get("flight") or run.flight_dir).name  # type: ignore[arg-type]
+    folder = Path(str(run.record.get("flight") or run.flight_dir))
+    name = folder.name or folder.resolve().name  # "." names the folder it stands for
     t0 = float(run.nav.times_s[0]) if len(run.nav) else float("nan")
     if math.isfinite(t0) and t0 > ABSOLUTE_TIME_S:
         when, kind = datetime.datetime.fromtimestamp(t0, tz=datetime.UTC), "flown"
     else:
         mtime = (run.path / "run.json").stat().st_mtime
         when, kind = datetime.datetime.fromtimestamp(mtime, tz=datetime.UTC), "processed"
-    return ReportTitle(flight_name=name or str(run.flight_dir), date=when.date().isoformat(),
+    return ReportTitle(flight_name=name or str(folder), date=when.date().isoformat(),
                        date_kind=kind, method=run.method)
 
 
