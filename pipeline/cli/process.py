@@ -92,6 +92,9 @@ def process(
         "--self-calibration/--fixed-camera", help="As seqat run (default: flight.yaml "
         "self_calibration:, on for a camera from EXIF).", show_default=False)] = None,
     options: EstimatorOptionsFile = None,
+    observations: Annotated[Path | None, typer.Option(
+        "--observations", help="As seqat run: image points instead of the flight's own or of "
+        "tracking (e.g. OUT/observations.csv of an earlier run).")] = None,
     ortho: Annotated[bool | None, typer.Option(
         "--ortho/--no-ortho", help="Live ortho, mosaic.tif and cameras.gpkg (default: when "
         "--dsm is given or the flight has lidar:).", show_default=False)] = None,
@@ -120,8 +123,8 @@ def process(
 
     rule(f"{stages[0]} ({plan.ortho_why})")
     summary = adjust_flight(flight, out, method=method, options=options, progress=progress,
-                            ortho=plan.ortho, dsm=dsm, ortho_options=ortho_options,
-                            self_calibration=self_calibration)
+                            observations=observations, ortho=plan.ortho, dsm=dsm,
+                            ortho_options=ortho_options, self_calibration=self_calibration)
     out = summary.out_dir
     rows: list[tuple[str, str]] = []
     if plan.reference:

@@ -101,8 +101,8 @@ def residual_map(cp: CheckpointReport | None, cameras_xyz_m: np.ndarray,
     pad = 0.08 * span
     ax.set_xlim(xs.min() - pad, xs.max() + pad)
     ax.set_ylim(ys.min() - pad, ys.max() + pad)
-    ax.set_title(f"Check point residuals ({cp.method})\narrows: horizontal, drawn "
-                 f"{factor:.3g} x; colour: vertical", fontsize=9, loc="left")
+    ax.set_title(f"Check point residuals ({cp.method})\narrows: horizontal residual, "
+                 f"×{factor:.3g}; colour: vertical residual", fontsize=9, loc="left")
     return fig
 
 

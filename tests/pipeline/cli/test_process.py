@@ -17,11 +17,14 @@ from ..sample_runs import AUTZEN, STRIP
 
 
 @pytest.fixture(scope="module")
-def processed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
-    """``seqat process`` of the rendered Autzen sample (lidar and check points)."""
+def processed(tmp_path_factory: pytest.TempPathFactory, autzen_run: Path) -> tuple[Path, str]:
+    """``seqat process`` of the rendered Autzen sample (lidar and check points), with the tie
+    points the session's ``seqat run`` of it tracked (``--observations``: the suite tracks
+    those images once)."""
     out = tmp_path_factory.mktemp("process") / "out"
     result = CliRunner().invoke(app, ["process", str(AUTZEN), "--out", str(out),
-                                      "--no-progress"], terminal_width=200)
+                                      "--observations", str(autzen_run / "observations.csv"),
+                                      "--no-progress"])
     assert result.exit_code == 0, result.output
     return out, result.stdout
 
