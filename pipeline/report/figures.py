@@ -92,7 +92,7 @@ def residual_map(cp: CheckpointReport | None, cameras_xyz_m: np.ndarray,
     sc = ax.scatter(x, y, c=d[:, 2] * CM_PER_M, cmap="RdBu_r", norm=norm, s=40,
                     edgecolors="black", linewidths=0.5, zorder=4)
     key = key_length_m(longest)
-    ax.quiverkey(q, 0.72, 1.035, key, f"{key * CM_PER_M:g} cm horizontal", labelpos="E",
+    ax.quiverkey(q, 0.78, 1.035, key, f"{key * CM_PER_M:g} cm horizontal", labelpos="E",
                  coordinates="axes", fontproperties={"size": 8})
     for p in r[:MAP_LABELS]:  # residuals are sorted largest first
         ax.annotate(p.point, (p.x_m, p.y_m), xytext=(4, 4), textcoords="offset points",
@@ -102,7 +102,7 @@ def residual_map(cp: CheckpointReport | None, cameras_xyz_m: np.ndarray,
     ax.set_xlim(xs.min() - pad, xs.max() + pad)
     ax.set_ylim(ys.min() - pad, ys.max() + pad)
     ax.set_title(f"Check point residuals ({cp.method})\narrows: horizontal residual, "
-                 f"×{factor:.3g}; colour: vertical residual", fontsize=9, loc="left")
+                 f"×{factor:.3g}; colour: vertical", fontsize=9, loc="left")
     return fig
 
 
