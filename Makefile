@@ -1,4 +1,5 @@
-# seqat: `make demo` (a real 18-image flight and a simulated strip), `make test`, `make bench`.
+# seqat: `make demo` (`seqat process` on the rendered Autzen flight and the real 18-image Seneca
+# flight), `make test`, `make bench`.
 # The virtual environment lives in .venv; the install is redone only when pyproject.toml changes.
 
 PYTHON ?= python3
@@ -29,17 +30,16 @@ sysdeps:
 	fi
 
 demo: $(STAMP) sysdeps
-	$(BIN)/seqat run sample_data/seneca_mini --out $(DEMO)/seneca --method seq-r
-	$(BIN)/seqat reference $(DEMO)/seneca
-	$(BIN)/seqat report $(DEMO)/seneca
-	$(BIN)/seqat simulate configs/demo_sim.yaml --out $(DEMO)/flight --seed 1
-	$(BIN)/seqat run $(DEMO)/flight --out $(DEMO)/run --method seq-r
+	$(BIN)/seqat process sample_data/autzen_rendered --out $(DEMO)/autzen
+	$(BIN)/seqat process sample_data/seneca_mini --out $(DEMO)/seneca
 	@echo
-	@echo "Real flight (18 Seneca images, nav and camera from EXIF/XMP):"
-	@echo "  Seq-R results:      $(DEMO)/seneca (eop.csv, points.csv, observations.csv, run.json)"
-	@echo "  COLMAP reference:   $(DEMO)/seneca/reference"
-	@echo "  report:             $(DEMO)/seneca/report.html"
-	@echo "Simulated strip:      $(DEMO)/flight, Seq-R results against truth in $(DEMO)/run"
+	@echo "Rendered Autzen flight (12 images, LiDAR, 36 check points): run + live ortho, COLMAP"
+	@echo "reference, report:"
+	@echo "  map:     $(DEMO)/autzen/mosaic.tif, $(DEMO)/autzen/cameras.gpkg, $(DEMO)/autzen/dsm.tif"
+	@echo "  report:  $(DEMO)/autzen/report.html (and report.pdf)"
+	@echo "Real Seneca flight (18 images, nav and camera from EXIF/XMP; no LiDAR, no check points):"
+	@echo "  results: $(DEMO)/seneca (eop.csv, points.csv, run.json; reference/)"
+	@echo "  report:  $(DEMO)/seneca/report.html (and report.pdf)"
 
 test: $(STAMP) sysdeps
 	$(BIN)/python -m pytest -q

@@ -14,7 +14,7 @@ from typing import Annotated
 
 import typer
 
-from pipeline.cli import bench, ortho, reference, report, run, simulate
+from pipeline.cli import bench, ortho, process, reference, report, run, simulate
 from pipeline.cli.common import OPTIONS
 
 app = typer.Typer(
@@ -35,5 +35,5 @@ def _main(
     OPTIONS.debug = debug
 
 
-for _sub in (simulate, run, bench, reference, report, ortho):
+for _sub in (simulate, run, process, bench, reference, report, ortho):
     app.add_typer(_sub.app)

@@ -27,7 +27,8 @@ def report(
     rep = summary.report
     rows = [("methods", ", ".join(rep.methods))]
     for acc in rep.accuracy.values():
-        rows.append((f"{acc.method}: position H / 3D RMSE (m) vs {acc.against}",
+        what = "agreement with the reference" if acc.against == "reference" else "vs truth"
+        rows.append((f"{acc.method}: position H / 3D RMS (m), {what}",
                      f"{fmt(acc.pos_rmse_h_m, METRE_FORMAT)} / "
                      f"{fmt(acc.pos_rmse_3d_m, METRE_FORMAT)}"))
     cp = rep.checkpoints

@@ -11,7 +11,7 @@ import typer
 from pipeline.cli.common import console, guarded, run_rows, table
 
 if TYPE_CHECKING:
-    from pipeline.run.runner import Method
+    from pipeline.run.runner import Method, RunSummary
 
 
 app = typer.Typer()
@@ -67,6 +67,39 @@ def run(
 ) -> None:
     """Adjust a flight folder and write eop.csv, points.csv, run.json, nav.csv and
     observations.csv."""
+    summary = adjust_flight(flight, out, method=method, final_only=final_only,
+                            threshold=threshold, initial_images=initial_images,
+                            options=options, progress=progress, observations=observations,
+                            ortho=ortho, dsm=dsm, ortho_options=ortho_options, resume=resume,
+                            budget_ms=budget_ms, self_calibration=self_calibration)
+    if report:
+        from pipeline.report.stage import make_report
+
+        r = make_report(summary.out_dir)
+        console().print("report: " + ", ".join(str(f) for f in r.files))
+
+
+def adjust_flight(flight: Path, out: Path, *, method: str = "seq-r", final_only: bool = False,
+                  threshold: float | None = None, initial_images: int | None = None,
+                  options: Path | None = None, progress: bool = True,
+                  observations: Path | None = None, ortho: bool = False,
+                  dsm: Path | None = None, ortho_options: Path | None = None,
+                  resume: bool = False, budget_ms: float | None = None,
+                  self_calibration: bool | None = None) -> RunSummary:
+    """What ``seqat run`` does and prints (``seqat process`` runs it as its first stage).
+
+    With ``ortho``, OUT is claimed before the live ortho grids a DSM into it, and released
+    again when the run fails before publishing anything.
+
+    Returns
+    -------
+    RunSummary
+
+    Raises
+    ------
+    ConfigError, InputDataError
+        Bad options or input (nothing is written).
+    """
     from pipeline.run.runner import run_flight
     from seqat.errors import ConfigError
 
@@ -83,8 +116,9 @@ def run(
     try:
         if ortho:
             live = open_live_ortho(flight, out, dsm_path=dsm, options_path=ortho_options)
+        how = parse_method(method)
         with live if live is not None else contextlib.nullcontext():
-            summary = run_flight(flight, out, method=_method(method), final_only=final_only,
+            summary = run_flight(flight, out, method=how, final_only=final_only,
                                  options_path=options, threshold=threshold,
                                  initial_images=initial_images, progress=progress,
                                  observations=observations, resume=resume,
@@ -105,14 +139,10 @@ def run(
             f"surface: {o.dsm_source}); ortho ms median {o.compute_ms.median_ms:.0f}, "
             f"image to mosaic latency ms median / max {o.live.latency_ms.median_ms:.0f} / "
             f"{o.live.latency_ms.max_ms:.0f}")
-    if report:
-        from pipeline.report.stage import make_report
-
-        r = make_report(summary.out_dir)
-        console().print("report: " + ", ".join(str(f) for f in r.files))
+    return summary
 
 
-def _method(method: str) -> Method:
+def parse_method(method: str) -> Method:
     from pipeline.run.runner import Method
     from seqat.errors import ConfigError
 
@@ -149,7 +179,7 @@ def watch(
     Ctrl-C or --idle-timeout-s stops and publishes the results (as seqat run)."""
     from pipeline.run.watch import WatchOptions, watch_flight
 
-    summary = watch_flight(flight, out, method=_method(method), options_path=options,
+    summary = watch_flight(flight, out, method=parse_method(method), options_path=options,
                            threshold=threshold, initial_images=initial_images,
                            budget_ms=budget_ms, resume=resume,
                            watch=WatchOptions(idle_timeout_s=idle_timeout_s,

@@ -223,8 +223,9 @@ def camera_warnings(camera_approximate: bool) -> tuple[str, ...]:
             if camera_approximate else ())
 
 
-def _flight_lidar(flight_dir: Path) -> tuple[Path, ...]:
-    """The flight's ``lidar:`` files (none when the flight folder is gone or has none)."""
+def flight_lidar(flight_dir: Path) -> tuple[Path, ...]:
+    """The flight's ``lidar:`` files (none when the flight folder is gone or has none; what
+    ``seqat run --ortho`` grids into OUT/dsm.tif, and what makes ``seqat process`` ortho)."""
     yaml_path = flight_dir / "flight.yaml"
     if not yaml_path.is_file():
         if exists_as_anything(yaml_path):
@@ -245,7 +246,7 @@ def find_dsm(run_dir: Path, crs: pyproj.CRS, dsm_path: Path | None,
         return read_dsm(dsm_path, crs), ()
     if (run_dir / DSM_FILE).is_file():
         return read_dsm(run_dir / DSM_FILE, crs), ()
-    lidar = _flight_lidar(flight_dir)
+    lidar = flight_lidar(flight_dir)
     if lidar and all(p.suffix.lower() in GEOTIFF_SUFFIXES for p in lidar):
         return read_dsm(lidar[0], crs), ()
     if lidar:

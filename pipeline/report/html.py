@@ -1,43 +1,70 @@
-"""Rendering of the flight report: matplotlib figures embedded as base64 PNG in one HTML file.
+"""Rendering of the flight report as one self-contained HTML file (CSS inline, figures as
+base64 PNG), laid out for a surveyor: the verdict first, then the warnings, the map, the check
+points, accuracy or agreement, the flight, and the estimator's internals in an appendix.
 
-The numbers come from :func:`pipeline.report.model.build_report`; nothing here computes accuracy.
+The numbers come from :func:`pipeline.report.model.build_report`; nothing here computes
+accuracy. Layout: docs/formats.md, *Report*; a screenshot: docs/figures/report_1024.png.
 """
 
 from __future__ import annotations
 
-import base64
 import html
-import io
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-import numpy as np
+from matplotlib.figure import Figure
 
-from pipeline.report.model import DIRECT, REFERENCE, CheckpointReport, LiveOperation, Report
+from pipeline.report.asprs import CM_PER_M, AsprsTable
+from pipeline.report.figures import (
+    checkpoint_figure,
+    error_figure,
+    map_figures,
+    png_tag,
+    realtime_figure,
+)
+from pipeline.report.model import (
+    DIRECT,
+    REFERENCE,
+    CheckpointReport,
+    LiveOperation,
+    Report,
+    main_checkpoints,
+)
 from pipeline.report.sfm_section import sfm_section_html
+from pipeline.report.thumbnails import DSM_FILE, MOSAIC_FILE, Thumbnail, read_thumbnail
 from pipeline.run.robustness import robustness_rows
 
-if TYPE_CHECKING:
-    from matplotlib.figure import Figure
+#: Warnings listed before the rest fold away.
+WARNINGS_SHOWN = 8
 
-#: Figure resolution, dots per inch.
-FIGURE_DPI = 90
-#: Figure size, inches.
-FIGURE_SIZE = (9.0, 3.2)
-RT_FIGURE_SIZE = (9.0, 6.0)
-
+# Tables scroll sideways inside the page (display:block) instead of widening it; text cells
+# wrap, number cells do not.
 _CSS = """
-body{font-family:system-ui,sans-serif;max-width:60rem;margin:2rem auto;color:#222;padding:0 1rem}
-h1{font-size:1.5rem}h2{font-size:1.2rem;margin-top:2rem;border-bottom:1px solid #ccc}
-table{border-collapse:collapse;margin:.5rem 0}td,th{border:1px solid #ccc;padding:.2rem .5rem;
-text-align:right}th{background:#f4f4f4}td:first-child,th:first-child{text-align:left}
-.warn{color:#a40}.note{color:#555}img{max-width:100%}
+body{font-family:system-ui,sans-serif;max-width:62rem;margin:1.5rem auto;color:#222;
+padding:0 1rem;line-height:1.4}
+h1{font-size:1.6rem;margin-bottom:.2rem}.sub{color:#555;margin-top:0}
+h2{font-size:1.2rem;margin-top:2rem;border-bottom:1px solid #ccc}h3{font-size:1rem}
+table{border-collapse:collapse;margin:.5rem 0;display:block;overflow-x:auto;max-width:100%;
+font-size:.9rem}
+td,th{border:1px solid #ccc;padding:.2rem .45rem;text-align:right;white-space:nowrap}
+th{background:#f4f4f4}td:first-child,th:first-child{text-align:left}
+td.text{text-align:left;white-space:normal;min-width:12rem}
+.verdict{border:2px solid #2a7a45;background:#f1f9f3;padding:.3rem 1rem .6rem;
+border-radius:6px}.verdict.caveat{border-color:#b07a00;background:#fdf7e8}
+.verdict h2{border:none;margin-top:.6rem}.verdict p{margin:.35rem 0}
+.verdict p.lead{font-size:1.1rem;font-weight:600}
+ul.warnings{padding-left:0;list-style:none}
+ul.warnings li{display:flex;gap:.6rem;margin:.2rem 0;overflow-wrap:anywhere}
+.stage{flex:0 0 6.5rem;color:#a40;font-weight:600}.msg{flex:1 1 auto;min-width:0}
+.warn{color:#a40}.note{color:#555}img{max-width:100%;height:auto}
+details summary{cursor:pointer;color:#345}
+.appendix{margin-top:3rem;border-top:3px double #ccc}
 """
 
 
-def _fmt(value: object, digits: int = 3) -> str:
+def _num(value: object, digits: int = 3) -> str:
+    """A number with ``digits`` decimals, ``–`` when unknown; anything else as text."""
     if value is None:
         return "–"
     if isinstance(value, float):
@@ -45,89 +72,217 @@ def _fmt(value: object, digits: int = 3) -> str:
     return html.escape(str(value))
 
 
-def _table(header: Sequence[str], rows: Sequence[Sequence[object]], digits: int = 3) -> str:
+def class_cm(value: float | None) -> str:
+    """An ASPRS class as a surveyor writes it: ``7.5 cm`` (``–`` when none)."""
+    return "–" if value is None else f"{value:g} cm"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[object]],
+           digits: int | Sequence[int] = 3, text_columns: Sequence[int] = ()) -> str:
+    """An HTML table; ``digits``: decimals of every number, or one per column."""
     head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
-    body = "".join("<tr>" + "".join(f"<td>{_fmt(v, digits)}</td>" for v in row) + "</tr>"
-                   for row in rows)
+    per = [digits] * len(header) if isinstance(digits, int) else list(digits)
+    body = "".join(
+        "<tr>" + "".join(f"<td class='text'>{_num(v, per[k])}</td>" if k in text_columns
+                         else f"<td>{_num(v, per[k])}</td>" for k, v in enumerate(row))
+        + "</tr>" for row in rows)
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
-def _png(fig: Figure) -> str:
-    import matplotlib.pyplot as plt
-
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=FIGURE_DPI, bbox_inches="tight")
-    plt.close(fig)
-    data = base64.b64encode(buffer.getvalue()).decode("ascii")
-    return f'<img alt="figure" src="data:image/png;base64,{data}">'
-
-
-def _error_figure(errors: Mapping[str, tuple[np.ndarray, np.ndarray]], against: str) -> str:
-    import matplotlib.pyplot as plt
-
-    fig, (ax_p, ax_a) = plt.subplots(1, 2, figsize=FIGURE_SIZE)
-    for label, (pos, att) in errors.items():
-        style = ":" if label == DIRECT else "-"
-        ax_p.plot(pos, style, lw=1, label=label)
-        ax_a.plot(att, style, lw=1, label=label)
-    ax_p.set(xlabel="image", ylabel="position error (m)", yscale="log",
-             title=f"3D position error vs {against}")
-    ax_a.set(xlabel="image", ylabel="max |angle error| (deg)", yscale="log",
-             title=f"attitude error vs {against}")
-    ax_p.legend(fontsize=8)
-    fig.tight_layout()
-    return _png(fig)
+def asprs_rows(tables: Sequence[tuple[str, AsprsTable]]) -> tuple[list[str], list[list[object]]]:
+    """Header and rows of the ASPRS table (metres to the millimetre, classes in cm)."""
+    header = ["method", "n", "RMSE_H", "RMSE_V", "RMSE x", "RMSE y", "mean x",
+              "mean y", "mean z", "σ x", "σ y", "σ z", "H class", "V class"]
+    rows = [[label, t.count, t.rmse_h_m, t.rmse_v_m, t.rmse_x_m, t.rmse_y_m, t.mean_x_m,
+             t.mean_y_m, t.mean_z_m, t.std_x_m, t.std_y_m, t.std_z_m,
+             class_cm(t.horizontal_class_cm), class_cm(t.vertical_class_cm)]
+            for label, t in tables]
+    return header, rows
 
 
-def _realtime_figure(series: Mapping[str, list[Mapping[str, object]]],
-                     plateaus: Mapping[str, int | None]) -> str:
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, 2, figsize=RT_FIGURE_SIZE)
-    (ax_t, ax_w), (ax_i, ax_s) = axes
-    for label, images in series.items():
-        ms = [im.get("update_ms") for im in images]
-        ax_t.plot(np.asarray(ms, dtype=float), lw=1, label=label)
-        ax_w.plot([im.get("window_images") for im in images], lw=1, label=label)
-        inv = np.array([im.get("inverse_sizes", [0, 0]) for im in images], dtype=float)
-        ax_i.plot(inv[:, 0], lw=1, label=f"{label}: I + P2 A21 N11^-1 A21^T")
-        ax_i.plot(inv[:, 1], "--", lw=1, label=f"{label}: M22 + L22")
-        g = [float(np.sqrt(np.mean(np.square(im["rms_gp_sigma_m"]))))  # type: ignore[arg-type]
-             if None not in im["rms_gp_sigma_m"] else np.nan for im in images]  # type: ignore[operator]
-        ax_s.plot(g, lw=1, label=f"{label}: rms GP sigma (m)")
-        plateau = plateaus.get(label)
-        if plateau is not None:
-            ax_s.axvline(plateau, color="gray", ls=":", lw=1)
-    ax_t.set(ylabel="update time (ms)", yscale="log")
-    ax_w.set(ylabel="window (images)")
-    ax_i.set(xlabel="image", ylabel="order of inverted matrix")
-    ax_s.set(xlabel="image", ylabel="rms GP sigma (m)", yscale="log",
-             title="dotted: precision plateau")
-    ax_t.legend(fontsize=8)
-    ax_i.legend(fontsize=7)
-    fig.tight_layout()
-    return _png(fig)
+def residual_rows(cp: CheckpointReport) -> tuple[list[str], list[list[object]]]:
+    """Header and rows of the residual table, largest first (the model's order)."""
+    header = ["point", "images", "dx (m)", "dy (m)", "dz (m)", "horizontal (m)", "3D (m)"]
+    rows = [[r.point, r.n_images, r.dx_m, r.dy_m, r.dz_m, math.hypot(r.dx_m, r.dy_m),
+             math.sqrt(r.dx_m**2 + r.dy_m**2 + r.dz_m**2)] for r in cp.residuals]
+    return header, rows
 
 
-def _checkpoint_figure(cp: CheckpointReport) -> str:
-    import matplotlib.pyplot as plt
+def _verdict(report: Report, main: CheckpointReport | None) -> list[str]:
+    n = 0 if main is None else main.table.count
+    caveat = n == 0 or (main is not None and main.table.warning is not None)
+    lines = report.verdict
+    parts = [f"<div class='verdict{' caveat' if caveat else ''}'><h2>Verdict</h2>",
+             f"<p class='lead'>{html.escape(lines[0])}</p>"]
+    parts += [f"<p>{html.escape(line)}</p>" for line in lines[1:]]
+    if main is not None and n:
+        t = main.table
+        parts.append(_table(["", "x", "y", "z"], [
+            ("mean (bias), cm", t.mean_x_m * CM_PER_M, t.mean_y_m * CM_PER_M,
+             t.mean_z_m * CM_PER_M),
+            ("σ, cm", t.std_x_m * CM_PER_M, t.std_y_m * CM_PER_M, t.std_z_m * CM_PER_M),
+            ("RMSE, cm", t.rmse_x_m * CM_PER_M, t.rmse_y_m * CM_PER_M, t.rmse_z_m * CM_PER_M),
+        ], digits=1))
+    parts.append("</div>")
+    return parts
 
-    fig, (ax_h, ax_v) = plt.subplots(1, 2, figsize=FIGURE_SIZE)
-    d = np.array([[r.dx_m, r.dy_m, r.dz_m] for r in cp.residuals]).reshape(-1, 3)
-    ax_h.scatter(d[:, 0], d[:, 1], s=12)
-    ax_h.axhline(0, color="gray", lw=0.5)
-    ax_h.axvline(0, color="gray", lw=0.5)
-    ax_h.set(xlabel="dx (m)", ylabel="dy (m)", title=f"check point residuals ({cp.method})",
-             aspect="equal")
-    ax_v.bar(np.arange(d.shape[0]), d[:, 2])
-    ax_v.set(xlabel="check point", ylabel="dz (m)")
-    fig.tight_layout()
-    return _png(fig)
+
+def _warnings(report: Report) -> list[str]:
+    w = report.warnings
+    parts = [f"<h2>Warnings ({len(w)})</h2>"]
+    if not w:
+        return [*parts, "<p>No stage gave a warning.</p>"]
+
+    def items(ws: Sequence[object]) -> str:
+        return "".join(f"<li><span class='stage'>{html.escape(x.stage)}</span>"  # type: ignore[attr-defined]
+                       f"<span class='msg'>{html.escape(x.message)}</span></li>"  # type: ignore[attr-defined]
+                       for x in ws)
+
+    parts.append(f"<ul class='warnings'>{items(w[:WARNINGS_SHOWN])}</ul>")
+    if len(w) > WARNINGS_SHOWN:
+        parts.append(f"<details><summary>{len(w) - WARNINGS_SHOWN} more</summary>"
+                     f"<ul class='warnings'>{items(w[WARNINGS_SHOWN:])}</ul></details>")
+    return parts
+
+
+def _map(mosaic: Thumbnail | None, figures: tuple[Figure, Figure | None]) -> list[str]:
+    parts = ["<h2>Map</h2>", png_tag(figures[0], "check point residual map")]
+    if mosaic is not None and not mosaic.same_crs:
+        parts.append("<p class='note'>The mosaic is in another CRS than the run (seqat ortho "
+                     "--crs): drawn beside, not under, the check points.</p>")
+    rasters = figures[1]
+    if rasters is not None:
+        parts.append(png_tag(rasters, "mosaic and DSM"))
+    else:
+        parts.append("<p class='note'>No mosaic or DSM in this run folder (seqat run --ortho, "
+                     "or seqat process with a DSM or lidar, makes them).</p>")
+    return parts
+
+
+def _checkpoints(report: Report, main: CheckpointReport | None) -> list[str]:
+    parts = ["<h2>Check points (ASPRS 2023)</h2>"]
+    if main is None:
+        return [*parts, "<p>The flight has no check points.</p>"]
+    header, rows = asprs_rows([(c.method, c.table) for c in report.checkpoint_reports])
+    parts.append(_table(header, rows))
+    parts.append("<p class='note'>Metres; σ: standard deviation (n − 1) about the mean, the "
+                 "random part; mean: the systematic part (bias); RMSE² = mean² + σ²(n − 1)/n. "
+                 f"Classes: the smallest ASPRS (2023) X-cm class the RMSE meets. "
+                 f"{DIRECT} = GPS/INS only, {REFERENCE} = COLMAP on the same tie points.</p>")
+    parts.append(f"<h3>Residuals of {html.escape(main.method)}, largest first "
+                 "(intersected − known)</h3>")
+    header, rows = residual_rows(main)
+    parts.append(_table(header, rows))
+    parts.append(png_tag(checkpoint_figure(main), "check point residuals"))
+    return parts
+
+
+def _accuracy(report: Report, extras: Mapping[str, object]) -> list[str]:
+    if not report.accuracy:
+        return []
+    if report.accuracy_against == "reference":
+        parts = ["<h2>Agreement with the COLMAP reference</h2>",
+                 "<p class='note'>An agreement, not an accuracy: COLMAP adjusted the same tie "
+                 "points with the same GPS/INS priors; errors both share (the tie points, the "
+                 "nav, the camera) do not show here.</p>"]
+    else:
+        parts = ["<h2>Accuracy against truth</h2>",
+                 "<p class='note'>The flight is simulated or rendered: truth/ holds the exact "
+                 "orientations and points.</p>"]
+    rows = [(a.method, *a.pos_rmse_m, a.pos_rmse_h_m, a.pos_rmse_3d_m, *a.att_rmse_deg,
+             *a.gp_rmse_m, a.n_images, a.n_points) for a in report.accuracy.values()]
+    parts.append(_table(["method", "X (m)", "Y (m)", "Z (m)", "H (m)", "3D (m)", "ω (°)",
+                         "φ (°)", "κ (°)", "GP X (m)", "GP Y (m)", "GP Z (m)", "images",
+                         "points"], rows, digits=3))
+    parts.append("<p class='note'>RMS differences per axis: camera positions, attitudes "
+                 "(ω φ κ) and ground points (GP), matched by id.</p>")
+    errors = extras.get("errors", {})
+    assert isinstance(errors, Mapping)
+    what = "the COLMAP reference" if report.accuracy_against == "reference" else "truth"
+    parts.append(png_tag(error_figure(errors, what), "per-image differences"))
+    return parts
+
+
+def flight_rows(report: Report) -> list[tuple[str, str]]:
+    """The flight's key figures (label, text)."""
+    f, t = report.flight_summary, report.tie_points
+    camera = f.camera_model + (" (approximate, from EXIF)" if f.camera_approximate else "")
+    return [
+        ("flight folder", report.flight),
+        ("run folder", report.run),
+        ("images / duration", f"{f.images} / {f.duration_s:.1f} s"),
+        ("GSD / forward overlap", f"{_num(f.gsd_m * CM_PER_M, 1)} cm / "
+                                  f"{_num(f.forward_overlap * 100, 0)} %"),
+        ("CRS", f.crs_name),
+        ("camera", camera + (f"; {f.camera_estimate}" if f.camera_estimate else "")),
+        ("tie points / observations", f"{t.count} / {t.observations}"),
+        ("track length mean / median / max",
+         f"{t.track_length_mean:.1f} / {t.track_length_median:.0f} / {t.track_length_max}"),
+        ("image residual rms", f"{_num(t.image_residual_rms_px, 2)} px"),
+        ("σ0 (a posteriori)", _num(report.sigma0, 3)),
+        ("methods compared", ", ".join(report.methods)),
+    ]
+
+
+def _appendix(report: Report, extras: Mapping[str, object]) -> list[str]:
+    parts = ["<div class='appendix'><h2>Appendix: estimator internals</h2>",
+             "<p class='note'>For the developer and the curious: how the adjustment ran, not "
+             "what it delivered.</p>",
+             _table(["", "value"], [
+                 ("update time per image, median / run total",
+                  f"{report.processing_ms_per_image_median:.1f} ms / "
+                  f"{report.processing_total_s:.1f} s")], text_columns=(1,))]
+    if report.reference is not None:
+        ref = report.reference
+        opts = ref.get("options", {})
+        assert isinstance(opts, Mapping)
+        parts.append("<h3>COLMAP reference</h3>")
+        parts.append(_table(["", "value"], [
+            ("prior / self-calibration", f"{opts.get('prior')} / {opts.get('self_calibrate')}"),
+            ("σ0 / rms image residual", f"{_num(ref.get('sigma0'), 3)} / "
+                                        f"{_num(ref.get('rms_px'), 3)} px"),
+            ("bundle adjustment", f"{_num(ref.get('ba_s'), 2)} s"),
+            ("termination / covariance", f"{ref.get('termination')} / {ref.get('covariance')}"),
+        ], text_columns=(1,)))
+    if report.realtime:
+        parts.append("<h3>Real-time behaviour</h3>")
+        parts.append(_table(
+            ["method", "update ms median", "p95", "max", "window median", "window max",
+             "inverse sizes max", "σ0 final", "rms GP σ final (m)", "plateau at image"],
+            [(r.method, r.update_ms_median, r.update_ms_p95, r.update_ms_max,
+              r.window_images_median, r.window_images_max,
+              f"{r.inverse_sizes_max[0]}, {r.inverse_sizes_max[1]}", r.final_sigma0,
+              r.final_rms_gp_sigma_m, r.precision_plateau_image) for r in report.realtime],
+            digits=(1, 1, 1, 1, 1, 0, 0, 3, 3, 0)))
+        parts.append("<p class='note'>Plateau: the first image after which the rms GP σ stays "
+                     "within 5 % of its final level — more images stop improving "
+                     "precision there.</p>")
+        lat = report.latency
+        ortho_note = {"live": "with the live ortho (seqat run --ortho)",
+                      "after the run": "ortho made after the run: listed, not in end to end",
+                      "none": "no ortho"}[lat.ortho]
+        parts.append(f"<h3>Latency per image, by stage ({html.escape(ortho_note)})</h3>")
+        parts.append(_table(["stage", "images", "median ms", "p95 ms", "max ms"],
+                            [(s.stage, s.images, s.median_ms, s.p95_ms, s.max_ms)
+                             for s in lat.stages], digits=1))
+        parts.append("<p class='note'>End to end: read + tracking + AT update (+ AT update "
+                     "-> mosaic with the live ortho), per image. The live ortho runs on a "
+                     "worker thread while the next image is tracked and adjusted, on the same "
+                     "cores.</p>")
+        series = extras.get("series", {})
+        assert isinstance(series, Mapping)
+        parts.append(png_tag(realtime_figure(series, {r.method: r.precision_plateau_index
+                                                      for r in report.realtime}),
+                             "update time, window, matrix sizes and precision per image"))
+    if report.live is not None:
+        parts += _live_section(report.live)
+    parts.append("</div>")
+    return parts
 
 
 def _live_section(live: LiveOperation) -> list[str]:
     """Processing and end-to-end latency, and the latency budget's threshold changes."""
-    parts = ["<h2>Live operation</h2>"]
+    parts = ["<h3>Live operation</h3>"]
     rows: list[tuple[object, ...]] = [
         ("mode" + (f" (resumed: {live.replayed_images} images replayed from the journal)"
                    if live.replayed_images else ""), live.mode, "", ""),
@@ -151,110 +306,54 @@ def _live_section(live: LiveOperation) -> list[str]:
     return parts
 
 
-def render_html(report: Report, extras: Mapping[str, object]) -> str:
-    """The self-contained ``report.html``."""
-    import matplotlib
+def title_text(report: Report) -> tuple[str, str]:
+    """The title (the flight's name) and the line under it (date, method)."""
+    t = report.title
+    return t.flight_name, f"Flight report · {t.date_kind} {t.date} · method {t.method}"
 
-    matplotlib.use("Agg")
-    f, t = report.flight_summary, report.tie_points
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>seqat report "
-             f"{html.escape(report.run)}</title><style>{_CSS}</style></head><body>",
-             f"<h1>Flight report: {html.escape(report.run)}</h1>"]
-    parts += [f"<p class='note'>{html.escape(n)}</p>" for n in report.notes]
-    parts.append("<h2>Summary</h2>")
-    parts.append(_table(["", "value"], [
-        ("flight", report.flight),
-        ("images / duration (s)", f"{f.images} / {f.duration_s:.1f}"),
-        ("GSD (cm) / forward overlap (%)", f"{f.gsd_m * 100:.2f} / {f.forward_overlap * 100:.0f}"),
-        ("CRS", f.crs_name),
-        ("camera", f.camera_model + (" (approximate, from EXIF)" if f.camera_approximate
-                                     else "") + (f"; {f.camera_estimate}" if f.camera_estimate
-                                                 else "")),
-        ("tie points / observations", f"{t.count} / {t.observations}"),
-        ("track length mean / median / max",
-         f"{t.track_length_mean:.1f} / {t.track_length_median:.0f} / {t.track_length_max}"),
-        ("image residual rms (px)", _fmt(t.image_residual_rms_px)),
-        ("sigma0", _fmt(report.sigma0, 4)),
-        ("methods", ", ".join(report.methods)),
-        ("update time per image, median (ms) / run total (s)",
-         f"{report.processing_ms_per_image_median:.2f} / {report.processing_total_s:.2f}"),
-    ]))
-    if report.reference is not None:
-        ref = report.reference
-        parts.append(_table(["COLMAP reference", "value"], [
-            ("prior / self-calibration",
-             f"{ref['options']['prior']} / {ref['options']['self_calibrate']}"),  # type: ignore[index]
-            ("sigma0 / rms px", f"{_fmt(ref['sigma0'], 4)} / {_fmt(ref['rms_px'])}"),
-            ("bundle adjustment (s)", _fmt(ref["ba_s"], 2)),
-            ("termination / covariance", f"{ref['termination']} / {ref['covariance']}"),
-        ]))
-    if report.accuracy:
-        parts.append(f"<h2>Accuracy against {report.accuracy_against}</h2>")
-        rows = [(a.method, *a.pos_rmse_m, a.pos_rmse_h_m, a.pos_rmse_3d_m, *a.att_rmse_deg,
-                 *a.gp_rmse_m, a.n_images, a.n_points) for a in report.accuracy.values()]
-        parts.append(_table(["method", "X (m)", "Y (m)", "Z (m)", "H (m)", "3D (m)", "ω (°)",
-                             "φ (°)", "κ (°)", "GP X (m)", "GP Y (m)", "GP Z (m)", "images",
-                             "points"], rows, digits=4))
-        errors = extras.get("errors", {})
-        assert isinstance(errors, Mapping)
-        parts.append(_error_figure(errors, report.accuracy_against or ""))
-    if report.realtime:
-        parts.append("<h2>Real-time behaviour</h2>")
-        parts.append(_table(
-            ["method", "update ms median", "p95", "max", "window median", "max",
-             "inverse sizes max", "σ0 final", "rms GP σ final (m)", "plateau at image"],
-            [(r.method, r.update_ms_median, r.update_ms_p95, r.update_ms_max,
-              r.window_images_median, r.window_images_max,
-              f"{r.inverse_sizes_max[0]}, {r.inverse_sizes_max[1]}", r.final_sigma0,
-              r.final_rms_gp_sigma_m, r.precision_plateau_image) for r in report.realtime]))
-        parts.append("<p class='note'>Plateau: the first image after which the rms GP σ stays "
-                     "within 5 % of its final level — more images stop improving "
-                     "precision there.</p>")
-        lat = report.latency
-        ortho_note = {"live": "with the live ortho (seqat run --ortho)",
-                      "after the run": "ortho made after the run: listed, not in end to end",
-                      "none": "no ortho"}[lat.ortho]
-        parts.append(f"<h3>Latency per image, by stage ({html.escape(ortho_note)})</h3>")
-        parts.append(_table(["stage", "images", "median ms", "p95 ms", "max ms"],
-                            [(s.stage, s.images, s.median_ms, s.p95_ms, s.max_ms)
-                             for s in lat.stages], digits=1))
-        parts.append("<p class='note'>End to end: read + tracking + AT update (+ AT update "
-                     "-> mosaic with the live ortho), per image. The live ortho runs on a "
-                     "worker thread while the next image is tracked and adjusted, on the same "
-                     "cores.</p>")
-        series = extras.get("series", {})
-        assert isinstance(series, Mapping)
-        parts.append(_realtime_figure(series, {r.method: r.precision_plateau_index
-                                               for r in report.realtime}))
-    if report.live is not None:
-        parts += _live_section(report.live)
-    if report.sfm_agreement is not None:
-        parts.append(sfm_section_html(report.sfm_agreement, Path(report.run)))
+
+def report_thumbnails(report: Report, extras: Mapping[str, object]) -> tuple[
+        Thumbnail | None, Thumbnail | None]:
+    """The run's mosaic and DSM read small (None where absent)."""
+    run_path = Path(str(extras.get("run_path", report.run)))
+    crs = extras["crs"]
+    return (read_thumbnail(run_path / MOSAIC_FILE, crs),  # type: ignore[arg-type]
+            read_thumbnail(run_path / DSM_FILE, crs, heights=True))  # type: ignore[arg-type]
+
+
+def render_html(report: Report, extras: Mapping[str, object],
+                thumbnails: tuple[Thumbnail | None, Thumbnail | None] | None = None,
+                figures: tuple[Figure, Figure | None] | None = None) -> str:
+    """The self-contained ``report.html`` (``thumbnails`` and the map ``figures`` are made
+    here unless given)."""
+    if thumbnails is None:
+        thumbnails = report_thumbnails(report, extras)
+    if figures is None:
+        figures = map_figures(report, extras, thumbnails)
+    main = main_checkpoints(report)
+    name, sub = title_text(report)
+    parts = ["<!doctype html><html><head><meta charset='utf-8'>"
+             "<meta name='viewport' content='width=device-width, initial-scale=1'>"
+             f"<title>{html.escape(name)}: seqat flight report</title><style>{_CSS}</style>"
+             "</head><body>", f"<h1>{html.escape(name)}</h1>",
+             f"<p class='sub'>{html.escape(sub)}</p>"]
+    parts += _verdict(report, main)
+    parts += _warnings(report)
+    parts += _map(thumbnails[0], figures)
+    parts += _checkpoints(report, main)
+    parts += _accuracy(report, extras)
+    parts.append("<h2>Flight</h2>")
+    parts.append(_table(["", "value"], flight_rows(report), text_columns=(1,)))
     if report.robustness is not None:
         parts.append("<h2>Blunders and GNSS faults</h2>")
-        parts.append(_table(["", "value"], robustness_rows(report.robustness)))
-    parts.append("<h2>Check points (ASPRS 2023)</h2>")
-    if not report.checkpoint_reports:
-        parts.append("<p>The flight has no check points.</p>")
-    else:
-        parts.append(_table(
-            ["method", "count", "RMSE x (m)", "RMSE y (m)", "RMSE_H (m)", "RMSE_V (m)",
-             "horizontal class (cm)", "vertical class (cm)"],
-            [(c.method, c.table.count, c.table.rmse_x_m, c.table.rmse_y_m, c.table.rmse_h_m,
-              c.table.rmse_v_m, c.table.horizontal_class_cm, c.table.vertical_class_cm)
-             for c in report.checkpoint_reports], digits=4))
-        main = report.checkpoint_reports[1] if len(report.checkpoint_reports) > 1 else (
-            report.checkpoint_reports[0])
-        if main.table.warning:
-            parts.append(f"<p class='warn'>{html.escape(main.table.warning)}</p>")
-        parts.append("<p class='note'>Product accuracy per ASPRS (2023) also includes the "
-                     "survey accuracy of the check points (not known to seqat).</p>")
-        parts.append(_table(["point", "images", "dx (m)", "dy (m)", "dz (m)"],
-                            [(r.point, r.n_images, r.dx_m, r.dy_m, r.dz_m)
-                             for r in main.residuals], digits=4))
-        parts.append(_checkpoint_figure(main))
+        parts.append(_table(["", "value"], robustness_rows(report.robustness),
+                            text_columns=(1,)))
+    if report.sfm_agreement is not None:
+        parts.append(sfm_section_html(report.sfm_agreement, Path(report.run)))
+    parts += _appendix(report, extras)
     parts.append(f"<p class='note'>Methods: {DIRECT} = GPS/INS input (direct "
                  f"georeferencing, tie points intersected with it); {REFERENCE} = COLMAP "
-                 "bundle adjustment of the same observations (OUT/reference/).</p>")
+                 "bundle adjustment of the same observations (OUT/reference/). Made by seqat "
+                 "report (docs/formats.md, <i>Report</i>).</p>")
     parts.append("</body></html>\n")
     return "".join(parts)

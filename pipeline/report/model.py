@@ -15,6 +15,7 @@ least 30 check points.
 
 from __future__ import annotations
 
+import datetime
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -39,7 +40,13 @@ from pipeline.flight.folder import read_truth
 from pipeline.flight.nav_files import read_ground_points
 from pipeline.flight.schema import load_flight_config
 from pipeline.reference.stage import REFERENCE_JSON, read_observations
+from pipeline.report.asprs import (
+    AsprsTable,
+    asprs_table,
+    verdict_lines,
+)
 from pipeline.report.sfm_section import read_sfm_agreement
+from pipeline.report.stage_warnings import StageWarning, collect_warnings
 from pipeline.run.accuracy import eop_differences, point_differences
 from pipeline.run.latency import LatencyTable, latency_table, read_ortho_json
 from pipeline.run.robustness import RobustnessSummary, summarise
@@ -59,12 +66,6 @@ from seqat.types import FloatArray
 REPORT_HTML = "report.html"
 REPORT_JSON = "report.json"
 REPORT_VERSION = 1
-#: ASPRS Edition 2 (2023): fewer check points than this do not support an accuracy statement.
-ASPRS_MIN_CHECKPOINTS = 30
-#: Accuracy classes (cm) offered: Edition 2 allows any X-cm class; these are the common ones.
-ASPRS_CLASSES_CM = (0.63, 1.25, 2.5, 5.0, 7.5, 10.0, 12.5, 15.0, 20.0, 25.0, 30.0, 50.0,
-                    100.0, 150.0, 200.0, 300.0, 500.0, 1000.0)
-CM_PER_M = 100.0
 #: Method label of direct georeferencing (the nav) and of the COLMAP reference.
 DIRECT = "direct"
 REFERENCE = "colmap"
@@ -170,26 +171,16 @@ class LiveOperation:
 
 @dataclass(frozen=True, kw_only=True)
 class CheckpointResidual:
+    """One check point: its known coordinates and intersected − known."""
+
     point: str
     n_images: int
+    x_m: float
+    y_m: float
+    z_m: float
     dx_m: float
     dy_m: float
     dz_m: float
-
-
-@dataclass(frozen=True, kw_only=True)
-class AsprsTable:
-    """ASPRS Edition 2 (2023) summary of check point residuals."""
-
-    count: int
-    rmse_x_m: float
-    rmse_y_m: float
-    rmse_z_m: float
-    rmse_h_m: float
-    rmse_v_m: float
-    horizontal_class_cm: float | None  # smallest class of ASPRS_CLASSES_CM with RMSE_H <= X
-    vertical_class_cm: float | None
-    warning: str | None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -201,10 +192,29 @@ class CheckpointReport:
 
 
 @dataclass(frozen=True, kw_only=True)
+class ReportTitle:
+    """What the report's title says: the flight's name (its folder's), a date and the method.
+
+    ``date_kind``: ``flown`` (the first image's time, when the nav holds absolute times) or
+    ``processed`` (when ``run.json`` was written).
+    """
+
+    flight_name: str
+    date: str  # ISO 8601 day, UTC
+    date_kind: str
+    method: str
+
+
+@dataclass(frozen=True, kw_only=True)
 class Report:
     """Everything ``report.json`` holds (``accuracy`` and ``checkpoints`` keyed as DESIGN.md)."""
 
     version: int
+    title: ReportTitle
+    #: The first box in sentences (:func:`pipeline.report.asprs.verdict_lines`).
+    verdict: tuple[str, ...]
+    #: Every stage's warnings (:func:`pipeline.report.stage_warnings.collect_warnings`).
+    warnings: tuple[StageWarning, ...]
     run: str
     flight: str
     methods: tuple[str, ...]
@@ -237,27 +247,6 @@ def _h(t: Triple) -> float:
 
 def _3d(t: Triple) -> float:
     return float(math.sqrt(t[0] ** 2 + t[1] ** 2 + t[2] ** 2))
-
-
-def asprs_class_cm(rmse_m: float) -> float | None:
-    """Smallest class of :data:`ASPRS_CLASSES_CM` that ``rmse_m`` meets (None: none, or NaN)."""
-    if not math.isfinite(rmse_m):
-        return None
-    return next((c for c in ASPRS_CLASSES_CM if rmse_m * CM_PER_M <= c + 1e-12), None)
-
-
-def asprs_table(residuals_m: FloatArray) -> AsprsTable:
-    """ASPRS Edition 2 summary of check point residuals ``(k, 3)`` (x, y, z metres)."""
-    d = np.asarray(residuals_m, dtype=np.float64).reshape(-1, 3)
-    rx, ry, rz = rmse(d)
-    rh = float(math.hypot(rx, ry)) if d.shape[0] else float("nan")
-    warning = None
-    if d.shape[0] < ASPRS_MIN_CHECKPOINTS:
-        warning = (f"only {d.shape[0]} check points; ASPRS (2023) asks for at least "
-                   f"{ASPRS_MIN_CHECKPOINTS} for an accuracy statement")
-    return AsprsTable(count=int(d.shape[0]), rmse_x_m=rx, rmse_y_m=ry, rmse_z_m=rz, rmse_h_m=rh,
-                      rmse_v_m=rz, horizontal_class_cm=asprs_class_cm(rh),
-                      vertical_class_cm=asprs_class_cm(rz), warning=warning)
 
 
 def method_accuracy(method: str, against: str, eop_ids: tuple[str, ...], eop_values: FloatArray,
@@ -321,6 +310,24 @@ def _direct_points(run: RunFolder, obs: tuple[np.ndarray, tuple[str, ...], np.nd
     return PointTable(point_ids=tuple(p for p, k in zip(point_ids, ok, strict=True) if k),
                       xyz_m=X[ok], sigma_m=np.full((m, 3), np.nan),
                       n_obs=np.bincount(obs_point, minlength=len(point_ids))[ok])
+
+
+#: Nav times above this (s) are absolute (Unix time, after 1973): the flight's date is known.
+ABSOLUTE_TIME_S = 1e8
+
+
+def report_title(run: RunFolder) -> ReportTitle:
+    """The flight's name, date and method (:class:`ReportTitle`)."""
+    folder = Path(str(run.record.get("flight") or run.flight_dir))
+    name = folder.name or folder.resolve().name  # "." names the folder it stands for
+    t0 = float(run.nav.times_s[0]) if len(run.nav) else float("nan")
+    if math.isfinite(t0) and t0 > ABSOLUTE_TIME_S:
+        when, kind = datetime.datetime.fromtimestamp(t0, tz=datetime.UTC), "flown"
+    else:
+        mtime = (run.path / "run.json").stat().st_mtime
+        when, kind = datetime.datetime.fromtimestamp(mtime, tz=datetime.UTC), "processed"
+    return ReportTitle(flight_name=name or str(folder), date=when.date().isoformat(),
+                       date_kind=kind, method=run.method)
 
 
 def _same_flight(main: RunFolder, other: RunFolder) -> None:
@@ -513,10 +520,16 @@ def checkpoint_report(method: str, eop: EopTable, run: RunFolder, known_path: Pa
     ok = np.all(np.isfinite(X), axis=1)
     residuals = tuple(
         CheckpointResidual(point=pid, n_images=int(counts[j]),
+                           x_m=float(known.xyz_m[kindex[pid], 0]),
+                           y_m=float(known.xyz_m[kindex[pid], 1]),
+                           z_m=float(known.xyz_m[kindex[pid], 2]),
                            dx_m=float(X[j, 0] - known.xyz_m[kindex[pid], 0]),
                            dy_m=float(X[j, 1] - known.xyz_m[kindex[pid], 1]),
                            dz_m=float(X[j, 2] - known.xyz_m[kindex[pid], 2]))
         for j, pid in enumerate(point_ids) if ok[j])
+    # largest first (3D length), ties by name: the table a surveyor reads top down
+    residuals = tuple(sorted(residuals, key=lambda r: (-math.sqrt(
+        r.dx_m**2 + r.dy_m**2 + r.dz_m**2), r.point)))
     d = np.array([[r.dx_m, r.dy_m, r.dz_m] for r in residuals]).reshape(-1, 3)
     return CheckpointReport(method=method, table=asprs_table(d), residuals=residuals,
                             not_intersected=tuple(p for p, k in zip(point_ids, ok, strict=True)
@@ -573,8 +586,8 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
         against, ref_eop_ids, ref_eop = "reference", ref.eop.image_ids, ref.eop.eop
         assert ref.points is not None
         ref_pt_ids, ref_xyz = ref.points.point_ids, ref.points.xyz_m
-        notes.append("the flight has no truth/: accuracy is measured against the COLMAP "
-                     "reference")
+        notes.append("the flight has no truth/: the orientations are compared with the "
+                     "COLMAP reference (agreement on the same tie points, not accuracy)")
     else:
         notes.append("neither truth/ nor a COLMAP reference: no accuracy figures")
     if against is not None:
@@ -601,28 +614,45 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
         "method": main_cp.method, "count": main_cp.table.count,
         "rmse_x_m": main_cp.table.rmse_x_m, "rmse_y_m": main_cp.table.rmse_y_m,
         "rmse_h_m": main_cp.table.rmse_h_m, "rmse_v_m": main_cp.table.rmse_v_m,
+        "mean_x_m": main_cp.table.mean_x_m, "mean_y_m": main_cp.table.mean_y_m,
+        "mean_z_m": main_cp.table.mean_z_m, "std_x_m": main_cp.table.std_x_m,
+        "std_y_m": main_cp.table.std_y_m, "std_z_m": main_cp.table.std_z_m,
         "horizontal_class_cm": main_cp.table.horizontal_class_cm,
         "vertical_class_cm": main_cp.table.vertical_class_cm}
     realtime = tuple(_realtime(m.label, m.record) for m in methods if m.record is not None)
     totals = run.record.get("totals", {})
     assert isinstance(totals, dict)
+    sfm = read_sfm_agreement(run.path)
+    ortho = read_ortho_json(run.path)
     report = Report(
-        version=REPORT_VERSION, run=str(run.path), flight=str(run.flight_dir),
+        version=REPORT_VERSION, title=report_title(run),
+        verdict=verdict_lines(None if main_cp is None else main_cp.table, methods[1].label,
+                              truth is not None),
+        warnings=collect_warnings(run.record, ortho, reference_record, sfm,
+                                  () if main_cp is None else main_cp.not_intersected, notes),
+        run=str(run.path), flight=str(run.flight_dir),
         methods=tuple(m.label for m in methods), flight_summary=_flight_summary(run),
         tie_points=_tie_points(run, obs), sigma0=float(totals.get("sigma0") or float("nan")),
         processing_ms_per_image_median=realtime[0].update_ms_median,
         processing_total_s=float(totals.get("wall_s") or float("nan")),
         reference=reference_record, accuracy_against=against, accuracy=accuracy,
         realtime=realtime, live=live_operation(run.record),
-        latency=latency_table(run.record, read_ortho_json(run.path)),
+        latency=latency_table(run.record, ortho),
         checkpoints=checkpoints, checkpoint_reports=tuple(cps),
         notes=tuple(notes), robustness=summarise(run.record),
-        sfm_agreement=read_sfm_agreement(run.path))
+        sfm_agreement=sfm)
     extras: dict[str, object] = {
+        "run_path": run.path, "crs": run.crs,
+        "cameras_xyz_m": run.eop.eop[:, :3], "points_xyz_m": run.points.xyz_m,
         "errors": errors,
         "series": {m.label: m.record.get("images", []) for m in methods if m.record is not None},
     }
     return report, extras
+
+
+def main_checkpoints(report: Report) -> CheckpointReport | None:
+    """The check points of the run in OUT (the first method after ``direct``), or None."""
+    return next((c for c in report.checkpoint_reports if c.method == report.methods[1]), None)
 
 
 def format_report_json(report: Report) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -15,13 +16,8 @@ from pipeline.common.columns import CHECKPOINT_OBS_FILE, CHECKPOINTS_FILE
 from pipeline.flight.camera import pinhole_camera
 from pipeline.flight.folder import read_truth
 from pipeline.reference.stage import run_reference
-from pipeline.report.model import (
-    ASPRS_MIN_CHECKPOINTS,
-    REPORT_HTML,
-    REPORT_JSON,
-    asprs_table,
-    precision_plateau,
-)
+from pipeline.report.asprs import ASPRS_MIN_CHECKPOINTS, asprs_table
+from pipeline.report.model import REPORT_HTML, REPORT_JSON, precision_plateau
 from pipeline.report.stage import make_report
 from pipeline.run.runner import Method, run_flight
 from pipeline.run.store import read_eop_csv, read_run
@@ -132,10 +128,28 @@ def test_report_json_values_against_truth_and_checkpoints(sim_flight: Path,
     assert cp["rmse_y_m"] == pytest.approx(0.04, abs=CHECKPOINT_M)
     assert cp["rmse_h_m"] == pytest.approx(0.05, abs=CHECKPOINT_M)
     assert cp["rmse_v_m"] == pytest.approx(0.10, abs=CHECKPOINT_M)
+    # Mean and sigma per axis of the same residuals; the table sorted largest first.
+    res = next(c for c in doc["checkpoint_reports"] if c["method"] == "sim")["residuals"]
+    d = np.array([[r["dx_m"], r["dy_m"], r["dz_m"]] for r in res])
+    for k, axis in enumerate("xyz"):
+        assert cp[f"mean_{axis}_m"] == pytest.approx(d[:, k].mean(), abs=1e-12)
+        assert cp[f"std_{axis}_m"] == pytest.approx(d[:, k].std(ddof=1), abs=1e-12)
+    lengths = np.linalg.norm(d, axis=1)
+    assert np.all(np.diff(lengths) <= 1e-12)
+    # Title, verdict and warnings; the PDF has its pages (verdict, map, 2 tables).
+    assert doc["title"]["flight_name"] == "flight" and doc["title"]["method"] == "sim"
+    assert doc["verdict"][0].startswith(f"{n_cp} check points")
+    assert any(w["stage"] == "report" and "no COLMAP reference" in w["message"]
+               for w in doc["warnings"])
+    pdf = (out / "report.pdf").read_bytes()
+    assert pdf.startswith(b"%PDF") and len(re.findall(rb"/Type\s*/Page\b(?!s)", pdf)) >= 4
     # Real-time block and the HTML: self-contained, figures inline.
     assert doc["realtime"][0]["method"] == "sim"
     page = (out / REPORT_HTML).read_text()
-    assert page.count("data:image/png;base64,") >= 3
+    assert page.count("data:image/png;base64,") >= 4  # map, residuals, errors, internals
+    assert page.index("Verdict") < page.index("Warnings") < page.index("<h2>Map")
+    assert page.index("<h2>Map") < page.index("Check points (ASPRS") < page.index("Appendix")
+    assert page.index("Appendix") < page.index("Real-time behaviour")
     assert 'src="http' not in page and "fewer" not in page
     assert "ASPRS (2023) asks for at least 30" in page
 
@@ -156,6 +170,9 @@ def test_report_without_truth_is_against_the_reference(sim_flight: Path,
     assert doc.accuracy["direct"].pos_rmse_3d_m > 0.1
     assert doc.checkpoints is None
     assert any("no check points" in n for n in doc.notes)
+    page = (out / REPORT_HTML).read_text()
+    assert "<h2>Agreement with the COLMAP reference</h2>" in page
+    assert "Accuracy against" not in page and "No check points" in page
 
 
 def test_cli_report_bad_input_is_exit_2(tmp_path: Path, small_sim_dir: Path) -> None:
@@ -190,7 +207,7 @@ def test_report_shows_the_latency_budget_changes(small_sim_dir: Path, tmp_path: 
                for c in live["threshold_changes"]]
     assert changes == [("img_0011", 0.1, 0.2), ("img_0012", 0.2, 0.4), ("img_0013", 0.4, 0.8)]
     html_text = (out / "report.html").read_text()
-    assert "<h2>Live operation</h2>" in html_text and "0.1 → 0.2" in html_text
+    assert "<h3>Live operation</h3>" in html_text and "0.1 → 0.2" in html_text
 def test_latency_table_adds_the_live_ortho_to_the_end_to_end_time() -> None:
     from pipeline.run.latency import latency_table
 
