@@ -29,7 +29,6 @@ from affine import Affine
 from scipy import ndimage
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
-
 #: Steps of the walk that moves a rasterised cell into the triangle that holds it.
 WALK_STEPS = 8
 

@@ -10,7 +10,7 @@ import pytest
 import rasterio
 
 from pipeline.ortho.base import OrthoOptions, OrthoResult
-from pipeline.ortho.mosaic import TILE_PX, MosaicBuilder
+from pipeline.ortho.mosaic import MosaicBuilder
 from pipeline.ortho.orthorectifier import Orthorectifier
 from pipeline.ortho.raster import cog_problems
 from seqat.errors import InputDataError
