@@ -23,11 +23,12 @@ def _file_mode() -> int:
     return 0o666 & ~umask
 
 
-def _write_temp(folder: Path, name: str, text: str) -> Path:
-    """Write ``text`` to a new temporary file in ``folder`` and fsync it."""
+def _write_temp(folder: Path, name: str, text: str | bytes) -> Path:
+    """Write ``text`` (UTF-8) or bytes to a new temporary file in ``folder`` and fsync it."""
     fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as handle:
+        with (os.fdopen(fd, "wb") if isinstance(text, bytes)
+              else os.fdopen(fd, "w", encoding="utf-8", newline="")) as handle:
             handle.write(text)
             handle.flush()
             os.fsync(handle.fileno())
@@ -72,7 +73,8 @@ def _atomic_write_text(path: Path, text: str) -> None:
     fsync_dir(path.parent)
 
 
-def write_files_atomically(out_dir: Path | str, files: Mapping[str, str]) -> tuple[Path, ...]:
+def write_files_atomically(out_dir: Path | str,
+                           files: Mapping[str, str | bytes]) -> tuple[Path, ...]:
     """Publish several text files into ``out_dir`` together.
 
     All files are first written to temporary files in ``out_dir``; only when every one is on
@@ -83,8 +85,8 @@ def write_files_atomically(out_dir: Path | str, files: Mapping[str, str]) -> tup
     ----------
     out_dir : Path or str
         Created (with parents) if absent.
-    files : Mapping[str, str]
-        File name -> text.
+    files : Mapping[str, str | bytes]
+        File name -> text (written as UTF-8) or bytes.
 
     Returns
     -------
@@ -96,7 +98,7 @@ def write_files_atomically(out_dir: Path | str, files: Mapping[str, str]) -> tup
         return _write_files_atomically(out, files)
 
 
-def _write_files_atomically(out: Path, files: Mapping[str, str]) -> tuple[Path, ...]:
+def _write_files_atomically(out: Path, files: Mapping[str, str | bytes]) -> tuple[Path, ...]:
     if out.exists() and not out.is_dir():
         raise InputDataError(f"{out}: exists and is not a folder")
     created: list[Path] = []
