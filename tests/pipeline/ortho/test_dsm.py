@@ -234,6 +234,41 @@ def test_cli_dsm_reports_a_missing_crs_in_one_line(tmp_path: Path) -> None:
         assert src.crs.to_epsg() == 32610 and src.transform.a == 2.0  # auto: UTM zone 10N
 
 
+@pytest.mark.parametrize(("section", "message"), [
+    ("dsm: {ground_cell_m: 0}", "ground_cell_m: expected a positive number of metres, got 0"),
+    ("dsm: {fill_distance_m: -1}", "fill_distance_m: expected >= 0, got -1"),
+    ("dsm: {fill_max_hole_m2: 25}", "dsm.fill_max_hole_m2: unknown key"),
+])
+def test_cli_dsm_bad_fill_options_are_one_line_exit_2(tmp_path: Path, section: str,
+                                                      message: str) -> None:
+    las = write_las(tmp_path / "a.las", scene_points(), UTM10)
+    options = tmp_path / "o.yaml"
+    options.write_text(section + "\n")
+    result = CliRunner().invoke(app, ["dsm", str(las), "--out", str(tmp_path / "d.tif"),
+                                      "--options", str(options)])
+    assert result.exit_code == 2
+    assert result.stderr.startswith("seqat: error: ") and result.stderr.count("\n") == 1
+    assert message in result.stderr and str(options) in result.stderr
+    assert sorted(tmp_path.iterdir()) == sorted([las, options])  # nothing written
+
+
+def test_flight_lidar_is_gridded_at_the_cell_of_the_options(tmp_path: Path) -> None:
+    """``seqat ortho`` / ``run --ortho`` grid the flight's LiDAR with the ``dsm:`` section
+    (it was ignored: the live ortho always gridded at the default cell)."""
+    from pipeline.ortho.stage import find_dsm
+
+    autzen = Path(__file__).resolve().parents[3] / "sample_data" / "autzen_rendered"
+    dsm, warnings = find_dsm(tmp_path, UTM10, None, autzen, DsmOptions(cell_m=0.5))
+    assert dsm is not None and dsm.cell_m == (0.5, 0.5)
+    with rasterio.open(tmp_path / "dsm.tif") as src:
+        assert src.res == (0.5, 0.5) and src.tags()["SEQAT_CELL_M"] == "0.5"
+        heights, ground = src.read(1), int(src.tags()["SEQAT_GROUND_CELLS"])
+    # The sparse sample cloud (0.47 points/m^2) at 0.5 m: no hole inside, ground fallback in
+    # well under 1 % of the cells, and said so.
+    assert 0 < ground < 0.01 * heights.size
+    assert any("ground fallback" in w for w in warnings)
+
+
 def test_read_dsm_reprojects_a_feet_dsm(tmp_path: Path) -> None:
     las = write_las(tmp_path / "feet.las", to_feet(scene_points()), OREGON_FT)
     result = build_dsm([las], tmp_path / "dsm_ft.tif", crs=pyproj.CRS.from_epsg(32610),
