@@ -83,35 +83,42 @@ def format_shots_geojson(eops: EopTable, crs: pyproj.CRS, camera: CameraConfig,
     ``R_cv_from_world``, world -> OpenCV camera frame (x right, y down, z forward), so
     ``p_cv = R (X - translation)``. Coordinates: longitude, latitude, ellipsoidal height
     (pyproj to EPSG:4979); where PROJ cannot give a WGS 84 height (a vertical datum without its
-    grid), longitude and latitude only.
+    grid), longitude and latitude only. An image without a finite EOP has ``"geometry":
+    null`` (RFC 7946, 3.2) and null values.
     """
     xyz = eops.eop[:, :3]
+    ok = np.all(np.isfinite(eops.eop), axis=1)  # an image without an estimate: no geometry
+    lon, lat, h = (np.full(len(xyz), np.nan) for _ in range(3))
     src = crs if crs.is_compound else crs.to_3d()
+    has_height = True
     try:
         to_wgs = pyproj.Transformer.from_crs(src, WGS84_3D, always_xy=True)
-        lon, lat, h = to_wgs.transform(xyz[:, 0], xyz[:, 1], xyz[:, 2], errcheck=True)
+        lon[ok], lat[ok], h[ok] = to_wgs.transform(*xyz[ok].T, errcheck=True)
     except ProjError:
         to_wgs = pyproj.Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
-        lon, lat = to_wgs.transform(xyz[:, 0], xyz[:, 1], errcheck=True)
-        h = None
-    R_cv, _ = cv_pose_from_eop(eops.eop)
-    rotvec = Rotation.from_matrix(R_cv).as_rotvec()
+        lon[ok], lat[ok] = to_wgs.transform(xyz[ok, 0], xyz[ok, 1], errcheck=True)
+        has_height = False
+    rotvec = np.full((len(xyz), 3), np.nan)
+    if ok.any():
+        R_cv, _ = cv_pose_from_eop(eops.eop[ok])
+        rotvec[ok] = Rotation.from_matrix(R_cv).as_rotvec()
     angles = np.degrees(eops.eop[:, 3:])
     sigma = np.concatenate([eops.sigma[:, :3], np.degrees(eops.sigma[:, 3:])], axis=1)
     focal = camera.fx_px / max(camera.width_px, camera.height_px)
     features = []
     for i, iid in enumerate(eops.image_ids):
-        coords = [float(lon[i]), float(lat[i])] + ([float(h[i])] if h is not None else [])
+        coords = [float(lon[i]), float(lat[i])] + ([float(h[i])] if has_height else [])
         props: dict[str, object] = {
             "filename": names.get(iid, iid), "focal": focal, "width": camera.width_px,
-            "height": camera.height_px, "translation": [float(v) for v in xyz[i]],
-            "rotation": [float(v) for v in rotvec[i]], "image": iid,
-            "translation_crs": crs_label(crs), "omega_deg": float(angles[i, 0]),
-            "phi_deg": float(angles[i, 1]), "kappa_deg": float(angles[i, 2]),
+            "height": camera.height_px, "translation": [_number(v) for v in xyz[i]],
+            "rotation": [_number(v) for v in rotvec[i]], "image": iid,
+            "translation_crs": crs_label(crs), "omega_deg": _number(angles[i, 0]),
+            "phi_deg": _number(angles[i, 1]), "kappa_deg": _number(angles[i, 2]),
         }
         props.update({name: _number(sigma[i, k]) for k, name in enumerate(SIGMA_NAMES)})
         features.append({"type": "Feature", "properties": props,
-                         "geometry": {"type": "Point", "coordinates": coords}})
+                         "geometry": {"type": "Point", "coordinates": coords} if ok[i]
+                         else None})
     body = ",\n".join(json.dumps(f, allow_nan=False) for f in features)
     return '{"type": "FeatureCollection", "features": [\n' + body + "\n]}\n"  # one per line
 
@@ -151,15 +158,16 @@ def tie_points_laz(points: PointTable, crs: pyproj.CRS) -> bytes:
           for n in ("sx_m", "sy_m", "sz_m")),
         laspy.ExtraBytesParams(name="n_obs", type=np.uint16, description="rays (images)"),
     ])
-    xyz = points.xyz_m
+    keep = np.all(np.isfinite(points.xyz_m), axis=1)  # a point without a position is left out
+    xyz = points.xyz_m[keep]
     header.scales = np.full(3, LAZ_SCALE_M)
     header.offsets = np.floor(xyz.min(axis=0)) if len(xyz) else np.zeros(3)
     header.add_crs(crs)
     las = laspy.LasData(header)
     las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     for k, name in enumerate(("sx_m", "sy_m", "sz_m")):
-        las[name] = points.sigma_m[:, k].astype(np.float32)
-    las["n_obs"] = np.minimum(points.n_obs, np.iinfo(np.uint16).max).astype(np.uint16)
+        las[name] = points.sigma_m[keep, k].astype(np.float32)
+    las["n_obs"] = np.minimum(points.n_obs[keep], np.iinfo(np.uint16).max).astype(np.uint16)
     buffer = io.BytesIO()
     las.write(buffer, do_compress=True, laz_backend=laspy.LazBackend.Lazrs)
     return buffer.getvalue()

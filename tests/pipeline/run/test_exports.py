@@ -66,17 +66,28 @@ def test_shots_geojson_round_trips_to_the_run_crs(strip_run: Path) -> None:
         assert p["filename"] == iid  # an observations flight has no image files
 
 
-def test_shots_geojson_writes_null_sigma_and_no_nan() -> None:
+def test_exports_write_null_for_nan_and_leave_out_points_without_position() -> None:
+    from pipeline.common.tables import PointTable
     from pipeline.flight.schema import CameraConfig
+    from pipeline.run.exports import tie_points_laz
 
-    eops = EopTable(image_ids=("a",), eop=np.array([[500000.0, 4100000.0, 300.0, 0.1, 0.0,
-                                                     0.2]]),
-                    sigma=np.full((1, 6), np.nan))
+    eops = EopTable(image_ids=("a", "b"), eop=np.array([
+        [500000.0, 4100000.0, 300.0, 0.1, 0.0, 0.2], [np.nan, 4100000.0, 300.0, 0.1, 0.0, 0.2]]),
+                    sigma=np.full((2, 6), np.nan))
     camera = CameraConfig(model="PINHOLE", width_px=100, height_px=80, fx_px=90.0, fy_px=90.0,
                           cx_px=49.5, cy_px=39.5)
-    text = format_shots_geojson(eops, pyproj.CRS.from_epsg(32652), camera, {"a": "a.jpg"})
-    props = json.loads(text)["features"][0]["properties"]
-    assert props["sx_m"] is None and props["filename"] == "a.jpg"
+    crs = pyproj.CRS.from_epsg(32652)
+    features = json.loads(format_shots_geojson(eops, crs, camera, {"a": "a.jpg"}))["features"]
+    assert features[0]["properties"]["sx_m"] is None
+    assert features[0]["properties"]["filename"] == "a.jpg"
+    assert features[1]["geometry"] is None and features[1]["properties"]["translation"][0] is None
+    points = PointTable(point_ids=("p", "q"), xyz_m=np.array([[500000.0, 4100000.0, 10.0],
+                                                             [np.nan, 0.0, 0.0]]),
+                        sigma_m=np.full((2, 3), 0.1), n_obs=np.array([3, 2]))
+    import io
+
+    las = laspy.read(io.BytesIO(tie_points_laz(points, crs)))
+    assert len(las.points) == 1 and las["n_obs"][0] == 3
 
 
 def test_opk_table_round_trips_against_eop_csv(strip_run: Path) -> None:
