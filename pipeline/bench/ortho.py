@@ -15,6 +15,12 @@ m, 2 Hz), the frames paced at ``R`` Hz as in flight; each image is one decoded J
 synthetic texture, the surface the flat fallback. MODE ``none`` (no ortho), ``background`` (the
 worker thread) or ``foreground`` (in the AT loop): the AT update times per mode show what the
 ortho costs the estimator.
+
+``seqat bench ortho --compare-occlusion --out DIR [--images N] [--run OUT]``: the two
+occlusion methods of the orthorectifier (``zbuffer``, ``raycast``: open3d's
+``RaycastingScene``) on the same images in one process, alternating per image: occlusion time
+of each, their ratio, and how far their ``seen`` masks agree; on the benchmark strip, or on the
+images, final EOPs and ``dsm.tif`` of a run folder ``OUT``.
 """
 
 from __future__ import annotations
@@ -242,6 +248,101 @@ def run_live_bench(n_images: int, out_dir: Path, mode: str, *, write: bool = Tru
         load_start=load, load_end=os.getloadavg()[0])
 
 
+@dataclass(frozen=True, kw_only=True)
+class OcclusionCompare:
+    """Summary of ``--compare-occlusion`` (module docstring)."""
+
+    source: str
+    images: int
+    image_px: tuple[int, int]
+    pixel_m: float
+    dsm_cells: int
+    mesh_triangles: int
+    mesh_build_ms: float
+    zbuffer_ms: TimingStats
+    raycast_ms: TimingStats
+    ratio_median: float  # raycast / zbuffer, median of the per-image ratios
+    cells: int  # footprint cells with a DSM height, all images
+    hidden_zbuffer: int
+    hidden_raycast: int
+    disagree: int  # cells one method sees and the other hides
+    agreement: float  # 1 - disagree / cells
+    load_start: float
+    load_end: float
+
+
+def compare_occlusion(images: Sequence[tuple[str, np.ndarray, np.ndarray]], dsm: Dsm,
+                      camera: CameraConfig, crs: pyproj.CRS, source: str,
+                      pixel_m: float | None = None) -> OcclusionCompare:
+    """Orthorectify each image with both occlusion methods (no writing) and compare."""
+    load = os.getloadavg()[0]
+    options = {m: OrthoOptions(occlusion_method=m, write_images=False, pixel_m=pixel_m)
+               for m in ("zbuffer", "raycast")}
+    times: dict[str, list[float]] = {"zbuffer": [], "raycast": []}
+    cells = hidden_z = hidden_r = disagree = 0
+    with Orthorectifier(dsm, camera, crs, None, options["zbuffer"]) as zb, \
+            Orthorectifier(dsm, camera, crs, None, options["raycast"]) as rc:
+        t0 = time.perf_counter()
+        triangles = rc.prepare_occlusion()  # built here to time it apart
+        build_ms = (time.perf_counter() - t0) * 1e3
+        for image_id, image, eop in images:
+            res = {}
+            for m, ortho in (("zbuffer", zb), ("raycast", rc)):
+                res[m] = ortho.add_image(image_id, image, eop)
+                times[m].append(res[m].occlusion_ms)
+            a, b = res["zbuffer"], res["raycast"]
+            sa, sb = _on_grid(a.raster), _on_grid(b.raster)
+            cells += a.seen_cells + a.occluded_cells
+            hidden_z += a.occluded_cells
+            hidden_r += b.occluded_cells
+            disagree += len(sa ^ sb)
+        pixel = float(zb.pixel_m or 0.0)
+    ratios = [r / z for r, z in zip(times["raycast"], times["zbuffer"], strict=True) if z > 0]
+    return OcclusionCompare(
+        source=source, images=len(images), image_px=(camera.width_px, camera.height_px),
+        pixel_m=pixel, dsm_cells=int(dsm.heights_m.size), mesh_triangles=triangles,
+        mesh_build_ms=build_ms, zbuffer_ms=TimingStats.from_samples(times["zbuffer"]),
+        raycast_ms=TimingStats.from_samples(times["raycast"]),
+        ratio_median=float(np.median(ratios)) if ratios else float("nan"), cells=cells,
+        hidden_zbuffer=hidden_z, hidden_raycast=hidden_r, disagree=disagree,
+        agreement=1.0 - disagree / max(cells, 1), load_start=load, load_end=os.getloadavg()[0])
+
+
+def _on_grid(raster: object) -> set[tuple[int, int]]:
+    """Global (row, col) of the cells a cropped ortho raster sees."""
+    r, c = np.nonzero(raster.seen)  # type: ignore[attr-defined]
+    return set(zip((r + raster.row0).tolist(), (c + raster.col0).tolist(), strict=True))  # type: ignore[attr-defined]
+
+
+def occlusion_on_strip(n_images: int) -> OcclusionCompare:
+    """``--compare-occlusion`` on the benchmark strip (sloped DSM with box buildings)."""
+    dsm = bench_dsm(n_images * SPACING_M + 200.0)
+    image = bench_image()
+    images = []
+    for i in range(n_images):
+        x = i * SPACING_M
+        eop = np.array([ORIGIN_E + x, ORIGIN_N, BASE_M + SLOPE * (x + DSM_MARGIN_M) + HEIGHT_M,
+                        np.radians(1.0), np.radians(-1.5), np.radians(3.0)])
+        images.append((f"img_{i:04d}", image, eop))
+    return compare_occlusion(images, dsm, BENCH_CAMERA, BENCH_CRS, "bench strip")
+
+
+def occlusion_on_run(run_dir: Path) -> OcclusionCompare:
+    """``--compare-occlusion --run OUT``: the run's images, final EOPs and ``dsm.tif``."""
+    from pipeline.ortho.dsm import read_dsm
+    from pipeline.ortho.stage import DSM_FILE, image_files, read_image
+    from pipeline.run.store import read_run
+
+    run = read_run(run_dir)
+    if run.images_dir is None:
+        raise SystemExit(f"{run_dir}: an observations flight has no images")
+    files = image_files(run.images_dir)
+    images = [(iid, read_image(files[iid]), eop)
+              for iid, eop in zip(run.eop.image_ids, run.eop.eop, strict=True) if iid in files]
+    return compare_occlusion(images, read_dsm(run_dir / DSM_FILE, run.crs), run.camera,
+                             run.crs, str(run_dir))
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Command-line entry (``seqat bench ortho ARGS``, or ``python -m`` on ``sys.argv``): print
     the benchmark summary as JSON."""
@@ -255,10 +356,15 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--live", choices=("none", "background", "foreground"))
     parser.add_argument("--rate-hz", type=float, default=2.0)
     parser.add_argument("--nice", type=int, help="live: worker niceness (default: 10)")
+    parser.add_argument("--compare-occlusion", action="store_true")
+    parser.add_argument("--run", type=Path, help="--compare-occlusion on a run folder")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    result: OrthoBench | LiveBench
-    if args.live is not None:
+    result: OrthoBench | LiveBench | OcclusionCompare
+    if args.compare_occlusion:
+        result = (occlusion_on_run(args.run) if args.run is not None
+                  else occlusion_on_strip(args.images))
+    elif args.live is not None:
         result = run_live_bench(args.images, args.out, args.live, write=not args.no_write,
                                 rate_hz=args.rate_hz, nice=args.nice)
     else:

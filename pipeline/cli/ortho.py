@@ -35,7 +35,8 @@ def dsm(
         ("LAS CRS -> working CRS", f"{r.las_crs} -> {r.crs}"),
         ("cells", f"{r.cols} x {r.rows} at {r.cell_m:g} m"),
         ("heights (m)", f"{r.height_range_m[0]:.2f} .. {r.height_range_m[1]:.2f}"),
-        ("holes filled / nodata cells", f"{r.filled_cells} / {r.nodata_cells}"),
+        ("cells interpolated / ground fallback / nodata",
+         f"{r.interpolated_cells} / {r.ground_cells} / {r.nodata_cells}"),
         ("time", f"{r.time_s:.2f} s"),
         *(("warning", w) for w in r.warnings),
         ("dsm", str(r.path)),
@@ -52,7 +53,7 @@ def ortho(
     crs: Annotated[str | None, typer.Option(
         "--crs", help="CRS of the rasters (EPSG:XXXX); default: the run's.")] = None,
     options: Annotated[Path | None, typer.Option(
-        "--options", help="Options YAML (sections ortho:, mosaic:).")] = None,
+        "--options", help="Options YAML (sections ortho:, mosaic:, dsm:).")] = None,
     progress: Annotated[bool, typer.Option(
         "--progress/--no-progress", help="Progress bar on a terminal.")] = True,
 ) -> None:
@@ -62,10 +63,10 @@ def ortho(
 
     if eop not in ("seq-r", "reference"):
         raise ConfigError(f"--eop: expected seq-r or reference, got {eop!r}")
-    _, ortho_options, feather_px = load_stage_options(options)
+    dsm_options, ortho_options, feather_px = load_stage_options(options)
     s = orthorectify_run(out, dsm_path=dsm, eop_source=eop,  # type: ignore[arg-type]
                          options=ortho_options, feather_px=feather_px, out_crs=crs,
-                         progress=progress)
+                         progress=progress, dsm_options=dsm_options)
     rows = [
         ("EOP / DSM", f"{s.eop_source} / {s.dsm_source}"),
         ("images / skipped", f"{len(s.images)} / {len(s.skipped)}"),

@@ -46,7 +46,11 @@ class OrthoOptions:
         (``(Z0 - Z_ground) / fx``), rounded to 3 significant digits, then fixed for the flight.
     resampling : {"bilinear", "cubic"}
     occlusion : bool
-        Hide cells the camera cannot see (z-buffer).
+        Hide cells the camera cannot see.
+    occlusion_method : {"zbuffer", "raycast"}
+        ``zbuffer``: nearest depth per image bucket from the cells and the facades of the
+        2.5D DSM; ``raycast``: one ray per sampled cell through the DSM's triangle mesh
+        (open3d ``RaycastingScene``). Compared in docs/benchmarks.md.
     occlusion_tolerance_cells : float
         A cell is hidden when it lies farther than the nearest surface in its image bucket by
         more than this many ground cells.
@@ -65,6 +69,7 @@ class OrthoOptions:
     pixel_m: float | None = None
     resampling: Literal["bilinear", "cubic"] = "bilinear"
     occlusion: bool = True
+    occlusion_method: Literal["zbuffer", "raycast"] = "zbuffer"
     occlusion_tolerance_cells: float = 3.0
     max_range_factor: float = 3.0
     threads: int = 2
@@ -77,6 +82,9 @@ class OrthoOptions:
                               f"got {self.pixel_m!r}")
         if self.resampling not in ("bilinear", "cubic"):
             raise ConfigError(f"resampling: expected bilinear or cubic, got {self.resampling!r}")
+        if self.occlusion_method not in ("zbuffer", "raycast"):
+            raise ConfigError(f"occlusion_method: expected zbuffer or raycast, got "
+                              f"{self.occlusion_method!r}")
         if not self.max_range_factor > 0:
             raise ConfigError(f"max_range_factor: expected > 0, got {self.max_range_factor!r}")
         if self.threads < 1:

@@ -2,9 +2,10 @@
 
 Stage function :func:`build_dsm` (``seqat dsm``): read LAS/LAZ files with laspy (LAZ through
 lazrs) in the CRS the file declares or the one given, transform to the working CRS with pyproj,
-remove outliers with open3d's statistical filter, keep the **highest return per cell**, fill
-small holes by inverse-distance interpolation (GDAL's ``FillNodata``), leave large gaps as
-nodata and write a float32 COG in metres (:mod:`pipeline.ortho.raster`).
+remove outliers with open3d's statistical filter, keep the **highest return per cell** at the
+cell size asked for, fill its gaps (:mod:`pipeline.ortho.dsm_fill`: interpolated near returns,
+a coarser ground fallback in large enclosed gaps, said in a warning and in the GeoTIFF's
+metadata) and write a float32 COG in metres (:mod:`pipeline.ortho.raster`).
 
 :class:`Dsm` is the in-memory surface the orthorectifier samples: read from a GeoTIFF
 (:func:`read_dsm`, reprojected to the working CRS if needed) or a flat plane
@@ -38,6 +39,7 @@ from rasterio.transform import from_origin
 from scipy import ndimage
 
 from pipeline.common.paths import file_problem
+from pipeline.ortho.dsm_fill import fill_gaps
 from pipeline.ortho.raster import write_cog
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import FloatArray
@@ -64,21 +66,20 @@ class DsmOptions:
     outlier_std_ratio : float
         A point is an outlier when its mean neighbour distance exceeds the mean of all points
         by this many standard deviations.
-    fill_max_hole_m2 : float
-        Empty areas (4-connected nodata cells not touching the border) up to this area are
-        interpolated; larger gaps stay nodata.
-    min_points_per_cell : float
-        The cell grows beyond ``cell_m`` until a cell holds this many points on average (over
-        the cloud's bounding box): with fewer, empty cells join into holes wider than
-        ``fill_max_hole_m2`` (a 0.5 pt/m² cloud gridded at 1 m left 95 % of a rendered
-        flight's footprint without height). 0 keeps ``cell_m``.
+    fill_distance_m : float
+        Empty cells up to this distance from a cell with a return are interpolated from the
+        returns around them (linear, a TIN); raised to twice the mean point spacing when that
+        is larger, so a sparse cloud keeps the cell asked for (docs/formats.md, *dsm.tif*).
+    ground_cell_m : float
+        Empty cells farther from any return but enclosed by the data take the ground
+        fallback: the lowest return per cell of this size (coarser; warned about).
     """
 
     cell_m: float = 1.0
     outlier_neighbors: int = 20
     outlier_std_ratio: float = 2.0
-    fill_max_hole_m2: float = 25.0
-    min_points_per_cell: float = 2.0
+    fill_distance_m: float = 3.0
+    ground_cell_m: float = 10.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.cell_m) and self.cell_m > 0):
@@ -87,11 +88,11 @@ class DsmOptions:
             raise ConfigError(f"outlier_neighbors: expected >= 0, got {self.outlier_neighbors}")
         if not self.outlier_std_ratio > 0:
             raise ConfigError(f"outlier_std_ratio: expected > 0, got {self.outlier_std_ratio!r}")
-        if not self.fill_max_hole_m2 >= 0:
-            raise ConfigError(f"fill_max_hole_m2: expected >= 0, got {self.fill_max_hole_m2!r}")
-        if not (math.isfinite(self.min_points_per_cell) and self.min_points_per_cell >= 0):
-            raise ConfigError(f"min_points_per_cell: expected >= 0, got "
-                              f"{self.min_points_per_cell!r}")
+        if not (math.isfinite(self.fill_distance_m) and self.fill_distance_m >= 0):
+            raise ConfigError(f"fill_distance_m: expected >= 0, got {self.fill_distance_m!r}")
+        if not (math.isfinite(self.ground_cell_m) and self.ground_cell_m > 0):
+            raise ConfigError(f"ground_cell_m: expected a positive number of metres, got "
+                              f"{self.ground_cell_m!r}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -573,18 +574,12 @@ class DsmResult:
     bounds: tuple[float, float, float, float]
     height_range_m: tuple[float, float]
     filled_cells: int
+    interpolated_cells: int
+    ground_cells: int
+    ground_cell_m: float
     nodata_cells: int
     time_s: float
     warnings: tuple[str, ...]
-
-
-def density_cell_m(xyz_m: np.ndarray, options: DsmOptions) -> float:
-    """``cell_m``, or larger so that a cell holds ``min_points_per_cell`` points on average."""
-    if options.min_points_per_cell <= 0 or len(xyz_m) == 0:
-        return options.cell_m
-    extent = np.ptp(xyz_m[:, :2], axis=0)
-    area = float(max(extent[0], options.cell_m) * max(extent[1], options.cell_m))
-    return max(options.cell_m, math.sqrt(options.min_points_per_cell * area / len(xyz_m)))
 
 
 def build_dsm(las_paths: Sequence[Path | str], out_path: Path | str, *, crs: pyproj.CRS,
@@ -630,17 +625,25 @@ def build_dsm(las_paths: Sequence[Path | str], out_path: Path | str, *, crs: pyp
     xyz = np.concatenate(parts)
     keep = remove_outliers(xyz, options.outlier_neighbors, options.outlier_std_ratio)
     kept = xyz[keep]
-    cell_m = density_cell_m(kept, options)
-    if cell_m > options.cell_m:
-        warnings.append(f"dsm: {len(kept)} points over the area give fewer than "
-                        f"{options.min_points_per_cell:g} per {options.cell_m:g} m cell; "
-                        f"cell size {cell_m:.2f} m")
+    cell_m = options.cell_m
     heights, transform = grid_highest(kept, cell_m)
-    max_hole_cells = int(options.fill_max_hole_m2 / cell_m**2)
-    heights, filled = fill_small_holes(heights, max_hole_cells)
+    heights, fill = fill_gaps(heights, transform, kept, fill_distance_m=options.fill_distance_m,
+                              ground_cell_m=options.ground_cell_m)
     nodata = ~np.isfinite(heights)
+    if fill.ground_cells:
+        inside = heights.size - int(nodata.sum())
+        warnings.append(
+            f"dsm: {fill.ground_cells} cells ({100.0 * fill.ground_cells / inside:.1f} % of the "
+            f"surface) are farther than {fill.fill_distance_m:.2g} m from any return; they "
+            f"take the ground fallback (lowest return per {fill.ground_cell_m:g} m cell), "
+            f"coarser than the {cell_m:g} m cell")
     out = np.where(nodata, np.float32(DSM_NODATA), heights).astype(np.float32)
-    path = write_cog(out_path, out[None], transform=transform, crs=crs, nodata=DSM_NODATA)
+    tags = {"SEQAT_CELL_M": f"{cell_m:g}", "SEQAT_FILL_DISTANCE_M": f"{fill.fill_distance_m:g}",
+            "SEQAT_INTERPOLATED_CELLS": str(fill.interpolated_cells),
+            "SEQAT_GROUND_CELLS": str(fill.ground_cells),
+            "SEQAT_GROUND_CELL_M": f"{fill.ground_cell_m:g}"}
+    path = write_cog(out_path, out[None], transform=transform, crs=crs, nodata=DSM_NODATA,
+                     tags=tags)
     rows, cols = heights.shape
     return DsmResult(
         path=path, las_files=tuple(Path(p) for p in las_paths),
@@ -648,5 +651,7 @@ def build_dsm(las_paths: Sequence[Path | str], out_path: Path | str, *, crs: pyp
         points_kept=int(keep.sum()), cell_m=cell_m, rows=rows, cols=cols,
         bounds=rasterio.transform.array_bounds(rows, cols, transform),
         height_range_m=(float(np.nanmin(heights)), float(np.nanmax(heights))),
-        filled_cells=filled, nodata_cells=int(nodata.sum()),
+        filled_cells=fill.interpolated_cells + fill.ground_cells,
+        interpolated_cells=fill.interpolated_cells, ground_cells=fill.ground_cells,
+        ground_cell_m=fill.ground_cell_m, nodata_cells=int(nodata.sum()),
         time_s=time.perf_counter() - t0, warnings=tuple(warnings))

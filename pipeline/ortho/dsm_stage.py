@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -9,7 +10,7 @@ import pyproj
 
 from pipeline.common.outdir import check_not_input
 from pipeline.flight.navigation import resolve_projected_crs, utm_epsg
-from pipeline.ortho.dsm import DsmOptions, DsmResult, build_dsm, parse_las_crs, read_las
+from pipeline.ortho.dsm import DsmResult, build_dsm, parse_las_crs, read_las
 from pipeline.ortho.stage import load_stage_options
 from seqat.errors import InputDataError
 
@@ -37,9 +38,7 @@ def make_dsm(las_paths: Sequence[Path | str], out_path: Path | str, *, crs: str 
                              "(e.g. dsm.tif)")
     options, _, _ = load_stage_options(options_path)
     if cell_m is not None:
-        options = DsmOptions(cell_m=cell_m, outlier_neighbors=options.outlier_neighbors,
-                             outlier_std_ratio=options.outlier_std_ratio,
-                             fill_max_hole_m2=options.fill_max_hole_m2)
+        options = dataclasses.replace(options, cell_m=cell_m)
     source_crs = parse_las_crs(las_crs) if las_crs is not None else None
     if not las_paths:
         raise InputDataError("dsm: no LAS/LAZ file given")

@@ -56,7 +56,7 @@ from pipeline.common.tables import NavTable
 from pipeline.flight.folder import read_flight
 from pipeline.flight.schema import CameraConfig
 from pipeline.ortho.base import OrthoOptions
-from pipeline.ortho.dsm import Dsm
+from pipeline.ortho.dsm import Dsm, DsmOptions
 from pipeline.ortho.mosaic import FEATHER_PX, MosaicBuilder, tiles_of_bounds
 from pipeline.ortho.orthorectifier import Orthorectifier
 from pipeline.ortho.stage import (
@@ -203,8 +203,10 @@ class LiveOrtho:
     def for_flight(cls, flight_dir: Path | str, out_dir: Path | str, *,
                    dsm_path: Path | str | None = None, ortho_options: OrthoOptions | None = None,
                    feather_px: int = FEATHER_PX, out_crs: str | None = None,
-                   options: LiveOrthoOptions | None = None) -> LiveOrtho:
-        """The live ortho of a flight folder, its surface chosen now.
+                   options: LiveOrthoOptions | None = None,
+                   dsm_options: DsmOptions | None = None) -> LiveOrtho:
+        """The live ortho of a flight folder, its surface chosen now (the flight's LiDAR
+        gridded with ``dsm_options``).
 
         Raises
         ------
@@ -218,7 +220,7 @@ class LiveOrtho:
         out = Path(out_dir)
         parse_out_crs(out_crs)  # a bad --crs fails before the LiDAR is gridded
         dsm, warnings = find_dsm(out, flight.crs, Path(dsm_path) if dsm_path else None,
-                                 flight.path)
+                                 flight.path, dsm_options)
         paths = dict(zip(flight.nav.image_ids, flight.image_paths, strict=True))
         return cls(out, crs=flight.crs, camera=flight.camera_config, images=paths,
                    nav=flight.nav, dsm=dsm, dsm_warnings=warnings, ortho_options=ortho_options,
@@ -449,12 +451,15 @@ def open_live_ortho(flight_dir: Path | str, out_dir: Path | str, *,
     """``seqat run --ortho [--dsm D] [--ortho-options FILE]``: the live ortho of a flight.
 
     The options file has the sections ``ortho:`` (:class:`pipeline.ortho.base.OrthoOptions`),
-    ``mosaic: {feather_px: N}`` and ``live:`` (:class:`LiveOrthoOptions`), all optional.
+    ``mosaic: {feather_px: N}``, ``live:`` (:class:`LiveOrthoOptions`) and ``dsm:``
+    (:class:`pipeline.ortho.dsm.DsmOptions`, for the flight's LiDAR), all optional.
     """
     ortho, feather_px, live = OrthoOptions(), FEATHER_PX, LiveOrthoOptions()
+    dsm_options = None
     if options_path is not None:
-        doc = load_sections(options_path, ("live", "mosaic", "ortho"))
+        doc = load_sections(options_path, ("dsm", "live", "mosaic", "ortho"))
         ortho, feather_px = ortho_mosaic_options(options_path, doc)
         live = build_dataclass(LiveOrthoOptions, doc.get("live"), str(options_path), key="live")
+        dsm_options = build_dataclass(DsmOptions, doc.get("dsm"), str(options_path), key="dsm")
     return LiveOrtho.for_flight(flight_dir, out_dir, dsm_path=dsm_path, ortho_options=ortho,
-                                feather_px=feather_px, options=live)
+                                feather_px=feather_px, options=live, dsm_options=dsm_options)

@@ -6,8 +6,9 @@ stays flat however long the flight. Per cell the mosaic keeps the image that see
 nadir** (smallest tangent of the off-nadir angle; for images at one height this is the nearest
 nadir point, so seamlines are the perpendicular bisectors between nadir points); across a
 seamline the two images are blended linearly over ``feather_px`` cells. ``finish()`` writes
-the tiles into a tiled GeoTIFF and converts it into the ``mosaic.tif`` COG with overviews
-(GDAL reads it block by block).
+the tiles, cropped to the bounding box of the cells any image sees (the tiles are only the
+work grid; the COG has its own 512 px blocks), into a tiled GeoTIFF and converts it into the
+``mosaic.tif`` COG with overviews (GDAL reads it block by block).
 
 Tiles: the most recently used ``cache_tiles`` stay in memory (consecutive images share most
 of their tiles); older ones go to the tile store ``<work_dir>/<col>_<row>.npz`` (bands, alpha,
@@ -104,6 +105,8 @@ class MosaicBuilder:
         self.bands: int | None = None
         self.dtype: np.dtype | None = None
         self._tiles: set[tuple[int, int]] = set()  # every tile holding data
+        # Global (row0, row1, col0, col1) of the seen cells of each tile: the crop of finish().
+        self._extent: dict[tuple[int, int], tuple[int, int, int, int]] = {}
         self._stored: set[tuple[int, int]] = set()  # tiles in the tile store
         self._cache: OrderedDict[tuple[int, int], _Tile] = OrderedDict()
         self._dirty: set[tuple[int, int]] = set()
@@ -158,6 +161,7 @@ class MosaicBuilder:
                 tile = self._tile(tc, tr)
                 _blend(tile.colour[dst], tile.alpha[dst], tile.off[dst], r.pixels[src], seen,
                        r.off_nadir[src], feather, ALPHA_OPAQUE[self.dtype])
+                self._grow_extent((tc, tr), seen, g_r0, g_c0)
                 self._tiles.add((tc, tr))
                 self._dirty.add((tc, tr))
                 touched_keys.add((tc, tr))
@@ -173,6 +177,7 @@ class MosaicBuilder:
             self._cache.pop(key, None)
             self._dirty.discard(key)
             self._tiles.discard(key)
+            self._extent.pop(key, None)
             if key in self._stored:
                 self._stored.discard(key)
                 self._tile_path(*key).unlink(missing_ok=True)
@@ -194,11 +199,13 @@ class MosaicBuilder:
         if not self._tiles or self.pixel_m is None or self.dtype is None or self.bands is None:
             raise InputDataError(f"{self.path}: no ortho was added to the mosaic")
         T, p = TILE_PX, self.pixel_m
-        tcs = [tc for tc, _ in self._tiles]
-        trs = [tr for _, tr in self._tiles]
-        tc0, tr0 = min(tcs), min(trs)
-        cols, rows = (max(tcs) - tc0 + 1) * T, (max(trs) - tr0 + 1) * T
-        transform = from_origin(tc0 * T * p, -tr0 * T * p, p, p)
+        # Cropped to the seen cells (the tiles are only the work grid): global cell rows
+        # row0..row1, columns col0..col1 (exclusive ends).
+        extents = [self._extent[key] for key in self._tiles]
+        row0, row1 = min(e[0] for e in extents), max(e[1] for e in extents)
+        col0, col1 = min(e[2] for e in extents), max(e[3] for e in extents)
+        rows, cols = row1 - row0, col1 - col0
+        transform = from_origin(col0 * p, -row0 * p, p, p)
         count = self.bands + 1
         profile = {"driver": "GTiff", "width": cols, "height": rows, "count": count,
                    "dtype": self.dtype.name, "tiled": True, "blockxsize": T, "blockysize": T,
@@ -208,17 +215,33 @@ class MosaicBuilder:
             with rasterio.open(full, "w", **profile) as dst:
                 dst.colorinterp = colorinterp_for(count, alpha=True)
                 for tc, tr in sorted(self._tiles, key=lambda t: (t[1], t[0])):
+                    r0, r1 = max(tr * T, row0), min((tr + 1) * T, row1)
+                    c0, c1 = max(tc * T, col0), min((tc + 1) * T, col1)
                     tile = self._tile(tc, tr)
-                    data = np.concatenate([np.moveaxis(tile.colour, 2, 0), tile.alpha[None]])
-                    dst.write(data, window=Window((tc - tc0) * T, (tr - tr0) * T, T, T))
+                    part = (slice(r0 - tr * T, r1 - tr * T), slice(c0 - tc * T, c1 - tc * T))
+                    data = np.concatenate([np.moveaxis(tile.colour[part], 2, 0),
+                                           tile.alpha[part][None]])
+                    dst.write(data, window=Window(c0 - col0, r0 - row0, c1 - c0, r1 - r0))
             gtiff_to_cog(full, self.path)
         shutil.rmtree(self.work_dir, ignore_errors=True)
-        bounds = (tc0 * T * p, -(tr0 * T + rows) * p, (tc0 * T + cols) * p, -tr0 * T * p)
+        bounds = (col0 * p, -row1 * p, col1 * p, -row0 * p)
         return MosaicResult(path=self.path, images=len(self._images), tiles=len(self._tiles),
                             rows=rows, cols=cols, bounds=bounds,
                             finish_s=time.perf_counter() - t0)
 
     # ----------------------------------------------------------------------------------------
+
+    def _grow_extent(self, key: tuple[int, int], seen: np.ndarray, row0: int,
+                     col0: int) -> None:
+        """Widen the tile's extent by the seen cells of a window whose top-left global cell
+        is ``(row0, col0)``."""
+        rows = np.flatnonzero(seen.any(axis=1))
+        cols = np.flatnonzero(seen.any(axis=0))
+        new = (row0 + int(rows[0]), row0 + int(rows[-1]) + 1, col0 + int(cols[0]),
+               col0 + int(cols[-1]) + 1)
+        old = self._extent.get(key)
+        self._extent[key] = new if old is None else (
+            min(old[0], new[0]), max(old[1], new[1]), min(old[2], new[2]), max(old[3], new[3]))
 
     def _tile_path(self, tc: int, tr: int) -> Path:
         return self.work_dir / f"{tc}_{tr}.npz"

@@ -1,5 +1,6 @@
-"""Occlusion of the orthorectifier: a z-buffer of DSM cells and facades hides what the camera
-cannot see."""
+"""Occlusion of the orthorectifier: a z-buffer of DSM cells and facades (default), or rays cast
+through the DSM's triangle mesh with open3d (``occlusion_method: raycast``), hides what the
+camera cannot see (docs/benchmarks.md, *Occlusion: z-buffer or open3d ray casting*)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import numpy as np
 
 from pipeline.ortho.base import BLOCK_ROWS, MAX_FACADE_PX, OCCLUSION_SUBSAMPLE, OUTSIDE_PX
 from pipeline.ortho.projection import Projection
+from pipeline.ortho.raycast import DsmMesh
 from seqat.types import FloatArray
 
 
@@ -118,6 +120,44 @@ class OcclusionMixin:
         nearest = cv2.remap(zbuf, uv_b, None, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
         nearest += tol
         hidden_s = (seen_s & (depth_s > nearest)).view(np.uint8)
+        return self._apply_hidden(proj, hidden_s)
+
+    def _hide_occluded_raycast(self, proj: Projection, eop: FloatArray, col0: int, row0: int,
+                               window: tuple[float, float, float, float]) -> int:
+        """As :meth:`_hide_occluded`, by ray casting (``occlusion_method: raycast``).
+
+        The same sub-sampled cells each cast one ray from the camera towards their ground
+        point through the DSM's triangle mesh (:class:`~pipeline.ortho.raycast.DsmMesh`,
+        open3d's ``RaycastingScene``, built once); a cell is hidden when the ray meets the
+        surface more than the tolerance (``occlusion_tolerance_cells`` ground cells) before
+        it. Exact visibility of the triangulated DSM: no buckets, no facade samples.
+        """
+        z_lo, z_hi = self.dsm.height_range(window)
+        p = self.pixel_m
+        assert p is not None
+        if not math.isfinite(z_lo) or z_hi - z_lo <= self.options.occlusion_tolerance_cells * p:
+            return 0
+        if self._mesh is None:
+            self._mesh = DsmMesh(self.dsm)
+        k = OCCLUSION_SUBSAMPLE
+        seen_s = proj.seen_s
+        r, c = np.nonzero(seen_s)
+        if r.size == 0:
+            return 0
+        ground = np.column_stack([(col0 + k * c + 0.5) * p, -(row0 + k * r + 0.5) * p,
+                                  proj.z_s[r, c].astype(np.float64)])
+        ray = ground - eop[:3]
+        distance = np.linalg.norm(ray, axis=1)
+        t_hit = self._mesh.first_hit_m(eop[:3], ray / distance[:, None])
+        hidden = t_hit < distance - self.options.occlusion_tolerance_cells * p
+        hidden_s = np.zeros(seen_s.shape, np.uint8)
+        hidden_s[r[hidden], c[hidden]] = 1
+        return self._apply_hidden(proj, hidden_s)
+
+    def _apply_hidden(self, proj: Projection, hidden_s: np.ndarray) -> int:
+        """Unsee every cell of the k x k blocks whose sampled cell is hidden (uint8 mask of
+        the sub-sampled grid); the number of cells hidden."""
+        k = OCCLUSION_SUBSAMPLE
         rows, cols = proj.seen.shape
         if not hidden_s.any():
             return 0

@@ -60,6 +60,7 @@ from pipeline.ortho.dsm import Dsm
 from pipeline.ortho.footprint import FootprintMixin
 from pipeline.ortho.occlusion import OcclusionMixin
 from pipeline.ortho.projection import ProjectionMixin
+from pipeline.ortho.raycast import DsmMesh
 from pipeline.ortho.writing import cropped, write_ortho
 from seqat.errors import InputDataError
 from seqat.geometry import rays_world, rotation_matrix
@@ -111,6 +112,7 @@ class Orthorectifier(FootprintMixin, ProjectionMixin, OcclusionMixin):
         self._distorted = (any((camera.k1, camera.k2, camera.p1, camera.p2, camera.k3))
                            or camera.fy_px != camera.fx_px)
         self._buffers: dict[str, np.ndarray] = {}
+        self._mesh: DsmMesh | None = None  # the DSM for ray-cast occlusion, built on first use
         self._pool = ThreadPoolExecutor(max_workers=self.options.threads)
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ortho-cog")
         self._pending: Future[Path] | None = None
@@ -190,8 +192,12 @@ class Orthorectifier(FootprintMixin, ProjectionMixin, OcclusionMixin):
             warnings.append(f"image {image_id!r}: {off_dsm} cells of the footprint have no DSM "
                             f"height ({self.dsm.source}); they are left empty")
         t_occ = time.perf_counter()
-        occluded = (self._hide_occluded(proj, eop, R, col0, row0, window)
-                    if self.options.occlusion else 0)
+        if not self.options.occlusion:
+            occluded = 0
+        elif self.options.occlusion_method == "raycast":
+            occluded = self._hide_occluded_raycast(proj, eop, col0, row0, window)
+        else:
+            occluded = self._hide_occluded(proj, eop, R, col0, row0, window)
         occlusion_ms = (time.perf_counter() - t_occ) * 1e3
         if not np.any(proj.seen):
             raise InputDataError(f"image {image_id!r}: no ground cell is seen: the DSM "
@@ -222,6 +228,15 @@ class Orthorectifier(FootprintMixin, ProjectionMixin, OcclusionMixin):
                            compute_ms=compute_ms, write_ms=(time.perf_counter() - t1) * 1e3,
                            occlusion_ms=occlusion_ms,
                            warnings=tuple(warnings))
+
+    def prepare_occlusion(self) -> int:
+        """Build the DSM's ray-casting mesh now (``occlusion_method: raycast``; otherwise on
+        the first image that needs it); the number of its triangles (0 for the z-buffer)."""
+        if self.options.occlusion_method != "raycast":
+            return 0
+        if self._mesh is None:
+            self._mesh = DsmMesh(self.dsm)
+        return self._mesh.triangles
 
     def ground_window(self, image_id: str, eop: FloatArray) -> tuple[float, float, float, float]:
         """``(west, south, east, north)`` of the ground an image would cover (what

@@ -16,7 +16,7 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -106,7 +106,8 @@ def colorinterp_for(count: int, alpha: bool) -> list[ColorInterp]:
 
 
 def write_cog(path: Path | str, data: np.ndarray, *, transform: Affine, crs: pyproj.CRS,
-              nodata: float | None = None, alpha: bool = False) -> Path:
+              nodata: float | None = None, alpha: bool = False,
+              tags: Mapping[str, str] | None = None) -> Path:
     """Write a north-up raster as a Cloud Optimized GeoTIFF, atomically.
 
     Parameters
@@ -121,6 +122,8 @@ def write_cog(path: Path | str, data: np.ndarray, *, transform: Affine, crs: pyp
         Nodata value of every band (not with ``alpha``).
     alpha : bool
         The last band is an alpha band (``ExtraSamples`` = unassociated alpha).
+    tags : mapping, optional
+        GDAL metadata items of the dataset (``gdalinfo`` lists them; ``src.tags()``).
 
     Returns
     -------
@@ -139,6 +142,8 @@ def write_cog(path: Path | str, data: np.ndarray, *, transform: Affine, crs: pyp
     with atomic_path(path) as tmp, rasterio.Env(GDAL_CACHEMAX=COG_CACHE_MB), \
             rasterio.MemoryFile() as memfile, memfile.open(**profile) as mem:
         mem.colorinterp = colorinterp_for(count, alpha)
+        if tags:
+            mem.update_tags(**tags)
         mem.write(data)
         rasterio.shutil.copy(mem, tmp, driver="COG", **cog_options(data.dtype.name))
     return path

@@ -238,10 +238,11 @@ def flight_lidar(flight_dir: Path) -> tuple[Path, ...]:
     return tuple(p if p.is_absolute() else flight_dir / p for p in map(Path, names))
 
 
-def find_dsm(run_dir: Path, crs: pyproj.CRS, dsm_path: Path | None,
-             flight_dir: Path) -> tuple[Dsm | None, tuple[str, ...]]:
+def find_dsm(run_dir: Path, crs: pyproj.CRS, dsm_path: Path | None, flight_dir: Path,
+             dsm_options: DsmOptions | None = None) -> tuple[Dsm | None, tuple[str, ...]]:
     """The measured surface, first found: ``dsm_path``; ``run_dir/dsm.tif``; the flight's
-    ``lidar:`` (a GeoTIFF as is, LAS/LAZ gridded into ``run_dir/dsm.tif``); else None."""
+    ``lidar:`` (a GeoTIFF as is, LAS/LAZ gridded into ``run_dir/dsm.tif`` with
+    ``dsm_options``, the ``dsm:`` section of the options file); else None."""
     if dsm_path is not None:
         return read_dsm(dsm_path, crs), ()
     if (run_dir / DSM_FILE).is_file():
@@ -250,7 +251,7 @@ def find_dsm(run_dir: Path, crs: pyproj.CRS, dsm_path: Path | None,
     if lidar and all(p.suffix.lower() in GEOTIFF_SUFFIXES for p in lidar):
         return read_dsm(lidar[0], crs), ()
     if lidar:
-        result = build_dsm(lidar, run_dir / DSM_FILE, crs=crs)
+        result = build_dsm(lidar, run_dir / DSM_FILE, crs=crs, options=dsm_options)
         return read_dsm(result.path, crs), result.warnings
     return None, ()
 
@@ -269,9 +270,10 @@ def flat_plane(z_m: float, cameras_xyz_m: np.ndarray, crs: pyproj.CRS, what: str
 
 
 def choose_dsm(run_dir: Path, crs: pyproj.CRS, dsm_path: Path | None, flight_dir: Path,
-               eops: EopTable, points_z_m: np.ndarray) -> tuple[Dsm, tuple[str, ...]]:
+               eops: EopTable, points_z_m: np.ndarray,
+               dsm_options: DsmOptions | None = None) -> tuple[Dsm, tuple[str, ...]]:
     """The surface of ``seqat ortho`` (module docstring) and warnings."""
-    dsm, warnings = find_dsm(run_dir, crs, dsm_path, flight_dir)
+    dsm, warnings = find_dsm(run_dir, crs, dsm_path, flight_dir, dsm_options)
     if dsm is not None:
         return dsm, warnings
     if len(points_z_m) == 0:
@@ -363,7 +365,8 @@ def finish_ortho(run_dir: Path, mosaic: MosaicBuilder, records: Sequence[ImageOr
 def orthorectify_run(out_dir: Path | str, *, dsm_path: Path | str | None = None,
                      eop_source: EopSource = "seq-r", options: OrthoOptions | None = None,
                      feather_px: int = FEATHER_PX, out_crs: str | None = None,
-                     progress: bool = True) -> OrthoRunSummary:
+                     progress: bool = True,
+                     dsm_options: DsmOptions | None = None) -> OrthoRunSummary:
     """Orthorectify every image of a run and build the mosaic and ``cameras.gpkg``.
 
     Parameters
@@ -383,6 +386,8 @@ def orthorectify_run(out_dir: Path | str, *, dsm_path: Path | str | None = None,
         ``cameras.gpkg`` stays in the working CRS (GIS reproject vectors on the fly).
     progress : bool
         Transient progress bar on a terminal.
+    dsm_options : DsmOptions, optional
+        How the flight's LiDAR is gridded when there is no DSM yet (``dsm:`` section).
 
     Returns
     -------
@@ -407,7 +412,7 @@ def orthorectify_run(out_dir: Path | str, *, dsm_path: Path | str | None = None,
                              "nothing to orthorectify")
     files = image_files(run.images_dir)
     dsm, warnings_dsm = choose_dsm(run_dir, run.crs, Path(dsm_path) if dsm_path else None,
-                                   run.flight_dir, eops, run.points.xyz_m[:, 2])
+                                   run.flight_dir, eops, run.points.xyz_m[:, 2], dsm_options)
     warnings = list(warnings_dsm) + list(camera_warnings(run.inputs.camera_approximate))
     records: list[ImageOrtho] = []
     skipped: list[str] = []

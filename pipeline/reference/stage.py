@@ -34,6 +34,7 @@ from pipeline.reference.colmap_ba import (
     adjust_reference,
     loss_of_run,
 )
+from pipeline.run.exports import image_file_names
 from pipeline.run.store import (
     JSON_INDENT,
     RunFolder,
@@ -209,8 +210,19 @@ def _point_estimates(result: ReferenceResult) -> list[PointEstimate]:
                           n_obs=int(result.n_obs[j])) for j, pid in enumerate(result.point_ids)]
 
 
-def write_reference(out_dir: Path, result: ReferenceResult, record: ReferenceRecord) -> Path:
+def name_images(reconstruction: object, names: Mapping[str, str]) -> None:
+    """Give the model's images the file names of the images folder (``img_0001.jpg``, not the
+    image id ``img_0001``): COLMAP tools find the pixels by ``image_path / name``
+    (``pycolmap.undistort_images``, dense reconstruction). Ids without a file keep the id."""
+    for image in reconstruction.images.values():  # type: ignore[attr-defined]
+        image.name = names.get(image.name, image.name)
+
+
+def write_reference(out_dir: Path, result: ReferenceResult, record: ReferenceRecord,
+                    image_names: Mapping[str, str] | None = None) -> Path:
     """Publish ``out_dir/reference/`` whole: built in a temporary sibling, then renamed.
+
+    ``image_names``: image id -> file name of the model's images (:func:`name_images`).
 
     Returns
     -------
@@ -223,6 +235,8 @@ def write_reference(out_dir: Path, result: ReferenceResult, record: ReferenceRec
             shutil.copytree(target / SFM_DIR, tmp / SFM_DIR)
         model = tmp / COLMAP_MODEL_DIR
         model.mkdir()
+        if image_names:
+            name_images(result.reconstruction, image_names)
         result.reconstruction.write_binary(str(model))
         result.reconstruction.write_text(str(model))
         atomic_write_text(tmp / EOP_FILE, format_eop_csv(_eop_estimates(result)))
@@ -281,5 +295,6 @@ def run_reference(out_dir: Path | str,
         covariance=result.covariance_status,
         origin_m=(float(result.origin[0]), float(result.origin[1]), float(result.origin[2])),
         pycolmap_version=str(pycolmap.__version__))
-    folder = write_reference(out, result, record)
+    names = image_file_names(run.images_dir, result.image_ids)
+    folder = write_reference(out, result, record, names)
     return ReferenceSummary(out_dir=out, reference_dir=folder, record=record)

@@ -52,6 +52,7 @@ from pipeline.flight.camera import estimated_camera
 from pipeline.flight.inputs import RunInputs, SkippedImage
 from pipeline.flight.schema import CameraConfig
 from pipeline.run.accuracy import Accuracy
+from pipeline.run.exports import export_files
 from pipeline.run.robustness import RobustnessRecord
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import CameraEstimate, EopEstimate, ImageUpdate, PointEstimate, Solution
@@ -393,15 +394,20 @@ def write_run_outputs(out_dir: Path | str, solution: Solution, record: RunRecord
     Returns
     -------
     tuple[Path, ...]
-        ``eop.csv``, ``points.csv``, ``run.json``, ``nav.csv``, ``observations.csv``.
+        ``eop.csv``, ``points.csv``, ``run.json``, ``nav.csv``, ``observations.csv``, then
+        the exports for other tools (:func:`pipeline.run.exports.export_files`).
     """
     nav = record.inputs.nav
+    inputs = record.inputs
+    exports = export_files(eop_table(solution.eops), point_table(solution.points), inputs.crs,
+                           inputs.camera, inputs.images_dir)
     return write_files_atomically(out_dir, {
         EOP_FILE: format_eop_csv(solution.eops),
         POINTS_FILE: format_points_csv(solution.points),
         RUN_FILE: format_run_json(record),
         NAV_FILE: format_nav_csv(nav.image_ids, nav.times_s, nav.eop),
         OBSERVATIONS_FILE: format_csv_line(OBS_COLUMNS) + observations_text,
+        **exports,
     })
 
 

@@ -5,11 +5,14 @@ working CRS, metres) and a texture (:class:`Texture`, an image with a map from w
 coordinates to texture pixels). :class:`Renderer` renders the *observed* image of an OpenCV
 camera: every observed pixel is undistorted once per camera (:class:`pipeline.flight.camera.
 PixelCorrector`, ``cv2.undistortPoints``) into an ideal pinhole ray, the ray is rotated into
-the world for each pose, marched down from above the highest terrain in steps of at most
-``MARCH_STEP_CELLS`` cells until it first passes below the surface (first hit = visibility),
-and the crossing is refined by bisection on the bilinear surface. The colour is the texture
-sampled bilinearly at the hit point (``cv2.remap``). Mild vignetting and noise are added by
-:func:`finish_image`.
+the world for each pose, marched down in steps of at most ``MARCH_STEP_CELLS`` cells until it
+first passes below the surface (first hit = visibility), and the crossing is refined by
+bisection on the bilinear surface. The march starts where the ray first meets a triangle mesh
+lifted just above the surface (:class:`SurfaceMesh`: open3d's ``RaycastingScene``), on the step
+grid of a march from above the highest terrain, so it finds the same crossing in a few steps
+instead of ~50 (docs/benchmarks.md, *Occlusion and rendering with open3d*). The colour is
+the texture sampled bilinearly at the hit point (``cv2.remap``). Mild vignetting and noise are
+added by :func:`finish_image`.
 
 Exactness (tests/pipeline/simulate/test_render.py): projecting a ground point with the true EOP
 (``seqat.geometry.project`` + distortion) lands on the rendered feature within 0.5 px.
@@ -39,6 +42,8 @@ HEIGHT_MARGIN_M = 1.0
 CHUNK_RAYS = 65536
 #: Colour of rays that leave the height field or the texture.
 BACKGROUND = 0
+#: The march starts this far (metres along the ray) before the first hit of the lifted mesh.
+MESH_START_MARGIN_M = 0.01
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -133,7 +138,55 @@ class Scene:
     texture: Texture
 
 
-def cast_rays(surface: HeightField, origin_m: FloatArray, dirs: FloatArray) -> FloatArray:
+class SurfaceMesh:
+    """Where to start marching: the bilinear surface's triangles *lifted above it*, in open3d's
+    ``RaycastingScene`` (Embree BVH).
+
+    Vertices at the cell centres; in a cell the two triangles (split along the 00-11 diagonal)
+    differ from the bilinear patch by at most ``|h00 + h11 - h01 - h10| / 4``, so every vertex
+    is raised by the largest such bound of its cells: the mesh then lies on or above the
+    bilinear surface everywhere, and a ray's first hit of it comes no later than its first
+    crossing of the surface. The march starts there (a few steps instead of ~50 from above the
+    highest terrain) and finds the same crossing. Coordinates relative to the field's corner
+    and mean height (open3d is float32).
+    """
+
+    def __init__(self, surface: HeightField) -> None:
+        import open3d as o3d
+
+        h = surface.heights_m
+        rows, cols = h.shape
+        q = np.abs(h[:-1, :-1] + h[1:, 1:] - h[:-1, 1:] - h[1:, :-1]) / 4.0
+        lift = np.zeros_like(h)
+        for dr in (0, 1):
+            for dc in (0, 1):
+                view = lift[dr:rows - 1 + dr, dc:cols - 1 + dc]
+                np.maximum(view, q, out=view)
+        self.origin = np.array([surface.west_m, surface.north_m, float(h.mean())])
+        r, c = np.mgrid[0:rows, 0:cols]
+        vertices = np.column_stack([(c.ravel() + 0.5) * surface.cell_m,
+                                    -(r.ravel() + 0.5) * surface.cell_m,
+                                    (h + lift).ravel() - self.origin[2]]).astype(np.float32)
+        v = np.arange(rows * cols, dtype=np.uint32).reshape(rows, cols)
+        a, b, c0, d = v[:-1, :-1].ravel(), v[:-1, 1:].ravel(), v[1:, :-1].ravel(), v[1:, 1:].ravel()
+        triangles = np.concatenate([np.column_stack([a, b, d]), np.column_stack([a, d, c0])])
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(triangles))
+        self._o3d = o3d
+
+    def first_hit(self, origin_m: FloatArray, dirs: FloatArray) -> FloatArray:
+        """Ray parameter ``t`` (in units of each direction's length) of the first hit of the
+        lifted mesh; ``inf`` for rays that miss it."""
+        norm = np.linalg.norm(dirs, axis=1)
+        rays = np.empty((len(dirs), 6), np.float32)
+        rays[:, :3] = np.asarray(origin_m, np.float64) - self.origin
+        rays[:, 3:] = dirs / norm[:, None]
+        t = self._o3d.core.Tensor(rays)
+        return self.scene.cast_rays(t)["t_hit"].numpy().astype(np.float64) / norm
+
+
+def cast_rays(surface: HeightField, origin_m: FloatArray, dirs: FloatArray,
+              mesh: SurfaceMesh | None = None) -> FloatArray:
     """First intersection of rays with the bilinear surface.
 
     Parameters
@@ -143,6 +196,10 @@ def cast_rays(surface: HeightField, origin_m: FloatArray, dirs: FloatArray) -> F
         Common origin (the projection centre), above the surface.
     dirs : (n, 3) float
         Ray directions (any length), pointing downwards (``dz < 0``).
+    mesh : SurfaceMesh, optional
+        Start each ray's march at its first hit of the lifted mesh (minus 1 cm) instead of
+        above the highest terrain; rays that miss it, or are already below the surface
+        there, march from the top.
 
     Returns
     -------
@@ -161,22 +218,36 @@ def cast_rays(surface: HeightField, origin_m: FloatArray, dirs: FloatArray) -> F
     dd = d[idx]
     t0 = (z_top - o[2]) / dd[:, 2]
     t1 = (z_bottom - o[2]) / dd[:, 2]
-    horizontal = np.hypot(dd[:, 0], dd[:, 1]) * (t1 - t0)
-    n_steps = max(1, int(np.ceil(horizontal.max() / (MARCH_STEP_CELLS * surface.cell_m))))
-    dt = (t1 - t0) / n_steps
 
     def above(t: np.ndarray, rows: np.ndarray) -> np.ndarray:
         p = o + t[:, None] * dd[rows]
         return p[:, 2] - surface.sample(p[:, 0], p[:, 1])
 
-    all_rows = np.arange(idx.size)
+    horizontal = np.hypot(dd[:, 0], dd[:, 1]) * (t1 - t0)
+    n_steps = max(1, int(np.ceil(horizontal.max() / (MARCH_STEP_CELLS * surface.cell_m))))
+    dt = (t1 - t0) / n_steps
+    # First step to test per ray: 1, or (with the mesh) the first step after the start, on the
+    # same step grid, so the crossing found is the one the full march finds.
+    k_first = np.ones(idx.size, np.int64)
+    if mesh is not None:
+        start = mesh.first_hit(o, dd) - MESH_START_MARGIN_M / np.linalg.norm(dd, axis=1)
+        k_start = np.floor((start - t0) / dt)
+        usable = np.isfinite(k_start) & (k_start >= 1) & (k_start < n_steps)
+        rows = np.flatnonzero(usable)
+        t_grid = t0[rows] + k_start[rows] * dt[rows]
+        usable[rows[above(t_grid, rows) <= 0.0]] = False  # already below: march from the top
+        k_first[usable] = k_start[usable].astype(np.int64) + 1
     t_hit_lo = np.full(idx.size, np.nan)
-    pending = all_rows
-    for k in range(1, n_steps + 1):
-        t_k = t0[pending] + k * dt[pending]
-        below = above(t_k, pending) <= 0.0
-        t_hit_lo[pending[below]] = t_k[below] - dt[pending[below]]
-        pending = pending[~below]
+    pending = np.arange(idx.size)
+    for k in range(int(k_first.min()), n_steps + 1):
+        active = pending[k_first[pending] <= k]
+        if active.size == 0:
+            continue
+        t_k = t0[active] + k * dt[active]
+        below = above(t_k, active) <= 0.0
+        t_hit_lo[active[below]] = t_k[below] - dt[active[below]]
+        if below.any():
+            pending = np.setdiff1d(pending, active[below], assume_unique=True)
         if pending.size == 0:
             break
     found = np.flatnonzero(np.isfinite(t_hit_lo))
@@ -197,9 +268,12 @@ class Renderer:
     The ideal rays of all observed pixels are computed once (undistortion is per camera).
     """
 
-    def __init__(self, scene: Scene, camera: CameraConfig) -> None:
+    def __init__(self, scene: Scene, camera: CameraConfig, *, mesh_start: bool = True) -> None:
         self.scene = scene
         self.camera = camera
+        #: open3d's first hits of the lifted mesh start the march (:class:`SurfaceMesh`);
+        #: False: every ray marches from above the highest terrain (the same hits, slower).
+        self.mesh = SurfaceMesh(scene.surface) if mesh_start else None
         w, h = camera.width_px, camera.height_px
         u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
         ideal = PixelCorrector(camera=camera).ideal_pixels(np.column_stack([u.ravel(),
@@ -215,7 +289,8 @@ class Renderer:
         out = np.empty_like(self.rays_cam)
         for start in range(0, len(self.rays_cam), CHUNK_RAYS):
             chunk = self.rays_cam[start:start + CHUNK_RAYS] @ R.T
-            out[start:start + CHUNK_RAYS] = cast_rays(self.scene.surface, e[:3], chunk)
+            out[start:start + CHUNK_RAYS] = cast_rays(self.scene.surface, e[:3], chunk,
+                                                      self.mesh)
         return out.reshape(self.camera.height_px, self.camera.width_px, 3)
 
     def render(self, eop: FloatArray) -> np.ndarray:

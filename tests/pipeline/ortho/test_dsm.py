@@ -126,20 +126,73 @@ def test_las_in_feet_is_converted_to_metres_in_the_working_crs(tmp_path: Path) -
     assert height_at(result.path, E0_M + 25.5, N0_M + 25.5) > Z0_M + BUILDING[4]
 
 
-def test_small_holes_are_filled_and_large_gaps_stay_nodata(tmp_path: Path) -> None:
+def test_holes_are_interpolated_and_large_gaps_take_the_ground(tmp_path: Path) -> None:
     small = (50.0, 50.0, 52.0, 52.0)  # 4 m^2
     las = write_las(tmp_path / "a.las", scene_points(hole=small), UTM10)
-    large = (5.0, 40.0, 15.0, 50.0)  # 100 m^2
-    las2 = write_las(tmp_path / "b.las", scene_points(hole=large)[::1], UTM10)
+    large = (5.0, 40.0, 15.0, 50.0)  # 100 m^2: its centre is 5 m from any return
+    las2 = write_las(tmp_path / "b.las", scene_points(hole=large), UTM10)
     # Filter off: on this clean scene it only trims building corners (filled as holes too).
-    opts = DsmOptions(cell_m=1.0, fill_max_hole_m2=25.0, outlier_neighbors=0)
+    opts = DsmOptions(cell_m=1.0, fill_distance_m=2.0, ground_cell_m=10.0, outlier_neighbors=0)
     filled = build_dsm([las], tmp_path / "a.tif", crs=UTM10, options=opts)
-    assert filled.filled_cells == 4 and filled.nodata_cells == 0
+    assert (filled.interpolated_cells, filled.ground_cells, filled.nodata_cells) == (4, 0, 0)
+    assert filled.warnings == ()
     assert height_at(filled.path, E0_M + 50.5, N0_M + 50.5) == pytest.approx(
-        Z0_M + SLOPE * 50.5, abs=0.3)
+        Z0_M + SLOPE * 50.5, abs=HEIGHT_TOL_M)
     gap = build_dsm([las2], tmp_path / "b.tif", crs=UTM10, options=opts)
-    assert gap.filled_cells == 0 and gap.nodata_cells == 100
-    assert height_at(gap.path, E0_M + 10.5, N0_M + 45.5) == DSM_NODATA
+    assert gap.nodata_cells == 0 and gap.interpolated_cells + gap.ground_cells == 100
+    assert gap.ground_cells == 36  # the 6 x 6 cells more than 2 m from the rim
+    assert any("ground fallback" in w and "coarser than the 1 m cell" in w
+               for w in gap.warnings)
+    with rasterio.open(gap.path) as src:
+        assert src.tags()["SEQAT_GROUND_CELLS"] == "36"
+        assert src.tags()["SEQAT_CELL_M"] == "1"
+    # The lowest return of the 10 m ground cell under the gap's centre, on the 0.1 slope:
+    # the plane within half a ground cell of slope.
+    assert height_at(gap.path, E0_M + 10.5, N0_M + 45.5) == pytest.approx(
+        Z0_M + SLOPE * 10.5, abs=SLOPE * 5.0 + HEIGHT_TOL_M)
+    assert cog_problems(gap.path) == ()
+
+
+def test_fill_gaps_interpolates_a_plane_exactly() -> None:
+    """A synthetic gap in a tilted plane takes the plane's value (a TIN is exact on planes);
+    cells beyond the data's outline stay nodata."""
+    from rasterio.transform import from_origin
+
+    from pipeline.ortho.dsm_fill import fill_gaps
+
+    rows, cols = np.mgrid[0:40, 0:50]
+    plane = (100.0 + 0.3 * cols - 0.2 * rows).astype(np.float32)
+    heights = plane.copy()
+    heights[10:14, 20:25] = np.nan  # the gap: 20 cells
+    heights[:, 45:] = np.nan  # beyond the cloud's east edge
+    transform = from_origin(0.0, 40.0, 1.0, 1.0)
+    r, c = np.nonzero(np.isfinite(heights))
+    xyz = np.column_stack([c + 0.5, 40.0 - r - 0.5, heights[r, c]])
+    out, fill = fill_gaps(heights, transform, xyz, fill_distance_m=3.0, ground_cell_m=10.0)
+    assert fill.interpolated_cells == 20 and fill.ground_cells == 0
+    np.testing.assert_allclose(out[10:14, 20:25], plane[10:14, 20:25], atol=1e-4)
+    assert np.all(np.isnan(out[:, 46:]))  # outside the outline (one cell closes the edge)
+    assert fill.nodata_cells == int(np.isnan(out).sum())
+
+
+def test_sparse_cloud_keeps_the_cell_asked_for(tmp_path: Path) -> None:
+    """One point per 2 m^2 gridded at 0.5 m: the cell stays 0.5 m and every cell inside the
+    cloud has a height (interpolated: 7 of 8 cells have no return)."""
+    xyz = scene_points()[::4]  # every 4th point of each row: 2 m apart in x
+    xyz = xyz[(np.floor((xyz[:, 1] - N0_M) / SPACING_M) % 2) == 0]  # every 2nd row: 1 m in y
+    las = write_las(tmp_path / "sparse.las", xyz, UTM10)
+    result = build_dsm([las], tmp_path / "sparse.tif", crs=UTM10,
+                       options=DsmOptions(cell_m=0.5, outlier_neighbors=0))
+    assert result.cell_m == 0.5 and result.ground_cells == 0
+    with rasterio.open(result.path) as src:
+        assert src.res == (0.5, 0.5)
+        heights = src.read(1)
+    occupied = result.rows * result.cols - result.interpolated_cells - result.nodata_cells
+    assert occupied == len(xyz) and result.interpolated_cells > 6 * occupied
+    assert np.count_nonzero(heights == DSM_NODATA) == result.nodata_cells
+    assert result.nodata_cells < 0.03 * heights.size  # outside the hull of the ragged edge
+    assert height_at(result.path, E0_M + 40.25, N0_M + 12.25) == pytest.approx(
+        Z0_M + SLOPE * 40.25, abs=0.3)
 
 
 def test_las_without_crs_needs_las_crs(tmp_path: Path) -> None:
@@ -179,6 +232,41 @@ def test_cli_dsm_reports_a_missing_crs_in_one_line(tmp_path: Path) -> None:
     assert ok.exit_code == 0, ok.output
     with rasterio.open(tmp_path / "d.tif") as src:
         assert src.crs.to_epsg() == 32610 and src.transform.a == 2.0  # auto: UTM zone 10N
+
+
+@pytest.mark.parametrize(("section", "message"), [
+    ("dsm: {ground_cell_m: 0}", "ground_cell_m: expected a positive number of metres, got 0"),
+    ("dsm: {fill_distance_m: -1}", "fill_distance_m: expected >= 0, got -1"),
+    ("dsm: {fill_max_hole_m2: 25}", "dsm.fill_max_hole_m2: unknown key"),
+])
+def test_cli_dsm_bad_fill_options_are_one_line_exit_2(tmp_path: Path, section: str,
+                                                      message: str) -> None:
+    las = write_las(tmp_path / "a.las", scene_points(), UTM10)
+    options = tmp_path / "o.yaml"
+    options.write_text(section + "\n")
+    result = CliRunner().invoke(app, ["dsm", str(las), "--out", str(tmp_path / "d.tif"),
+                                      "--options", str(options)])
+    assert result.exit_code == 2
+    assert result.stderr.startswith("seqat: error: ") and result.stderr.count("\n") == 1
+    assert message in result.stderr and str(options) in result.stderr
+    assert sorted(tmp_path.iterdir()) == sorted([las, options])  # nothing written
+
+
+def test_flight_lidar_is_gridded_at_the_cell_of_the_options(tmp_path: Path) -> None:
+    """``seqat ortho`` / ``run --ortho`` grid the flight's LiDAR with the ``dsm:`` section
+    (it was ignored: the live ortho always gridded at the default cell)."""
+    from pipeline.ortho.stage import find_dsm
+
+    autzen = Path(__file__).resolve().parents[3] / "sample_data" / "autzen_rendered"
+    dsm, warnings = find_dsm(tmp_path, UTM10, None, autzen, DsmOptions(cell_m=0.5))
+    assert dsm is not None and dsm.cell_m == (0.5, 0.5)
+    with rasterio.open(tmp_path / "dsm.tif") as src:
+        assert src.res == (0.5, 0.5) and src.tags()["SEQAT_CELL_M"] == "0.5"
+        heights, ground = src.read(1), int(src.tags()["SEQAT_GROUND_CELLS"])
+    # The sparse sample cloud (0.47 points/m^2) at 0.5 m: no hole inside, ground fallback in
+    # well under 1 % of the cells, and said so.
+    assert 0 < ground < 0.01 * heights.size
+    assert any("ground fallback" in w for w in warnings)
 
 
 def test_read_dsm_reprojects_a_feet_dsm(tmp_path: Path) -> None:
@@ -240,19 +328,6 @@ def test_autzen_las_gives_a_dsm_in_metres(shared_data: Path, tmp_path: Path) -> 
                      las_crs=parse_las_crs(str(folder / "autzen-srs.wkt")),
                      options=DsmOptions(cell_m=5.0))
     assert thin.points_read == 10653
-
-
-def test_sparse_cloud_gets_a_larger_cell() -> None:
-    """2 points per cell on average: 10 000 points over 200 m x 100 m -> cell 2 m."""
-    from pipeline.ortho.dsm import DsmOptions, density_cell_m
-
-    rng = np.random.default_rng(2)
-    xyz = np.column_stack([rng.uniform(0, 200, 10_000), rng.uniform(0, 100, 10_000),
-                           np.zeros(10_000)])
-    xyz[0, :2], xyz[1, :2] = (0.0, 0.0), (200.0, 100.0)  # exact extent
-    assert density_cell_m(xyz, DsmOptions()) == pytest.approx(2.0)
-    assert density_cell_m(xyz, DsmOptions(cell_m=3.0)) == 3.0  # never finer than asked
-    assert density_cell_m(xyz, DsmOptions(min_points_per_cell=0)) == 1.0
 
 
 def test_truncated_las_says_so(tmp_path: Path) -> None:

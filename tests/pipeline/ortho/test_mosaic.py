@@ -10,7 +10,7 @@ import pytest
 import rasterio
 
 from pipeline.ortho.base import OrthoOptions, OrthoResult
-from pipeline.ortho.mosaic import TILE_PX, MosaicBuilder
+from pipeline.ortho.mosaic import MosaicBuilder
 from pipeline.ortho.orthorectifier import Orthorectifier
 from pipeline.ortho.raster import cog_problems
 from seqat.errors import InputDataError
@@ -47,7 +47,22 @@ def test_mosaic_picks_the_most_nadir_image_with_a_short_feather(
     with rasterio.open(result.path) as src:
         assert src.crs.to_epsg() == 32652
         assert src.overviews(1)  # larger than one tile
-        assert src.transform.c % (TILE_PX * PIXEL_M) == pytest.approx(0.0, abs=1e-6)
+        # On the global grid (cell edges at multiples of the pixel), cropped to the data:
+        # the union of the orthos' seen cells, not the 512 px tiles they fall in.
+        assert src.transform.c / PIXEL_M == pytest.approx(round(src.transform.c / PIXEL_M),
+                                                          abs=1e-6)
+        west = min(o.raster.transform.c + PIXEL_M * np.flatnonzero(o.raster.seen.any(0))[0]
+                   for o in strip_orthos)
+        north = max(o.raster.transform.f - PIXEL_M * np.flatnonzero(o.raster.seen.any(1))[0]
+                    for o in strip_orthos)
+        east = max(o.raster.transform.c + PIXEL_M * (np.flatnonzero(o.raster.seen.any(0))[-1]
+                                                     + 1) for o in strip_orthos)
+        south = min(o.raster.transform.f - PIXEL_M * (np.flatnonzero(o.raster.seen.any(1))[-1]
+                                                      + 1) for o in strip_orthos)
+        assert tuple(src.bounds) == pytest.approx((west, south, east, north), abs=1e-6)
+        assert result.bounds == pytest.approx((west, south, east, north), abs=1e-6)
+        full = src.read(src.count)
+        assert full[0].any() and full[-1].any() and full[:, 0].any() and full[:, -1].any()
         # Along the strip's centre line: offset of each cell against the texture.
         row, _ = src.index(E0_M, N0_M)
         band = src.read(1, window=rasterio.windows.Window(0, row, src.width, 1))[0]

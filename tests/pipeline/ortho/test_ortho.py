@@ -103,15 +103,17 @@ def box_scene() -> tuple[Scene, np.ndarray]:
     return scene, eop_deg(-6.0, -1.0, 50.0, 2.0, -3.0, 10.0)
 
 
+@pytest.mark.parametrize("method", ["zbuffer", "raycast"])
 @pytest.mark.parametrize("distorted", [True, False], ids=["distorted", "ideal-camera"])
-def test_occluded_ground_is_not_filled_from_the_roof(distorted: bool) -> None:
+def test_occluded_ground_is_not_filled_from_the_roof(distorted: bool, method: str) -> None:
     scene, eop = box_scene()
     cam = small_camera(distorted)  # an ideal camera skips the distortion table
     image = render(scene, cam, eop)
     rasters = {}
     for occlusion in (True, False):
         with Orthorectifier(scene.dsm(), cam, CRS, None,
-                            OrthoOptions(pixel_m=PIXEL_M, occlusion=occlusion)) as ortho:
+                            OrthoOptions(pixel_m=PIXEL_M, occlusion=occlusion,
+                                         occlusion_method=method)) as ortho:
             rasters[occlusion] = ortho.add_image("img", image, eop)
     with_occ, without = rasters[True].raster, rasters[False].raster
     assert with_occ.shape == without.shape and with_occ.col0 == without.col0

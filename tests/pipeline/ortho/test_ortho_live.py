@@ -188,10 +188,16 @@ def test_cli_run_ortho_flags(tmp_path: Path, small_sim_dir: Path) -> None:
     bad = CliRunner().invoke(app, ["run", str(small_sim_dir), "--out", str(tmp_path / "c"),
                                    "--ortho", "--ortho-options", str(options)])
     assert bad.exit_code == 2 and "reortho_shift_px" in bad.output
-    options.write_text("dsm:\n  cell_m: 1\n")  # seqat dsm's section has no use here
+    # The dsm: section grids the flight's LiDAR (issue 14), so it is read and checked.
+    options.write_text("dsm:\n  cell_m: -1\n")
     bad = CliRunner().invoke(app, ["run", str(small_sim_dir), "--out", str(tmp_path / "c"),
                                    "--ortho", "--ortho-options", str(options)])
-    assert bad.exit_code == 2 and "dsm: unknown key" in bad.output
+    assert bad.exit_code == 2 and "cell_m: expected a positive number" in bad.output
+    options.write_text("dsm:\n  min_points_per_cell: 2\n")  # removed with the gap filling
+    bad = CliRunner().invoke(app, ["run", str(small_sim_dir), "--out", str(tmp_path / "c"),
+                                   "--ortho", "--ortho-options", str(options)])
+    assert bad.exit_code == 2 and "dsm.min_points_per_cell: unknown key" in bad.output
+    assert not (tmp_path / "c").exists()
 
 
 @pytest.mark.skipif(not hasattr(os, "setpriority"), reason="per-thread priority: Linux")

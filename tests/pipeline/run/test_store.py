@@ -157,7 +157,8 @@ def test_run_outputs_are_published_together(tmp_path: Path) -> None:
     record = sample_record(eops)
     obs = format_observation_lines("img_0000", ("p1", "p2"), np.array([[1.5, 2.25], [3.0, 4.0]]))
     files = write_run_outputs(out, solution, record, obs)
-    names = ["eop.csv", "points.csv", "run.json", "nav.csv", "observations.csv"]
+    names = ["eop.csv", "points.csv", "run.json", "nav.csv", "observations.csv",
+             "shots.geojson", "cameras_opk.csv", "cameras_opk.prj", "tie_points.laz"]
     assert [p.name for p in files] == names
     assert sorted(p.name for p in out.iterdir()) == sorted(names)
     assert read_eop_csv(out / "eop.csv").image_ids == ("img_0000", "img_0001")
@@ -202,6 +203,27 @@ def test_failed_publish_leaves_no_folder_and_no_temp_files(tmp_path: Path,
     with pytest.raises(OSError, match="No space left"):
         write_files_atomically(tmp_path / "new" / "run", {"a.csv": "x\n", "b.csv": "y\n"})
     assert list(tmp_path.iterdir()) == []  # the folders it created are gone again
+
+
+def test_bytes_are_published_with_the_text_files(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The run's binary export (tie_points.laz) goes through the same publish: temporary
+    file, fsync, rename; a failure leaves no temporary file and no partial LAZ."""
+    files = {"a.csv": "x\n", "b.laz": bytes(range(256))}
+    written = write_files_atomically(tmp_path / "ok", files)
+    assert written[1].read_bytes() == bytes(range(256)) and written[0].read_text() == "x\n"
+    real_replace = atomic.os.replace
+
+    def failing_last(src: str, dst: str) -> None:
+        if str(dst).endswith("b.laz"):
+            raise OSError(28, "No space left on device")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(atomic.os, "replace", failing_last)
+    with pytest.raises(OSError, match="No space left"):
+        write_files_atomically(tmp_path / "new", files)
+    assert not (tmp_path / "new" / "b.laz").exists()
+    assert not list((tmp_path / "new").glob(".*"))  # no temporary file left
 
 
 def test_failed_write_keeps_previous_file(tmp_path: Path) -> None:
