@@ -42,7 +42,7 @@ ALLOWED: dict[str, set[str]] = {
     "ortho": {"common", "flight", "run"},
     "simulate": {"common", "flight", "run", "ortho"},
     "report": {"common", "flight", "run", "reference"},
-    "bench": {"common", "flight", "run", "ortho", "simulate", "report"},
+    "bench": {"common", "flight", "run", "reference", "ortho", "simulate", "report"},
     "cli": {"common", "tracking", "flight", "run", "reference", "ortho", "simulate", "report",
             "bench"},
 }
