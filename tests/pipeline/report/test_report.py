@@ -165,8 +165,9 @@ def test_report_without_truth_is_against_the_reference(sim_flight: Path,
     doc = make_report(out).report
     assert doc.accuracy_against == "reference"
     assert "colmap" not in doc.accuracy and "colmap" in doc.methods
-    # Sim and the COLMAP reference are the same estimator.
-    assert doc.accuracy["sim"].pos_rmse_3d_m < 1e-3
+    # Sim and the COLMAP reference: the same model and the same loss core (the run's robust
+    # loss; COLMAP's Huber tail differs beyond 3 sigma: docs/algorithm.md, *Robust loss*)
+    assert doc.accuracy["sim"].pos_rmse_3d_m < 1e-2
     assert doc.accuracy["direct"].pos_rmse_3d_m > 0.1
     assert doc.checkpoints is None
     assert any("no check points" in n for n in doc.notes)
