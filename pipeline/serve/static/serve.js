@@ -12,6 +12,8 @@ const tiles = L.tileLayer("/tiles/{z}/{x}/{y}.png?v=0", {
   tileSize: 256, maxZoom: 24, maxNativeZoom: 19, minZoom: 0,
   attribution: "mosaic.tif · seqat",
 }).addTo(map);
+// cameras above the tie points, whatever order they are (re)loaded in
+map.createPane("cameras").style.zIndex = 450;
 const points = L.layerGroup().addTo(map);
 const cameras = L.layerGroup().addTo(map);
 L.control.layers(null, { "mosaic": tiles, "tie points": points, "cameras": cameras },
@@ -63,7 +65,7 @@ async function loadCameras() {
       (p.sigma_position_m - range[0]) / (range[1] - range[0]) : 0.5;
     L.circleMarker([lat, lon], {
       radius: 7, color: "#000", weight: 1, fillColor: colour(t), fillOpacity: 0.95,
-      className: "seqat-camera",
+      className: "seqat-camera", pane: "cameras",
     }).bindTooltip(`${p.image}<br>σ X Y Z ${fmt(p.sx_m, 3)} ${fmt(p.sy_m, 3)} ` +
       `${fmt(p.sz_m, 3)} m<br>σ ω φ κ ${fmt(p.somega_deg, 4)} ${fmt(p.sphi_deg, 4)} ` +
       `${fmt(p.skappa_deg, 4)}°`).addTo(cameras);
@@ -78,7 +80,7 @@ async function loadPoints() {
   for (const f of fc.features) {
     const [lon, lat] = f.geometry.coordinates;
     L.circleMarker([lat, lon], {
-      radius: 2, stroke: false, fillColor: "#d62728", fillOpacity: 0.7,
+      radius: 1.5, stroke: false, fillColor: "#d62728", fillOpacity: 0.6,
       className: "seqat-point", interactive: false,
     }).addTo(points);
   }
