@@ -14,6 +14,7 @@ import math
 import os
 import threading
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TypeVar
 
@@ -76,6 +77,18 @@ def _opt(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
+@dataclass(frozen=True)
+class JournalView:
+    """The journal's images: ``live`` records, ids, nav positions (working CRS) and the
+    working CRS when the journal records it (``seqat watch``'s ``setup`` record)."""
+
+    live: list[Mapping[str, object]] = field(default_factory=list)
+    image_ids: list[str] = field(default_factory=list)
+    nav_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    crs_wkt: str | None = None
+    warning: str | None = None
+
+
 class RunView:
     """The run folder ``out`` as the page sees it; parsed files are cached per file version
     (inode, mtime, size), so polling costs a ``stat`` per file while nothing changes."""
@@ -110,27 +123,31 @@ class RunView:
 
         return self._cached(name, key, load)
 
-    def _journal(self) -> tuple[list[Mapping[str, object]], str | None, str | None]:
-        """(per-image ``live`` records, last image id, warning) of the journal."""
+    def _journal(self) -> JournalView:
+        """What the journal says of the images adjusted so far."""
         path = self.out / JOURNAL_DIR / JOURNAL_FILE
         key = _stat_key(path)
         if key is None:
-            return [], None, None
+            return JournalView()
 
-        def load() -> tuple[list[Mapping[str, object]], str | None, str | None]:
+        def load() -> JournalView:
             try:
                 contents = read_journal(self.out)
             except InputDataError as err:
-                return [], None, str(err)
+                return JournalView(warning=str(err))
             if contents is None:
-                return [], None, None
-            last = contents.images[-1].frame.image_id if contents.images else None
-            return [dict(r.live) for r in contents.images], last, None
+                return JournalView()
+            setup_crs = None if contents.setup is None else contents.setup.get("crs")
+            return JournalView(
+                live=[dict(r.live) for r in contents.images],
+                image_ids=[r.frame.image_id for r in contents.images],
+                nav_xyz=np.array([r.frame.nav_eop[:3] for r in contents.images],
+                                 float).reshape(-1, 3),
+                crs_wkt=None if setup_crs is None else str(setup_crs))
 
         return self._cached("journal", key, load)
 
-    def _crs_transformer(self, run: Mapping[str, object]) -> pyproj.Transformer:
-        wkt = str(run.get("crs"))
+    def _crs_transformer(self, wkt: str) -> pyproj.Transformer:
         return self._cached("transformer", wkt, lambda: pyproj.Transformer.from_crs(
             pyproj.CRS.from_wkt(wkt), "EPSG:4326", always_xy=True))
 
@@ -148,8 +165,8 @@ class RunView:
         warnings: list[str] = []
         run, run_err = self._json(RUN_FILE)
         ortho, ortho_err = self._json(ORTHO_JSON)
-        live_records, last_live_image, journal_err = self._journal()
-        warnings += [w for w in (run_err, ortho_err, journal_err) if w]
+        journal = self._journal()
+        warnings += [w for w in (run_err, ortho_err, journal.warning) if w]
         done = self.is_done()
         cameras = self.cameras()
         record: Mapping[str, object] | None = None
@@ -165,9 +182,9 @@ class RunView:
             sigma0 = _finite(totals.get("sigma0"))  # type: ignore[union-attr]
             warnings += [str(w) for w in run.get("warnings", []) or []]  # type: ignore[union-attr]
         else:
-            images = len(live_records)
-            last_image = last_live_image
-            record = live_records[-1] if live_records else None
+            images = len(journal.live)
+            last_image = journal.image_ids[-1] if journal.image_ids else None
+            record = journal.live[-1] if journal.live else None
             sigma0 = None if record is None else _finite(record.get("sigma0"))
             if images == 0:
                 warnings.append("no image adjusted yet")
@@ -214,13 +231,17 @@ class RunView:
         run, _ = self._json(RUN_FILE)
         path = self.out / EOP_FILE
         key = _stat_key(path)
+        if not self.is_done():
+            journal = self._journal()
+            if journal.crs_wkt is not None and journal.image_ids:
+                return self._live_cameras(journal)
         if run is None or key is None:
             return {"type": "FeatureCollection", "features": []}
 
         def load() -> dict[str, object]:
             try:
                 table = read_eop_csv(path)
-                transformer = self._crs_transformer(run)
+                transformer = self._crs_transformer(str(run.get("crs")))
             except (InputDataError, pyproj.exceptions.CRSError):
                 return {"type": "FeatureCollection", "features": []}
             lon, lat = transformer.transform(table.eop[:, 0], table.eop[:, 1])
@@ -229,7 +250,10 @@ class RunView:
             sigma_pos = _sigma_norm(table.sigma[:, :3])
             features = []
             for i, image in enumerate(table.image_ids):
-                props: dict[str, object] = {"image": image, "sigma_position_m": sigma_pos[i]}
+                if not (np.isfinite(lon[i]) and np.isfinite(lat[i])):
+                    continue
+                props: dict[str, object] = {"image": image, "position": "estimate",
+                                            "sigma_position_m": sigma_pos[i]}
                 for j, name in enumerate(("x_m", "y_m", "z_m")):
                     props[name] = float(table.eop[i, j])
                 for j, name in enumerate(("omega_deg", "phi_deg", "kappa_deg")):
@@ -244,6 +268,31 @@ class RunView:
 
         return self._cached("cameras", (key, _stat_key(self.out / RUN_FILE)), load)
 
+    def _live_cameras(self, journal: JournalView) -> dict[str, object]:
+        """A live ``seqat watch``: the journal's images at their nav position (the estimate
+        is published at the end) with the posterior σ right after their update."""
+        try:
+            transformer = self._crs_transformer(str(journal.crs_wkt))
+        except pyproj.exceptions.CRSError:
+            return {"type": "FeatureCollection", "features": []}
+        lon, lat = transformer.transform(journal.nav_xyz[:, 0], journal.nav_xyz[:, 1])
+        features = []
+        for i, image in enumerate(journal.image_ids):
+            if not (np.isfinite(lon[i]) and np.isfinite(lat[i])):
+                continue  # a GNSS dropout without a start value
+            raw = journal.live[i].get("sigma_position_m")
+            sigma = np.array(raw if isinstance(raw, list | tuple) and len(raw) == 3
+                             else [np.nan] * 3, float)
+            props: dict[str, object] = {
+                "image": image, "position": "nav",
+                "sigma_position_m": _sigma_norm(sigma[None, :])[0],
+                "x_m": float(journal.nav_xyz[i, 0]), "y_m": float(journal.nav_xyz[i, 1]),
+                "z_m": float(journal.nav_xyz[i, 2]),
+                "sx_m": _opt(sigma[0]), "sy_m": _opt(sigma[1]), "sz_m": _opt(sigma[2])}
+            features.append({"type": "Feature", "properties": props, "geometry": {
+                "type": "Point", "coordinates": [float(lon[i]), float(lat[i])]}})
+        return {"type": "FeatureCollection", "features": features}
+
     def points(self) -> dict[str, object]:
         """The tie points of ``points.csv`` in WGS 84 with σ; at most :data:`MAX_POINTS`, an
         even subsample (``total`` and ``shown`` say how many)."""
@@ -256,7 +305,7 @@ class RunView:
         def load() -> dict[str, object]:
             try:
                 table = read_points_csv(path)
-                transformer = self._crs_transformer(run)
+                transformer = self._crs_transformer(str(run.get("crs")))
             except (InputDataError, pyproj.exceptions.CRSError):
                 return {"type": "FeatureCollection", "features": [], "total": 0, "shown": 0}
             total = len(table)
@@ -266,6 +315,8 @@ class RunView:
             sigma = _sigma_norm(table.sigma_m[keep])
             features = []
             for k, i in enumerate(keep):
+                if not (np.isfinite(lon[k]) and np.isfinite(lat[k])):
+                    continue
                 features.append({"type": "Feature", "geometry": {
                     "type": "Point", "coordinates": [float(lon[k]), float(lat[k])]},
                     "properties": {

@@ -66,7 +66,8 @@ async function loadCameras() {
     L.circleMarker([lat, lon], {
       radius: 7, color: "#000", weight: 1, fillColor: colour(t), fillOpacity: 0.95,
       className: "seqat-camera", pane: "cameras",
-    }).bindTooltip(`${p.image}<br>σ X Y Z ${fmt(p.sx_m, 3)} ${fmt(p.sy_m, 3)} ` +
+    }).bindTooltip(`${p.image}${p.position === "nav" ? " (nav position, run going on)" : ""}` +
+      `<br>σ X Y Z ${fmt(p.sx_m, 3)} ${fmt(p.sy_m, 3)} ` +
       `${fmt(p.sz_m, 3)} m<br>σ ω φ κ ${fmt(p.somega_deg, 4)} ${fmt(p.sphi_deg, 4)} ` +
       `${fmt(p.skappa_deg, 4)}°`).addTo(cameras);
   }

@@ -21,6 +21,7 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from pipeline.cli import app
+from pipeline.run.journal import encode_record, read_journal
 from pipeline.run.store import read_eop_csv, read_json_object
 from pipeline.serve.app import Served, serving
 
@@ -179,6 +180,38 @@ def test_live_folder_and_replaced_mosaic(mosaic_run: Path, tmp_path: Path) -> No
         write_mosaic(out, (10, 20, 30))  # atomic replace, as a live run does
         assert tuple(tile_rgba(served, tile.z, tile.x, tile.y)[128, 128]) == (10, 20, 30, 255)
         assert json.loads(get(served, "/status.json")[2])["version"] != first["version"]
+
+
+def test_live_watch_cameras_at_their_nav_position(mosaic_run: Path, tmp_path: Path) -> None:
+    """A live ``seqat watch`` journal (its ``setup`` record names the CRS): the cameras at
+    their nav position with the σ of their update, until the run publishes eop.csv."""
+    out = tmp_path / "watch"
+    (out / "journal").mkdir(parents=True)
+    shutil.copy(mosaic_run / ".seqat-run", out)
+    run = read_json_object(mosaic_run / "run.json")
+    lines = (mosaic_run / "journal" / "journal.log").read_bytes().splitlines(keepends=True)
+    setup = encode_record({"kind": "setup", "crs": run["crs"], "camera": run["camera"],
+                           "camera_approximate": False})
+    (out / "journal" / "journal.log").write_bytes(lines[0] + setup + b"".join(lines[1:4]))
+    journal = read_journal(out)
+    assert journal is not None and len(journal.images) == 3
+    with serving(out) as served:
+        features = json.loads(get(served, "/cameras.geojson")[2])["features"]
+        assert [f["properties"]["image"] for f in features] == [
+            r.frame.image_id for r in journal.images]
+        crs = pyproj.CRS.from_wkt(str(run["crs"]))
+        nav = np.array([r.frame.nav_eop[:2] for r in journal.images])
+        lon, lat = pyproj.Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(
+            nav[:, 0], nav[:, 1])
+        np.testing.assert_allclose([f["geometry"]["coordinates"] for f in features],
+                                   np.column_stack([lon, lat]), rtol=0, atol=1e-12)
+        assert all(f["properties"]["position"] == "nav" for f in features)
+        np.testing.assert_allclose(
+            [f["properties"]["sigma_position_m"] for f in features],
+            [np.linalg.norm(r.live["sigma_position_m"]) for r in journal.images])
+        status = json.loads(get(served, "/status.json")[2])
+        assert status["images"] == status["cameras"] == 3 and status["done"] is False
+        assert status["last_image"] == journal.images[-1].frame.image_id
 
 
 def test_cli_bad_input(tmp_path: Path, mosaic_run: Path) -> None:
