@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from pipeline.run.store import read_eop_csv
-from pipeline.serve.app import Served
+from pipeline.serve.app import Served, serving
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
@@ -61,3 +61,30 @@ def test_page_shows_tiles_cameras_and_status(browser: Any, served: Served,
     assert browser.find_elements(By.CSS_SELECTOR, "path.seqat-point")
     logs = [e for e in browser.get_log("browser") if e.get("level") == "SEVERE"]
     assert logs == []
+
+
+def test_page_follows_a_live_run_without_reload(browser: Any, mosaic_run: Path,
+                                                tmp_path: Path) -> None:
+    """A run folder with only its journal; the run then publishes its files: the page,
+    polling status.json, shows the cameras and the finished state without a reload."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    out = tmp_path / "live"
+    out.mkdir()
+    shutil.copy(mosaic_run / ".seqat-run", out)
+    shutil.copytree(mosaic_run / "journal", out / "journal")
+    n_images = len(read_eop_csv(mosaic_run / "eop.csv"))
+    with serving(out) as served:
+        browser.get(served.url)
+        wait = WebDriverWait(browser, 20)
+        wait.until(lambda d: d.find_element(By.ID, "state").text == "live")
+        assert browser.find_element(By.ID, "images").text == str(n_images)
+        assert not browser.find_elements(By.CSS_SELECTOR, "path.seqat-camera")
+        browser.execute_script("window.seqatNotReloaded = true;")
+        for name in ("run.json", "eop.csv", "points.csv", "mosaic.tif"):
+            shutil.copy(mosaic_run / name, out / name)
+        wait.until(lambda d: len(d.find_elements(By.CSS_SELECTOR, "path.seqat-camera"))
+                   == n_images)
+        wait.until(lambda d: d.find_element(By.ID, "state").text == "finished")
+        assert browser.execute_script("return window.seqatNotReloaded === true;")
