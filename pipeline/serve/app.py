@@ -28,7 +28,7 @@ from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
 from pipeline.serve.runview import MOSAIC_FILE, RunView, check_run_folder
-from pipeline.serve.tiles import MosaicTiles, tile_in_range
+from pipeline.serve.tiles import MosaicTiles, MosaicUnreadable, tile_in_range
 from seqat.errors import InputDataError
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
@@ -43,9 +43,12 @@ def build_app(out: Path) -> Starlette:
     view = RunView(out)
     tiles = MosaicTiles(out / MOSAIC_FILE)
 
-    def mosaic_info() -> dict[str, object] | None:
-        info = tiles.info()
-        return None if info is None else dataclasses.asdict(info)
+    def mosaic_info() -> tuple[dict[str, object] | None, str | None]:
+        try:
+            info = tiles.info()
+        except MosaicUnreadable as err:
+            return None, str(err)
+        return (None if info is None else dataclasses.asdict(info)), None
 
     def index(request: Request) -> Response:
         return FileResponse(STATIC_DIR / "index.html", headers=NO_CACHE)
@@ -54,10 +57,15 @@ def build_app(out: Path) -> Starlette:
         z, x, y = (request.path_params[k] for k in ("z", "x", "y"))
         if not tile_in_range(z, x, y):
             return Response("no such tile", status_code=404, media_type="text/plain")
-        return Response(tiles.tile(z, x, y), media_type="image/png", headers=NO_CACHE)
+        try:
+            png = tiles.tile(z, x, y)
+        except MosaicUnreadable as err:
+            return Response(str(err), status_code=503, media_type="text/plain",
+                            headers=NO_CACHE)
+        return Response(png, media_type="image/png", headers=NO_CACHE)
 
     def status(request: Request) -> Response:
-        return JSONResponse(view.status(mosaic_info()), headers=NO_CACHE)
+        return JSONResponse(view.status(*mosaic_info()), headers=NO_CACHE)
 
     def cameras(request: Request) -> Response:
         return JSONResponse(view.cameras(), media_type="application/geo+json",

@@ -160,8 +160,11 @@ class RunView:
         journal_key = _stat_key(self.out / JOURNAL_DIR / JOURNAL_FILE)
         return run_key is not None and (journal_key is None or journal_key[1] <= run_key[1])
 
-    def status(self, mosaic: Mapping[str, object] | None) -> dict[str, object]:
-        """``status.json`` (docs/formats.md, *seqat serve*)."""
+    def status(self, mosaic: Mapping[str, object] | None,
+               mosaic_error: str | None = None) -> dict[str, object]:
+        """``status.json`` (docs/formats.md, *seqat serve*); ``mosaic``: its
+        :class:`~pipeline.serve.tiles.MosaicInfo` as a dict, ``mosaic_error``: why it cannot
+        be read."""
         warnings: list[str] = []
         run, run_err = self._json(RUN_FILE)
         ortho, ortho_err = self._json(ORTHO_JSON)
@@ -201,9 +204,10 @@ class RunView:
             if isinstance(rows, list) and rows and isinstance(rows[-1], dict):
                 ortho_latency = _finite(rows[-1].get("latency_ms"))
             warnings += [str(w) for w in ortho.get("warnings", []) or []]  # type: ignore[union-attr]
-        if mosaic is None:
-            warnings.append(f"no {MOSAIC_FILE} yet" if done or images else
-                            f"no {MOSAIC_FILE}")
+        if mosaic_error is not None:
+            warnings.append(mosaic_error)
+        elif mosaic is None:
+            warnings.append(f"no {MOSAIC_FILE}" if done else f"no {MOSAIC_FILE} yet")
         versions = [mosaic["version"] if mosaic else "-"] + [
             "-" if k is None else f"{k[1]}-{k[2]}" for k in (
                 _stat_key(self.out / n) for n in (RUN_FILE, EOP_FILE, POINTS_FILE, ORTHO_JSON))]

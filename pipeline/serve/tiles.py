@@ -47,6 +47,10 @@ class MosaicInfo:
     maxzoom: int
 
 
+class MosaicUnreadable(Exception):
+    """``mosaic.tif`` exists but cannot be read (damaged, or not a raster)."""
+
+
 def tile_in_range(z: int, x: int, y: int) -> bool:
     """A tile index of ``WebMercatorQuad`` (zoom 0..24)."""
     return 0 <= z <= 24 and 0 <= x < 2 ** z and 0 <= y < 2 ** z
@@ -88,27 +92,42 @@ class MosaicTiles:
                     minzoom=int(r.minzoom), maxzoom=int(r.maxzoom))
         return self._reader
 
+    def _current_or_raise(self) -> Reader | None:
+        try:
+            return self._current()
+        except Exception as err:  # noqa: BLE001 - rasterio's and rio-tiler's errors alike
+            self.close_locked()
+            raise MosaicUnreadable(f"{self.path.name}: cannot read: {err}") from err
+
     def info(self) -> MosaicInfo | None:
-        """Bounds and zooms of the mosaic as it is now; None without a (readable) mosaic."""
+        """Bounds and zooms of the mosaic as it is now; None without a mosaic.
+
+        Raises
+        ------
+        MosaicUnreadable
+        """
         with self._lock:
-            try:
-                self._current()
-            except Exception:  # noqa: BLE001 - a mosaic being replaced or damaged: no mosaic
-                self.close_locked()
-                return None
+            self._current_or_raise()
             return self._info
 
     def tile(self, z: int, x: int, y: int) -> bytes:
         """The PNG of tile ``z/x/y``; :data:`EMPTY_TILE` outside the data or without a
-        mosaic."""
+        mosaic.
+
+        Raises
+        ------
+        MosaicUnreadable
+        """
         with self._lock:
-            reader = self._current()
+            reader = self._current_or_raise()
             if reader is None or not reader.tile_exists(x, y, z):
                 return EMPTY_TILE
             try:
                 img = reader.tile(x, y, z, tilesize=TILE_PX)
             except TileOutsideBounds:
                 return EMPTY_TILE
+            except Exception as err:  # noqa: BLE001 - a damaged block
+                raise MosaicUnreadable(f"{self.path.name}: cannot read: {err}") from err
         if not img.mask.any():
             return EMPTY_TILE
         return img.render(img_format="PNG")

@@ -180,6 +180,13 @@ def test_live_folder_and_replaced_mosaic(mosaic_run: Path, tmp_path: Path) -> No
         write_mosaic(out, (10, 20, 30))  # atomic replace, as a live run does
         assert tuple(tile_rgba(served, tile.z, tile.x, tile.y)[128, 128]) == (10, 20, 30, 255)
         assert json.loads(get(served, "/status.json")[2])["version"] != first["version"]
+        # a damaged mosaic: 503 for its tiles, a warning naming it, the rest still served
+        (out / "mosaic.tif").write_bytes(b"II*\0 not a tiff")
+        status, _, body = get(served, f"/tiles/{tile.z}/{tile.x}/{tile.y}.png")
+        assert status == 503 and b"mosaic.tif: cannot read" in body
+        doc = json.loads(get(served, "/status.json")[2])
+        assert doc["mosaic"] is None and doc["done"] is True
+        assert any(w.startswith("mosaic.tif: cannot read") for w in doc["warnings"])
 
 
 def test_live_watch_cameras_at_their_nav_position(mosaic_run: Path, tmp_path: Path) -> None:
