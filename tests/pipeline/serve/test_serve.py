@@ -24,6 +24,7 @@ from pipeline.cli import app
 from pipeline.run.journal import encode_record, read_journal
 from pipeline.run.store import read_eop_csv, read_json_object
 from pipeline.serve.app import Served, serving
+from pipeline.serve.runview import MAX_POINTS, RunView
 
 from .conftest import write_mosaic
 
@@ -250,3 +251,17 @@ def test_served_folder_is_not_left_open(mosaic_run: Path) -> None:
         again.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         again.bind(("127.0.0.1", port))
     assert os.path.isdir(mosaic_run)
+
+
+def test_points_subsampled_evenly(mosaic_run: Path, tmp_path: Path) -> None:
+    out = tmp_path / "many"
+    out.mkdir()
+    shutil.copy(mosaic_run / "run.json", out)
+    rows = [f"p{i:05d},{500000 + i * 0.01},{4090000 + i * 0.01},100.0,0.1,0.1,0.2,3"
+            for i in range(12001)]
+    (out / "points.csv").write_text("point,x_m,y_m,z_m,sx_m,sy_m,sz_m,n_obs\n"
+                                    + "\n".join(rows) + "\n")
+    doc = RunView(out).points()
+    ids = [f["properties"]["point"] for f in doc["features"]]  # type: ignore[union-attr]
+    assert doc["total"] == 12001 and doc["shown"] == len(ids) == MAX_POINTS
+    assert ids[0] == "p00000" and ids[-1] == "p12000" and ids == sorted(set(ids))
