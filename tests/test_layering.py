@@ -43,8 +43,9 @@ ALLOWED: dict[str, set[str]] = {
     "simulate": {"common", "flight", "run", "ortho"},
     "report": {"common", "flight", "run", "reference"},
     "bench": {"common", "flight", "run", "reference", "ortho", "simulate", "report"},
+    "serve": {"common", "run"},
     "cli": {"common", "tracking", "flight", "run", "reference", "ortho", "simulate", "report",
-            "bench"},
+            "bench", "serve"},
 }
 SEQAT = _modules("seqat")
 

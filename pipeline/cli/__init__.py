@@ -1,5 +1,5 @@
 """The ``seqat`` command line (DESIGN.md "Command line"): ``app``, built from one Typer
-sub-app per stage (simulate, run / watch / feed, bench, reference, report, dsm / ortho).
+sub-app per stage (simulate, run / watch / feed, bench, reference, report, dsm / ortho, serve).
 
 Commands only parse arguments, call one stage function and print its typed summary.
 Exit codes: 0 success; 2 bad input or configuration (any :class:`~seqat.errors.SeqatError`,
@@ -14,7 +14,7 @@ from typing import Annotated
 
 import typer
 
-from pipeline.cli import bench, ortho, process, reference, report, run, simulate
+from pipeline.cli import bench, ortho, process, reference, report, run, serve, simulate
 from pipeline.cli.common import OPTIONS
 
 app = typer.Typer(
@@ -35,5 +35,5 @@ def _main(
     OPTIONS.debug = debug
 
 
-for _sub in (simulate, run, process, bench, reference, report, ortho):
+for _sub in (simulate, run, process, bench, reference, report, ortho, serve):
     app.add_typer(_sub.app)

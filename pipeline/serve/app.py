@@ -1,0 +1,162 @@
+"""The web map of ``seqat serve OUT``: a Starlette application on uvicorn.
+
+Read-only and confined to fixed routes: no route takes a file name, so no request can reach
+a path outside the run folder (the page's own files come from the package's ``static/``
+folder through Starlette's ``StaticFiles``, which refuses paths leaving it).
+
+Routes (docs/formats.md, *seqat serve*): ``/`` (the page), ``/tiles/{z}/{x}/{y}.png``
+(``mosaic.tif`` as 256 x 256 Web Mercator tiles, transparent outside the data),
+``/status.json``, ``/cameras.geojson``, ``/points.geojson``, ``/static/...`` (the page's
+script and style, Leaflet).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import errno
+import socket
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import uvicorn
+from starlette.applications import Starlette
+from starlette.requests import Request
+from starlette.responses import FileResponse, JSONResponse, Response
+from starlette.routing import Mount, Route
+from starlette.staticfiles import StaticFiles
+
+from pipeline.serve.runview import MOSAIC_FILE, RunView, check_run_folder
+from pipeline.serve.tiles import MosaicTiles, MosaicUnreadable, tile_in_range
+from seqat.errors import InputDataError
+
+STATIC_DIR = Path(__file__).resolve().parent / "static"
+#: Never cached by the browser: the run folder changes under a live run.
+NO_CACHE = {"Cache-Control": "no-cache"}
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_PORT = 8765
+
+
+def build_app(out: Path) -> Starlette:
+    """The application serving the run folder ``out`` (checked by the caller)."""
+    view = RunView(out)
+    tiles = MosaicTiles(out / MOSAIC_FILE)
+
+    def mosaic_info() -> tuple[dict[str, object] | None, str | None]:
+        try:
+            info = tiles.info()
+        except MosaicUnreadable as err:
+            return None, str(err)
+        return (None if info is None else dataclasses.asdict(info)), None
+
+    def index(request: Request) -> Response:
+        return FileResponse(STATIC_DIR / "index.html", headers=NO_CACHE)
+
+    def tile(request: Request) -> Response:
+        z, x, y = (request.path_params[k] for k in ("z", "x", "y"))
+        if not tile_in_range(z, x, y):
+            return Response("no such tile", status_code=404, media_type="text/plain")
+        try:
+            png = tiles.tile(z, x, y)
+        except MosaicUnreadable as err:
+            return Response(str(err), status_code=503, media_type="text/plain",
+                            headers=NO_CACHE)
+        return Response(png, media_type="image/png", headers=NO_CACHE)
+
+    def status(request: Request) -> Response:
+        return JSONResponse(view.status(*mosaic_info()), headers=NO_CACHE)
+
+    def cameras(request: Request) -> Response:
+        return JSONResponse(view.cameras(), media_type="application/geo+json",
+                            headers=NO_CACHE)
+
+    def points(request: Request) -> Response:
+        return JSONResponse(view.points(), media_type="application/geo+json",
+                            headers=NO_CACHE)
+
+    app = Starlette(routes=[
+        Route("/", index, methods=["GET", "HEAD"]),
+        Route("/tiles/{z:int}/{x:int}/{y:int}.png", tile, methods=["GET", "HEAD"]),
+        Route("/status.json", status, methods=["GET", "HEAD"]),
+        Route("/cameras.geojson", cameras, methods=["GET", "HEAD"]),
+        Route("/points.geojson", points, methods=["GET", "HEAD"]),
+        Mount("/static", StaticFiles(directory=STATIC_DIR), name="static"),
+    ])
+    app.state.tiles = tiles
+    return app
+
+
+def bind(host: str, port: int) -> socket.socket:
+    """A listening TCP socket on ``host:port`` (port 0: a free one).
+
+    Raises
+    ------
+    InputDataError
+        The host is unknown, or the port in use or not allowed, naming them.
+    """
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except socket.gaierror as err:
+        raise InputDataError(f"--host {host}: unknown host ({err.strerror})") from err
+    family, kind, proto, _, address = infos[0]
+    sock = socket.socket(family, kind, proto)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        sock.listen(128)
+    except OSError as err:
+        sock.close()
+        why = ("the port is in use (choose another with --port)"
+               if err.errno == errno.EADDRINUSE else err.strerror or str(err))
+        raise InputDataError(f"{host}:{port}: cannot listen: {why}") from err
+    sock.set_inheritable(True)
+    return sock
+
+
+@dataclasses.dataclass
+class Served:
+    """A server running on ``url`` (see :func:`serving`)."""
+
+    url: str
+    server: uvicorn.Server
+    sock: socket.socket
+
+
+def make_server(out: Path | str, host: str = DEFAULT_HOST,
+                port: int = DEFAULT_PORT) -> Served:
+    """Check ``out``, bind the socket and build the (not yet started) server."""
+    out = Path(out)
+    check_run_folder(out)
+    sock = bind(host, port)
+    real_port = sock.getsockname()[1]
+    config = uvicorn.Config(build_app(out), log_level="warning", access_log=False,
+                            lifespan="off")
+    shown = f"[{host}]" if ":" in host else host
+    return Served(url=f"http://{shown}:{real_port}/", server=uvicorn.Server(config), sock=sock)
+
+
+def run_server(served: Served) -> None:
+    """Serve until interrupted (Ctrl-C) in this thread."""
+    try:
+        served.server.run(sockets=[served.sock])
+    finally:
+        served.sock.close()
+
+
+@contextlib.contextmanager
+def serving(out: Path | str, host: str = DEFAULT_HOST, port: int = 0) -> Iterator[Served]:
+    """Serve ``out`` in a background thread for the ``with`` block (tests, scripts)."""
+    served = make_server(out, host, port)
+    thread = threading.Thread(target=run_server, args=(served,), name="seqat-serve",
+                              daemon=True)
+    thread.start()
+    try:
+        for _ in range(500):
+            if served.server.started:
+                break
+            thread.join(0.01)
+        yield served
+    finally:
+        served.server.should_exit = True
+        thread.join(10)

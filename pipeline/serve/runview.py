@@ -1,0 +1,334 @@
+"""What ``seqat serve`` shows of a run folder, read at the time of each request.
+
+A finished run has ``run.json``, ``eop.csv`` and ``points.csv`` (published together); a live
+run (``seqat run`` / ``watch`` still going) has its journal (``journal/journal.log``, one
+record per adjusted image) and, with ``--ortho``, the per-image orthos, but publishes its
+estimates only at the end. Everything here reads what exists and never fails on a file that
+is missing, being replaced or damaged: the status says so in ``warnings`` instead. Nothing
+is ever written.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TypeVar
+
+import numpy as np
+import pyproj
+
+from pipeline.common.columns import EOP_FILE, POINTS_FILE, RUN_FILE
+from pipeline.common.outdir import LEGACY_RUN_MARKERS, RUN_MARKER
+from pipeline.run.journal import JOURNAL_DIR, JOURNAL_FILE, read_journal
+from pipeline.run.store import read_eop_csv, read_json_object, read_points_csv
+from seqat.errors import InputDataError
+
+ORTHO_JSON = "ortho.json"
+MOSAIC_FILE = "mosaic.tif"
+#: At most this many tie points go to the page (an even subsample of ``points.csv``).
+MAX_POINTS = 5000
+
+T = TypeVar("T")
+
+
+def check_run_folder(out: Path) -> None:
+    """``out`` is a run folder of seqat (its marker, ``run.json`` or a journal).
+
+    Raises
+    ------
+    InputDataError
+        Naming ``out``.
+    """
+    if not out.exists():
+        raise InputDataError(f"{out}: no such run folder")
+    if not out.is_dir():
+        raise InputDataError(f"{out}: not a folder; seqat serve shows a run folder "
+                             "(seqat run ... --out OUT)")
+    if not any((out / m).is_file() for m in (RUN_MARKER, *LEGACY_RUN_MARKERS)):
+        raise InputDataError(f"{out}: not a seqat run folder (no {RUN_MARKER}, {RUN_FILE} or "
+                             f"{JOURNAL_DIR}/{JOURNAL_FILE})")
+
+
+def _stat_key(path: Path) -> tuple[int, int, int] | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_ino, st.st_mtime_ns, st.st_size)
+
+
+def _finite(value: object) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value) if math.isfinite(value) else None
+
+
+def _sigma_norm(sigma: np.ndarray) -> list[float | None]:
+    """√(σx² + σy² + σz²) per row, None where a σ is missing."""
+    norm = np.sqrt(np.sum(np.square(sigma), axis=1))
+    return [float(v) if np.isfinite(v) else None for v in norm]
+
+
+def _opt(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+@dataclass(frozen=True)
+class JournalView:
+    """The journal's images: ``live`` records, ids, nav positions (working CRS) and the
+    working CRS when the journal records it (``seqat watch``'s ``setup`` record)."""
+
+    live: list[Mapping[str, object]] = field(default_factory=list)
+    image_ids: list[str] = field(default_factory=list)
+    nav_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    crs_wkt: str | None = None
+    warning: str | None = None
+
+
+class RunView:
+    """The run folder ``out`` as the page sees it; parsed files are cached per file version
+    (inode, mtime, size), so polling costs a ``stat`` per file while nothing changes."""
+
+    def __init__(self, out: Path) -> None:
+        self.out = out
+        self._lock = threading.Lock()
+        self._cache: dict[str, tuple[object, object]] = {}
+
+    def _cached(self, name: str, key: object, load: Callable[[], T]) -> T:
+        with self._lock:
+            hit = self._cache.get(name)
+            if hit is not None and hit[0] == key:
+                return hit[1]  # type: ignore[return-value]
+        value = load()
+        with self._lock:
+            self._cache[name] = (key, value)
+        return value
+
+    def _json(self, name: str) -> tuple[dict[str, object] | None, str | None]:
+        """A JSON file of the folder, or None and why not (None: absent)."""
+        path = self.out / name
+        key = _stat_key(path)
+        if key is None:
+            return None, None
+
+        def load() -> tuple[dict[str, object] | None, str | None]:
+            try:
+                return read_json_object(path), None
+            except InputDataError as err:
+                return None, str(err)
+
+        return self._cached(name, key, load)
+
+    def _journal(self) -> JournalView:
+        """What the journal says of the images adjusted so far."""
+        path = self.out / JOURNAL_DIR / JOURNAL_FILE
+        key = _stat_key(path)
+        if key is None:
+            return JournalView()
+
+        def load() -> JournalView:
+            try:
+                contents = read_journal(self.out)
+            except InputDataError as err:
+                return JournalView(warning=str(err))
+            if contents is None:
+                return JournalView()
+            setup_crs = None if contents.setup is None else contents.setup.get("crs")
+            return JournalView(
+                live=[dict(r.live) for r in contents.images],
+                image_ids=[r.frame.image_id for r in contents.images],
+                nav_xyz=np.array([r.frame.nav_eop[:3] for r in contents.images],
+                                 float).reshape(-1, 3),
+                crs_wkt=None if setup_crs is None else str(setup_crs))
+
+        return self._cached("journal", key, load)
+
+    def _crs_transformer(self, wkt: str) -> pyproj.Transformer:
+        return self._cached("transformer", wkt, lambda: pyproj.Transformer.from_crs(
+            pyproj.CRS.from_wkt(wkt), "EPSG:4326", always_xy=True))
+
+    def is_done(self) -> bool:
+        """``run.json`` is there, complete, and no newer journal says a new run started."""
+        run, _ = self._json(RUN_FILE)
+        if run is None or not isinstance(run.get("totals"), dict):
+            return False
+        run_key = _stat_key(self.out / RUN_FILE)
+        journal_key = _stat_key(self.out / JOURNAL_DIR / JOURNAL_FILE)
+        return run_key is not None and (journal_key is None or journal_key[1] <= run_key[1])
+
+    def status(self, mosaic: Mapping[str, object] | None,
+               mosaic_error: str | None = None) -> dict[str, object]:
+        """``status.json`` (docs/formats.md, *seqat serve*); ``mosaic``: its
+        :class:`~pipeline.serve.tiles.MosaicInfo` as a dict, ``mosaic_error``: why it cannot
+        be read."""
+        warnings: list[str] = []
+        run, run_err = self._json(RUN_FILE)
+        ortho, ortho_err = self._json(ORTHO_JSON)
+        journal = self._journal()
+        warnings += [w for w in (run_err, ortho_err, journal.warning) if w]
+        done = self.is_done()
+        cameras = self.cameras()
+        record: Mapping[str, object] | None = None
+        images = 0
+        last_image = None
+        if done and run is not None:
+            totals = run["totals"]
+            images_doc = run.get("images")
+            if isinstance(images_doc, list) and images_doc and isinstance(images_doc[-1], dict):
+                record = images_doc[-1].get("live")  # type: ignore[assignment]
+                last_image = images_doc[-1].get("image_id")
+            images = int(totals.get("images", 0))  # type: ignore[union-attr]
+            sigma0 = _finite(totals.get("sigma0"))  # type: ignore[union-attr]
+            warnings += [str(w) for w in run.get("warnings", []) or []]  # type: ignore[union-attr]
+        else:
+            images = len(journal.live)
+            last_image = journal.image_ids[-1] if journal.image_ids else None
+            record = journal.live[-1] if journal.live else None
+            sigma0 = None if record is None else _finite(record.get("sigma0"))
+            if images == 0:
+                warnings.append("no image adjusted yet")
+        latency_ms, latency_kind = None, None
+        if isinstance(record, Mapping):
+            for kind in ("latency_ms", "processing_ms"):
+                latency_ms = _finite(record.get(kind))
+                if latency_ms is not None:
+                    latency_kind = kind
+                    break
+        ortho_latency = None
+        if ortho is not None:
+            rows = ortho.get("images")
+            if isinstance(rows, list) and rows and isinstance(rows[-1], dict):
+                ortho_latency = _finite(rows[-1].get("latency_ms"))
+            warnings += [str(w) for w in ortho.get("warnings", []) or []]  # type: ignore[union-attr]
+        if mosaic_error is not None:
+            warnings.append(mosaic_error)
+        elif mosaic is None:
+            warnings.append(f"no {MOSAIC_FILE}" if done else f"no {MOSAIC_FILE} yet")
+        versions = [mosaic["version"] if mosaic else "-"] + [
+            "-" if k is None else f"{k[1]}-{k[2]}" for k in (
+                _stat_key(self.out / n) for n in (RUN_FILE, EOP_FILE, POINTS_FILE, ORTHO_JSON))]
+        return {
+            "run": self.out.name,
+            "method": None if run is None else run.get("method"),
+            "crs_name": None if run is None else run.get("crs_name"),
+            "done": done,
+            "images": images,
+            "last_image": last_image,
+            "cameras": len(cameras["features"]),  # type: ignore[arg-type]
+            "points": self.points().get("total", 0),
+            "sigma0": sigma0,
+            "last_latency_ms": latency_ms,
+            "last_latency_kind": latency_kind,
+            "last_mosaic_latency_ms": ortho_latency,
+            "mosaic": mosaic,
+            "warnings": warnings,
+            "version": f"{images}:" + ":".join(versions),
+        }
+
+    def cameras(self) -> dict[str, object]:
+        """The cameras of ``eop.csv`` in WGS 84 with their posterior σ (empty before the run
+        publishes ``eop.csv``)."""
+        run, _ = self._json(RUN_FILE)
+        path = self.out / EOP_FILE
+        key = _stat_key(path)
+        if not self.is_done():
+            journal = self._journal()
+            if journal.crs_wkt is not None and journal.image_ids:
+                return self._live_cameras(journal)
+        if run is None or key is None:
+            return {"type": "FeatureCollection", "features": []}
+
+        def load() -> dict[str, object]:
+            try:
+                table = read_eop_csv(path)
+                transformer = self._crs_transformer(str(run.get("crs")))
+            except (InputDataError, pyproj.exceptions.CRSError):
+                return {"type": "FeatureCollection", "features": []}
+            lon, lat = transformer.transform(table.eop[:, 0], table.eop[:, 1])
+            deg = np.degrees(table.eop[:, 3:6])
+            sdeg = np.degrees(table.sigma[:, 3:6])
+            sigma_pos = _sigma_norm(table.sigma[:, :3])
+            features = []
+            for i, image in enumerate(table.image_ids):
+                if not (np.isfinite(lon[i]) and np.isfinite(lat[i])):
+                    continue
+                props: dict[str, object] = {"image": image, "position": "estimate",
+                                            "sigma_position_m": sigma_pos[i]}
+                for j, name in enumerate(("x_m", "y_m", "z_m")):
+                    props[name] = float(table.eop[i, j])
+                for j, name in enumerate(("omega_deg", "phi_deg", "kappa_deg")):
+                    props[name] = float(deg[i, j])
+                for j, name in enumerate(("sx_m", "sy_m", "sz_m")):
+                    props[name] = _opt(table.sigma[i, j])
+                for j, name in enumerate(("somega_deg", "sphi_deg", "skappa_deg")):
+                    props[name] = _opt(sdeg[i, j])
+                features.append({"type": "Feature", "properties": props, "geometry": {
+                    "type": "Point", "coordinates": [float(lon[i]), float(lat[i])]}})
+            return {"type": "FeatureCollection", "features": features}
+
+        return self._cached("cameras", (key, _stat_key(self.out / RUN_FILE)), load)
+
+    def _live_cameras(self, journal: JournalView) -> dict[str, object]:
+        """A live ``seqat watch``: the journal's images at their nav position (the estimate
+        is published at the end) with the posterior σ right after their update."""
+        try:
+            transformer = self._crs_transformer(str(journal.crs_wkt))
+        except pyproj.exceptions.CRSError:
+            return {"type": "FeatureCollection", "features": []}
+        lon, lat = transformer.transform(journal.nav_xyz[:, 0], journal.nav_xyz[:, 1])
+        features = []
+        for i, image in enumerate(journal.image_ids):
+            if not (np.isfinite(lon[i]) and np.isfinite(lat[i])):
+                continue  # a GNSS dropout without a start value
+            raw = journal.live[i].get("sigma_position_m")
+            sigma = np.array(raw if isinstance(raw, list | tuple) and len(raw) == 3
+                             else [np.nan] * 3, float)
+            props: dict[str, object] = {
+                "image": image, "position": "nav",
+                "sigma_position_m": _sigma_norm(sigma[None, :])[0],
+                "x_m": float(journal.nav_xyz[i, 0]), "y_m": float(journal.nav_xyz[i, 1]),
+                "z_m": float(journal.nav_xyz[i, 2]),
+                "sx_m": _opt(sigma[0]), "sy_m": _opt(sigma[1]), "sz_m": _opt(sigma[2])}
+            features.append({"type": "Feature", "properties": props, "geometry": {
+                "type": "Point", "coordinates": [float(lon[i]), float(lat[i])]}})
+        return {"type": "FeatureCollection", "features": features}
+
+    def points(self) -> dict[str, object]:
+        """The tie points of ``points.csv`` in WGS 84 with σ; at most :data:`MAX_POINTS`, an
+        even subsample (``total`` and ``shown`` say how many)."""
+        run, _ = self._json(RUN_FILE)
+        path = self.out / POINTS_FILE
+        key = _stat_key(path)
+        if run is None or key is None:
+            return {"type": "FeatureCollection", "features": [], "total": 0, "shown": 0}
+
+        def load() -> dict[str, object]:
+            try:
+                table = read_points_csv(path)
+                transformer = self._crs_transformer(str(run.get("crs")))
+            except (InputDataError, pyproj.exceptions.CRSError):
+                return {"type": "FeatureCollection", "features": [], "total": 0, "shown": 0}
+            total = len(table)
+            keep = np.unique(np.linspace(0, total - 1, min(total, MAX_POINTS)).astype(int)) \
+                if total else np.zeros(0, int)
+            lon, lat = transformer.transform(table.xyz_m[keep, 0], table.xyz_m[keep, 1])
+            sigma = _sigma_norm(table.sigma_m[keep])
+            features = []
+            for k, i in enumerate(keep):
+                if not (np.isfinite(lon[k]) and np.isfinite(lat[k])):
+                    continue
+                features.append({"type": "Feature", "geometry": {
+                    "type": "Point", "coordinates": [float(lon[k]), float(lat[k])]},
+                    "properties": {
+                        "point": table.point_ids[i], "z_m": float(table.xyz_m[i, 2]),
+                        "sx_m": _opt(table.sigma_m[i, 0]), "sy_m": _opt(table.sigma_m[i, 1]),
+                        "sz_m": _opt(table.sigma_m[i, 2]), "sigma_m": sigma[k],
+                        "n_obs": int(table.n_obs[i])}})
+            return {"type": "FeatureCollection", "features": features, "total": total,
+                    "shown": len(features)}
+
+        return self._cached("points", (key, _stat_key(self.out / RUN_FILE)), load)

@@ -1,0 +1,142 @@
+"""``OUT/mosaic.tif`` as XYZ Web Mercator tiles (rio-tiler, as TiTiler does).
+
+The tile maths is rio-tiler's and morecantile's (``WebMercatorQuad``); this module only keeps
+one open reader and re-opens it when the file is replaced (a live run publishes the mosaic by
+an atomic rename: a new inode, a new mtime), so a tile always shows the file as it is when it
+is requested. Tiles outside the data are fully transparent 256 x 256 PNGs, as is every tile
+while the run folder has no mosaic yet.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import morecantile
+import numpy as np
+from PIL import Image
+from rio_tiler.errors import TileOutsideBounds
+from rio_tiler.io import Reader
+
+#: Edge of a tile, pixels.
+TILE_PX = 256
+#: The tile matrix set of the XYZ tiles Leaflet and OpenLayers request.
+TMS = morecantile.tms.get("WebMercatorQuad")
+
+
+def _transparent_png() -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(np.zeros((TILE_PX, TILE_PX, 4), np.uint8), "RGBA").save(buf, "PNG")
+    return buf.getvalue()
+
+
+#: The tile outside the data.
+EMPTY_TILE = _transparent_png()
+
+
+@dataclass(frozen=True)
+class MosaicInfo:
+    """What the page needs to place the mosaic: WGS 84 bounds and the zoom range."""
+
+    version: str
+    bounds_wgs84: tuple[float, float, float, float]
+    minzoom: int
+    maxzoom: int
+
+
+class MosaicUnreadable(Exception):
+    """``mosaic.tif`` exists but cannot be read (damaged, or not a raster)."""
+
+
+def tile_in_range(z: int, x: int, y: int) -> bool:
+    """A tile index of ``WebMercatorQuad`` (zoom 0..24)."""
+    return 0 <= z <= 24 and 0 <= x < 2 ** z and 0 <= y < 2 ** z
+
+
+class MosaicTiles:
+    """Tiles of one COG, read through one rio-tiler ``Reader`` re-opened on change.
+
+    Thread-safe: the reader is used under a lock (a GDAL dataset handle is not thread-safe).
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._lock = threading.Lock()
+        self._reader: Reader | None = None
+        self._key: tuple[int, int, int] | None = None
+        self._info: MosaicInfo | None = None
+
+    def _stat_key(self) -> tuple[int, int, int] | None:
+        try:
+            st = os.stat(self.path)
+        except OSError:
+            return None
+        return (st.st_ino, st.st_mtime_ns, st.st_size)
+
+    def _current(self) -> Reader | None:
+        """The reader of the file as it is now (call with the lock held)."""
+        key = self._stat_key()
+        if key != self._key:
+            self.close_locked()
+            if key is not None:
+                self._reader = Reader(str(self.path), tms=TMS)
+                self._key = key
+                r = self._reader
+                self._info = MosaicInfo(
+                    version=f"{key[0]}-{key[1]}-{key[2]}",
+                    bounds_wgs84=tuple(float(v) for v in r.get_geographic_bounds(
+                        "EPSG:4326")),  # type: ignore[arg-type]
+                    minzoom=int(r.minzoom), maxzoom=int(r.maxzoom))
+        return self._reader
+
+    def _current_or_raise(self) -> Reader | None:
+        try:
+            return self._current()
+        except Exception as err:  # noqa: BLE001 - rasterio's and rio-tiler's errors alike
+            self.close_locked()
+            raise MosaicUnreadable(f"{self.path.name}: cannot read: {err}") from err
+
+    def info(self) -> MosaicInfo | None:
+        """Bounds and zooms of the mosaic as it is now; None without a mosaic.
+
+        Raises
+        ------
+        MosaicUnreadable
+        """
+        with self._lock:
+            self._current_or_raise()
+            return self._info
+
+    def tile(self, z: int, x: int, y: int) -> bytes:
+        """The PNG of tile ``z/x/y``; :data:`EMPTY_TILE` outside the data or without a
+        mosaic.
+
+        Raises
+        ------
+        MosaicUnreadable
+        """
+        with self._lock:
+            reader = self._current_or_raise()
+            if reader is None or not reader.tile_exists(x, y, z):
+                return EMPTY_TILE
+            try:
+                img = reader.tile(x, y, z, tilesize=TILE_PX)
+            except TileOutsideBounds:
+                return EMPTY_TILE
+            except Exception as err:  # noqa: BLE001 - a damaged block
+                raise MosaicUnreadable(f"{self.path.name}: cannot read: {err}") from err
+        if not img.mask.any():
+            return EMPTY_TILE
+        return img.render(img_format="PNG")
+
+    def close_locked(self) -> None:
+        if self._reader is not None:
+            self._reader.close()
+        self._reader, self._key, self._info = None, None, None
+
+    def close(self) -> None:
+        with self._lock:
+            self.close_locked()

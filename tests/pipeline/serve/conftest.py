@@ -1,0 +1,57 @@
+"""A run folder with a mosaic for the ``seqat serve`` tests, and a server on a free port.
+
+The run is the session's ``strip_run`` (``sample_data/strip_demo``, Seq-R, ~5 s), copied,
+with a synthetic ``mosaic.tif`` (a COG in the run's CRS over the cameras' area, alpha 0 in
+a border) instead of a live ortho of the rendered flight (~20 s).
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pyproj
+import pytest
+from affine import Affine
+
+from pipeline.ortho.raster import write_cog
+from pipeline.run.store import read_eop_csv, read_json_object
+from pipeline.serve.app import Served, serving
+
+#: Mosaic cell, metres, and the border without data, cells.
+PIXEL_M = 0.5
+BORDER = 40
+
+
+def write_mosaic(out: Path, rgb: tuple[int, int, int]) -> Path:
+    """A uniform-colour RGBA COG over the run's cameras, transparent in a border."""
+    crs = pyproj.CRS.from_wkt(str(read_json_object(out / "run.json")["crs"]))
+    xy = read_eop_csv(out / "eop.csv").eop[:, :2]
+    west, south = np.floor(xy.min(axis=0) - 50.0)
+    east, north = np.ceil(xy.max(axis=0) + 50.0)
+    cols, rows = int((east - west) / PIXEL_M), int((north - south) / PIXEL_M)
+    data = np.zeros((4, rows, cols), np.uint8)
+    for band, value in enumerate(rgb):
+        data[band] = value
+    data[3, BORDER:-BORDER, BORDER:-BORDER] = 255
+    return write_cog(out / "mosaic.tif", data,
+                     transform=Affine(PIXEL_M, 0.0, west, 0.0, -PIXEL_M, north), crs=crs,
+                     alpha=True)
+
+
+@pytest.fixture(scope="session")
+def mosaic_run(strip_run: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A copy of ``strip_run`` with ``mosaic.tif`` (read-only for the tests)."""
+    out = tmp_path_factory.mktemp("serve") / "out"
+    shutil.copytree(strip_run, out)
+    write_mosaic(out, (200, 120, 40))
+    return out
+
+
+@pytest.fixture(scope="session")
+def served(mosaic_run: Path) -> Iterator[Served]:
+    """``seqat serve`` of ``mosaic_run`` on a free port of 127.0.0.1, in a thread."""
+    with serving(mosaic_run) as served:
+        yield served

@@ -1,0 +1,90 @@
+"""The page of ``seqat serve`` in headless chromium (selenium + Debian's chromium-driver):
+the mosaic's tiles and the camera markers appear, and the status panel is filled. Skipped
+when chromium or chromedriver is absent (``.ci/run`` installs both)."""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from pipeline.run.store import read_eop_csv
+from pipeline.serve.app import Served, serving
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMEDRIVER = shutil.which("chromedriver")
+
+pytestmark = pytest.mark.skipif(CHROMIUM is None or CHROMEDRIVER is None,
+                                reason="chromium and chromedriver are absent "
+                                       "(apt-get install chromium chromium-driver)")
+
+
+@pytest.fixture
+def browser() -> Iterator[Any]:
+    webdriver = pytest.importorskip("selenium.webdriver")
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM  # type: ignore[assignment]
+    with tempfile.TemporaryDirectory() as profile:
+        for arg in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                    "--disable-background-networking", "--disable-component-update",
+                    "--no-first-run", f"--user-data-dir={profile}", "--window-size=1280,800"):
+            options.add_argument(arg)
+        driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER),
+                                  options=options)
+        try:
+            yield driver
+        finally:
+            driver.quit()
+
+
+def test_page_shows_tiles_cameras_and_status(browser: Any, served: Served,
+                                             mosaic_run: Path) -> None:
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    n_images = len(read_eop_csv(mosaic_run / "eop.csv"))
+    browser.get(served.url)
+    wait = WebDriverWait(browser, 20)
+    wait.until(lambda d: len(d.find_elements(By.CSS_SELECTOR, "path.seqat-camera"))
+               == n_images)
+    wait.until(lambda d: d.execute_script(
+        "return Array.from(document.querySelectorAll('img.leaflet-tile-loaded'))"
+        ".filter(i => i.src.includes('/tiles/') && i.naturalWidth === 256).length") > 0)
+    assert browser.find_element(By.ID, "state").text == "finished"
+    assert browser.find_element(By.ID, "images").text == str(n_images)
+    assert browser.find_elements(By.CSS_SELECTOR, "path.seqat-point")
+    logs = [e for e in browser.get_log("browser") if e.get("level") == "SEVERE"]
+    assert logs == []
+
+
+def test_page_follows_a_live_run_without_reload(browser: Any, mosaic_run: Path,
+                                                tmp_path: Path) -> None:
+    """A run folder with only its journal; the run then publishes its files: the page,
+    polling status.json, shows the cameras and the finished state without a reload."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    out = tmp_path / "live"
+    out.mkdir()
+    shutil.copy(mosaic_run / ".seqat-run", out)
+    shutil.copytree(mosaic_run / "journal", out / "journal")
+    n_images = len(read_eop_csv(mosaic_run / "eop.csv"))
+    with serving(out) as served:
+        browser.get(served.url)
+        wait = WebDriverWait(browser, 20)
+        wait.until(lambda d: d.find_element(By.ID, "state").text == "live")
+        assert browser.find_element(By.ID, "images").text == str(n_images)
+        assert not browser.find_elements(By.CSS_SELECTOR, "path.seqat-camera")
+        browser.execute_script("window.seqatNotReloaded = true;")
+        for name in ("run.json", "eop.csv", "points.csv", "mosaic.tif"):
+            shutil.copy(mosaic_run / name, out / name)
+        wait.until(lambda d: len(d.find_elements(By.CSS_SELECTOR, "path.seqat-camera"))
+                   == n_images)
+        wait.until(lambda d: d.find_element(By.ID, "state").text == "finished")
+        assert browser.execute_script("return window.seqatNotReloaded === true;")
