@@ -36,13 +36,13 @@ FINAL_ROBUST_ROUNDS = 20
 FINAL_ROBUST_WEIGHT_TOLERANCE = 1e-4
 #: A re-linearisation step that raises the window's cost is halved at most this many times.
 MAX_STEP_HALVINGS = 8
-#: A window re-linearisation stops when no parameter moves more than this (m or rad) ...
-RELINEARISE_TOLERANCE = 1e-7
-#: ... or, during the flight, when its last step moved no image point by more than
+#: A window re-linearisation stops when no parameter moves more than this (m or rad), or,
+#: during the flight, when its last step would move no image point by more than
 #: ``SequentialOptions.iteration_tolerance_px`` (the update's own rule: Gauss-Newton on the
 #: window converges linearly, and the last 10-30 steps to 1e-7 moved nothing a pixel could
-#: see; measured on Seneca: 9-35 steps per re-linearisation, 3-6 to 0.01 px). finish()
-#: re-linearises to RELINEARISE_TOLERANCE.
+#: see; measured on Seneca: 9-35 steps per re-linearisation, 3-7 to 0.01 px). finish()
+#: re-linearises to this tolerance.
+RELINEARISE_TOLERANCE = 1e-7
 #: A window GP is re-intersected robustly when more than half of at least this many of its
 #: rays disagree with it beyond the robust scale (docs/algorithm.md, *Robust loss*).
 ASTRAY_MIN_RAYS = 4
@@ -164,7 +164,7 @@ class RelinearisationMixin:
         L = w.L if w.L is not None else window_matrix(np.linalg.inv(w.Q))
         cols = np.concatenate([e_idx, p_idx], axis=1)  # (k, 9) window columns per factor
         H_old, eta_old = f.information(cols, x.size)
-        H_p = L - H_old  # sparse throughout: O(entries), never O(n^2)
+        H_p = L - H_old  # sparse for a large window: O(entries), never O(n^2)
         del H_old
         eta_p = L @ x - eta_old
 

@@ -252,24 +252,11 @@ def gradient_from_factors(Je: FloatArray, Jp: FloatArray, r: FloatArray, w: Floa
                                                        r).ravel(), minlength=n)
 
 
-def normal_from_factors_sparse(Je: FloatArray, Jp: FloatArray, r: FloatArray, w: FloatArray,
-                               cols: np.ndarray, n: int) -> tuple[SparseMatrix, FloatArray]:
-    """:func:`normal_from_factors` with ``J^T W J`` as a sparse matrix."""
-    return (sparse_blocks(factor_blocks(Je, Jp, w), cols, n),
-            gradient_from_factors(Je, Jp, r, w, cols, n))
-
-
-def scatter_blocks(blocks: FloatArray, cols: np.ndarray, n: int) -> FloatArray:
-    """Blocks (k, c, c) on window columns ``cols`` (k, c) summed into an n x n matrix
-    (bincount over flat indices: an order of magnitude faster than ``np.add.at``)."""
-    flat = (cols[:, :, None] * n + cols[:, None, :]).ravel()
-    return np.bincount(flat, weights=blocks.ravel(), minlength=n * n).reshape(n, n)
-
-
 def normal_from_factors(Je: FloatArray, Jp: FloatArray, r: FloatArray, w: FloatArray,
-                         cols: np.ndarray, n: int) -> tuple[FloatArray, FloatArray]:
-    """``J^T W J`` and ``J^T W r`` of image-point factors scattered into ``n`` window columns."""
-    return (scatter_blocks(factor_blocks(Je, Jp, w), cols, n),
+                        cols: np.ndarray, n: int) -> tuple[SparseMatrix, FloatArray]:
+    """``J^T W J`` (sparse, n x n) and ``J^T W r`` of image-point factors on ``n`` window
+    columns."""
+    return (sparse_blocks(factor_blocks(Je, Jp, w), cols, n),
             gradient_from_factors(Je, Jp, r, w, cols, n))
 
 
@@ -335,7 +322,7 @@ class FactorSet:
         x_lin = np.concatenate([self.e_lin, self.p_lin], axis=1)
         J = np.concatenate([self.Je, self.Jp], axis=2)
         rhs = self.r_lin + np.einsum("kri,ki->kr", J, x_lin)
-        return normal_from_factors_sparse(self.Je, self.Jp, rhs, self.w, cols, n)
+        return normal_from_factors(self.Je, self.Jp, rhs, self.w, cols, n)
 
     def relinearised_at(self, e: FloatArray, p: FloatArray, Je: FloatArray, Jp: FloatArray,
                         r: FloatArray) -> None:
