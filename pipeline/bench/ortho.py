@@ -353,7 +353,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--no-occlusion", action="store_true")
     parser.add_argument("--no-write", action="store_true")
     parser.add_argument("--sync-writes", action="store_true")
-    parser.add_argument("--live", choices=("none", "background", "foreground"))
+    parser.add_argument("--live", choices=("none", "background", "foreground"), type=str.lower)
     parser.add_argument("--rate-hz", type=float, default=2.0)
     parser.add_argument("--nice", type=int, help="live: worker niceness (default: 10)")
     parser.add_argument("--compare-occlusion", action="store_true")

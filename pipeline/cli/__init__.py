@@ -15,8 +15,9 @@ from typing import Annotated
 import typer
 
 from pipeline.cli import bench, ortho, process, reference, report, run, serve, simulate
-from pipeline.cli.common import OPTIONS
+from pipeline.cli.common import OPTIONS, help_paragraphs, package_version, show_flags_as_flags
 
+show_flags_as_flags()
 app = typer.Typer(
     name="seqat",
     help="Sequential aerial triangulation of UAV image sequences.",
@@ -26,14 +27,25 @@ app = typer.Typer(
 )
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(f"seqat {package_version()}")
+        raise typer.Exit(0)
+
+
 @app.callback()
 def _main(
     debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks of internal errors.")]
     = False,
+    version: Annotated[bool, typer.Option(
+        "--version", help="Print the version (seqat X.Y.Z) and exit.", callback=_print_version,
+        is_eager=True)] = False,
 ) -> None:
     """Sequential aerial triangulation of UAV image sequences."""
     OPTIONS.debug = debug
 
 
 for _sub in (simulate, run, process, bench, reference, report, ortho, serve):
+    for _command in _sub.app.registered_commands:
+        _command.help = help_paragraphs(_command.callback)
     app.add_typer(_sub.app)

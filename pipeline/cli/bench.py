@@ -65,9 +65,8 @@ def bench(
 ) -> None:
     """Compare direct georeferencing, Seq-R, Seq-F and Sim on simulated flights, or, for an
     image flight folder, Seq-R (tracking) with Sim and Seq-F on the same tie points.
-    ``seqat bench faults``: seeded blunders, a GNSS jump and a dropout; ``seqat bench rendered``,
-    ``seqat bench ortho`` and ``seqat bench gtsam`` take the arguments of their modules
-    (docs/benchmarks.md)."""
+    seqat bench faults: seeded blunders, a GNSS jump and a dropout; seqat bench rendered,
+    ortho, gtsam and fuzz take the arguments of their modules (docs/benchmarks.md)."""
     if ctx.args and not _passes_arguments(config):
         first = ctx.args[0]
         ctx.fail(f"No such option: {first}" if first.startswith("-") else
@@ -153,6 +152,7 @@ def _faults_bench(out: Path, seeds: list[int] | None, cases: list[str] | None,
     from pipeline.bench.faults.report import summary_rows
     from pipeline.bench.faults.suite import run_fault_bench
 
+    cases = [c.strip().lower() for c in cases or ()]  # any case, as every choice option
     report = run_fault_bench(out, seeds=tuple(seeds or (1, 2, 3)), cases=tuple(cases or CASES),
                              strip_config=strip_config, rendered_flight=rendered)
     table = Table(title="seqat bench faults (mean over seeds)", title_justify="left")

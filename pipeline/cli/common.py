@@ -11,17 +11,18 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import inspect
 import math
 import os
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, ParamSpec, TypeVar
 
 import typer
 from rich.console import Console
 from rich.table import Table
 
-from seqat.errors import SeqatError
+from seqat.errors import ConfigError, SeqatError
 
 if TYPE_CHECKING:
     from pipeline.run.runner import RunSummary
@@ -81,6 +82,66 @@ def guarded(command: Callable[P, R]) -> Callable[P, R]:
             raise typer.Exit(EXIT_FAILURE) from err
 
     return wrapper
+
+
+def choice(flag: str, value: str, choices: Iterable[str]) -> str:
+    """A choice option's value, in any case (``SEQ-R``, ``Sim``): normalised to the lower-case
+    choice before it is checked.
+
+    Raises
+    ------
+    ConfigError
+        Not one of ``choices``; the message lists them (exit 2, one line).
+    """
+    allowed = [str(c) for c in choices]
+    normalised = value.strip().lower()
+    if normalised not in allowed:
+        raise ConfigError(f"{flag}: expected one of {', '.join(allowed)}, got {value!r}")
+    return normalised
+
+
+def package_version() -> str:
+    """The installed seqat's version (package metadata), or ``unknown`` when not installed."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("seqat")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def help_paragraphs(command: Callable[..., object] | None) -> str | None:
+    """A command's docstring as ``--help`` shows it: each paragraph on one line (the terminal
+    wraps it), paragraphs kept apart. Typer's rich help keeps the docstring's line breaks in the
+    command list, which breaks lines in the middle of a sentence."""
+    doc = getattr(command, "__doc__", None)
+    if not doc:
+        return None
+    paragraphs = inspect.cleandoc(doc).split("\n\n")
+    return "\n\n".join(" ".join(p.split()) for p in paragraphs if p.strip())
+
+
+def show_flags_as_flags() -> None:
+    """Boolean flags in ``--help`` as ``--ortho``, not ``--ortho <bool>``.
+
+    Typer 0.2x prints a type column for every option, ``<bool>`` for flags too (``--help``
+    included); a flag takes no value, so its type column is left empty. Without that method
+    (older Typer) nothing is changed; ``tests/pipeline/cli/test_consistency.py`` checks the
+    help of every command. Idempotent.
+    """
+    from typer.core import TyperOption
+
+    original = getattr(TyperOption, "display_type_rich", None)
+    if original is None or getattr(original, "_seqat_flags", False):
+        return
+
+    def display_type_rich(self: TyperOption, ctx: object) -> str | None:
+        if self.is_flag and not self.count:
+            return None
+        return original(self, ctx)
+
+    display_type_rich._seqat_flags = True  # type: ignore[attr-defined]
+    TyperOption.display_type_rich = display_type_rich  # type: ignore[method-assign]
 
 
 def console() -> Console:

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from pipeline.cli.common import console, guarded, table
+from pipeline.cli.common import choice, console, guarded, table
 
 app = typer.Typer()
 
@@ -18,7 +18,9 @@ def dsm(
     las: Annotated[list[Path], typer.Argument(help="LAS or LAZ files.")],
     out: Annotated[Path, typer.Option("--out", help="DSM COG to write.")],
     crs: Annotated[str | None, typer.Option(
-        "--crs", help="Working CRS (EPSG:XXXX, projected, metres); default: UTM zone.")] = None,
+        "--crs", help="CRS of the outputs: the DSM is gridded and written in it (EPSG:XXXX, "
+                      "projected, metres; default or auto: the UTM zone of the first file).")]
+    = None,
     cell_m: Annotated[float | None, typer.Option("--cell-m", help="Cell size, metres.")] = None,
     las_crs: Annotated[str | None, typer.Option(
         "--las-crs", help="CRS of the LAS files (EPSG:XXXX or a WKT file), overriding "
@@ -49,20 +51,23 @@ def dsm(
 def ortho(
     out: Annotated[Path, typer.Argument(help="Output folder of seqat run.")],
     dsm: Annotated[Path | None, typer.Option("--dsm", help="DSM GeoTIFF.")] = None,
-    eop: Annotated[str, typer.Option("--eop", help="seq-r or reference.")] = "seq-r",
+    eop: Annotated[str, typer.Option(
+        "--eop", help="run: OUT/eop.csv, the estimates of the run's own method (its name, e.g. "
+                      "seq-r, is accepted too); reference: OUT/reference/eop.csv (after seqat "
+                      "reference OUT).")] = "run",
     crs: Annotated[str | None, typer.Option(
-        "--crs", help="CRS of the rasters (EPSG:XXXX); default: the run's.")] = None,
+        "--crs", help="CRS of the outputs: the orthos and the mosaic are warped to it "
+                      "(EPSG:XXXX; default: the run's working CRS; cameras.gpkg stays in the "
+                      "working CRS).")] = None,
     options: Annotated[Path | None, typer.Option(
         "--options", help="Options YAML (sections ortho:, mosaic:, dsm:).")] = None,
     progress: Annotated[bool, typer.Option(
         "--progress/--no-progress", help="Progress bar on a terminal.")] = True,
 ) -> None:
     """Orthorectify a run's images; write ortho/*.tif, mosaic.tif and cameras.gpkg."""
-    from pipeline.ortho.stage import load_stage_options, orthorectify_run
-    from seqat.errors import ConfigError
+    from pipeline.ortho.stage import EOP_SOURCES, load_stage_options, orthorectify_run
 
-    if eop not in ("seq-r", "reference"):
-        raise ConfigError(f"--eop: expected seq-r or reference, got {eop!r}")
+    eop = choice("--eop", eop, EOP_SOURCES)
     dsm_options, ortho_options, feather_px = load_stage_options(options)
     s = orthorectify_run(out, dsm_path=dsm, eop_source=eop,  # type: ignore[arg-type]
                          options=ortho_options, feather_px=feather_px, out_crs=crs,

@@ -112,6 +112,7 @@ def process(
 ) -> None:
     """Run, COLMAP reference and report of a flight in one command; prints where the map
     (mosaic.tif, cameras.gpkg) and the report are."""
+    method = parse_method(method).value  # any case: SEQ-R, Sim
     plan = plan_process(flight, ortho=ortho, dsm=dsm, ortho_options=ortho_options,
                         reference=reference, report=report, method=method)
     con = console()

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from pipeline.cli.common import console, fmt, guarded, table
+from pipeline.cli.common import choice, console, fmt, guarded, table
 
 app = typer.Typer()
 
@@ -51,8 +51,6 @@ def reference(
     With --sfm: COLMAP's own structure from motion of the images instead, and each method's
     agreement with it after a 7-parameter similarity (OUT/reference/sfm/).
     """
-    from seqat.errors import ConfigError
-
     if sfm:
         _sfm(out, matching, max_image_size, max_features, refine_principal_point, threads,
              images, compare or [], realign)
@@ -60,12 +58,8 @@ def reference(
     from pipeline.reference.colmap_ba import PriorKind, ReferenceOptions, RobustLoss
     from pipeline.reference.stage import run_reference
 
-    prior, robust_loss = prior.lower(), robust_loss.lower()
-    for flag, value, choices in (("--prior", prior, [k.value for k in PriorKind]),
-                                 ("--robust-loss", robust_loss,
-                                  ["run"] + [k.value for k in RobustLoss])):
-        if value not in choices:
-            raise ConfigError(f"{flag}: expected one of {', '.join(choices)}, got {value!r}")
+    prior = choice("--prior", prior, (k.value for k in PriorKind))
+    robust_loss = choice("--robust-loss", robust_loss, ["run", *(k.value for k in RobustLoss)])
     options = ReferenceOptions(
         prior=PriorKind(prior), self_calibrate=self_calibrate,
         robust_loss=None if robust_loss == "run" else RobustLoss(robust_loss))
@@ -99,11 +93,8 @@ def _sfm(out: Path, matching: str, max_image_size: int, max_features: int,
          compare: list[Path], realign: bool) -> None:
     from pipeline.reference.sfm import Matching, SfmOptions
     from pipeline.reference.sfm_stage import run_sfm_check
-    from seqat.errors import ConfigError
 
-    if matching not in {k.value for k in Matching}:
-        raise ConfigError(f"--matching: expected one of {', '.join(k.value for k in Matching)}, "
-                          f"got {matching!r}")
+    matching = choice("--matching", matching, (k.value for k in Matching))
     options = SfmOptions(matching=Matching(matching), max_image_size_px=max_image_size,
                          max_num_features=max_features,
                          refine_principal_point=refine_principal_point, num_threads=threads)

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from pipeline.cli.common import console, guarded, run_rows, table
+from pipeline.cli.common import choice, console, guarded, run_rows, table
 
 if TYPE_CHECKING:
     from pipeline.run.runner import Method, RunSummary
@@ -16,7 +16,8 @@ if TYPE_CHECKING:
 
 app = typer.Typer()
 
-MethodOption = Annotated[str, typer.Option("--method", help="seq-r, seq-f or sim.")]
+MethodOption = Annotated[str, typer.Option(
+    "--method", help="seq-r, seq-f or sim (any case).")]
 ThresholdOption = Annotated[float | None, typer.Option(
     "--threshold", help="seq-r: EOP correlation threshold in [0, 1].")]
 InitialImagesOption = Annotated[int | None, typer.Option(
@@ -143,14 +144,10 @@ def adjust_flight(flight: Path, out: Path, *, method: str = "seq-r", final_only:
 
 
 def parse_method(method: str) -> Method:
+    """``--method`` in any case (``SEQ-R``, ``Sim``)."""
     from pipeline.run.runner import Method
-    from seqat.errors import ConfigError
 
-    try:
-        return Method(method)
-    except ValueError as err:
-        raise ConfigError(f"--method: expected one of "
-                          f"{', '.join(m.value for m in Method)}, got {method!r}") from err
+    return Method(choice("--method", method, (m.value for m in Method)))
 
 
 @app.command()
@@ -192,7 +189,11 @@ def watch(
 @guarded
 def feed(
     src: Annotated[Path, typer.Argument(help="Flight folder to replay.")],
-    dst: Annotated[Path, typer.Argument(help="Folder to write (absent or empty).")],
+    old_dst: Annotated[Path | None, typer.Argument(
+        metavar="DST", help="Deprecated: the folder to write as a second argument (seqat "
+        "feed SRC DST); use --out.", show_default=False)] = None,
+    out: Annotated[Path | None, typer.Option(
+        "--out", help="Flight folder to write (absent or empty).", show_default=False)] = None,
     rate: Annotated[float, typer.Option("--rate", help="Images per second.")] = 2.0,
     limit: Annotated[int | None, typer.Option("--limit", help="Only the first N images.")]
     = None,
@@ -203,6 +204,30 @@ def feed(
     with the partial-file convention (name.jpg.part, then renamed)."""
     from pipeline.run.feed import feed_flight
 
+    dst = feed_destination(old_dst, out)
     s = feed_flight(src, dst, rate_hz=rate, limit=limit, delay_s=delay_s)
     console().print(f"fed {s.images} images in {s.duration_s:.1f} s (at most "
                      f"{s.late_s * 1e3:.0f} ms late)")
+
+
+def feed_destination(old_dst: Path | None, out: Path | None) -> Path:
+    """``seqat feed``'s folder to write: ``--out DST``, or the deprecated second argument (with
+    a note on stderr).
+
+    Raises
+    ------
+    ConfigError
+        Neither or both.
+    """
+    from seqat.errors import ConfigError
+
+    if old_dst is not None and out is not None:
+        raise ConfigError(f"give the folder to write once: --out {out} (the second argument "
+                          f"{old_dst} is the deprecated form)")
+    if out is not None:
+        return out
+    if old_dst is None:
+        raise ConfigError("--out: missing (the flight folder to write: seqat feed SRC --out DST)")
+    typer.echo(f"seqat: note: `seqat feed SRC DST` is deprecated; use `seqat feed SRC --out "
+               f"{old_dst}`", err=True)
+    return old_dst

@@ -270,6 +270,14 @@ def _fail(tp: object, value: object, source: str, dotted: str) -> ConfigError:
     return ConfigError(f"{source}: {dotted}: expected {_describe(tp)}, got {_show(value)}")
 
 
+def _same_choice(value: object, choice: object) -> bool:
+    """``value`` is the choice: equal and of the same type; a string choice in any case
+    (``occlusion: ZBuffer`` is ``zbuffer``, as the command line's choice options)."""
+    if isinstance(value, str) and isinstance(choice, str):
+        return value.strip().lower() == choice.lower()
+    return value == choice and type(value) is type(choice)
+
+
 def _convert(tp: object, value: object, source: str, dotted: str) -> object:
     """Convert one YAML value to the annotated type or raise ConfigError."""
     origin = typing.get_origin(tp)
@@ -292,7 +300,7 @@ def _convert(tp: object, value: object, source: str, dotted: str) -> object:
         raise _fail(tp, value, source, dotted)
     if origin is Literal:
         for arg in args:
-            if value == arg and type(value) is type(arg):
+            if _same_choice(value, arg):
                 return arg
         raise _fail(tp, value, source, dotted)
     if tp is type(None):
@@ -321,7 +329,7 @@ def _convert(tp: object, value: object, source: str, dotted: str) -> object:
         raise _fail(tp, value, source, dotted)
     if isinstance(tp, type) and issubclass(tp, enum.Enum):
         for member in tp:
-            if value == member.value:
+            if _same_choice(value, member.value):
                 return member
         raise _fail(tp, value, source, dotted)
     if origin is tuple or origin is list:

@@ -63,7 +63,12 @@ FLAT_CELL_M = 10.0
 #: Margin of the flat plane around the cameras, in flying heights.
 FLAT_MARGIN_HEIGHTS = 4.0
 
-EopSource = Literal["seq-r", "reference"]
+#: ``--eop`` of ``seqat ortho``: ``run`` = the run's own ``OUT/eop.csv`` (the estimates of its
+#: method, seq-r, seq-f or sim), ``reference`` = ``OUT/reference/eop.csv``; the name of the run's
+#: own method is accepted for ``run`` (``--eop seq-r`` on a seq-r run, as before).
+EopSource = Literal["run", "reference", "seq-r", "seq-f", "sim"]
+#: The values ``--eop`` accepts.
+EOP_SOURCES = ("run", "reference", "seq-r", "seq-f", "sim")
 
 
 # --------------------------------------------------------------------------------------------
@@ -199,15 +204,20 @@ class OrthoRunSummary:
     live: LiveOrthoStats | None = None
 
 
-def _eops(run_dir: Path, source: EopSource, default: EopTable) -> EopTable:
-    if source == "seq-r":
-        return default
+def _eops(run_dir: Path, source: str, method: str, default: EopTable) -> tuple[EopTable, str]:
+    """The EOPs ``--eop`` names and how ``ortho.json`` records them (the run's method, or
+    ``reference``)."""
+    if source in ("run", method):
+        return default, method
     if source == "reference":
         path = run_dir / REFERENCE_DIR / EOP_FILE
         if not path.is_file():
             raise InputDataError(f"{path}: no such file (run `seqat reference {run_dir}` first)")
-        return read_eop_csv(path)
-    raise ConfigError(f"--eop: expected seq-r or reference, got {source!r}")
+        return read_eop_csv(path), source
+    if source in EOP_SOURCES:
+        raise ConfigError(f"--eop {source}: {run_dir} is a {method} run (its eop.csv holds the "
+                          f"{method} estimates); use --eop run or --eop reference")
+    raise ConfigError(f"--eop: expected one of {', '.join(EOP_SOURCES[:2])}, got {source!r}")
 
 
 def image_files(images_dir: Path) -> dict[str, Path]:
@@ -363,7 +373,7 @@ def finish_ortho(run_dir: Path, mosaic: MosaicBuilder, records: Sequence[ImageOr
 
 
 def orthorectify_run(out_dir: Path | str, *, dsm_path: Path | str | None = None,
-                     eop_source: EopSource = "seq-r", options: OrthoOptions | None = None,
+                     eop_source: EopSource = "run", options: OrthoOptions | None = None,
                      feather_px: int = FEATHER_PX, out_crs: str | None = None,
                      progress: bool = True,
                      dsm_options: DsmOptions | None = None) -> OrthoRunSummary:
@@ -375,8 +385,9 @@ def orthorectify_run(out_dir: Path | str, *, dsm_path: Path | str | None = None,
         Output folder of ``seqat run``.
     dsm_path : Path or str, optional
         DSM GeoTIFF (any CRS; reprojected).
-    eop_source : {"seq-r", "reference"}
-        ``OUT/eop.csv`` (the run's estimates) or ``OUT/reference/eop.csv``.
+    eop_source : {"run", "reference"}
+        ``OUT/eop.csv`` (the estimates of the run's own method; that method's name, e.g.
+        ``"seq-r"`` for a seq-r run, is accepted too) or ``OUT/reference/eop.csv``.
     options : OrthoOptions, optional
     feather_px : int
         Seamline feather of the mosaic, cells.
@@ -406,7 +417,7 @@ def orthorectify_run(out_dir: Path | str, *, dsm_path: Path | str | None = None,
     run_dir = Path(out_dir)
     target_crs = parse_out_crs(out_crs)
     run = read_run(run_dir)
-    eops = _eops(run_dir, eop_source, run.eop)
+    eops, eops_from = _eops(run_dir, eop_source, run.method, run.eop)
     if run.images_dir is None:
         raise InputDataError(f"{run_dir}: the flight has no images (observations only); "
                              "nothing to orthorectify")
@@ -445,6 +456,6 @@ def orthorectify_run(out_dir: Path | str, *, dsm_path: Path | str | None = None,
         raise InputDataError(f"{run_dir}: no image could be orthorectified"
                              + (f" ({last_error})" if last_error else ""))
     return finish_ortho(run_dir, mosaic, records, crs=run.crs, out_crs=target_crs, eops=eops,
-                        points=run.points, footprints=footprints, eop_source=eop_source,
+                        points=run.points, footprints=footprints, eop_source=eops_from,
                         dsm_source=dsm.source, pixel_m=pixel_m, skipped=skipped,
                         warnings=warnings, t0=t0)

@@ -162,6 +162,6 @@ def load_simulate_config(path: Path | str) -> SimulateConfig | RenderSimulateCon
     """
     mapping = load_yaml(path)
     kind = mapping.get("kind") if isinstance(mapping, Mapping) else None
-    if kind == SIM_KIND_RENDERED:
+    if isinstance(kind, str) and kind.strip().lower() == SIM_KIND_RENDERED:  # any case
         return build_dataclass(RenderSimulateConfig, mapping, str(path))
     return build_dataclass(SimulateConfig, mapping, str(path))

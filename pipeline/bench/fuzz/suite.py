@@ -261,7 +261,7 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
                     help="timeout of each command")
     ap.add_argument("--jobs", type=int, default=1, help="cases run at once")
     ap.add_argument("--kind", action="append", help="only these mutations (repeat)")
-    ap.add_argument("--flight", action="append", choices=list(FLIGHTS),
+    ap.add_argument("--flight", action="append", choices=list(FLIGHTS), type=str.lower,
                     help="only these sample flights (repeat)")
     ap.add_argument("--sample-data", type=Path, default=SAMPLE_DATA)
     ap.add_argument("--keep", action="store_true",

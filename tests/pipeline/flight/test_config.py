@@ -178,3 +178,17 @@ def test_load_flight_config_reads_file(make_flight: Callable[..., Path]) -> None
     cfg = load_flight_config(make_flight() / "flight.yaml")
     assert cfg.observations == "observations.csv" and cfg.sigma_image_px == 1.5
     assert cfg.nav.sigma_attitude_deg == (0.1, 0.1, 0.2)
+
+
+def test_choices_in_any_case(tmp_path: Path) -> None:
+    """A Literal or Enum choice in any case, as the command line's choice options (issue 14);
+    the value is the choice as declared."""
+    path = write(tmp_path, "name: a\nmode: Exact\n")
+    assert build_dataclass(Outer, load_yaml(path), str(path)).mode == "exact"
+    path = write(tmp_path, "name: a\nmode: quick\n")
+    with pytest.raises(ConfigError, match="x.yaml: mode: expected one of 'fast', 'exact', "
+                                          "got 'quick'"):
+        build_dataclass(Outer, load_yaml(path), str(path))
+    path = write(tmp_path, "model: pinhole\nwidth_px: 10\nheight_px: 8\nfx_px: 5\n"
+                           "fy_px: 5\ncx_px: 5\ncy_px: 4\n")
+    assert build_dataclass(CameraConfig, load_yaml(path), str(path)).model == "PINHOLE"
