@@ -39,6 +39,8 @@ from seqat.window import (
 #: re-linearisation costs O(size^3) per step (Seneca: 1281 parameters, ~50 steps, 5-12 s);
 #: beyond it the RTS values stand (:attr:`SequentialAT.final_reopen_skipped`).
 FINAL_REOPEN_MAX_PARAMS = 2000
+#: Dormant factors (of departed keys) are pruned every this many images.
+PRUNE_EVERY = 50
 #: A GP stays in the Seq-R window only while this many window images (new one included) see it.
 MIN_WINDOW_RAYS = 2
 
@@ -81,10 +83,26 @@ class DepartureMixin:
         self._gp_order = [p for p in self._gp_order if p not in gone]
         self._n_points -= len(gone)
 
+    def _prune_dormant(self, i: int) -> None:
+        """Every :data:`PRUNE_EVERY` images: the dormant factors of keys that can no longer
+        re-open (left more than the re-opening age ago, finalised) are dropped: memory stays
+        bounded by the re-opening age (and the smoothing lag)."""
+        if i % PRUNE_EVERY:
+            return
+        imgs, pts = self._dormant_keys()
+        if imgs is None or pts is None:
+            imgs = pts = np.zeros(0, dtype=np.int64)
+        w = self._w
+        window_imgs = np.fromiter((k[1] for k in w.keys if k[0] == "e"), dtype=np.int64)
+        window_pts = np.fromiter((k[1] for k in w.keys if k[0] == "p"), dtype=np.int64)
+        self._factors.prune_dormant(np.concatenate([imgs, window_imgs]),
+                                    np.concatenate([pts, window_pts]))
+
     def _dormant_keys(self) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
         """Departed images and GPs that may still re-enter the window with their exact
         conditional (departure records kept, within the re-opening age): their factors are
-        kept for re-linearisation after a re-opening."""
+        kept for re-linearisation after a re-opening (O(departed keys): called every
+        :data:`PRUNE_EVERY` images and by finish())."""
         if not self._records or not self._departed:
             return None, None
         now = len(self._image_ids) - 1
@@ -424,6 +442,7 @@ class DepartureMixin:
             w.L = window_matrix(add_block(padded(w.L, n + m), cols, 0.5 * (M + M.T)))
         w.x = np.concatenate([w.x, mean])
         w.relayout(w.keys + keys)
+        self._factors.wake(w)  # their rows, kept dormant, are window rows again
         self.reopened += len(keys)
 
     def _conditional_prior(self, keys: list[Key],

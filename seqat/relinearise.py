@@ -146,7 +146,7 @@ class RelinearisationMixin:
         """
         w, opts = self._w, self.options
         assert opts.relinearise_px is not None
-        f = self._factors.in_window(w, *self._dormant_keys())
+        f = self._factors.in_window(w, keep_leaving=self._records and self._reopen_age > 0)
         if f is None:
             return
         e_idx, p_idx = f.columns(w)

@@ -337,7 +337,7 @@ class Factors:
 
     def __init__(self) -> None:
         self._chunks: list[tuple[np.ndarray, ...]] = []
-        self._dormant: tuple[np.ndarray, ...] | None = None
+        self._dormant: list[tuple[np.ndarray, ...]] = []
 
     def add(self, img: np.ndarray, pt: np.ndarray, uv: FloatArray, sigma: FloatArray,
             e_lin: FloatArray, p_lin: FloatArray, cam: FreeCamera,
@@ -365,49 +365,69 @@ class Factors:
                              np.array(Je, dtype=np.float64), np.array(Jp, dtype=np.float64),
                              np.array(r, dtype=np.float64)))
 
-    def in_window(self, w: Window, dormant_images: np.ndarray | None = None,
-                  dormant_points: np.ndarray | None = None) -> FactorSet | None:
+    def in_window(self, w: Window, keep_leaving: bool = False) -> FactorSet | None:
         """The factors whose image and point are both in the window.
 
-        Factors of departed keys that may re-enter the window (``dormant_images``,
-        ``dormant_points``: re-openable, their departure records kept) stay stored, so that
-        a re-opened key's rows are re-linearised with the window's (their information is
-        restored exactly by the re-opening's conditional prior: docs/algorithm.md); every
-        other factor is dropped."""
+        The others — their image or point has left the window — are dropped, or, with
+        ``keep_leaving`` (departure records kept: the keys may re-open), set aside as
+        *dormant* until :meth:`wake` brings back those of re-opened keys: a re-opened key's
+        rows are then re-linearised with the window's (its information is restored exactly
+        by the re-opening's conditional prior: docs/algorithm.md). Dormant factors are not
+        touched here: the cost stays that of the window's own factors."""
         if not self._chunks:
             return None
-        parts = [np.concatenate(col) for col in zip(*self._chunks, strict=True)]
-        img, pt = parts[0], parts[1]
-        imgs = np.fromiter((k[1] for k in w.keys if k[0] == "e"), dtype=np.int64)
-        pts = np.fromiter((k[1] for k in w.keys if k[0] == "p"), dtype=np.int64)
-        in_img, in_pt = np.isin(img, imgs), np.isin(pt, pts)
-        keep = in_img & in_pt
-        stay = ~keep
-        if dormant_images is not None and dormant_points is not None:
-            stay &= (in_img | np.isin(img, dormant_images)) & (in_pt | np.isin(pt, dormant_points))
-        else:
-            stay[:] = False
-        self._dormant = tuple(a[stay] for a in parts) if stay.any() else None
+        parts = self._concat(self._chunks)
+        keep = self._inside(parts, w)
+        if keep_leaving and not keep.all():
+            self._dormant.append(tuple(a[~keep] for a in parts))
         self._chunks = [tuple(a[keep] for a in parts)] if keep.any() else []
-        if self._dormant is not None:
-            self._chunks.append(self._dormant)
         if not keep.any():
             return None
-        return FactorSet(**dict(zip(self._FIELDS, (a[keep] for a in parts), strict=True)))
+        return FactorSet(**dict(zip(self._FIELDS, self._chunks[0], strict=True)))
+
+    def wake(self, w: Window) -> None:
+        """Dormant factors whose image and point are both in the window again (after a
+        re-opening) become window factors: O(dormant factors), at re-openings only."""
+        if not self._dormant:
+            return
+        parts = self._concat(self._dormant)
+        back = self._inside(parts, w)
+        if back.any():
+            self._chunks.append(tuple(a[back] for a in parts))
+        self._dormant = [tuple(a[~back] for a in parts)] if not back.all() else []
+
+    def prune_dormant(self, images: np.ndarray, points: np.ndarray) -> None:
+        """Keep the dormant factors whose image and point are each in the window's keys or
+        among ``images`` / ``points`` (the keys that may still re-open); drop the rest."""
+        if not self._dormant:
+            return
+        parts = self._concat(self._dormant)
+        keep = np.isin(parts[0], images) & np.isin(parts[1], points)
+        self._dormant = [tuple(a[keep] for a in parts)] if keep.any() else []
 
     def forget(self, points: set[int]) -> None:
-        """Drop every factor of ``points`` (taken out of the solution; a later observation
-        starts the point anew)."""
-        if not self._chunks or not points:
+        """Drop every factor of ``points``, in the window or dormant (taken out of the
+        solution; a later observation starts the point anew)."""
+        if not points:
             return
-        parts = [np.concatenate(col) for col in zip(*self._chunks, strict=True)]
-        keep = ~np.isin(parts[1], np.fromiter(points, dtype=np.int64))
-        self._chunks = [tuple(a[keep] for a in parts)] if keep.any() else []
-        self._dormant = None
+        gone = np.fromiter(points, dtype=np.int64)
+        for name in ("_chunks", "_dormant"):
+            chunks = getattr(self, name)
+            if chunks:
+                parts = self._concat(chunks)
+                keep = ~np.isin(parts[1], gone)
+                setattr(self, name, [tuple(a[keep] for a in parts)] if keep.any() else [])
 
     def replace(self, f: FactorSet) -> None:
-        """``f`` (the window's factors, re-linearised) and the dormant ones of the last
-        :meth:`in_window`."""
+        """``f``: the window's factors, re-linearised."""
         self._chunks = [tuple(getattr(f, name) for name in self._FIELDS)]
-        if self._dormant is not None:
-            self._chunks.append(self._dormant)
+
+    @staticmethod
+    def _concat(chunks: list[tuple[np.ndarray, ...]]) -> list[np.ndarray]:
+        return [np.concatenate(col) for col in zip(*chunks, strict=True)]
+
+    @staticmethod
+    def _inside(parts: list[np.ndarray], w: Window) -> np.ndarray:
+        imgs = np.fromiter((k[1] for k in w.keys if k[0] == "e"), dtype=np.int64)
+        pts = np.fromiter((k[1] for k in w.keys if k[0] == "p"), dtype=np.int64)
+        return np.isin(parts[0], imgs) & np.isin(parts[1], pts)

@@ -739,6 +739,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             self._relinearise_if_needed(force=check)
         if opts.smoothing_lag is not None:
             self._finalise_old(i)
+        self._prune_dormant(i)
         ms = (time.perf_counter() - t0) * 1e3
         update = self._report(
             frame, i, ms, rows, n2, len(born), len(pts) - skipped - len(rejected_new), skipped,
