@@ -92,11 +92,7 @@ class DepartureMixin:
         imgs, pts = self._dormant_keys()
         if imgs is None or pts is None:
             imgs = pts = np.zeros(0, dtype=np.int64)
-        w = self._w
-        window_imgs = np.fromiter((k[1] for k in w.keys if k[0] == "e"), dtype=np.int64)
-        window_pts = np.fromiter((k[1] for k in w.keys if k[0] == "p"), dtype=np.int64)
-        self._factors.prune_dormant(np.concatenate([imgs, window_imgs]),
-                                    np.concatenate([pts, window_pts]))
+        self._factors.prune_dormant(self._w, imgs, pts)
 
     def _dormant_keys(self) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
         """Departed images and GPs that may still re-enter the window with their exact

@@ -257,7 +257,7 @@ class InformationFactor:
 
     Parameters
     ----------
-    L : (n, n) float
+    L : (n, n) float, dense or sparse
         Symmetric positive definite information matrix (only read).
     eliminate : (np,) int
         Offsets in ``L`` of the 3x3 GP blocks to eliminate. Each must be coupled to the other
@@ -271,7 +271,7 @@ class InformationFactor:
     RankDeficiency
     """
 
-    def __init__(self, L: FloatArray | None, eliminate: np.ndarray,
+    def __init__(self, L: WindowMatrix | None, eliminate: np.ndarray,
                  kept_gp: np.ndarray | None = None, *,
                  parts: tuple[FloatArray, FloatArray, FloatArray] | None = None,
                  n: int | None = None) -> None:
@@ -326,17 +326,16 @@ class InformationFactor:
             self.L_RP = L_RP.tocsr()
             self.B = (self.L_RP @ Dinv_blocks).tocsr()
             BL = (self.B @ self.L_RP.T).toarray()
-        elif L_RP.size > SPARSE_FROM:
-            B = np.matmul(L_RP.reshape(r, npt, GP_SIZE).transpose(1, 0, 2),
-                          self.Dinv).transpose(1, 0, 2).reshape(r, GP_SIZE * npt)
-            self.L_RP = scipy.sparse.csr_array(L_RP)
-            self.B = scipy.sparse.csr_array(B)
-            BL = (self.B @ self.L_RP.T).toarray()
         else:
             B = np.matmul(L_RP.reshape(r, npt, GP_SIZE).transpose(1, 0, 2),
                           self.Dinv).transpose(1, 0, 2).reshape(r, GP_SIZE * npt)
-            self.L_RP, self.B = L_RP, B
-            BL = B @ L_RP.T
+            if L_RP.size > SPARSE_FROM:
+                self.L_RP = scipy.sparse.csr_array(L_RP)
+                self.B = scipy.sparse.csr_array(B)
+                BL = (self.B @ self.L_RP.T).toarray()
+            else:
+                self.L_RP, self.B = L_RP, B
+                BL = B @ L_RP.T
         S = L_RR - BL
         S = 0.5 * (S + S.T)
         self._chol(S)

@@ -109,17 +109,15 @@ class RelinearisationMixin:
                 res = f.uv[rows] - self._cam.project(e, np.broadcast_to(X, (rows.size, 3)))
                 return np.sum(res**2, axis=1) / sigma**2
 
-            best, best_n = None, 0
-            for leave in range(rows.size):
-                use = np.arange(rows.size) != leave
-                X, _ = intersect_rays(e[use, :EOP_SIZE], f.uv[rows[use]],
-                                      np.zeros(int(use.sum()), dtype=np.int64), 1, cam)
-                if not np.all(np.isfinite(X)):
-                    continue
-                n_in = int(np.count_nonzero(u2(X[0]) <= k**2))
-                if n_in > best_n:
-                    best, best_n = X[0], n_in
-            if best is None or best_n < 2:
+            # every leave-one-out intersection at once: candidate c from all rays but c
+            n = rows.size
+            others = np.flatnonzero(~np.eye(n, dtype=bool)) % n
+            cands, _ = intersect_rays(e[others, :EOP_SIZE], f.uv[rows[others]],
+                                      np.repeat(np.arange(n), n - 1), n, cam)
+            n_in = [int(np.count_nonzero(u2(X) <= k**2)) if np.all(np.isfinite(X)) else 0
+                    for X in cands]
+            best = cands[int(np.argmax(n_in))]
+            if max(n_in) < 2:
                 continue
             keep = u2(best) <= k**2
             X, _ = intersect_rays(e[keep, :EOP_SIZE], f.uv[rows[keep]],

@@ -396,13 +396,14 @@ class Factors:
             self._chunks.append(tuple(a[back] for a in parts))
         self._dormant = [tuple(a[~back] for a in parts)] if not back.all() else []
 
-    def prune_dormant(self, images: np.ndarray, points: np.ndarray) -> None:
-        """Keep the dormant factors whose image and point are each in the window's keys or
-        among ``images`` / ``points`` (the keys that may still re-open); drop the rest."""
+    def prune_dormant(self, w: Window, images: np.ndarray, points: np.ndarray) -> None:
+        """Keep the dormant factors whose image and point are each in the window or among
+        ``images`` / ``points`` (the departed keys that may still re-open); drop the rest."""
         if not self._dormant:
             return
         parts = self._concat(self._dormant)
-        keep = np.isin(parts[0], images) & np.isin(parts[1], points)
+        keep = (np.isin(parts[0], np.concatenate([w.ids("e"), images]))
+                & np.isin(parts[1], np.concatenate([w.ids("p"), points])))
         self._dormant = [tuple(a[keep] for a in parts)] if keep.any() else []
 
     def forget(self, points: set[int]) -> None:
@@ -428,6 +429,4 @@ class Factors:
 
     @staticmethod
     def _inside(parts: list[np.ndarray], w: Window) -> np.ndarray:
-        imgs = np.fromiter((k[1] for k in w.keys if k[0] == "e"), dtype=np.int64)
-        pts = np.fromiter((k[1] for k in w.keys if k[0] == "p"), dtype=np.int64)
-        return np.isin(parts[0], imgs) & np.isin(parts[1], pts)
+        return np.isin(parts[0], w.ids("e")) & np.isin(parts[1], w.ids("p"))

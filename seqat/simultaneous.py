@@ -515,10 +515,7 @@ class SimultaneousAT:
         critical = self.options.snooping_critical
         for rounds in range(MAX_SNOOPING_ROUNDS + 1):
             data, sel, eop0, gp0, cat_idx = self._block()
-            res = self._adjust(data, eop0, gp0,
-                               Covariance.FULL if critical is not None else covariance)
-            self._result, self._point_sel = res, sel
-            self._eop_est, self._gp_est = res.eop.copy(), res.gp.copy()
+            res = self._adjust_and_keep(data, sel, eop0, gp0, covariance)
             if (critical is None or rounds == MAX_SNOOPING_ROUNDS
                     or not self._snoop(res, data, sel, cat_idx, critical)):
                 break
@@ -532,12 +529,20 @@ class SimultaneousAT:
             if more_sel.size <= sel.size:
                 break
             data, sel = more, more_sel
-            res = self._adjust(data, eop0, gp0,
-                               Covariance.FULL if critical is not None else covariance)
-            self._result, self._point_sel = res, sel
-            self._eop_est, self._gp_est = res.eop.copy(), res.gp.copy()
+            res = self._adjust_and_keep(data, sel, eop0, gp0, covariance)
         self._n_obs = np.bincount(data.obs_point, minlength=data.n_points)
         self._dirty = False
+        return res
+
+    def _adjust_and_keep(self, data: BlockData, sel: np.ndarray, eop0: FloatArray,
+                      gp0: FloatArray, covariance: Covariance) -> SimResult:
+        """:meth:`_adjust` the block of points ``sel`` (the full cofactor with data snooping)
+        and keep its solution as the current estimates."""
+        critical = self.options.snooping_critical
+        res = self._adjust(data, eop0, gp0,
+                           Covariance.FULL if critical is not None else covariance)
+        self._result, self._point_sel = res, sel
+        self._eop_est, self._gp_est = res.eop.copy(), res.gp.copy()
         return res
 
     def calibration_block(self, calibration: SelfCalibration) -> CameraBlock:

@@ -172,6 +172,10 @@ class Window:
                           if k[0] == "p" and k not in self.coupled), dtype=np.int64)
         return gp, np.fromiter((self.offset[k] for k in self.coupled), dtype=np.int64)
 
+    def ids(self, kind: str) -> np.ndarray:
+        """Indices of the window's images (``kind`` "e") or GPs ("p"), in window order."""
+        return np.fromiter((k[1] for k in self.keys if k[0] == kind), dtype=np.int64)
+
     def keys_at(self, offsets: np.ndarray) -> list[Key]:
         """The keys whose blocks start at ``offsets``."""
         at = {off: k for k, off in self.offset.items()}

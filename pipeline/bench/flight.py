@@ -31,11 +31,11 @@ from pipeline.bench.report import Machine  # noqa: E402
 from pipeline.common.atomic import atomic_write_text
 from pipeline.common.columns import EOP_FILE, OBS_COLUMNS
 from pipeline.common.csvio import read_csv  # noqa: E402
-from pipeline.common.tables import EopTable
+from pipeline.common.tables import EopTable, NavTable
 from pipeline.report.model import image_residuals_px  # noqa: E402
+from pipeline.run.accuracy import eop_differences
 from pipeline.run.runner import Method, run_flight  # noqa: E402
 from pipeline.run.store import read_eop_csv, read_run, to_jsonable  # noqa: E402
-from seqat.geometry import wrap_angle
 from seqat.types import FloatArray  # noqa: E402
 
 
@@ -110,21 +110,15 @@ class FlightBench:
     seq_r_minus_colmap: Difference | None
 
 
-def _difference(a: FloatArray, b: FloatArray) -> Difference:
-    d = a - b
-    d[:, 3:] = np.degrees(wrap_angle(d[:, 3:]))
+def _difference(a: EopTable | NavTable, b: EopTable | NavTable) -> Difference:
+    """``a - b`` over the images both hold, matched by id
+    (:func:`pipeline.run.accuracy.eop_differences`)."""
+    _, d_pos, d_att = eop_differences(a.image_ids, a.eop, b.image_ids, b.eop)
+    d = np.hstack([d_pos, d_att])
     rms = np.sqrt(np.mean(d**2, axis=0))
     mx = np.max(np.abs(d), axis=0)
     return Difference(pos_rms_m=tuple(rms[:3]), pos_max_m=tuple(mx[:3]),  # type: ignore[arg-type]
                       att_rms_deg=tuple(rms[3:]), att_max_deg=tuple(mx[3:]))  # type: ignore[arg-type]
-
-
-def _aligned(a: EopTable, b: EopTable) -> tuple[FloatArray, FloatArray]:
-    """The EOPs of the images both tables hold, in ``a``'s order."""
-    index = b.index()
-    rows = [(i, index[iid]) for i, iid in enumerate(a.image_ids) if iid in index]
-    return (a.eop[[i for i, _ in rows]].reshape(-1, 6),
-            b.eop[[j for _, j in rows]].reshape(-1, 6))
 
 
 def _colmap(sim_run: Path) -> tuple[dict[str, object], EopTable | None]:
@@ -202,7 +196,7 @@ def run_flight_bench(flight: Path | str, out: Path | str) -> FlightBench:
         "self_calibration": not calibrated,
         "sigma0": {r.method: float(r.record["totals"]["sigma0"])  # type: ignore[index]
                    for r in (o_seq_r, o_sim)},
-        "seq_r_minus_sim": _difference(o_seq_r.eop.eop, o_sim.eop.eop),
+        "seq_r_minus_sim": _difference(o_seq_r.eop, o_sim.eop),
         "at_ms": Stats.of(o_at),
         "camera_estimate": {r.method: r.record.get("camera_estimate") for r in (o_seq_r, o_sim)},
     }
@@ -239,16 +233,16 @@ def run_flight_bench(flight: Path | str, out: Path | str) -> FlightBench:
                 for r in (seq_r, sim, seq_f)},
         read_ms=Stats.of(read_ms), detect_ms=Stats.of(detect), match_ms=Stats.of(match),
         tracking_ms=Stats.of(total), at_ms=Stats.of(at), latency_ms=Stats.of(latency),
-        seq_r_minus_sim=_difference(seq_r.eop.eop, sim.eop.eop),
-        seq_f_minus_sim=_difference(seq_f.eop.eop, sim.eop.eop),
-        nav_minus_sim=_difference(seq_r.nav.eop, sim.eop.eop),
+        seq_r_minus_sim=_difference(seq_r.eop, sim.eop),
+        seq_f_minus_sim=_difference(seq_f.eop, sim.eop),
+        nav_minus_sim=_difference(seq_r.nav, sim.eop),
         camera_estimate={r.method: r.record.get("camera_estimate") for r in (seq_r, sim, seq_f)},
         other_camera=other_camera,
         colmap=colmap,
         colmap_minus_sim=(None if colmap_eop is None
-                          else _difference(*_aligned(colmap_eop, sim.eop))),
+                          else _difference(colmap_eop, sim.eop)),
         seq_r_minus_colmap=(None if colmap_eop is None
-                            else _difference(*_aligned(seq_r.eop, colmap_eop))),
+                            else _difference(seq_r.eop, colmap_eop)),
     )
     doc = {"version": 1, **to_jsonable(bench)}  # type: ignore[dict-item]
     atomic_write_text(out / "bench_flight.json",
