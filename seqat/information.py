@@ -429,8 +429,45 @@ class InformationFactor:
         return np.einsum("ij,ij->i", Uinv, Uinv)
 
     def block(self, idx: np.ndarray) -> FloatArray:
-        """``Q[idx, idx]`` (small blocks: a leaving key's frozen cofactor)."""
-        return self.columns(idx)[idx]
+        """``Q[idx, idx]``, (k, k), without the n x k columns :meth:`columns` forms.
+
+        With ``E`` the unit columns of ``idx``: ``x_R = S^-1 (E_R - B E_P)`` (r x k; ``B E_P``
+        is a selection of ``B``'s columns) and, on the eliminated rows of ``idx`` only,
+        ``x_p = D_p^-1 (E_p - L_Rp^T x_R)``. An update's touched block costs O(r^2 k), not
+        O(n r k) (docs/algorithm.md, *Engines*)."""
+        idx = np.asarray(idx, dtype=np.int64)
+        k = idx.size
+        rpos = np.full(self.n, -1, dtype=np.int64)
+        rpos[self.r_idx] = np.arange(self.r_idx.size)
+        ppos = np.full(self.n, -1, dtype=np.int64)
+        ppos[self.p_idx.ravel()] = np.arange(self.p_idx.size)
+        in_r, in_p = rpos[idx] >= 0, ppos[idx] >= 0
+        M = np.zeros((self.r_idx.size, k))
+        M[rpos[idx[in_r]], np.flatnonzero(in_r)] = 1.0
+        jp = np.flatnonzero(in_p)
+        if jp.size:
+            M[:, jp] -= self._columns_of(self.B, ppos[idx[jp]])
+        xR = self._solve_S(M)
+        out = np.empty((k, k))
+        out[in_r] = xR[rpos[idx[in_r]]]
+        if jp.size:
+            q = ppos[idx[jp]]  # positions in P of the eliminated rows asked for
+            blk = q // GP_SIZE
+            cols3 = (blk[:, None] * GP_SIZE + np.arange(GP_SIZE)).ravel()
+            rhs = -(self._columns_of(self.L_RP, cols3).T @ xR).reshape(jp.size, GP_SIZE, k)
+            # E_p: the unit entries of idx's eliminated columns on those point blocks
+            same = blk[:, None] == blk[None, :]  # (jp, jp): column j's point is row i's
+            a, b = np.nonzero(same)
+            rhs[a, q[b] % GP_SIZE, jp[b]] += 1.0
+            out[jp] = np.einsum("jc,jck->jk", self.Dinv[blk, q % GP_SIZE], rhs)
+        return 0.5 * (out + out.T)
+
+    @staticmethod
+    def _columns_of(M: FloatArray | SparseMatrix, cols: np.ndarray) -> FloatArray:
+        """``M[:, cols]`` as a dense array (dense or sparse ``M``)."""
+        if scipy.sparse.issparse(M):
+            return M.tocsc()[:, cols].toarray()
+        return np.asarray(M)[:, cols]
 
     def dense(self) -> FloatArray:
         """The whole cofactor ``Q = L^-1`` (tests and small windows only)."""

@@ -58,7 +58,7 @@ def snoop_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows, sol: Upda
     """
     T = np.linalg.solve(sol.S, sol.P2bar)
     T = 0.5 * (T + T.T)
-    Gt = sol.G[touched]
+    Gt = sol.Gt
     Qtt = Q - Gt @ T @ Gt.T
     W1t = (rows.A21.T @ (rows.w2[:, None] * rows.A22)) @ sol.D_inv
     Q12 = -Qtt @ W1t

@@ -615,7 +615,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             touched_keys += [("p", p) for p in y21_pts]
             touched_keys += list(dict.fromkeys(("e", j) for (j, _, _, _) in y12))
             touched = w.indices(touched_keys)
-            Qc = w.q_columns(touched)
+            Qtt = w.q_block(touched)
             col_of = {}
             c = 0
             for k in touched_keys:
@@ -651,7 +651,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                 builder.robust_scale = None if iterations == 1 else opts.robust_scale
                 rows = builder.rows(x1t, x2_0, d1t, d2)
                 try:
-                    sol = solve_update(Qc, touched, rows, columns=True)
+                    sol = solve_update(Qtt, touched, rows, block=True)
                 except EstimationError:
                     # a point being born that its rays no longer fix (an iterate sent it far
                     # off): it waits for more rays; anything else is a real failure
@@ -675,7 +675,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             if degenerate:
                 held.update(born[b] for b in degenerate)
                 continue
-            if not diverged and self._diverged(nav, nav_sigma, x2_0, d2, Qc[touched], d1t):
+            if not diverged and self._diverged(nav, nav_sigma, x2_0, d2, Qtt, d1t):
                 # The image's rows sent the solution far beyond every prior sigma (gross
                 # errors in most of its points): the image is carried by its GPS/INS alone
                 # and its rays are left out, named in ``diverged``.
@@ -689,7 +689,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             if opts.snooping_critical is None or rounds >= MAX_SNOOPING_ROUNDS:
                 break
             rounds += 1
-            verdict = snoop_update(Qc[touched], touched, rows, sol, builder, d1t, d2,
+            verdict = snoop_update(Qtt, touched, rows, sol, builder, d1t, d2,
                                    opts.snooping_critical)
             if not verdict.observations and not set(verdict.nav_groups) - set(downweighted):
                 break
@@ -711,7 +711,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self._forced.difference_update(born)
         if self.recorded is not None:
             self._record(touched_keys, touched, born, i, rows, x1t, x2_0)
-        w.x = np.concatenate([w.x + sol.delta1(), x2_0 + sol.delta2])
+        w.x = np.concatenate([w.x + w.q_apply(touched, sol.kappa1), x2_0 + sol.delta2])
         if self._inverse:
             w.Q = update_cofactor(w.Q, touched, rows, sol)
         if w.L is not None:

@@ -65,10 +65,15 @@ class UpdateSolution:
     """Corrections and the intermediate matrices reused by :func:`update_cofactor`.
 
     ``delta1_touched`` is ``d1`` on the touched parameters only; the full ``d1`` is
-    ``G @ kappa`` (see :meth:`delta1`).
+    ``N11^-1[:, touched] kappa1`` (see :meth:`delta1`). ``G = N11^-1 A21^T`` is formed on the
+    touched rows only (``Gt``): over the whole window (n1 rows) it would cost ``n1 t m2`` per
+    iteration, the most expensive product of a large window's update (Seneca: n1 ~ 4000,
+    84 of 116 ms); ``d1`` needs one product with ``kappa1 = A21^T kappa``, which the
+    information engine forms as one solve (:meth:`seqat.window.Window.q_apply`).
     """
 
-    G: FloatArray  # (n1, m2)  N11^-1 A21^T
+    Qt: FloatArray | None  # (n1, t)  N11^-1 on the touched columns (None: given as a block)
+    Gt: FloatArray  # (t, m2)  N11^-1 A21^T on the touched rows
     H: FloatArray  # (m2, m2)  A21 N11^-1 A21^T
     P2bar: FloatArray  # (m2, m2)
     S: FloatArray  # (m2, m2)  I + P2bar H
@@ -78,9 +83,14 @@ class UpdateSolution:
     delta2: FloatArray  # (n2,)
     ssr_increment: float  # increase of the weighted sum of squared residuals
 
+    kappa1: FloatArray  # (t,)  A21^T kappa: d1 = N11^-1[:, touched] kappa1
+
     def delta1(self) -> FloatArray:
-        """Correction of every existing parameter, (n1,)."""
-        return self.G @ self.kappa
+        """Correction of every existing parameter, (n1,) (``Q`` given with its columns)."""
+        if self.Qt is None:
+            raise ValueError("solve_update was given Q[touched, touched] only: "
+                             "d1 = Q[:, touched] @ kappa1")
+        return self.Qt @ self.kappa1
 
 
 def spd_inverse(M: FloatArray, what: str) -> FloatArray:
@@ -98,14 +108,15 @@ def spd_inverse(M: FloatArray, what: str) -> FloatArray:
 
 
 def solve_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows, *,
-                 columns: bool = False) -> UpdateSolution:
+                 columns: bool = False, block: bool = False) -> UpdateSolution:
     """Estimate the corrections of existing and new parameters (Eq. 13-14).
 
     Parameters
     ----------
-    Q : (n1, n1) float, or (n1, t) with ``columns``
-        Cofactor (inverse normal matrix) of the existing parameters, or only its columns
-        ``Q[:, touched]`` (all the update needs: a factorised engine recovers just these).
+    Q : (n1, n1) float, (n1, t) with ``columns``, (t, t) with ``block``
+        Cofactor (inverse normal matrix) of the existing parameters, only its columns
+        ``Q[:, touched]``, or only its block ``Q[touched, touched]`` (all the update needs;
+        :meth:`UpdateSolution.delta1` then needs the caller's ``Q[:, touched] kappa1``).
     touched : (t,) int
         Indices of the existing parameters that the y2 rows involve.
     rows : LinearRows
@@ -122,8 +133,9 @@ def solve_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows, *,
     P2bar = -(P2A22 @ D_inv @ P2A22.T)
     P2bar[np.diag_indices_from(P2bar)] += w2
     P23bar_l3 = -P2A22 @ (D_inv @ (A32.T @ (w3 * rows.l3)))
-    G = (Q if columns else Q[:, touched]) @ A21.T
-    H = A21 @ G[touched]
+    Qt = None if block else Q if columns else Q[:, touched]
+    Gt = (Q if block else Qt[touched]) @ A21.T  # type: ignore[index]
+    H = A21 @ Gt
     m2 = A21.shape[0]
     S = P2bar @ H
     S[np.diag_indices_from(S)] += 1.0
@@ -131,19 +143,21 @@ def solve_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows, *,
         kappa = np.linalg.solve(S, P2bar @ rows.l2 + P23bar_l3)
     except np.linalg.LinAlgError as err:
         raise EstimationError(f"[I + P2bar A21 N11^-1 A21^T] ({m2}x{m2}) is singular") from err
-    d1t = G[touched] @ kappa
+    d1t = Gt @ kappa
     d2 = D_inv @ (P2A22.T @ (rows.l2 - A21 @ d1t) + A32.T @ (w3 * rows.l3))
     v2 = rows.l2 - A21 @ d1t - A22 @ d2
     v3 = rows.l3 - A32 @ d2
     # Omega grows by the new rows' weighted residuals plus d1^T N11 d1 = kappa^T H kappa.
     ssr = float(kappa @ H @ kappa + np.sum(w2 * v2**2) + np.sum(w3 * v3**2))
     return UpdateSolution(
-        G=G,
+        Qt=Qt,
+        Gt=Gt,
         H=H,
         P2bar=P2bar,
         S=S,
         D_inv=D_inv,
         kappa=kappa,
+        kappa1=A21.T @ kappa,
         delta1_touched=d1t,
         delta2=d2,
         ssr_increment=ssr,
@@ -170,7 +184,8 @@ def update_cofactor(
     """
     T = np.linalg.solve(sol.S, sol.P2bar)  # S^-1 P2bar (symmetric)
     T = 0.5 * (T + T.T)
-    Q -= (sol.G @ T) @ sol.G.T  # Eq. 12: N_r^-1
+    G = Q[:, touched] @ rows.A21.T  # N11^-1 A21^T
+    Q -= (G @ T) @ G.T  # Eq. 12: N_r^-1
     W1t = (rows.A21.T @ (rows.w2[:, None] * rows.A22)) @ sol.D_inv  # M12 D^-1 on touched rows
     Q12 = -Q[:, touched] @ W1t
     Q22 = sol.D_inv + W1t.T @ Q[np.ix_(touched, touched)] @ W1t

@@ -213,6 +213,14 @@ class Window:
             self._diag = d
         return self._diag
 
+    def q_apply(self, idx: np.ndarray, v: FloatArray) -> FloatArray:
+        """``Q[:, idx] @ v``, (n,): one solve, not ``len(idx)`` columns."""
+        if self.inverse:
+            return self.Q[:, idx] @ v
+        b = np.zeros(self.x.size)
+        np.add.at(b, idx, v)
+        return self.factor().solve(b)
+
     def q_block(self, idx: np.ndarray) -> FloatArray:
         """``Q[idx, idx]``."""
         if self.inverse:
