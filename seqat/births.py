@@ -89,7 +89,7 @@ class BirthMixin:
         if self.options.snooping_critical is not None:
             self._screen_rays(candidates, i)
             ok = [p for p in candidates if p in self._pending
-                  and len(self._pending[p]) >= self.options.min_rays]
+                  and len(self._pending[p]) >= self._min_rays(p)]
             if len(ok) < len(candidates):
                 return self._birth(ok, i, nav, use_new=use_new)
         eops, uvs, idx = [], [], []
@@ -110,6 +110,10 @@ class BirthMixin:
                 for p in candidates
             ]
         )
+        for c, p in enumerate(candidates):  # ground control: at its surveyed coordinates
+            ctrl = self._control_of(p)
+            if ctrl is not None:
+                X[c], spread[c] = ctrl[0], np.inf
         ok = np.all(np.isfinite(X), axis=1) & (spread >= min_angle)
         front = np.ones(len(candidates), dtype=bool)
         if np.any(ok):
@@ -118,6 +122,31 @@ class BirthMixin:
         ok &= front
         sel = np.flatnonzero(ok)
         return [candidates[c] for c in sel], X[sel]
+
+    def _control_of(self, p: int) -> tuple[FloatArray, FloatArray] | None:
+        """Surveyed coordinates (local) and their weights of point ``p`` when it is a
+        control point, else None."""
+        cp = self.control.get(self._point_ids[p]) if self.control else None
+        if cp is None:
+            return None
+        return cp.xyz_m - self._origin, cp.weight
+
+    def _min_rays(self, p: int) -> int:
+        """Rays point ``p`` needs to be born: one for a control point (its surveyed
+        coordinates fix it), ``min_rays`` for a tie point."""
+        return 1 if self.control and self._point_ids[p] in self.control else (
+            self.options.min_rays)
+
+    def _control_rows(self, born: list[int], t: int) -> list[tuple[int, FloatArray,
+                                                                    FloatArray]]:
+        """The coordinate observations of the control points among ``born`` for the
+        update's row builder: (column in ``z = [x1t, x2]``, surveyed xyz, weights)."""
+        out = []
+        for b, p in enumerate(born):
+            ctrl = self._control_of(p)
+            if ctrl is not None:
+                out.append((t + EOP_SIZE + GP_SIZE * b, ctrl[0], ctrl[1]))
+        return out
 
     def _eop_value(self, j: int) -> FloatArray:
         w = self._w

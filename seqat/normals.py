@@ -10,7 +10,7 @@ image) and, with self-calibration, the free interior parameters of the camera (`
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -41,6 +41,13 @@ class BlockData:
         Pixels.
     obs_sigma_px : (k,) float
     n_points : int
+    control_point : (g,) int
+        Ground control (:class:`seqat.types.ControlPoint`): the points whose coordinates
+        are observed, each once, ...
+    control_xyz : (g, 3) float
+        ... their surveyed coordinates (local metres) ...
+    control_weight : (g, 3) float
+        ... and the weights ``1 / sigma^2`` of those observations (0: a free coordinate).
     """
 
     nav_eop: FloatArray
@@ -50,6 +57,15 @@ class BlockData:
     obs_uv: FloatArray
     obs_sigma_px: FloatArray
     n_points: int
+    control_point: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    control_xyz: FloatArray = field(default_factory=lambda: np.zeros((0, GP_SIZE)))
+    control_weight: FloatArray = field(default_factory=lambda: np.zeros((0, GP_SIZE)))
+
+    def control_ssr(self, gp: FloatArray) -> float:
+        """Weighted sum of squared residuals of the control points' coordinates at ``gp``."""
+        if not self.control_point.size:
+            return 0.0
+        return float(np.sum(self.control_weight * (self.control_xyz - gp[self.control_point])**2))
 
     @property
     def n_images(self) -> int:
@@ -127,6 +143,9 @@ def linearise(
     # identity (no step), instead of a singular system that rounding decides.
     Npp = np.zeros((m, GP_SIZE, GP_SIZE))
     np.add.at(Npp, pt, np.einsum("kri,krj->kij", Jp * w[:, None, None], Jp))
+    cp = data.control_point
+    diag3 = np.arange(GP_SIZE)
+    Npp[cp[:, None], diag3, diag3] += data.control_weight  # surveyed coordinates (A = I)
     undetermined = np.zeros(m, dtype=bool)
     if m:
         ev = np.linalg.eigvalsh(Npp)
@@ -161,8 +180,8 @@ def linearise(
     Npp[undetermined] = np.eye(GP_SIZE)  # the other blocks keep their rows' weights
     b_p = np.zeros((m, GP_SIZE))
     np.add.at(b_p, pt, np.einsum("kri,kr->ki", wJp, ell))
+    b_p[cp] += data.control_weight * (data.control_xyz - gp[cp])
     if damping > 0.0:
-        diag3 = np.arange(GP_SIZE)
         Npp[:, diag3, diag3] *= 1.0 + damping
         N_RR = N_RR + sp.diags(damping * N_RR.diagonal())
     NRp_blocks = np.einsum("kri,krj->kij", wJR, Jp)  # (k, 6 + c, 3)
@@ -210,7 +229,7 @@ def _block_diagonal(blocks: FloatArray) -> sp.csr_matrix:
 def weighted_ssr(camera: PinholeCamera, data: BlockData, eop: FloatArray,
                   gp: FloatArray, robust_scale: float | None = None,
                   calib: CameraBlock | None = None) -> float:
-    """Weighted sum of squared residuals (image points, nav, camera prior) at ``(eop, gp,
+    """Weighted sum of squared residuals (image points, nav, control, camera prior) at ``(eop, gp,
     camera)``; with a ``robust_scale`` the image points' Cauchy cost (:mod:`seqat.robust`)."""
     img, pt = data.obs_image, data.obs_point
     if np.any(depth(eop[img], gp[pt]) <= 0.0):
@@ -218,6 +237,7 @@ def weighted_ssr(camera: PinholeCamera, data: BlockData, eop: FloatArray,
     res = data.obs_uv - project(eop[img], gp[pt], camera)
     ssr = cauchy_cost(res, data.obs_sigma_px, robust_scale)
     ssr += float(np.sum(eop_residual(data.nav_eop, eop) ** 2 / data.nav_sigma**2))
+    ssr += data.control_ssr(gp)
     if calib is not None:
         ssr += float(np.sum((calib.residual(camera) / calib.sigma) ** 2))
     return ssr if np.isfinite(ssr) else math.inf

@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -77,9 +78,10 @@ def snoop_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows, sol: Upda
         observations = [int(q) for q in sel]
         wq = [float(worst[q]) for q in sel]
     t = touched.size
+    nav = slice(2 * k, 2 * k + EOP_SIZE)
     with np.errstate(divide="ignore"):
-        nav_sigma = 1.0 / np.sqrt(builder.w[2 * k:])
-    groups = snooping.nav_exceedance(v[2 * k:], nav_sigma, np.diagonal(Z)[t : t + EOP_SIZE],
+        nav_sigma = 1.0 / np.sqrt(builder.w[nav])
+    groups = snooping.nav_exceedance(v[nav], nav_sigma, np.diagonal(Z)[t : t + EOP_SIZE],
                                      critical)
     # The worst failure first, image point or GPS/INS group, in units of its own critical
     # value (w² / c² for a point, T / chi² for a group): a 5 m jump then goes before the good
@@ -129,6 +131,10 @@ class RowBuilder:
     robust_scale : float or None
         Robust loss scale of the image rows in sigma (:mod:`seqat.robust`): their weights
         are re-computed from the residuals at every linearisation (IRLS).
+    control : list of (col, xyz, weight)
+        Ground control among the new points: the column in ``z`` of the point, its surveyed
+        coordinates and their weights (0: free); three linear rows each (``A = I``), after
+        the GPS/INS rows.
     """
 
     def __init__(
@@ -141,6 +147,7 @@ class RowBuilder:
         nav_sigma: FloatArray,
         robust_scale: float | None = None,
         cam_col: int = 0,
+        control: Sequence[tuple[int, FloatArray, FloatArray]] = (),
     ) -> None:
         self.cam, self.t, self.n2 = cam, t, n2
         self.robust_scale = robust_scale
@@ -149,7 +156,8 @@ class RowBuilder:
         y3 = [o for o in obs if not o[4]]
         ordered = y2 + y3
         self.m2 = 2 * len(y2)
-        self.m3 = 2 * len(y3) + EOP_SIZE
+        self.control = list(control)
+        self.m3 = 2 * len(y3) + EOP_SIZE + GP_SIZE * len(self.control)
         ncol = t + n2
         k = len(ordered)
         ecol = np.asarray([o[0] for o in ordered], dtype=np.int64).reshape(k)
@@ -166,7 +174,8 @@ class RowBuilder:
         self.ids = np.asarray([o[5] for o in ordered], dtype=np.int64).reshape(k, 2)
         self.sigmas = np.asarray([o[3] for o in ordered], dtype=np.float64).reshape(k)
         w_img = np.repeat(1.0 / np.asarray([o[3] for o in ordered], dtype=np.float64) ** 2, 2)
-        self.w = np.concatenate([w_img, 1.0 / nav_sigma**2])
+        self.w = np.concatenate([w_img, 1.0 / nav_sigma**2]
+                                + [wc for _, _, wc in self.control])
         self.w0 = self.w.copy()  # least-squares weights; self.w carries the robust factor
         self.k = k
         self.ncol = ncol
@@ -178,8 +187,9 @@ class RowBuilder:
         from ``(x1t, x2_0)``: ``l = y - f(x_lin) + A (x_lin - x_prior)``."""
         t, k = self.t, self.k
         z = np.concatenate([x1t + d1t, x2_0 + d2])
-        A = np.zeros((2 * k + EOP_SIZE, self.ncol))
-        ell = np.empty(2 * k + EOP_SIZE)
+        n_rows = 2 * k + EOP_SIZE + GP_SIZE * len(self.control)
+        A = np.zeros((n_rows, self.ncol))
+        ell = np.empty(n_rows)
         if k:
             uv, Je, Jp = self.cam.project_with_jacobians(z[self.eidx], z[self.pidx])
             A.flat[self.flat_e] = Je.ravel()
@@ -194,7 +204,13 @@ class RowBuilder:
         A[2 * k + np.arange(EOP_SIZE), t + np.arange(EOP_SIZE)] = 1.0
         dz = self.nav - z[t : t + EOP_SIZE]
         dz[3:] = wrap_angle(dz[3:])
-        ell[2 * k :] = dz
+        nav_end = 2 * k + EOP_SIZE
+        ell[2 * k : nav_end] = dz
+        # ground control: surveyed - current coordinates of each new control point (A = I)
+        for q, (col, xyz, _) in enumerate(self.control):
+            r = nav_end + GP_SIZE * q + np.arange(GP_SIZE)
+            A[r, col + np.arange(GP_SIZE)] = 1.0
+            ell[r] = xyz - z[col : col + GP_SIZE]
         ell += A @ np.concatenate([d1t, d2])
         self._A, self._ell = A, ell
         m2 = self.m2
@@ -219,7 +235,7 @@ class RowBuilder:
 
     def residuals(self, d1t: FloatArray, d2: FloatArray) -> FloatArray:
         """Residuals of the last linearised rows at the corrections ``(d1t, d2)``: image rows
-        in builder order (2 per observation), then the 6 GPS/INS rows."""
+        in builder order (2 per observation), the 6 GPS/INS rows, then 3 per control point."""
         return self._ell - self._A @ np.concatenate([d1t, d2])
 
     def linearisation_error(

@@ -48,7 +48,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,12 +75,14 @@ from seqat.simultaneous import (
     Covariance,
     SimOptions,
     SimultaneousAT,
+    control_by_id,
     free_nav_sigma,
     sigma_scale,
 )
 from seqat.types import (
     EOP_SIZE,
     GP_SIZE,
+    ControlPoint,
     EopEstimate,
     FloatArray,
     Frame,
@@ -211,6 +213,10 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         With ``options.smoothing_lag``: receives each parameter once it is final (world
         frame), which is then forgotten (:meth:`solution` returns the others only). Without a
         sink final parameters stay in a compact store.
+    control : sequence of ControlPoint
+        Ground control: points whose coordinates are observed. A control point is born at
+        its first ray, at its surveyed coordinates, with their observation as rows of that
+        update (docs/algorithm.md, *Ground control*).
     """
 
     def __init__(
@@ -220,9 +226,11 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         *,
         record: bool = False,
         sink: Callable[[EopEstimate | PointEstimate], None] | None = None,
+        control: Sequence[ControlPoint] = (),
     ) -> None:
         self.camera = camera
         self.options = options
+        self.control = control_by_id(control)
         # The initial block hands every free interior parameter to the window (none held:
         # later images may determine what the first few do not; the prior keeps it regular).
         calibration = (None if options.calibration is None else
@@ -239,7 +247,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self._inverse = options.engine == "inverse"
         self._records = options.smoothing  # departure records (RTS smoothing, re-opening)
         self._initial: SimultaneousAT | None = SimultaneousAT(
-            camera, sim_opts, refit_every_frame=options.snooping_critical is None)
+            camera, sim_opts, refit_every_frame=options.snooping_critical is None,
+            control=control)
         self._origin: FloatArray | None = None
         # The camera as the rows see it: with self-calibration its free interior parameters
         # are the window block ``_cam_key`` (set by the initial stage).
@@ -562,7 +571,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             else:
                 lst = self._pending.setdefault(p, [])
                 lst.append((i, uv, frame.sigma_px))
-                if len(lst) >= opts.min_rays:
+                if len(lst) >= self._min_rays(p):
                     candidates.append(p)
         in_frame = set(candidates)
         candidates += [p for p in self._forced if p not in in_frame and p in self._pending]
@@ -581,7 +590,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                    and (("p", p) in w.offset or self._reopenable(("p", p), i))]
             reopen: list[Key] = [("p", p) for p, _ in y21 if ("p", p) not in w.offset]
             ready = [p for p in candidates if p in self._pending and p not in held
-                     and len(self._pending[p]) >= opts.min_rays]
+                     and len(self._pending[p]) >= self._min_rays(p)]
             born, born_xyz = self._birth(ready, i, init, use_new=init_known)
             reopen += list(dict.fromkeys(
                 ("e", j) for p in born for (j, _, _) in self._pending[p]
@@ -628,7 +637,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             obs += [(t, t + EOP_SIZE + GP_SIZE * b, uv, s, self._cam_key is not None,
                      (i, born[b])) for (b, uv, s) in y22]
             builder = RowBuilder(self._cam, t, n2, obs, nav, nav_sigma, opts.robust_scale,
-                                 cam_col=0)
+                                 cam_col=0, control=self._control_rows(born, t))
             x1t = w.x[touched]
             d1t = np.zeros(touched.size)
             d2 = np.zeros(n2)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 
@@ -20,7 +21,7 @@ import numpy as np
 
 from seqat import snooping
 from seqat.calibration import FreeCamera, SelfCalibration, correlation, to_hold
-from seqat.errors import EstimationError
+from seqat.errors import EstimationError, InputDataError
 from seqat.geometry import depth, intersect_rays, project, project_with_jacobians
 from seqat.normals import (
     BlockData,
@@ -41,6 +42,7 @@ from seqat.types import (
     EOP_SIZE,
     GP_SIZE,
     CameraEstimate,
+    ControlPoint,
     EopEstimate,
     FloatArray,
     Frame,
@@ -251,9 +253,11 @@ def adjust_block(
         np.sum(weight[:, None] * res_img**2 / data.obs_sigma_px[:, None] ** 2)
         + np.sum(res_nav**2 / data.nav_sigma**2)
     )
+    ssr += data.control_ssr(gp)
     if calib is not None:
         ssr += float(np.sum((calib.residual(cam) / calib.sigma) ** 2))
-    redundancy = 2 * int(np.count_nonzero(~und[pt])) - GP_SIZE * int(np.count_nonzero(~und))
+    redundancy = (2 * int(np.count_nonzero(~und[pt])) - GP_SIZE * int(np.count_nonzero(~und))
+                  + int(np.count_nonzero(data.control_weight)))
     sigma0 = float(np.sqrt(ssr / redundancy)) if redundancy > 0 else float("nan")
     rms_px = float(np.sqrt(np.mean(res_img**2))) if img.size else float("nan")
     eop_cof = gp_cof = full = normal = None
@@ -301,6 +305,16 @@ def free_nav_sigma(sigma: FloatArray) -> FloatArray:
     (:data:`FREE_NAV_SIGMA`): an image the tie points do not determine keeps its starting
     value with a sigma that says so, instead of a singular system."""
     return np.where(np.isinf(sigma), FREE_NAV_SIGMA, sigma)
+
+
+def control_by_id(control: Sequence[ControlPoint]) -> dict[str, ControlPoint]:
+    """The control points by point id; an id given twice is an input error."""
+    out: dict[str, ControlPoint] = {}
+    for cp in control:
+        if cp.point_id in out:
+            raise InputDataError(f"control point {cp.point_id!r} is given twice")
+        out[cp.point_id] = cp
+    return out
 
 
 def sigma_scale(sigma0: float, redundancy: int) -> float:
@@ -373,6 +387,8 @@ class SimultaneousAT:
     options : SimOptions
     refit_every_frame : bool
         ``False`` only buffers frames; :meth:`solution` then solves once (``--final-only``).
+    control : sequence of ControlPoint
+        Ground control: points whose coordinates are observed (adjusted from one ray on).
     """
 
     def __init__(
@@ -381,10 +397,12 @@ class SimultaneousAT:
         options: SimOptions = SimOptions(),
         *,
         refit_every_frame: bool = True,
+        control: Sequence[ControlPoint] = (),
     ) -> None:
         self.camera = camera
         self.options = options
         self.refit_every_frame = refit_every_frame
+        self.control = control_by_id(control)
         #: The camera at the last solution (the prior ``camera`` until self-calibrated).
         self.camera_now = camera
         self._held: tuple[str, ...] = ()  # free parameters the last solution held at the prior
@@ -453,13 +471,20 @@ class SimultaneousAT:
         cat_idx, oi, op, uv, sg = self._observations()
         n_pts = len(cat.point_ids)
         counts = np.bincount(op, minlength=n_pts)
+        # ground control: adjusted from one ray on, started at its surveyed coordinates
+        ctrl = np.asarray([j for j, pid in enumerate(cat.point_ids) if pid in self.control],
+                          dtype=np.int64)
+        ctrl_xyz = np.asarray([self.control[cat.point_ids[j]].xyz_m - self._origin
+                               for j in ctrl]).reshape(-1, GP_SIZE)
+        min_rays = np.full(n_pts, self.options.min_rays)
+        min_rays[ctrl] = 1
         # Initial GP values: previous estimate where known, else intersection at current EOPs.
         known = np.full(n_pts, False)
         gp_init = np.full((n_pts, 3), np.nan)
         if self._point_sel.size:
             gp_init[self._point_sel] = self._gp_est
             known[self._point_sel] = np.all(np.isfinite(self._gp_est), axis=1)
-        need = (~known) & (counts >= self.options.min_rays)
+        need = (~known) & (counts >= min_rays)
         if np.any(need):
             mask = need[op]
             X, spread = intersect_rays(self._eop_est[oi[mask]], uv[mask], op[mask], n_pts,
@@ -467,7 +492,9 @@ class SimultaneousAT:
             if self.options.min_ray_angle_deg > 0:
                 X[spread < np.radians(self.options.min_ray_angle_deg)] = np.nan
             gp_init[need] = X[need]
-        usable = (counts >= self.options.min_rays) & np.all(np.isfinite(gp_init), axis=1)
+        start = need[ctrl]
+        gp_init[ctrl[start]] = ctrl_xyz[start]
+        usable = (counts >= min_rays) & np.all(np.isfinite(gp_init), axis=1)
         # A new point must lie in front of every camera that sees it (a mismatch intersected
         # behind the cameras would make the normal equations indefinite).
         check = usable[op] & need[op]
@@ -488,6 +515,10 @@ class SimultaneousAT:
             obs_uv=uv[keep],
             obs_sigma_px=sg[keep],
             n_points=int(sel.size),
+            control_point=remap[ctrl[usable[ctrl]]],
+            control_xyz=ctrl_xyz[usable[ctrl]],
+            control_weight=np.asarray([self.control[cat.point_ids[j]].weight
+                                       for j in ctrl[usable[ctrl]]]).reshape(-1, GP_SIZE),
         )
         return data, sel, self._eop_est, gp_init[sel], cat_idx[keep]
 

@@ -145,6 +145,49 @@ class Frame:
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
+class ControlPoint:
+    """A ground control point: a ground point whose coordinates were surveyed.
+
+    Its image observations arrive in the frames like a tie point's (``Frame.point_ids``,
+    under ``point_id``); the estimators adjust it with ``xyz_m`` as a weighted observation of
+    its coordinates (docs/algorithm.md, *Ground control*). One ray is enough for it to be
+    adjusted.
+
+    Attributes
+    ----------
+    point_id : str
+    xyz_m : (3,) float
+        Surveyed coordinates in the world frame of the run (the frame of ``Frame.nav_eop``).
+    sigma_m : (3,) float
+        Standard deviation of each coordinate, > 0; ``inf`` leaves that coordinate free (a
+        planimetric or a height-only control point).
+    """
+
+    point_id: str
+    xyz_m: FloatArray
+    sigma_m: FloatArray
+
+    def __post_init__(self) -> None:
+        xyz = np.asarray(self.xyz_m, dtype=np.float64).reshape(-1)
+        sig = np.asarray(self.sigma_m, dtype=np.float64).reshape(-1)
+        where = f"control point {self.point_id!r}"
+        if xyz.shape != (GP_SIZE,) or not np.all(np.isfinite(xyz)):
+            raise InputDataError(f"{where}: xyz_m must be 3 finite numbers, got {xyz!r}")
+        if sig.shape != (GP_SIZE,) or np.any(np.isnan(sig)) or np.any(sig <= 0):
+            raise InputDataError(f"{where}: sigma_m must be 3 positive numbers (inf: free), "
+                                 f"got {sig!r}")
+        if not np.any(np.isfinite(sig)):
+            raise InputDataError(f"{where}: at least one coordinate needs a finite sigma_m")
+        object.__setattr__(self, "xyz_m", xyz)
+        object.__setattr__(self, "sigma_m", sig)
+
+    @property
+    def weight(self) -> FloatArray:
+        """(3,) ``1 / sigma^2`` (0 for a free coordinate)."""
+        return 1.0 / self.sigma_m**2
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
 class EopEstimate:
     """Estimated exterior orientation of one image with its standard deviations."""
 
