@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.report.html import render_html
 from pipeline.report.model import build_report, checkpoint_report, find_checkpoints
 from pipeline.run.runner import run_flight
 from pipeline.run.store import read_run
@@ -65,3 +66,6 @@ def test_gcps_reported_apart_and_the_bias_falls(autzen_run: Path, tmp_path: Path
     assert report.checkpoints["excluded_as_control"] == sorted(names)
     assert [c.method for c in report.control_reports] == ["seq-r"]
     assert len(extras["control_xyz_m"]) == 10  # type: ignore[arg-type]
+    page = render_html(report, extras, thumbnails=(None, None))
+    assert "<h2>Ground control points</h2>" in page and "Control residuals of seq-r" in page
+    assert "Left out as ground control points of the run: c001, c005" in page
