@@ -314,7 +314,8 @@ def _insert_rows(nav: NavTable, images: list[str]) -> NavTable:
     return NavTable(image_ids=tuple(order), times_s=times, eop=eop)
 
 
-def read_flight(flight_dir: Path | str) -> Flight:
+def read_flight(flight_dir: Path | str, *, gcp_file: Path | str | None = None,
+                gcp_sigma_m: tuple[float, float] | None = None) -> Flight:
     """Open and validate a flight folder (docs/formats.md, *Flight folder*).
 
     Three kinds: observations (``observations:`` given), images with a ``nav.csv``
@@ -323,6 +324,10 @@ def read_flight(flight_dir: Path | str) -> Flight:
     ``flight.yaml``). For image flights, unusable images (truncated, no GPS, listed in
     ``nav.csv`` but missing, of another aspect ratio, ...) are skipped and listed in
     :attr:`Flight.skipped`; the run goes on with the others.
+
+    Ground control: ``gcp_file`` (``--gcp``) in place of the flight's own (``flight.yaml``
+    ``gcp:``, else ``gcp_list.txt`` in the folder), with the default σ ``gcp_sigma_m``
+    (horizontal, vertical; ``--gcp-sigma-m``) where given.
 
     Raises
     ------
@@ -404,12 +409,13 @@ def read_flight(flight_dir: Path | str) -> Flight:
     calibration, camera, corrector = frame_camera(camera_config, config.self_calibration,
                                                   approximate)
     control = None
-    gcp_path = find_gcp_file(folder, config.gcp, source)
+    gcp_path = Path(gcp_file) if gcp_file is not None else find_gcp_file(folder, config.gcp,
+                                                                         source)
     if gcp_path is not None:
         control = read_ground_control(
             gcp_path, crs, image_frame(nav.image_ids, paths, (camera_config.width_px,
                                                                camera_config.height_px)),
-            config.gcp, folder=folder)
+            config.gcp, sigma_m=gcp_sigma_m, folder=folder)
         warnings += control.warnings
     return Flight(path=folder, config=config, crs=crs, camera_config=camera_config,
                   camera_approximate=approximate, camera=camera, calibration=calibration,

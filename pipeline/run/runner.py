@@ -31,7 +31,6 @@ from pipeline.flight.folder import (
     Truth,
     read_flight,
     read_truth,
-    with_ground_control,
     with_self_calibration,
 )
 from pipeline.flight.gcp import GroundControl
@@ -457,8 +456,8 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     budget = make_budget(budget_ms, method, options)
     if out.exists() and not out.is_dir():
         raise InputDataError(f"{out}: exists and is not a folder")
-    flight = with_self_calibration(read_flight(flight_dir), self_calibration)
-    flight = with_ground_control(flight, gcp, gcp_sigma_m)
+    flight = with_self_calibration(read_flight(flight_dir, gcp_file=gcp,
+                                               gcp_sigma_m=gcp_sigma_m), self_calibration)
     options = with_calibration(options, flight.calibration)
     obs_path = None
     if observations is not None:

@@ -198,3 +198,18 @@ def test_bad_gcp_file_through_the_cli_exits_2_with_one_line(tmp_path: Path) -> N
     result = CliRunner().invoke(app, ["run", str(STRIP), "--out", str(out), "--gcp", str(path),
                                       "--gcp-sigma-m", "0,1"])
     assert result.exit_code == 2 and "--gcp-sigma-m" in result.stderr
+
+
+def test_gcp_list_in_the_folder_is_found_and_gcp_option_replaces_it(tmp_path: Path) -> None:
+    flight = tmp_path / "flight"
+    flight.mkdir()
+    for item in STRIP.iterdir():
+        (flight / item.name).symlink_to(item)
+    crs = read_flight(STRIP).crs.to_string()
+    write(flight, odm(crs, ["500 600 10 1000 1000 img_0001 g1"]))  # auto-detected
+    assert [p.name for p in read_flight(flight).control.points] == ["g1"]  # type: ignore[union-attr]
+    write(flight, odm(crs, ["500 600 ten 1000 1000 img_0001 g1"]))  # broken, but replaced
+    other = write(tmp_path, odm(crs, ["500 600 10 1000 1000 img_0002 g2"]), "other.txt")
+    got = read_flight(flight, gcp_file=other, gcp_sigma_m=(0.5, 0.7)).control
+    assert got is not None and [p.name for p in got.points] == ["g2"]
+    np.testing.assert_array_equal(got.points[0].sigma_m, [0.5, 0.5, 0.7])
