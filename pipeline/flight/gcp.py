@@ -545,8 +545,8 @@ def read_metashape_markers(path: Path | str, crs: pyproj.CRS, frame: ImageFrame,
             if size is not None and all(size) and frame.image_id(cam_label) is not None:
                 iid = frame.image_id(cam_label)
                 fw, fh = frame.file_size(iid)  # type: ignore[arg-type]
-                if (fw, fh) != size:  # the sensor resolution is the file's
-                    u, v = ((u - 0.5) * fw / size[0] + 0.5, (v - 0.5) * fh / size[1] + 0.5)
+                if (fw, fh) != size:  # pixels of the sensor's resolution; corner origin
+                    u, v = u * fw / size[0], v * fh / size[1]
             b.observe(pid, cam_label, u, v, where, "x", offset=METASHAPE_PIXEL_OFFSET)
     warnings: list[str] = []
     if disabled:

@@ -213,3 +213,11 @@ def test_gcp_list_in_the_folder_is_found_and_gcp_option_replaces_it(tmp_path: Pa
     got = read_flight(flight, gcp_file=other, gcp_sigma_m=(0.5, 0.7)).control
     assert got is not None and [p.name for p in got.points] == ["g2"]
     np.testing.assert_array_equal(got.points[0].sigma_m, [0.5, 0.5, 0.7])
+
+
+def test_metashape_pixels_of_another_sensor_resolution_scale(tmp_path: Path) -> None:
+    path = write(tmp_path, metashape_xml().replace('width="640" height="480"',
+                                                   'width="1280" height="960"'), "markers.xml")
+    c = read_metashape_markers(path, UTM10, frame())
+    # corner origin: (100.5, 200.5) of 1280 x 960 is (50.25, 100.25) of 640 x 480, - 0.5
+    np.testing.assert_allclose(c.for_image("img_0001")[1], [[49.75, 99.75]])
