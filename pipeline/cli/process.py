@@ -24,7 +24,14 @@ from typing import Annotated, TypeVar
 import typer
 
 from pipeline.cli.common import METRE_FORMAT, console, fmt, guarded
-from pipeline.cli.run import EstimatorOptionsFile, MethodOption, adjust_flight, parse_method
+from pipeline.cli.run import (
+    EstimatorOptionsFile,
+    GcpOption,
+    GcpSigmaOption,
+    MethodOption,
+    adjust_flight,
+    parse_method,
+)
 from seqat.errors import ConfigError, SeqatError
 
 app = typer.Typer()
@@ -109,6 +116,8 @@ def process(
         "--report/--no-report", help="OUT/report.html, report.pdf, report.json.")] = True,
     progress: Annotated[bool, typer.Option(
         "--progress/--no-progress", help="Progress bar on a terminal.")] = True,
+    gcp: GcpOption = None,
+    gcp_sigma_m: GcpSigmaOption = None,
 ) -> None:
     """Run, COLMAP reference and report of a flight in one command; prints where the map
     (mosaic.tif, cameras.gpkg) and the report are."""
@@ -125,7 +134,8 @@ def process(
     rule(f"{stages[0]} ({plan.ortho_why})")
     summary = adjust_flight(flight, out, method=method, options=options, progress=progress,
                             observations=observations, ortho=plan.ortho, dsm=dsm,
-                            ortho_options=ortho_options, self_calibration=self_calibration)
+                            ortho_options=ortho_options, self_calibration=self_calibration,
+                            gcp=gcp, gcp_sigma_m=gcp_sigma_m)
     out = summary.out_dir
     rows: list[tuple[str, str]] = []
     if plan.reference:

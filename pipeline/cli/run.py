@@ -24,6 +24,12 @@ InitialImagesOption = Annotated[int | None, typer.Option(
     "--initial-images", help="Images of the initial simultaneous stage.")]
 EstimatorOptionsFile = Annotated[Path | None, typer.Option(
     "--options", help="Estimator options YAML (sections sequential:, sim:).")]
+GcpOption = Annotated[Path | None, typer.Option(
+    "--gcp", help="Ground control points: an ODM gcp_list.txt or a Metashape markers XML "
+    "(default: flight.yaml gcp:, else gcp_list.txt in the flight folder).")]
+GcpSigmaOption = Annotated[str | None, typer.Option(
+    "--gcp-sigma-m", help="Default GCP sigma 'H,V' in metres, horizontal and vertical "
+    "(default: flight.yaml gcp:, else 0.02,0.03).")]
 BudgetOption = Annotated[float | None, typer.Option(
     "--budget-ms", help="seq-r: processing budget per image (tracking + update), ms; over it "
     "the window threshold tightens.")]
@@ -65,6 +71,8 @@ def run(
         "--self-calibration/--fixed-camera", help="Estimate the camera's interior parameters "
         "with the EOPs, or keep the camera fixed (default: flight.yaml self_calibration:, on "
         "for a camera from EXIF).", show_default=False)] = None,
+    gcp: GcpOption = None,
+    gcp_sigma_m: GcpSigmaOption = None,
 ) -> None:
     """Adjust a flight folder and write eop.csv, points.csv, run.json, nav.csv and
     observations.csv."""
@@ -72,7 +80,8 @@ def run(
                             threshold=threshold, initial_images=initial_images,
                             options=options, progress=progress, observations=observations,
                             ortho=ortho, dsm=dsm, ortho_options=ortho_options, resume=resume,
-                            budget_ms=budget_ms, self_calibration=self_calibration)
+                            budget_ms=budget_ms, self_calibration=self_calibration,
+                            gcp=gcp, gcp_sigma_m=gcp_sigma_m)
     if report:
         from pipeline.report.stage import make_report
 
@@ -86,7 +95,8 @@ def adjust_flight(flight: Path, out: Path, *, method: str = "seq-r", final_only:
                   observations: Path | None = None, ortho: bool = False,
                   dsm: Path | None = None, ortho_options: Path | None = None,
                   resume: bool = False, budget_ms: float | None = None,
-                  self_calibration: bool | None = None) -> RunSummary:
+                  self_calibration: bool | None = None, gcp: Path | None = None,
+                  gcp_sigma_m: str | None = None) -> RunSummary:
     """What ``seqat run`` does and prints (``seqat process`` runs it as its first stage).
 
     With ``ortho``, OUT is claimed before the live ortho grids a DSM into it, and released
@@ -106,6 +116,7 @@ def adjust_flight(flight: Path, out: Path, *, method: str = "seq-r", final_only:
 
     if not ortho and (dsm is not None or ortho_options is not None):
         raise ConfigError("--dsm and --ortho-options go with --ortho")
+    sigma = parse_gcp_sigma(gcp_sigma_m)
     live = None
     created: list[Path] = []
     if ortho:
@@ -113,7 +124,8 @@ def adjust_flight(flight: Path, out: Path, *, method: str = "seq-r", final_only:
         from pipeline.ortho.live import open_live_ortho
 
         # the live ortho writes into OUT (dsm.tif) before the run starts: claim it first
-        created = claim_output_folder(out, [flight, dsm, ortho_options, options, observations])
+        created = claim_output_folder(out, [flight, dsm, ortho_options, options, observations,
+                                            gcp])
     try:
         if ortho:
             live = open_live_ortho(flight, out, dsm_path=dsm, options_path=ortho_options)
@@ -124,6 +136,7 @@ def adjust_flight(flight: Path, out: Path, *, method: str = "seq-r", final_only:
                                  initial_images=initial_images, progress=progress,
                                  observations=observations, resume=resume,
                                  budget_ms=budget_ms, self_calibration=self_calibration,
+                                 gcp=gcp, gcp_sigma_m=sigma,
                                  listeners=(live,) if live is not None else ())
     except BaseException:
         from pipeline.common.outdir import release_output_folder
@@ -141,6 +154,27 @@ def adjust_flight(flight: Path, out: Path, *, method: str = "seq-r", final_only:
             f"image to mosaic latency ms median / max {o.live.latency_ms.median_ms:.0f} / "
             f"{o.live.latency_ms.max_ms:.0f}")
     return summary
+
+
+def parse_gcp_sigma(text: str | None) -> tuple[float, float] | None:
+    """``--gcp-sigma-m H,V`` (metres, both in [1e-4, 1e5]; one value for both)."""
+    from pipeline.flight.schema import MAX_SIGMA_POSITION_M, MIN_SIGMA_POSITION_M
+    from seqat.errors import ConfigError
+
+    if text is None:
+        return None
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) == 1:
+        values *= 2
+    if len(values) != 2 or not all(MIN_SIGMA_POSITION_M <= v <= MAX_SIGMA_POSITION_M
+                                   for v in values):
+        raise ConfigError(f"--gcp-sigma-m: expected 'H,V' in metres within "
+                          f"[{MIN_SIGMA_POSITION_M:g}, {MAX_SIGMA_POSITION_M:g}], got {text!r}")
+    return values[0], values[1]
 
 
 def parse_method(method: str) -> Method:

@@ -29,6 +29,12 @@ from pipeline.common.tables import GroundPoints, NavTable
 from pipeline.flight.camera import PixelCorrector, frame_camera
 from pipeline.flight.consistency import check_one_camera, crs_area_warning, duplicate_images
 from pipeline.flight.dropout import dropout_sigma, predict_missing
+from pipeline.flight.gcp import (
+    GroundControl,
+    find_gcp_file,
+    image_frame,
+    read_ground_control,
+)
 from pipeline.flight.image_metadata import (
     HeightKind,
     ImageMetadata,
@@ -104,6 +110,9 @@ class Flight:
     skipped : tuple[SkippedImage, ...]
         Images of the flight left out, with the reason.
     warnings : tuple[str, ...]
+    control : GroundControl or None
+        Ground control points (``gcp:`` in ``flight.yaml``, or ``gcp_list.txt`` in the
+        folder; :mod:`pipeline.flight.gcp`), or None.
     """
 
     path: Path
@@ -121,6 +130,7 @@ class Flight:
     skipped: tuple[SkippedImage, ...] = ()
     warnings: tuple[str, ...] = ()
     calibration: SelfCalibration | None = None
+    control: GroundControl | None = None
 
     def __post_init__(self) -> None:
         # start values of dropout components, from earlier rows only (pipeline.flight.dropout)
@@ -304,7 +314,8 @@ def _insert_rows(nav: NavTable, images: list[str]) -> NavTable:
     return NavTable(image_ids=tuple(order), times_s=times, eop=eop)
 
 
-def read_flight(flight_dir: Path | str) -> Flight:
+def read_flight(flight_dir: Path | str, *, gcp_file: Path | str | None = None,
+                gcp_sigma_m: tuple[float, float] | None = None) -> Flight:
     """Open and validate a flight folder (docs/formats.md, *Flight folder*).
 
     Three kinds: observations (``observations:`` given), images with a ``nav.csv``
@@ -313,6 +324,10 @@ def read_flight(flight_dir: Path | str) -> Flight:
     ``flight.yaml``). For image flights, unusable images (truncated, no GPS, listed in
     ``nav.csv`` but missing, of another aspect ratio, ...) are skipped and listed in
     :attr:`Flight.skipped`; the run goes on with the others.
+
+    Ground control: ``gcp_file`` (``--gcp``) in place of the flight's own (``flight.yaml``
+    ``gcp:``, else ``gcp_list.txt`` in the folder), with the default σ ``gcp_sigma_m``
+    (horizontal, vertical; ``--gcp-sigma-m``) where given.
 
     Raises
     ------
@@ -393,12 +408,38 @@ def read_flight(flight_dir: Path | str) -> Flight:
     paths = tuple(metas[i].path for i in nav.image_ids) if obs_path is None else ()
     calibration, camera, corrector = frame_camera(camera_config, config.self_calibration,
                                                   approximate)
+    control = None
+    gcp_path = Path(gcp_file) if gcp_file is not None else find_gcp_file(folder, config.gcp,
+                                                                         source)
+    if gcp_path is not None:
+        control = read_ground_control(
+            gcp_path, crs, image_frame(nav.image_ids, paths, (camera_config.width_px,
+                                                               camera_config.height_px)),
+            config.gcp, sigma_m=gcp_sigma_m, folder=folder)
+        warnings += control.warnings
     return Flight(path=folder, config=config, crs=crs, camera_config=camera_config,
                   camera_approximate=approximate, camera=camera, calibration=calibration,
                   corrector=corrector, nav=nav,
                   nav_sigma=config.nav.sigma_eop, observations_path=obs_path,
                   images_dir=images_dir, image_paths=paths, skipped=tuple(skipped),
-                  warnings=tuple(warnings))
+                  warnings=tuple(warnings), control=control)
+
+
+def with_ground_control(flight: Flight, path: Path | str | None,
+                        sigma_m: tuple[float, float] | None = None) -> Flight:
+    """``flight`` with the GCPs of ``path`` (``--gcp FILE``; None: the flight's own file) and
+    the default σ ``sigma_m`` (horizontal, vertical; ``--gcp-sigma-m``) where given."""
+    if path is None and (sigma_m is None or flight.control is None):
+        return flight
+    gcp_path = Path(path) if path is not None else flight.control.path  # type: ignore[union-attr]
+    cam = flight.camera_config
+    control = read_ground_control(
+        gcp_path, flight.crs, image_frame(flight.nav.image_ids, flight.image_paths,
+                                          (cam.width_px, cam.height_px)),
+        flight.config.gcp, sigma_m=sigma_m, folder=flight.path)
+    old = flight.control.warnings if flight.control is not None else ()
+    warnings = tuple(w for w in flight.warnings if w not in old) + control.warnings
+    return dataclasses.replace(flight, control=control, warnings=warnings)
 
 
 def _image_metadata_for_nav(images_dir: Path, nav: NavTable, skipped: list[SkippedImage], *,

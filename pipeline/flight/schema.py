@@ -202,6 +202,35 @@ class SelfCalibrationConfig:
         return self.calibration() if on and self.free else None
 
 
+#: Default a priori σ of a ground control point's surveyed coordinates (RTK GNSS on a
+#: target): horizontal (x, y) and vertical (z), metres.
+DEFAULT_GCP_SIGMA_HORIZONTAL_M = 0.02
+DEFAULT_GCP_SIGMA_VERTICAL_M = 0.03
+
+
+@dataclass(frozen=True, kw_only=True)
+class GcpConfig:
+    """``gcp:`` section of ``flight.yaml``: ground control points (docs/formats.md, *Ground
+    control*).
+
+    ``file`` is an ODM ``gcp_list.txt`` or a Metashape markers export (``.xml``);
+    ``reference`` optionally a Metashape reference CSV (label, X, Y, Z[, accuracy]) whose
+    coordinates replace the XML's; ``crs`` the CRS of a file that names none (a Metashape
+    export in a local frame, the reference CSV). The sigmas apply to points without an
+    accuracy of their own.
+    """
+
+    file: str = "gcp_list.txt"
+    reference: str | None = None
+    crs: str | None = None
+    sigma_horizontal_m: float = DEFAULT_GCP_SIGMA_HORIZONTAL_M
+    sigma_vertical_m: float = DEFAULT_GCP_SIGMA_VERTICAL_M
+
+    def __post_init__(self) -> None:
+        for name in ("sigma_horizontal_m", "sigma_vertical_m"):
+            check_range(getattr(self, name), name, MIN_SIGMA_POSITION_M, MAX_SIGMA_POSITION_M)
+
+
 @dataclass(frozen=True, kw_only=True)
 class FlightConfig:
     """``flight.yaml`` of a flight folder (docs/formats.md).
@@ -216,6 +245,7 @@ class FlightConfig:
     observations: str | None = None
     images: str | None = None
     checkpoints: str | None = None
+    gcp: GcpConfig | None = None
     lidar: str | tuple[str, ...] | None = None
     tracking: TrackerOptions = TrackerOptions()
     self_calibration: SelfCalibrationConfig = SelfCalibrationConfig()

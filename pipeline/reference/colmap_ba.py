@@ -26,6 +26,12 @@ Same stochastic model as Sim (``seqat/simultaneous.py``):
   The two objectives then agree to second order in the nav error (0.1 deg ~ 2e-3 rad), which
   is what the agreement test measures (docs/benchmarks.md).
 
+Ground control points (``OUT/control.csv``): their image observations are image points like
+any tie point's (they are in ``observations.csv``); their surveyed coordinates are a prior on
+the 3D point, ``sigma_px / sigma`` times the coordinate difference per axis (a small
+:class:`pyceres.CostFunction`: COLMAP has no point prior), the weight Sim gives them times
+``sigma_px^2``. A GCP seen in fewer than two images is not in the model (as any point).
+
 Coordinates: the adjustment runs in local coordinates (world minus the rounded first nav
 position, as the estimators); every file holds world coordinates. Pixels: COLMAP puts the
 centre of the top-left pixel at (0.5, 0.5), OpenCV (ours) at (0, 0): ``u_colmap = u + 0.5``
@@ -34,6 +40,7 @@ for observations and the principal point alike.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import time
 from collections.abc import Iterator
@@ -157,6 +164,12 @@ class ReferenceInput:
         Initial EOPs (the run's estimates).
     xyz0 : (m, 3) float
         Initial points, finite (the run's estimates, else intersections).
+    control_ids : tuple[str, ...]
+        Ground control points among ``point_ids`` (``gcp:NAME``).
+    control_xyz : (c, 3) float
+        Their surveyed coordinates (world).
+    control_sigma : (c, 3) float
+        Their σ, metres (``inf``: that coordinate free).
     """
 
     camera: CameraConfig
@@ -170,6 +183,9 @@ class ReferenceInput:
     obs_uv_px: FloatArray
     eop0: FloatArray
     xyz0: FloatArray
+    control_ids: tuple[str, ...] = ()
+    control_xyz: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
+    control_sigma: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
 
     def __post_init__(self) -> None:
         n, m, k = len(self.image_ids), len(self.point_ids), self.obs_image.shape[0]
@@ -213,6 +229,8 @@ class ReferenceResult:
     n_residuals : int
         Residuals in the problem (checked: ``2 * observations + prior residuals``).
     n_prior_residuals : int
+    n_control_points, n_control_residuals : int
+        Ground control points in the model and their prior residuals (3 each).
     sigma0, redundancy, rms_px : float, int, float
         With Sim's definitions (``seqat/simultaneous.py``).
     ba_s : float
@@ -249,6 +267,8 @@ class ReferenceResult:
     covariance_status: str
     origin: FloatArray
     reconstruction: pycolmap.Reconstruction
+    n_control_points: int = 0
+    n_control_residuals: int = 0
 
 
 # --------------------------------------------------------------------------------------------
@@ -421,6 +441,46 @@ def _prior_cost(kind: PriorKind, nav_local: FloatArray, cov: FloatArray | None,
     return cf.AbsolutePosePositionPriorCost(np.diag(position_var), nav_local[:3])
 
 
+def _point_prior_cost(prior_local: FloatArray, weight: FloatArray) -> object:
+    """Ceres cost ``weight * (X - prior)`` on a 3D point (3 residuals, Jacobian diagonal)."""
+    import pyceres
+
+    class PointPriorCost(pyceres.CostFunction):  # type: ignore[misc]
+        def __init__(self) -> None:
+            super().__init__()
+            self.set_num_residuals(3)
+            self.set_parameter_block_sizes([3])
+
+        def Evaluate(self, parameters: list[np.ndarray], residuals: np.ndarray,  # noqa: N802
+                     jacobians: list[np.ndarray | None] | None) -> bool:
+            residuals[:] = weight * (parameters[0] - prior_local)
+            if jacobians is not None and jacobians[0] is not None:
+                jacobians[0][:] = np.diag(weight).ravel()
+            return True
+
+    return PointPriorCost()
+
+
+def _add_control(problem: object, rec: pycolmap.Reconstruction, data: ReferenceInput,
+                 model: _Model, origin: FloatArray) -> tuple[list[tuple[int, int]], object]:
+    """Add the GCP priors; returns (control row, model point row) pairs and the costs (kept
+    alive while the problem lives)."""
+    rows = {data.point_ids[p]: j for j, p in enumerate(model.point_rows)}
+    pairs, costs = [], []
+    for c, cid in enumerate(data.control_ids):
+        j = rows.get(cid)
+        if j is None:
+            continue
+        sig = data.control_sigma[c]
+        weight = np.where(np.isfinite(sig), data.sigma_px / sig, 0.0)
+        cost = _point_prior_cost(data.control_xyz[c] - origin, weight)
+        costs.append(cost)
+        problem.add_residual_block(  # type: ignore[attr-defined]
+            cost, None, [rec.point3D(int(model.point3D_ids[j])).xyz])
+        pairs.append((c, j))
+    return pairs, costs
+
+
 def adjust_reference(data: ReferenceInput,
                      options: ReferenceOptions = ReferenceOptions()) -> ReferenceResult:
     """Bundle-adjust the run's observations with COLMAP's Ceres adjuster and GPS/INS priors.
@@ -477,7 +537,9 @@ def adjust_reference(data: ReferenceInput,
     per_prior = (POSE_PRIOR_RESIDUALS if options.prior is PriorKind.POSE
                  else POSITION_PRIOR_RESIDUALS)
     n_prior = per_prior * int(model.image_rows.size)
-    expected = OBS_RESIDUALS * n_obs_used + n_prior
+    control_pairs, _costs = _add_control(problem, rec, data, model, origin)
+    n_control = GP_SIZE * len(control_pairs)
+    expected = OBS_RESIDUALS * n_obs_used + n_prior + n_control
     if problem.num_residuals() != expected:
         raise EstimationError(f"the problem has {problem.num_residuals()} residuals after adding "
                               f"the priors, expected {expected}")
@@ -525,7 +587,15 @@ def adjust_reference(data: ReferenceInput,
     prior_cols = slice(0, EOP_SIZE if options.prior is PriorKind.POSE else 3)
     ssr = float(np.sum(v_img**2) / data.sigma_px**2
                 + np.sum((v_nav[in_adj] / nav_sigma[in_adj])[:, prior_cols] ** 2))
-    redundancy = OBS_RESIDUALS * n_obs_used - GP_SIZE * int(model.point_rows.size)
+    for c, j in control_pairs:
+        sig = data.control_sigma[c]
+        free = ~np.isfinite(sig)
+        v = np.where(free, 0.0, (xyz_local[j] + origin - data.control_xyz[c]) / sig)
+        ssr += float(np.sum(v**2))
+    n_control_obs = sum(int(np.count_nonzero(np.isfinite(data.control_sigma[c])))
+                        for c, _ in control_pairs)
+    redundancy = (OBS_RESIDUALS * n_obs_used - GP_SIZE * int(model.point_rows.size)
+                  + n_control_obs)
     if options.prior is PriorKind.POSITION:
         redundancy -= 3 * int(model.image_rows.size)  # attitudes without pseudo-observations
     sigma0 = float(np.sqrt(ssr / redundancy)) if redundancy > 0 else float("nan")
@@ -555,7 +625,8 @@ def adjust_reference(data: ReferenceInput,
         n_residuals=n_residuals, n_prior_residuals=n_prior, sigma0=sigma0,
         redundancy=redundancy, rms_px=rms_px, ba_s=ba_s,
         linear_solver=str(ceres.linear_solver_type_used.name), covariance_status=status,
-        origin=origin, reconstruction=rec)
+        origin=origin, reconstruction=rec, n_control_points=len(control_pairs),
+        n_control_residuals=n_control)
 
 
 def _covariances(pycolmap: object, rec: pycolmap.Reconstruction, adjuster: object,

@@ -34,6 +34,7 @@ from pipeline.reference.colmap_ba import (
     adjust_reference,
     loss_of_run,
 )
+from pipeline.run.control import CONTROL_FILE, read_control_csv
 from pipeline.run.exports import image_file_names
 from pipeline.run.store import (
     JSON_INDENT,
@@ -133,12 +134,22 @@ def reference_input(run: RunFolder) -> tuple[ReferenceInput, int]:
     ok = np.all(np.isfinite(xyz0), axis=1)
     keep = ok[obs_point]
     remap = np.cumsum(ok) - 1
+    kept_ids = tuple(p for p, k in zip(point_ids, ok, strict=True) if k)
+    control = read_control_csv(run.path / CONTROL_FILE)
+    in_run = set(kept_ids)
+    sel = ([k for k, p in enumerate(control.point_ids) if p in in_run]
+           if control is not None else [])
     data = ReferenceInput(camera=run.camera, image_ids=nav.image_ids, nav_eop=nav.eop,
                           nav_sigma=np.asarray(run.nav_sigma, dtype=np.float64),
-                          sigma_px=run.sigma_image_px,
-                          point_ids=tuple(p for p, k in zip(point_ids, ok, strict=True) if k),
+                          sigma_px=run.sigma_image_px, point_ids=kept_ids,
                           obs_image=obs_image[keep], obs_point=remap[obs_point[keep]],
-                          obs_uv_px=uv[keep], eop0=eop0, xyz0=xyz0[ok])
+                          obs_uv_px=uv[keep], eop0=eop0, xyz0=xyz0[ok],
+                          control_ids=tuple(control.point_ids[k] for k in sel)
+                          if control is not None else (),
+                          control_xyz=control.xyz_m[sel] if control is not None
+                          else np.zeros((0, 3)),
+                          control_sigma=control.sigma_m[sel] if control is not None
+                          else np.zeros((0, 3)))
     return data, int(np.count_nonzero(~keep))
 
 
@@ -189,6 +200,8 @@ class ReferenceRecord:
     covariance: str
     origin_m: tuple[float, float, float]
     pycolmap_version: str
+    n_control_points: int = 0  # ground control points adjusted with their surveyed prior
+    n_control_residuals: int = 0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -294,7 +307,9 @@ def run_reference(out_dir: Path | str,
         linear_solver=result.linear_solver,
         covariance=result.covariance_status,
         origin_m=(float(result.origin[0]), float(result.origin[1]), float(result.origin[2])),
-        pycolmap_version=str(pycolmap.__version__))
+        pycolmap_version=str(pycolmap.__version__),
+        n_control_points=result.n_control_points,
+        n_control_residuals=result.n_control_residuals)
     names = image_file_names(run.images_dir, result.image_ids)
     folder = write_reference(out, result, record, names)
     return ReferenceSummary(out_dir=out, reference_dir=folder, record=record)

@@ -59,15 +59,21 @@ def _map_axes(ax: object, thumb: Thumbnail | None) -> None:
 
 
 def residual_map(cp: CheckpointReport | None, cameras_xyz_m: np.ndarray,
-                 points_xyz_m: np.ndarray, mosaic: Thumbnail | None) -> Figure:
+                 points_xyz_m: np.ndarray, mosaic: Thumbnail | None,
+                 control_xyz_m: np.ndarray | None = None) -> Figure:
     """Check points on the mosaic: arrows = horizontal residual (scaled, with a key), colour =
-    vertical residual; camera centres as grey triangles. Without check points: the cameras
-    and the tie points coloured by height."""
+    vertical residual; camera centres as grey triangles; ground control points as black
+    squares. Without check points: the cameras and the tie points coloured by height."""
     fig = Figure(figsize=MAP_SIZE)
     ax = fig.subplots()
     _map_axes(ax, mosaic)
     ax.plot(cameras_xyz_m[:, 0], cameras_xyz_m[:, 1], "^", ms=5, color="0.35", mfc="0.85",
             label="camera centres")
+    if control_xyz_m is not None and len(control_xyz_m):
+        ax.plot(control_xyz_m[:, 0], control_xyz_m[:, 1], "s", ms=7, color="black",
+                mfc="none", mew=1.5, zorder=6, label="ground control points")
+        ax.legend(fontsize=7, loc="lower right")
+        cameras_xyz_m = np.vstack([cameras_xyz_m, control_xyz_m])  # in the map's extent
     if cp is None or not cp.residuals:
         if len(points_xyz_m):
             sc = ax.scatter(points_xyz_m[:, 0], points_xyz_m[:, 1], c=points_xyz_m[:, 2], s=4,
@@ -102,7 +108,9 @@ def residual_map(cp: CheckpointReport | None, cameras_xyz_m: np.ndarray,
     ax.set_xlim(xs.min() - pad, xs.max() + pad)
     ax.set_ylim(ys.min() - pad, ys.max() + pad)
     ax.set_title(f"Check point residuals ({cp.method})\narrows: horizontal residual, "
-                 f"×{factor:.3g}; colour: vertical", fontsize=9, loc="left")
+                 f"×{factor:.3g}; colour: vertical"
+                 + ("\nsquares: ground control points (not checks)" if control_xyz_m is not None
+                    and len(control_xyz_m) else ""), fontsize=9, loc="left")
     return fig
 
 
@@ -113,7 +121,9 @@ def map_figures(report: Report, extras: Mapping[str, object],
     both the HTML and the PDF."""
     mosaic, dsm = thumbnails
     cams, pts = extras["cameras_xyz_m"], extras["points_xyz_m"]
-    return (residual_map(main_checkpoints(report), cams, pts, mosaic),  # type: ignore[arg-type]
+    ctrl = extras.get("control_xyz_m")
+    return (residual_map(main_checkpoints(report), cams, pts, mosaic,  # type: ignore[arg-type]
+                         ctrl),  # type: ignore[arg-type]
             rasters_figure(mosaic, dsm, cams))  # type: ignore[arg-type]
 
 

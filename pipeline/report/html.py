@@ -169,11 +169,41 @@ def _checkpoints(report: Report, main: CheckpointReport | None) -> list[str]:
                  "random part; mean: the systematic part (bias); RMSE² = mean² + σ²(n − 1)/n. "
                  f"Classes: the smallest ASPRS (2023) X-cm class the RMSE meets. "
                  f"{DIRECT} = GPS/INS only, {REFERENCE} = COLMAP on the same tie points.</p>")
+    if main.excluded_control:
+        parts.append(f"<p class='note'>Left out as ground control points of the run: "
+                     f"{html.escape(', '.join(main.excluded_control))}.</p>")
     parts.append(f"<h3>Residuals of {html.escape(main.method)}, largest first "
                  "(intersected − known)</h3>")
     header, rows = residual_rows(main)
     parts.append(_table(header, rows))
     parts.append(png_tag(checkpoint_figure(main), "check point residuals"))
+    return parts
+
+
+def _control(report: Report) -> list[str]:
+    """Ground control points: every method's fit to them, the run's residuals (a table apart
+    from the check points; the verdict is the check points')."""
+    if report.control is None:
+        return []
+    parts = ["<h2>Ground control points</h2>",
+             "<p class='note'>These points entered the adjustment with their surveyed "
+             "coordinates: their residuals (adjusted − surveyed) show how well it fits its "
+             "control, not its accuracy. The verdict rests on the independent check points"
+             + (" (a point that is both is control: left out of the check statistics)."
+                if report.checkpoint_reports else ").") + "</p>"]
+    ctrl = report.control_reports
+    if not ctrl:
+        return [*parts, "<p>No method adjusted the control points.</p>"]
+    header, rows = asprs_rows([(c.method, c.table) for c in ctrl])
+    parts.append(_table(header[:-2], [r[:-2] for r in rows]))
+    main = next((c for c in ctrl if c.method == report.methods[1]), ctrl[0])
+    parts.append(f"<h3>Control residuals of {html.escape(main.method)}, largest first "
+                 "(adjusted − surveyed)</h3>")
+    header, rows = residual_rows(main)  # type: ignore[arg-type]
+    parts.append(_table(header, rows))
+    if main.not_adjusted:
+        parts.append(f"<p class='note'>Not adjusted (fewer rays than needed): "
+                     f"{html.escape(', '.join(main.not_adjusted))}</p>")
     return parts
 
 
@@ -341,6 +371,7 @@ def render_html(report: Report, extras: Mapping[str, object],
     parts += _warnings(report)
     parts += _map(thumbnails[0], figures)
     parts += _checkpoints(report, main)
+    parts += _control(report)
     parts += _accuracy(report, extras)
     parts.append("<h2>Flight</h2>")
     parts.append(_table(["", "value"], flight_rows(report), text_columns=(1,)))

@@ -45,6 +45,13 @@ from pipeline.report.asprs import (
     asprs_table,
     verdict_lines,
 )
+from pipeline.report.control_section import (
+    ControlReport,
+    control_json,
+    control_reports,
+    control_verdict,
+    read_run_control,
+)
 from pipeline.report.sfm_section import read_sfm_agreement
 from pipeline.report.stage_warnings import StageWarning, collect_warnings
 from pipeline.run.accuracy import eop_differences, point_differences
@@ -189,6 +196,8 @@ class CheckpointReport:
     table: AsprsTable
     residuals: tuple[CheckpointResidual, ...]
     not_intersected: tuple[str, ...]  # fewer than two rays
+    #: Check points that are also ground control points of the run: left out (control).
+    excluded_control: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -234,6 +243,9 @@ class Report:
     notes: tuple[str, ...]
     robustness: RobustnessSummary | None = None  # data snooping, GNSS dropouts
     sfm_agreement: Mapping[str, object] | None = None  # report/sfm_section.py
+    #: Ground control (report/control_section.py): the run in OUT, and per method.
+    control: Mapping[str, object] | None = None
+    control_reports: tuple[ControlReport, ...] = ()
 
 
 # --------------------------------------------------------------------------------------------
@@ -484,8 +496,10 @@ def find_checkpoints(flight_dir: Path) -> tuple[Path, Path] | None:
 
 
 def checkpoint_report(method: str, eop: EopTable, run: RunFolder, known_path: Path,
-                      obs_path: Path) -> CheckpointReport:
+                      obs_path: Path, exclude: frozenset[str] = frozenset()) -> CheckpointReport:
     """Intersect every check point from its observations with ``eop``; residuals and ASPRS.
+
+    Check points named in ``exclude`` (ground control points of the run) are left out.
 
     Raises
     ------
@@ -526,14 +540,16 @@ def checkpoint_report(method: str, eop: EopTable, run: RunFolder, known_path: Pa
                            dx_m=float(X[j, 0] - known.xyz_m[kindex[pid], 0]),
                            dy_m=float(X[j, 1] - known.xyz_m[kindex[pid], 1]),
                            dz_m=float(X[j, 2] - known.xyz_m[kindex[pid], 2]))
-        for j, pid in enumerate(point_ids) if ok[j])
+        for j, pid in enumerate(point_ids) if ok[j] and pid not in exclude)
     # largest first (3D length), ties by name: the table a surveyor reads top down
     residuals = tuple(sorted(residuals, key=lambda r: (-math.sqrt(
         r.dx_m**2 + r.dy_m**2 + r.dz_m**2), r.point)))
     d = np.array([[r.dx_m, r.dy_m, r.dz_m] for r in residuals]).reshape(-1, 3)
     return CheckpointReport(method=method, table=asprs_table(d), residuals=residuals,
                             not_intersected=tuple(p for p, k in zip(point_ids, ok, strict=True)
-                                                  if not k))
+                                                  if not k and p not in exclude),
+                            excluded_control=tuple(sorted(p for p in point_ids
+                                                          if p in exclude)))
 
 
 def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tuple[
@@ -603,12 +619,18 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
             _, d_pos, d_att = eop_differences(m.eop.image_ids, m.eop.eop, ref_eop_ids, ref_eop)
             errors[m.label] = (np.linalg.norm(d_pos, axis=1), np.abs(d_att).max(axis=1))
 
+    control = read_run_control(run.path)
+    ctrl = control_reports(control, [(m.label, m.points) for m in methods
+                                     if m.label != DIRECT])
+    main_ctrl = next((c for c in ctrl if c.method == methods[1].label), None)
+    exclude = frozenset(control.names) if control is not None else frozenset()
     cps: list[CheckpointReport] = []
     found = find_checkpoints(run.flight_dir) if run.flight_dir.is_dir() else None
     if found is None:
         notes.append("the flight has no check points (checkpoints.csv + checkpoint_obs.csv)")
     else:
-        cps = [checkpoint_report(m.label, m.eop, run, *found) for m in methods]
+        cps = [checkpoint_report(m.label, m.eop, run, *found, exclude=exclude)
+               for m in methods]
     main_cp = next((c for c in cps if c.method == methods[1].label), None)
     checkpoints = None if main_cp is None else {
         "method": main_cp.method, "count": main_cp.table.count,
@@ -618,7 +640,11 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
         "mean_z_m": main_cp.table.mean_z_m, "std_x_m": main_cp.table.std_x_m,
         "std_y_m": main_cp.table.std_y_m, "std_z_m": main_cp.table.std_z_m,
         "horizontal_class_cm": main_cp.table.horizontal_class_cm,
-        "vertical_class_cm": main_cp.table.vertical_class_cm}
+        "vertical_class_cm": main_cp.table.vertical_class_cm,
+        "excluded_as_control": list(main_cp.excluded_control)}
+    if main_cp is not None and main_cp.excluded_control:
+        notes.append(f"check point(s) {', '.join(main_cp.excluded_control)} are ground control "
+                     "points of the run: left out of the check statistics")
     realtime = tuple(_realtime(m.label, m.record) for m in methods if m.record is not None)
     totals = run.record.get("totals", {})
     assert isinstance(totals, dict)
@@ -626,8 +652,10 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
     ortho = read_ortho_json(run.path)
     report = Report(
         version=REPORT_VERSION, title=report_title(run),
-        verdict=verdict_lines(None if main_cp is None else main_cp.table, methods[1].label,
-                              truth is not None),
+        verdict=(*verdict_lines(None if main_cp is None else main_cp.table,
+                                methods[1].label, truth is not None),
+                 *control_verdict(main_ctrl, () if main_cp is None
+                                  else main_cp.excluded_control)),
         warnings=collect_warnings(run.record, ortho, reference_record, sfm,
                                   () if main_cp is None else main_cp.not_intersected, notes),
         run=str(run.path), flight=str(run.flight_dir),
@@ -640,11 +668,13 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
         latency=latency_table(run.record, ortho),
         checkpoints=checkpoints, checkpoint_reports=tuple(cps),
         notes=tuple(notes), robustness=summarise(run.record),
-        sfm_agreement=sfm)
+        sfm_agreement=sfm, control=control_json(main_ctrl, control), control_reports=ctrl)
     extras: dict[str, object] = {
         "run_path": run.path, "crs": run.crs,
         "cameras_xyz_m": run.eop.eop[:, :3], "points_xyz_m": run.points.xyz_m,
         "errors": errors,
+        "control_xyz_m": control.xyz_m if control is not None else np.zeros((0, 3)),
+        "control_names": control.names if control is not None else (),
         "series": {m.label: m.record.get("images", []) for m in methods if m.record is not None},
     }
     return report, extras

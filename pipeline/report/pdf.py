@@ -138,6 +138,20 @@ def render_pdf(report: Report, figures: tuple[Figure, Figure | None]) -> bytes:
                 f"Residuals of {main.method}, largest first (intersected − known)"
                 + (f", from row {start + 1}" if start else ""), header,
                 rows[start:start + ROWS_PER_PAGE]))
+    if report.control_reports:
+        ctrl = report.control_reports
+        header, rows = asprs_rows([(c.method, c.table) for c in ctrl])
+        pages.append(_table_page(
+            "Ground control points: fit of every method (adjusted − surveyed)", header[:-2],
+            [r[:-2] for r in rows],
+            note="Metres. Control points entered the adjustment: this is the fit to the "
+                 "control, not an accuracy (that is the check points')."))
+        header, rows = residual_rows(ctrl[0])  # type: ignore[arg-type]
+        for start in range(0, len(rows), ROWS_PER_PAGE):
+            pages.append(_table_page(
+                f"Control residuals of {ctrl[0].method}, largest first (adjusted − surveyed)"
+                + (f", from row {start + 1}" if start else ""), header,
+                rows[start:start + ROWS_PER_PAGE]))
     buffer = io.BytesIO()
     with PdfPages(buffer, metadata={"Title": f"{report.title.flight_name}: seqat flight report",
                                     "Creator": "seqat report", "CreationDate": None}) as pdf:

@@ -26,10 +26,18 @@ from pipeline.common.columns import FLIGHT_YAML
 from pipeline.common.outdir import claim_output_folder, output_errors, release_output_folder
 from pipeline.common.paths import file_problem
 from pipeline.common.strict_yaml import build_dataclass, load_yaml
-from pipeline.flight.folder import Flight, Truth, read_flight, read_truth, with_self_calibration
+from pipeline.flight.folder import (
+    Flight,
+    Truth,
+    read_flight,
+    read_truth,
+    with_self_calibration,
+)
+from pipeline.flight.gcp import GroundControl
 from pipeline.flight.inputs import RunInputs, SkippedImage
 from pipeline.run.accuracy import Accuracy, compare_with_truth
 from pipeline.run.budget import BudgetReport, LatencyBudget
+from pipeline.run.control import control_record, format_control_csv
 from pipeline.run.journal import (
     Journal,
     JournalContents,
@@ -148,13 +156,21 @@ def with_calibration(options: SequentialOptions | SimOptions,
 
 
 def make_estimator(method: Method, camera: PinholeCamera, options: SequentialOptions | SimOptions,
-                   *, final_only: bool = False) -> Estimator:
-    """Build the estimator of ``method`` with ``options`` (from :func:`estimator_options`)."""
+                   *, final_only: bool = False,
+                   control: GroundControl | None = None) -> Estimator:
+    """Build the estimator of ``method`` with ``options`` (from :func:`estimator_options`)
+    and the flight's ground control points (``seqat.types.ControlPoint``)."""
+    extra: dict[str, object] = {}
+    if control is not None and control.points:
+        from seqat.types import ControlPoint
+
+        extra["control"] = tuple(ControlPoint(point_id=p.point_id, xyz_m=p.xyz_m,
+                                              sigma_m=p.sigma_m) for p in control.points)
     if method is Method.SIM:
         assert isinstance(options, SimOptions)
-        return SimultaneousAT(camera, options, refit_every_frame=not final_only)
+        return SimultaneousAT(camera, options, refit_every_frame=not final_only, **extra)  # type: ignore[arg-type]
     assert isinstance(options, SequentialOptions)
-    return SequentialAT(camera, options)
+    return SequentialAT(camera, options, **extra)  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -235,12 +251,19 @@ def make_budget(budget_ms: float | None, method: Method,
 
 
 def run_fingerprint(flight_dir: Path, method: Method, options: SequentialOptions | SimOptions,
-                    final_only: bool, observations: Path | None) -> dict[str, object]:
-    """What a journal must have been written with to be resumed (flight and options)."""
+                    final_only: bool, observations: Path | None,
+                    control: GroundControl | None = None) -> dict[str, object]:
+    """What a journal must have been written with to be resumed (flight and options; the
+    ground control file and its points, when the flight has GCPs)."""
     yaml_path = flight_dir / FLIGHT_YAML
     digest = (hashlib.sha256(yaml_path.read_bytes()).hexdigest() if yaml_path.is_file()
               else None)
-    return {"flight": str(flight_dir.resolve()), "flight_yaml_sha256": digest,
+    extra: dict[str, object] = {}
+    if control is not None:
+        extra["gcp"] = {"file": str(control.path.resolve()),
+                        "sha256": hashlib.sha256(control.path.read_bytes()).hexdigest(),
+                        "sigma_m": [repr(p.sigma_m.tolist()) for p in control.points]}
+    return {**extra, "flight": str(flight_dir.resolve()), "flight_yaml_sha256": digest,
             "method": method.value, "options": to_jsonable(options), "final_only": final_only,
             "observations": None if observations is None else str(observations.resolve())}
 
@@ -304,7 +327,8 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                 flight: str, inputs: RunInputs, options: SequentialOptions | SimOptions,
                 final_only: bool, tracking_options: TrackerOptions | None,
                 truth: Truth | None, t_start: float, mode: str = "run",
-                stopped: str = "", robustness: RobustnessRecord | None = None) -> RunSummary:
+                stopped: str = "", robustness: RobustnessRecord | None = None,
+                control: GroundControl | None = None) -> RunSummary:
     """Write the run folder (atomically, all files or none) and summarise the run."""
     extra = session.tie_point_warnings(solution)
     if extra:
@@ -332,7 +356,11 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                        tracking_options=tracking_options, tracking=tuple(session.tracking),
                        live=tuple(session.live), latency_budget=budget, mode=mode,
                        replayed=session.replayed, robustness=robustness,
-                       camera_estimate=solution.camera)
+                       camera_estimate=solution.camera,
+                       control=control_record(control, solution) if control is not None
+                       else None,
+                       control_csv=format_control_csv(control) if control is not None
+                       else None)
     with output_errors(out):
         files = write_run_outputs(out, solution, record, session.observations_text())
     return RunSummary(method=method, flight_dir=Path(flight), out_dir=out, files=files,
@@ -353,6 +381,8 @@ def flight_inputs(flight: Flight) -> list[Path]:
         paths.append(flight.observations_path)
     if flight.config.nav.source == "file":
         paths.append(flight.path / flight.config.nav.file)
+    if flight.control is not None:
+        paths.append(flight.control.path)
     return paths
 
 
@@ -362,7 +392,8 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
                progress: bool = True, observations: Path | str | None = None,
                listeners: Sequence[ImageListener] = (), resume: bool = False,
                budget_ms: float | None = None,
-               self_calibration: bool | None = None) -> RunSummary:
+               self_calibration: bool | None = None, gcp: Path | str | None = None,
+               gcp_sigma_m: tuple[float, float] | None = None) -> RunSummary:
     """Adjust a flight folder with one method and write the results to ``out_dir``.
 
     Parameters
@@ -398,6 +429,11 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     self_calibration : bool or None
         Estimate the camera's interior parameters (``True``) or keep the camera fixed
         (``False``); ``None``: as ``flight.yaml`` says (by default on for a camera from EXIF).
+    gcp : Path, str or None
+        Ground control points (``--gcp``: ODM ``gcp_list.txt`` or a Metashape markers XML)
+        in place of the flight's own (``flight.yaml`` ``gcp:``, or ``gcp_list.txt`` in it).
+    gcp_sigma_m : (float, float) or None
+        Default σ (horizontal, vertical, metres) of the GCPs (``--gcp-sigma-m``).
 
     Returns
     -------
@@ -420,7 +456,8 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     budget = make_budget(budget_ms, method, options)
     if out.exists() and not out.is_dir():
         raise InputDataError(f"{out}: exists and is not a folder")
-    flight = with_self_calibration(read_flight(flight_dir), self_calibration)
+    flight = with_self_calibration(read_flight(flight_dir, gcp_file=gcp,
+                                               gcp_sigma_m=gcp_sigma_m), self_calibration)
     options = with_calibration(options, flight.calibration)
     obs_path = None
     if observations is not None:
@@ -438,7 +475,8 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     else:
         source = ImageSource(flight, flight.config.tracking)
     console = Console(stderr=True, soft_wrap=True)
-    fingerprint = run_fingerprint(flight.path, method, options, final_only, obs_path)
+    fingerprint = run_fingerprint(flight.path, method, options, final_only, obs_path,
+                                  flight.control)
     created = claim_output_folder(out, [*flight_inputs(flight), options_path])
     try:
         with output_errors(out):
@@ -451,7 +489,8 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
         if contents is not None:
             replay_checks(contents, flight.nav.image_ids, flight.nav.eop, out)
         session = RunSession(estimator=make_estimator(method, flight.camera, options,
-                                                      final_only=final_only),
+                                                      final_only=final_only,
+                                                      control=flight.control),
                              source=source, listeners=listeners, journal=journal, budget=budget)
         replay_journal(session, source, journal, contents)
         for warning in flight.warnings:
@@ -489,4 +528,4 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     return publish_run(out, session, solution, method=method, flight=str(flight.path),
                        inputs=inputs, options=options, final_only=final_only,
                        tracking_options=source.tracking_options, truth=truth, t_start=t_start,
-                       robustness=robustness)
+                       robustness=robustness, control=flight.control)

@@ -186,6 +186,24 @@ class PreparedFrame:
     rejected: int = 0
     prep_ms: float = 0.0
     ready_s: float | None = None
+def with_control(flight: Flight, frame: Frame, observed_px: FloatArray) -> tuple[Frame,
+                                                                               FloatArray]:
+    """The frame with the flight's GCP observations of its image (``gcp:NAME``) appended; an
+    observation of the same point already in the frame (a replayed ``observations.csv``) is
+    replaced. Returns the frame and its observed pixels."""
+    control = flight.control
+    ids, uv = control.for_image(frame.image_id) if control is not None else ((), None)
+    if not ids or uv is None:
+        return frame, observed_px
+    gcp = set(ids)
+    keep = np.array([p not in gcp for p in frame.point_ids], dtype=bool)
+    point_ids = tuple(p for p, k in zip(frame.point_ids, keep, strict=True) if k) + ids
+    ideal = flight.corrector.ideal_pixels(uv)
+    frame = dataclasses.replace(frame, point_ids=point_ids,
+                                uv_px=np.vstack([frame.uv_px[keep], ideal]))
+    return frame, np.vstack([np.asarray(observed_px).reshape(-1, 2)[keep], uv])
+
+
 def _not_bridged(image_id: str, resection: PoseResection) -> SkippedImage:
     return SkippedImage(image=image_id, reason=f"{image_id}: GNSS dropout not bridged: "
                                                f"{resection.reason}")
@@ -240,6 +258,7 @@ class ObservationSource(_InitialisedSource):
         """Give a frame of precomputed observations its initial EOP (nothing is rejected); a
         dropout (``dropout``) is resected in 6 DoF on the known points, or skipped."""
         t0 = time.perf_counter()
+        frame, observed_px = with_control(self._flight, frame, observed_px)
         if dropout:
             bridged, res, _ = self._init.bridge(frame, reject=False)
             if bridged is None:
@@ -334,11 +353,14 @@ class ImageSource(_InitialisedSource):
                 skip = _not_bridged(image_id, pose)
                 self.skipped.append(skip)
                 return skip
+            cleaned, observed_kept = with_control(flight, cleaned, observed[keep])
             bridged, _, _ = self._init.bridge(cleaned, reject=False)  # as a replay does
             frame = cleaned if bridged is None else bridged
             self.bridged.append(image_id)
         else:
             cleaned, first, known, keep = self._init.resect(frame)
+            # the surveyed GCP observations are never rejected by the resection
+            cleaned, observed_kept = with_control(flight, cleaned, observed[keep])
             # the initial value from the kept observations only, as a replay of them
             # (--observations) computes it: the sequential result depends on it
             frame, res, _, _ = self._init.resect(cleaned, reject=False)
@@ -348,7 +370,7 @@ class ImageSource(_InitialisedSource):
                           "observations_rejected": int((~keep).sum())})
         self._init.record(frame)
         rejected = int((~keep).sum())
-        return PreparedFrame(frame=frame, time_s=time_s, observed_px=observed[keep],
+        return PreparedFrame(frame=frame, time_s=time_s, observed_px=observed_kept,
                              tracking=stats, rejected=rejected,
                              prep_ms=(time.perf_counter() - t0) * 1e3, ready_s=ready_s)
 

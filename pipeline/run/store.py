@@ -52,6 +52,7 @@ from pipeline.flight.camera import estimated_camera
 from pipeline.flight.inputs import RunInputs, SkippedImage
 from pipeline.flight.schema import CameraConfig
 from pipeline.run.accuracy import Accuracy
+from pipeline.run.control import CONTROL_FILE
 from pipeline.run.exports import export_files
 from pipeline.run.robustness import RobustnessRecord
 from seqat.errors import ConfigError, InputDataError
@@ -271,6 +272,10 @@ class RunRecord:
         Data snooping and GNSS dropouts (:mod:`pipeline.run.robustness`).
     camera_estimate : CameraEstimate or None
         The self-calibrated camera.
+    control : Mapping or None
+        Ground control: ``run.json`` ``control`` (:func:`pipeline.run.control.control_record`).
+    control_csv : str or None
+        Text of ``control.csv`` (:func:`pipeline.run.control.format_control_csv`).
     """
 
     method: str
@@ -289,6 +294,8 @@ class RunRecord:
     robustness: RobustnessRecord | None = None
     #: The self-calibrated camera (None: the camera was fixed).
     camera_estimate: CameraEstimate | None = None
+    control: Mapping[str, object] | None = None
+    control_csv: str | None = None
 
 
 def camera_estimate_json(inputs: RunInputs, est: CameraEstimate) -> dict[str, object]:
@@ -368,7 +375,8 @@ def format_run_json(record: RunRecord) -> str:
            "tracking_options": to_jsonable(record.tracking_options),
            "latency_budget": to_jsonable(record.latency_budget),
            "images": images, "totals": to_jsonable(record.totals),
-           "robustness": to_jsonable(record.robustness)}
+           "robustness": to_jsonable(record.robustness),
+           "control": to_jsonable(record.control)}
     if record.camera_estimate is not None:
         doc["camera_estimate"] = camera_estimate_json(record.inputs, record.camera_estimate)
     return json.dumps(doc, indent=JSON_INDENT, allow_nan=False) + "\n"
@@ -407,6 +415,7 @@ def write_run_outputs(out_dir: Path | str, solution: Solution, record: RunRecord
         RUN_FILE: format_run_json(record),
         NAV_FILE: format_nav_csv(nav.image_ids, nav.times_s, nav.eop),
         OBSERVATIONS_FILE: format_csv_line(OBS_COLUMNS) + observations_text,
+        **({CONTROL_FILE: record.control_csv} if record.control_csv is not None else {}),
         **exports,
     })
 

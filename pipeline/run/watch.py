@@ -55,6 +55,7 @@ from pipeline.flight.folder import (
     outside_tolerance_px,
     read_truth,
 )
+from pipeline.flight.gcp import ODM_GCP_FILE
 from pipeline.flight.image_metadata import (
     ImageMetadata,
     check_jpeg_complete,
@@ -567,6 +568,10 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
         raise InputDataError(f"{out}: exists and is not a folder")
     flight_config = load_flight_config(yaml_path)
     console = console or Console(stderr=True, soft_wrap=True)
+    if flight_config.gcp is not None or (folder / ODM_GCP_FILE).is_file():
+        console.print(f"seqat: warning: {folder}: seqat watch does not use ground control "
+                      "points yet (gcp: / gcp_list.txt); seqat run or seqat process on the "
+                      "finished flight does", highlight=False, markup=False)
     fingerprint = run_fingerprint(folder, method, options, False, None)
     # everything is checked before OUT is touched: a config error never replaces the journal
     contents = load_journal(out, fingerprint, resume, console)
