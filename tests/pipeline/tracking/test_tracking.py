@@ -19,7 +19,7 @@ import pytest
 from pipeline.common.strict_yaml import build_dataclass
 from pipeline.flight.schema import CameraConfig
 from pipeline.tracking.options import TrackerOptions
-from pipeline.tracking.tracker import TrackedImage, Tracker, read_gray_image
+from pipeline.tracking.tracker import TrackedImage, Tracker, feature_sites, read_gray_image
 from seqat.errors import ConfigError, InputDataError
 from seqat.geometry import project
 from seqat.types import Frame, PinholeCamera
@@ -143,12 +143,15 @@ def test_homography_verification_tracks_are_all_exact(texture: np.ndarray) -> No
     assert spreads.max() <= 2 * TRACK_TOL_PX
 
 
-def test_every_feature_emitted_once_with_unique_ids(sift_run: StripRun) -> None:
+def test_every_feature_site_emitted_once_with_unique_ids(sift_run: StripRun) -> None:
+    """Without a budget every feature is emitted, but one pixel once: SIFT's second
+    orientation at a pixel is a second descriptor, not a second observation."""
     seen_in: dict[str, list[int]] = {}
     for k, img in enumerate(sift_run.out):
-        assert len(img.point_ids) == len(set(img.point_ids)) == img.stats.features
-        assert img.stats.emitted == img.stats.features
-        assert img.uv_px.shape == (img.stats.features, 2)
+        sites = {(float(u), float(v)) for u, v in img.uv_px}
+        assert len(img.point_ids) == len(set(img.point_ids)) == len(sites) == img.stats.emitted
+        assert img.stats.emitted <= img.stats.features
+        assert img.uv_px.shape == (img.stats.emitted, 2)
         Frame(image_id=img.image_id, nav_eop=sift_run.eops[k], nav_sigma=np.ones(6),
               point_ids=img.point_ids, uv_px=img.uv_px)  # the estimator accepts it
         for pid in img.point_ids:
@@ -191,6 +194,21 @@ def test_conflicting_links_are_split_not_merged() -> None:
     assert nums.tolist() == [7, -1, 9, -1]  # -1: numbered when emitted
     assert (n_new, n_ext, conflicts) == (1, 1, 2)
     assert tracker._tracks[7] == [3, 3] and tracker._tracks[9] == [2, 2]
+
+
+def test_features_at_one_pixel_continue_one_track() -> None:
+    """Features 0 and 1 share a pixel (two SIFT orientations): only the closer match
+    continues its track, the other is a conflict and is not emitted as a new point."""
+    tracker = Tracker(TrackerOptions(), CAMERA)
+    tracker._tracks = {7: [1, 1], 9: [1, 1]}
+    kp = np.array([[10.0, 20.0], [10.0, 20.0], [30.0, 40.0]], dtype=np.float32)
+    site = feature_sites(kp)
+    assert site[0] == site[1] != site[2]
+    nums, n_new, n_ext, conflicts = tracker._assign(3, {0: [(7, 0, 90.0)], 1: [(9, 0, 60.0)]},
+                                                    site)
+    assert nums.tolist() == [-1, 9, -1] and conflicts == 1
+    keep = tracker._emitted(kp, np.array([5.0, 1.0, 2.0]), nums, site)
+    assert keep.tolist() == [1, 2]
 
 
 def test_working_to_full_resolution_is_exact() -> None:
