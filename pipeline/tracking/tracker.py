@@ -13,7 +13,8 @@ When image ``i`` arrives (:meth:`Tracker.add_image`) the tracker
    and verifies the pair with ``USAC_MAGSAC`` on the fundamental matrix (or a homography) at
    working resolution; pairs with fewer than ``min_inliers`` inliers are rejected;
 4. gives each feature of ``i`` a point id: the id of the track its verified matches point to,
-   or a fresh id (``t`` + 7-digit counter, unique over the flight).
+   or a fresh id (``t`` + 7-digit counter, unique over the flight); features at one pixel
+   (SIFT's orientations of one blob, :func:`feature_sites`) are one observation.
 
 **Every** kept feature of ``i`` is emitted (:class:`TrackedImage`), matched or not: a track born
 later between ``i`` and a later image needs ``i``'s observation to have reached the estimator
