@@ -202,7 +202,7 @@ class HeldImage:
     nav_eop: FloatArray  # (6,)
     kp_work: NDArray[np.float32]  # (n, 2) working-resolution keypoints
     desc: NDArray[np.uint8]  # (n, d) descriptors
-    point_nums: NDArray[np.int64]  # (n,) point id number of each keypoint, -1 if not emitted
+    point_nums: NDArray[np.int64]  # (n,) point number of each keypoint's pixel, -1: not emitted
     last_overlap_seq: int = field(default=0)
 
 
@@ -379,8 +379,10 @@ class Tracker:
         for num in point_nums[fresh].tolist():
             self._tracks[num] = [1, 1]
         self._next_point += len(fresh)
-        held_nums = np.full(len(kp_work), -1, dtype=np.int64)  # -1: not emitted
-        held_nums[keep] = point_nums[keep]
+        # -1: not emitted; every orientation of an emitted pixel matches into its track
+        site_num = np.full(int(site.max(initial=-1)) + 1, -1, dtype=np.int64)
+        site_num[site[keep]] = point_nums[keep]
+        held_nums = site_num[site]
         t2 = time.perf_counter()
 
         # every feature is held for matching (verification needs many matches); only the
@@ -717,7 +719,7 @@ class Tracker:
         self._held = keep
 
     def _release(self, held: HeldImage) -> None:
-        for num in held.point_nums[held.point_nums >= 0].tolist():
+        for num in np.unique(held.point_nums[held.point_nums >= 0]).tolist():
             track = self._tracks[num]
             track[1] -= 1
             if track[1] == 0:

@@ -179,6 +179,13 @@ def test_emission_budget_keeps_tracks_and_spreads_new_points(budget_run: StripRu
             assert cells.min() >= 15 and cells.max() <= 18, cells
         emitted_before.update(img.point_ids)
     assert budget_run.out[-1].stats.extended_tracks > 20  # tracks still grow to 3+ images
+    # every orientation at an emitted pixel carries its track (a later image may match the
+    # other descriptor); a pixel without an emitted feature carries none
+    for held in budget_run.tracker.state().held:
+        site = feature_sites(held.kp_work)
+        for s_ in np.unique(site):
+            assert len(set(held.point_nums[site == s_].tolist())) == 1
+        assert np.unique(held.point_nums[held.point_nums >= 0]).size <= 200
 
 
 def test_conflicting_links_are_split_not_merged() -> None:
