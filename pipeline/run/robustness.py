@@ -59,6 +59,9 @@ class RobustnessRecord:
     rescued_points : tuple[str, ...]
         Tie points most of whose rays disagreed with their estimate (one born on a blunder),
         re-intersected robustly from their rays during a window re-linearisation.
+    final_reopen_skipped : int
+        Seq-R: departed parameters that the final smoothing pass did not re-open for being
+        too many (their RTS-smoothed values stand; 0: every one re-opened, or none departed).
     """
 
     snooping_critical: float | None
@@ -71,6 +74,7 @@ class RobustnessRecord:
     undetermined_points: tuple[str, ...] = ()
     diverged_images: tuple[str, ...] = ()
     rescued_points: tuple[str, ...] = ()
+    final_reopen_skipped: int = 0
 
 
 def robustness_record(estimator: object, options: object, *, bridged: Sequence[str] = (),
@@ -98,7 +102,9 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
                             undetermined_points=tuple(getattr(estimator, "undetermined", ())),
                             diverged_images=tuple(getattr(estimator, "diverged", ())),
                             rescued_points=tuple(dict.fromkeys(getattr(estimator, "rescued",
-                                                                       ()))))
+                                                                       ()))),
+                            final_reopen_skipped=int(getattr(estimator, "final_reopen_skipped",
+                                                             0)))
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -117,6 +117,7 @@ def test_dropout_of_an_observations_flight_is_bridged_end_to_end(tmp_path: Path)
     rob = run.record["robustness"]
     assert rob["dropout_bridged"] == [f"img_{k + 1:04d}" for k in range(30, 40)]
     assert rob["dropout_skipped"] == [] and rob["snooping_critical"] is None
+    assert rob["final_reopen_skipped"] == 0  # a 60-image strip: every departed key re-opened
     truth = read_truth(flight)
     assert truth is not None
     err = np.linalg.norm(run.eop.eop[:, :3] - truth.eop.eop[:, :3], axis=1)
