@@ -1,15 +1,22 @@
-"""``OUT/mosaic.tif`` as XYZ Web Mercator tiles (rio-tiler, as TiTiler does).
+"""``OUT/mosaic.tif`` (or, during a ``seqat watch --ortho``, the live mosaic's tiles) as XYZ
+Web Mercator tiles (rio-tiler, as TiTiler does).
 
 The tile maths is rio-tiler's and morecantile's (``WebMercatorQuad``); this module only keeps
 one open reader and re-opens it when the file is replaced (a live run publishes the mosaic by
 an atomic rename: a new inode, a new mtime), so a tile always shows the file as it is when it
 is requested. Tiles outside the data are fully transparent 256 x 256 PNGs, as is every tile
 while the run folder has no mosaic yet.
+
+Before ``mosaic.tif`` exists, :class:`LiveMosaic` reads the live ortho's published tiles
+(``OUT/live/mosaic.json`` and ``OUT/live/tiles/*.tif``, :mod:`pipeline.ortho.live_tiles`):
+the index names each small COG with its WGS 84 bounds; the COGs a web tile's bounds
+(morecantile) reach are merged by rio-tiler's ``mosaic_reader`` (they do not overlap).
 """
 
 from __future__ import annotations
 
 import io
+import json
 import os
 import threading
 from dataclasses import dataclass
@@ -18,8 +25,11 @@ from pathlib import Path
 import morecantile
 import numpy as np
 from PIL import Image
+from rasterio.errors import RasterioIOError
 from rio_tiler.errors import TileOutsideBounds
 from rio_tiler.io import Reader
+from rio_tiler.models import ImageData
+from rio_tiler.mosaic import mosaic_reader
 
 #: Edge of a tile, pixels.
 TILE_PX = 256
@@ -140,3 +150,91 @@ class MosaicTiles:
     def close(self) -> None:
         with self._lock:
             self.close_locked()
+
+
+class LiveMosaic:
+    """The live ortho's published tiles (module docstring); thread-safe."""
+
+    def __init__(self, index: Path) -> None:
+        self.index = index
+        self._lock = threading.Lock()
+        self._key: tuple[int, int, int] | None = None
+        self._doc: dict[str, object] | None = None
+        self._tiles: list[tuple[Path, tuple[float, float, float, float]]] = []
+        self._zooms: tuple[int, int] | None = None
+        self._info: MosaicInfo | None = None
+
+    def _load(self) -> None:
+        """Read the index if it changed (lock held)."""
+        try:
+            st = os.stat(self.index)
+        except OSError:
+            self._key, self._doc, self._tiles, self._info = None, None, [], None
+            return
+        key = (st.st_ino, st.st_mtime_ns, st.st_size)
+        if key == self._key:
+            return
+        try:
+            doc = json.loads(self.index.read_text(encoding="utf-8"))
+            tiles = [(self.index.parent / str(t["file"]),
+                      tuple(float(b) for b in t["bounds_wgs84"]))
+                     for t in doc["tiles"]]
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise MosaicUnreadable(f"live/{self.index.name}: cannot read: {err}") from err
+        self._key, self._doc = key, doc
+        self._tiles = tiles  # type: ignore[assignment]
+        self._info = None
+        if tiles:
+            if self._zooms is None:
+                with Reader(str(tiles[0][0]), tms=TMS) as r:
+                    self._zooms = (int(r.minzoom), int(r.maxzoom))
+            west = min(b[0] for _, b in tiles)
+            south = min(b[1] for _, b in tiles)
+            east = max(b[2] for _, b in tiles)
+            north = max(b[3] for _, b in tiles)
+            self._info = MosaicInfo(version=f"live-{doc.get('revision')}",
+                                    bounds_wgs84=(west, south, east, north),
+                                    minzoom=max(0, self._zooms[0] - 2), maxzoom=self._zooms[1])
+
+    def info(self) -> MosaicInfo | None:
+        """Bounds and zooms of the published tiles; None without any."""
+        with self._lock:
+            self._load()
+            return self._info
+
+    def document(self) -> dict[str, object] | None:
+        """The index as read last (images published, ...)."""
+        with self._lock:
+            self._load()
+            return self._doc
+
+    def tile(self, z: int, x: int, y: int) -> bytes:
+        """The PNG of tile ``z/x/y`` (:data:`EMPTY_TILE` outside the published tiles).
+
+        Raises
+        ------
+        MosaicUnreadable
+        """
+        bounds = TMS.bounds(morecantile.Tile(x, y, z))
+        with self._lock:
+            self._load()
+            assets = [str(p) for p, b in self._tiles
+                      if b[0] < bounds.right and b[2] > bounds.left
+                      and b[1] < bounds.top and b[3] > bounds.bottom]
+        if not assets:
+            return EMPTY_TILE
+
+        def read(asset: str, x: int, y: int, z: int) -> ImageData:
+            with Reader(asset, tms=TMS) as r:
+                return r.tile(x, y, z, tilesize=TILE_PX)
+
+        try:
+            img, _ = mosaic_reader(assets, read, x, y, z, threads=1,
+                                   allowed_exceptions=(TileOutsideBounds, RasterioIOError))
+        except Exception as err:  # noqa: BLE001 - a tile replaced or removed meanwhile, ...
+            if type(err).__name__ == "EmptyMosaicError":
+                return EMPTY_TILE
+            raise MosaicUnreadable(f"live mosaic: cannot read: {err}") from err
+        if not img.mask.any():
+            return EMPTY_TILE
+        return img.render(img_format="PNG")
