@@ -27,8 +27,10 @@ import pyproj
 FeatureCollection = dict[str, object]
 #: Vertices of an ellipse polygon.
 ELLIPSE_VERTICES = 36
-#: About this many coverage cells across the points' larger extent.
+#: At most this many coverage cells across the points' larger extent,
 COVERAGE_CELLS_ACROSS = 20
+#: ... and about this many points per cell at least.
+POINTS_PER_CELL = 8
 
 
 def nice_number(value: float) -> float:

@@ -304,11 +304,12 @@ class RunView:
         warnings: list[str] = []
         run, run_err = self._json(RUN_FILE)
         ortho, ortho_err = self._json(ORTHO_JSON)
-        journal = self._journal()
         est, est_err = self._estimates()
+        done = self.is_done()
+        # the journal is parsed whole when it changes: only while nothing else tells
+        journal = self._journal() if est is None and not done else JournalView()
         live_mosaic = self._live_mosaic()
         warnings += [w for w in (run_err, ortho_err, journal.warning) if w]
-        done = self.is_done()
         if not done and est_err:
             warnings.append(est_err)
         cameras = self.cameras()
@@ -324,7 +325,7 @@ class RunView:
             images = int(totals.get("images", 0))  # type: ignore[union-attr]
             sigma0 = _finite(totals.get("sigma0"))  # type: ignore[union-attr]
             warnings += [str(w) for w in run.get("warnings", []) or []]  # type: ignore[union-attr]
-        elif est is not None and len(est.cameras.ids) >= len(journal.image_ids):
+        elif est is not None:
             images = int(est.doc.get("images", 0))  # type: ignore[call-overload]
             last = est.doc.get("last")
             record = last if isinstance(last, dict) else None
@@ -380,7 +381,8 @@ class RunView:
         return {
             "run": self.out.name,
             "method": None if run is None else run.get("method"),
-            "crs_name": None if run is None else run.get("crs_name"),
+            "crs_name": run.get("crs_name") if run is not None else (
+                None if est is None else self._crs_name(est.cameras.crs_wkt)),
             "done": done,
             "images": images,
             "last_image": last_image,
@@ -398,6 +400,15 @@ class RunView:
             "warnings": warnings,
             "version": f"{images}:" + ":".join(versions),
         }
+
+    def _crs_name(self, wkt: str) -> str | None:
+        def load() -> str | None:
+            try:
+                return str(pyproj.CRS.from_wkt(wkt).name)
+            except pyproj.exceptions.CRSError:
+                return None
+
+        return self._cached("crs_name", wkt, load)
 
     def _table_transformer(self, table: Table) -> pyproj.Transformer | None:
         try:

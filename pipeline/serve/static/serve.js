@@ -7,7 +7,7 @@ const POLL_MS = 1000;
 const map = L.map("map", { zoomControl: true, maxZoom: 24, zoomSnap: 0.25 });
 map.setView([0, 0], 2);
 let version = null;
-let fitted = false;
+let userMoved = false;  // the map follows the data until the user pans or zooms it
 let stopCm = null;       // the page's stop criterion (the field), null: the run's
 let stopShown = null;    // the criterion the shown layers were coloured with
 const tiles = L.tileLayer("/tiles/{z}/{x}/{y}.png?v=0", {
@@ -197,7 +197,7 @@ function showStatus(s) {
 }
 
 function fit(s, features) {
-  if (fitted) return;
+  if (userMoved) return;
   let bounds = null;
   if (s.mosaic) {
     const [w, so, e, n] = s.mosaic.bounds_wgs84;
@@ -207,10 +207,14 @@ function fit(s, features) {
     const [lon, lat] = f.geometry.coordinates;
     bounds = bounds ? bounds.extend([lat, lon]) : L.latLngBounds([lat, lon], [lat, lon]);
   }
-  if (bounds) {
-    map.fitBounds(bounds.pad(0.05));
-    fitted = true;
-  }
+  footprints.eachLayer(g => g.eachLayer && g.eachLayer(
+    p => { bounds = bounds ? bounds.extend(p.getBounds()) : p.getBounds(); }));
+  if (bounds) map.fitBounds(bounds.pad(0.05), { maxZoom: 20 });
+}
+
+for (const kind of ["mousedown", "wheel", "touchstart", "keydown"]) {
+  document.getElementById("map").addEventListener(kind, () => { userMoved = true; },
+    { passive: true });
 }
 
 async function poll() {
