@@ -228,19 +228,19 @@ def watch(
 @contextlib.contextmanager
 def _watch_server(port: int | None, host: str) -> Iterator[Callable[[Path], None] | None]:
     """``--serve PORT``: the socket is bound now (a busy port fails before the watch starts);
-    the server starts on OUT once the watch has claimed it, in a thread, and stops when the
-    watch has published its results."""
+    the server starts on OUT once the watch has claimed it, in a thread niced as the live
+    ortho's worker (the AT loop first), and stops when the watch has published its results."""
     if port is None:
         yield None
         return
-    from pipeline.serve.app import bind, server_on, start_thread, stop_thread
+    from pipeline.serve.app import WATCH_SERVE_NICE, bind, server_on, start_thread, stop_thread
 
     sock = bind(host, port)
     running: list[tuple[object, object]] = []
 
     def start(out: Path) -> None:
-        served = server_on(out, sock, host)
-        running.append((served, start_thread(served)))
+        served = server_on(out, sock, host, nice=WATCH_SERVE_NICE)
+        running.append((served, start_thread(served, nice=WATCH_SERVE_NICE)))
         typer.echo(f"seqat watch: map at {served.url}", err=True)
 
     try:

@@ -38,9 +38,7 @@ afterwards. Any other error of the worker stops the run at the next image.
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -51,6 +49,7 @@ from pathlib import Path
 import numpy as np
 import pyproj
 
+from pipeline.common.priority import MAX_NICE, lower_thread_priority
 from pipeline.common.strict_yaml import build_dataclass
 from pipeline.common.tables import NavTable
 from pipeline.flight.folder import Flight, read_flight
@@ -88,7 +87,6 @@ PUBLISH_INTERVAL_S = 1.0
 WATCH_FLAT_MARGIN_M = 10_000.0
 #: Niceness of the ortho worker thread relative to the AT loop (Linux ``setpriority``).
 WORKER_NICE = 10
-MAX_NICE = 19
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -141,15 +139,8 @@ class _Kept:
     footprint_m: FloatArray
 
 
-def _lower_priority(nice: int) -> None:
-    """Make the calling thread ``nice`` steps nicer (Linux: a thread id is a process id for
-    ``setpriority``; elsewhere, or without permission, nothing happens)."""
-    if nice <= 0 or not hasattr(os, "setpriority"):
-        return
-    tid = threading.get_native_id()
-    with contextlib.suppress(OSError):
-        os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + nice,
-                                                 MAX_NICE))
+#: Make the calling thread ``nice`` steps nicer (the worker's initializer).
+_lower_priority = lower_thread_priority
 
 
 class LiveOrtho:
@@ -495,7 +486,10 @@ class LiveOrtho:
                 listener_ms=TimingStats.from_samples(self._listener_ms),
                 queue_ms=TimingStats.from_samples([r.queue_ms for r in records]),
                 latency_ms=TimingStats.from_samples([r.latency_ms for r in records]),
-                finish_s=time.perf_counter() - t0)
+                finish_s=time.perf_counter() - t0,
+                publish_ms=None if self._live_tiles is None or not self._live_tiles.publish_ms
+                else TimingStats.from_samples(self._live_tiles.publish_ms),
+                publications=0 if self._live_tiles is None else len(self._live_tiles.publish_ms))
 
         summary = finish_ortho(
             self.out_dir, self._mosaic, records, crs=self.crs, out_crs=self._out_crs, eops=eops,

@@ -21,7 +21,7 @@ import errno
 import math
 import socket
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import uvicorn
@@ -32,6 +32,7 @@ from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
 from pipeline.common.columns import LIVE_DIR, LIVE_MOSAIC_INDEX
+from pipeline.common.priority import lower_thread_priority_once
 from pipeline.serve.runview import MOSAIC_FILE, RunView, check_run_folder
 from pipeline.serve.tiles import (
     EMPTY_TILE,
@@ -47,10 +48,14 @@ STATIC_DIR = Path(__file__).resolve().parent / "static"
 NO_CACHE = {"Cache-Control": "no-cache"}
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
+#: ``seqat watch --serve``: the request threads run this much nicer than the AT loop.
+WATCH_SERVE_NICE = 10
 
 
-def build_app(out: Path) -> Starlette:
-    """The application serving the run folder ``out`` (checked by the caller)."""
+def build_app(out: Path, nice: int = 0) -> Starlette:
+    """The application serving the run folder ``out`` (checked by the caller); ``nice``: the
+    threads answering requests run that much nicer (``seqat watch --serve``: the server
+    shares the process with the AT loop and the live ortho)."""
     view = RunView(out)
     tiles = MosaicTiles(out / MOSAIC_FILE)
     live_tiles = LiveMosaic(out / LIVE_DIR / LIVE_MOSAIC_INDEX)
@@ -72,6 +77,13 @@ def build_app(out: Path) -> Starlette:
         except ValueError:
             return None
         return value if value is not None and math.isfinite(value) and value > 0 else None
+
+    def niced(endpoint: Callable[[Request], Response]) -> Callable[[Request], Response]:
+        def run(request: Request) -> Response:
+            lower_thread_priority_once(nice)
+            return endpoint(request)
+
+        return run
 
     def index(request: Request) -> Response:
         return FileResponse(STATIC_DIR / "index.html", headers=NO_CACHE)
@@ -104,17 +116,25 @@ def build_app(out: Path) -> Starlette:
         return JSONResponse(view.points(), media_type="application/geo+json",
                             headers=NO_CACHE)
 
+    def ellipses(request: Request) -> Response:
+        return geojson(view.ellipses())
+
+    def footprints(request: Request) -> Response:
+        return geojson(view.footprints())
+
+    def coverage(request: Request) -> Response:
+        return geojson(view.coverage(stop_param(request)))
+
+    get = ["GET", "HEAD"]
     app = Starlette(routes=[
-        Route("/", index, methods=["GET", "HEAD"]),
-        Route("/tiles/{z:int}/{x:int}/{y:int}.png", tile, methods=["GET", "HEAD"]),
-        Route("/status.json", status, methods=["GET", "HEAD"]),
-        Route("/cameras.geojson", cameras, methods=["GET", "HEAD"]),
-        Route("/points.geojson", points, methods=["GET", "HEAD"]),
-        Route("/ellipses.geojson", lambda r: geojson(view.ellipses()), methods=["GET", "HEAD"]),
-        Route("/footprints.geojson", lambda r: geojson(view.footprints()),
-              methods=["GET", "HEAD"]),
-        Route("/coverage.geojson", lambda r: geojson(view.coverage(stop_param(r))),
-              methods=["GET", "HEAD"]),
+        Route("/", niced(index), methods=get),
+        Route("/tiles/{z:int}/{x:int}/{y:int}.png", niced(tile), methods=get),
+        Route("/status.json", niced(status), methods=get),
+        Route("/cameras.geojson", niced(cameras), methods=get),
+        Route("/points.geojson", niced(points), methods=get),
+        Route("/ellipses.geojson", niced(ellipses), methods=get),
+        Route("/footprints.geojson", niced(footprints), methods=get),
+        Route("/coverage.geojson", niced(coverage), methods=get),
         Mount("/static", StaticFiles(directory=STATIC_DIR), name="static"),
     ])
     app.state.tiles = tiles
@@ -165,11 +185,11 @@ def make_server(out: Path | str, host: str = DEFAULT_HOST,
     return server_on(out, bind(host, port), host)
 
 
-def server_on(out: Path, sock: socket.socket, host: str) -> Served:
+def server_on(out: Path, sock: socket.socket, host: str, nice: int = 0) -> Served:
     """The (not yet started) server of ``out`` on a bound socket (``seqat watch --serve``
     binds first, so a busy port fails before the watch starts)."""
     real_port = sock.getsockname()[1]
-    config = uvicorn.Config(build_app(out), log_level="warning", access_log=False,
+    config = uvicorn.Config(build_app(out, nice), log_level="warning", access_log=False,
                             lifespan="off")
     shown = f"[{host}]" if ":" in host else host
     return Served(url=f"http://{shown}:{real_port}/", server=uvicorn.Server(config), sock=sock)
@@ -183,10 +203,15 @@ def run_server(served: Served) -> None:
         served.sock.close()
 
 
-def start_thread(served: Served) -> threading.Thread:
-    """Run the server in a daemon thread; returns once it accepts connections (≤ 5 s)."""
-    thread = threading.Thread(target=run_server, args=(served,), name="seqat-serve",
-                              daemon=True)
+def start_thread(served: Served, nice: int = 0) -> threading.Thread:
+    """Run the server in a daemon thread (``nice`` steps nicer: its event loop and the
+    threads it starts); returns once it accepts connections (≤ 5 s)."""
+
+    def run() -> None:
+        lower_thread_priority_once(nice)
+        run_server(served)
+
+    thread = threading.Thread(target=run, name="seqat-serve", daemon=True)
     thread.start()
     for _ in range(500):
         if served.server.started:

@@ -9,8 +9,11 @@ while the run folder has no mosaic yet.
 
 Before ``mosaic.tif`` exists, :class:`LiveMosaic` reads the live ortho's published tiles
 (``OUT/live/mosaic.json`` and ``OUT/live/tiles/*.tif``, :mod:`pipeline.ortho.live_tiles`):
-the index names each small COG with its WGS 84 bounds; the COGs a web tile's bounds
-(morecantile) reach are merged by rio-tiler's ``mosaic_reader`` (they do not overlap).
+the index names each small GeoTIFF with its WGS 84 bounds and version; the files a web
+tile's bounds (morecantile) reach are merged by rio-tiler's ``mosaic_reader`` (they do not
+overlap). The page reloads every tile after each image, most of them unchanged, so the PNGs
+are kept (:data:`PNG_CACHE` of them, least recently used out) by web tile and the versions
+of the files it was made of.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import io
 import json
 import os
 import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -152,6 +156,10 @@ class MosaicTiles:
             self.close_locked()
 
 
+#: Rendered live-mosaic PNGs kept by :class:`LiveMosaic`.
+PNG_CACHE = 512
+
+
 class LiveMosaic:
     """The live ortho's published tiles (module docstring); thread-safe."""
 
@@ -160,7 +168,8 @@ class LiveMosaic:
         self._lock = threading.Lock()
         self._key: tuple[int, int, int] | None = None
         self._doc: dict[str, object] | None = None
-        self._tiles: list[tuple[Path, tuple[float, float, float, float]]] = []
+        self._tiles: list[tuple[Path, tuple[float, float, float, float], object]] = []
+        self._png: OrderedDict[tuple[object, ...], bytes] = OrderedDict()
         self._zooms: tuple[int, int] | None = None
         self._info: MosaicInfo | None = None
 
@@ -177,7 +186,7 @@ class LiveMosaic:
         try:
             doc = json.loads(self.index.read_text(encoding="utf-8"))
             tiles = [(self.index.parent / str(t["file"]),
-                      tuple(float(b) for b in t["bounds_wgs84"]))
+                      tuple(float(b) for b in t["bounds_wgs84"]), t.get("version"))
                      for t in doc["tiles"]]
         except (OSError, ValueError, KeyError, TypeError) as err:
             raise MosaicUnreadable(f"live/{self.index.name}: cannot read: {err}") from err
@@ -188,10 +197,10 @@ class LiveMosaic:
             if self._zooms is None:
                 with Reader(str(tiles[0][0]), tms=TMS) as r:
                     self._zooms = (int(r.minzoom), int(r.maxzoom))
-            west = min(b[0] for _, b in tiles)
-            south = min(b[1] for _, b in tiles)
-            east = max(b[2] for _, b in tiles)
-            north = max(b[3] for _, b in tiles)
+            west = min(b[0] for _, b, _ in tiles)
+            south = min(b[1] for _, b, _ in tiles)
+            east = max(b[2] for _, b, _ in tiles)
+            north = max(b[3] for _, b, _ in tiles)
             self._info = MosaicInfo(version=f"live-{doc.get('revision')}",
                                     bounds_wgs84=(west, south, east, north),
                                     minzoom=max(0, self._zooms[0] - 2), maxzoom=self._zooms[1])
@@ -218,11 +227,24 @@ class LiveMosaic:
         bounds = TMS.bounds(morecantile.Tile(x, y, z))
         with self._lock:
             self._load()
-            assets = [str(p) for p, b in self._tiles
-                      if b[0] < bounds.right and b[2] > bounds.left
-                      and b[1] < bounds.top and b[3] > bounds.bottom]
-        if not assets:
+            hits = [(str(p), v) for p, b, v in self._tiles
+                    if b[0] < bounds.right and b[2] > bounds.left
+                    and b[1] < bounds.top and b[3] > bounds.bottom]
+            key = (z, x, y, *hits)
+            png = self._png.get(key)
+            if png is not None:
+                self._png.move_to_end(key)
+                return png
+        if not hits:
             return EMPTY_TILE
+        png = self._render([a for a, _ in hits], z, x, y)
+        with self._lock:
+            self._png[key] = png
+            while len(self._png) > PNG_CACHE:
+                self._png.popitem(last=False)
+        return png
+
+    def _render(self, assets: list[str], z: int, x: int, y: int) -> bytes:
 
         def read(asset: str, x: int, y: int, z: int) -> ImageData:
             with Reader(asset, tms=TMS) as r:
