@@ -5,9 +5,9 @@ folder while ``seqat watch ... --ortho --serve PORT`` (a second process) georefe
 serves the map, and ``clients`` page-like HTTP clients (threads of this process) poll it as
 the page does: ``/status.json`` every second and, when its ``version`` changes, the
 cameras, ellipses, footprints, points, coverage and the mosaic's tiles at the zoom where at
-most 24 tiles cover it, 6 at a time (niced to 19: real browsers run on their own devices). Runs with different client counts are interleaved
-(``--clients 0 2 --repeat 3``: 0, 2, 0, 2, 0, 2) so the load of the shared machine falls on
-both alike.
+most 24 tiles cover it, 6 at a time (niced to 19: real browsers run on their own devices).
+Runs with different client counts are interleaved (``--clients 0 2 --repeat 3``: 0, 2, 0, 2,
+0, 2) so the load of the shared machine falls on both alike.
 
 Measured per run:
 
