@@ -388,7 +388,7 @@ class RunView:
             "last_image": last_image,
             "cameras": len(cameras["features"]),  # type: ignore[arg-type]
             "cameras_position": cameras.get("position"),
-            "points": self.points().get("total", 0),
+            "points": 0 if points is None else len(points.ids),
             "sigma0": sigma0,
             "last_latency_ms": latency_ms,
             "last_latency_kind": latency_kind,
