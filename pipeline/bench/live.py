@@ -7,7 +7,8 @@ the page does: ``/status.json`` every second and, when its ``version`` changes, 
 cameras, ellipses, footprints, points, coverage and the mosaic's tiles at the zoom where at
 most 24 tiles cover it, 6 at a time (niced to 19: real browsers run on their own devices).
 Runs with different client counts are interleaved (``--clients 0 2 --repeat 3``: 0, 2, 0, 2,
-0, 2) so the load of the shared machine falls on both alike.
+0, 2) so the load of the shared machine falls on both alike; ``N:thread`` runs the server in
+a thread of the watch instead of its child process (``--serve-in``).
 
 Measured per run:
 
@@ -157,7 +158,7 @@ def _quarters(values: Sequence[float]) -> tuple[float | None, float | None]:
 
 
 def one_run(flight: Path, work: Path, *, clients: int, rate_hz: float, dsm: Path | None,
-            idle_s: float, limit: int | None) -> dict[str, object]:
+            idle_s: float, limit: int | None, serve_in: str = "process") -> dict[str, object]:
     """Feed + watch --ortho --serve with ``clients`` polling clients; the run's figures."""
     if work.exists():
         shutil.rmtree(work)
@@ -178,6 +179,7 @@ def one_run(flight: Path, work: Path, *, clients: int, rate_hz: float, dsm: Path
     log = (work / "watch.log").open("w")
     watch = subprocess.Popen([*cli, "watch", str(fed), "--out", str(out), "--ortho",
                               *(["--dsm", str(dsm)] if dsm else []), "--serve", str(port),
+                              "--serve-in", serve_in,
                               "--idle-timeout-s", str(idle_s)],
                              stdout=log, stderr=subprocess.STDOUT, env=env)
     stop = threading.Event()
@@ -221,7 +223,7 @@ def one_run(flight: Path, work: Path, *, clients: int, rate_hz: float, dsm: Path
                      for r in ortho["images"]]  # type: ignore[union-attr]
     live_stats = ortho["live"]  # type: ignore[index]
     return {
-        "clients": clients, "images": len(lives), "load_1m_start": load0,
+        "clients": clients, "serve_in": serve_in, "images": len(lives), "load_1m_start": load0,
         "load_1m_end": load_average(),
         "tracking_ms": _stats(track_ms), "at_update_ms": _stats(at_ms),
         "latency_ms": _stats(latency_ms), "ortho_latency_ms": _stats(ortho_ms),
@@ -252,7 +254,7 @@ class LiveMapBench:
     runs: tuple[dict[str, object], ...]
 
 
-def run_live_map_bench(flight: Path, out: Path, *, clients: Sequence[int] = (0, 2),
+def run_live_map_bench(flight: Path, out: Path, *, clients: Sequence[str] = ("0", "2"),
                        repeat: int = 1, rate_hz: float = 2.0, idle_s: float = 5.0,
                        limit: int | None = None) -> LiveMapBench:
     """Interleaved runs (module docstring)."""
@@ -265,9 +267,11 @@ def run_live_map_bench(flight: Path, out: Path, *, clients: Sequence[int] = (0, 
         dsm = build_dsm(lidar, out / "dsm.tif", crs=crs).path
     runs = []
     for r in range(repeat):
-        for n in clients:
-            result = one_run(flight, out / f"run{r}_clients{n}", clients=n, rate_hz=rate_hz,
-                             dsm=dsm, idle_s=idle_s, limit=limit)
+        for spec in clients:
+            n, _, where = spec.partition(":")
+            result = one_run(flight, out / f"run{r}_clients{n}{where}", clients=int(n),
+                             rate_hz=rate_hz, dsm=dsm, idle_s=idle_s, limit=limit,
+                             serve_in=where or "process")
             runs.append(result)
             print(json.dumps(to_jsonable(result)), file=sys.stderr, flush=True)
     return LiveMapBench(flight=str(flight), rate_hz=rate_hz, machine=machine(load0),
@@ -282,7 +286,9 @@ def main(argv: Sequence[str] | None = None) -> None:
                                      description=__doc__.splitlines()[0])
     parser.add_argument("--flight", type=Path, default=Path("sample_data/autzen_rendered"))
     parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--clients", type=int, nargs="+", default=[0, 2])
+    parser.add_argument("--clients", nargs="+", default=["0", "2"],
+                        help="clients per run, in turn; N:thread serves from a thread of the "
+                             "watch (--serve-in thread)")
     parser.add_argument("--repeat", type=int, default=1)
     parser.add_argument("--rate-hz", type=float, default=2.0)
     parser.add_argument("--idle-s", type=float, default=5.0)

@@ -188,6 +188,9 @@ def watch(
     host: Annotated[str, typer.Option(
         "--host", help="--serve: address to listen on (127.0.0.1 unless given).")]
     = "127.0.0.1",
+    serve_in: Annotated[str, typer.Option(
+        "--serve-in", help="--serve: run the server in a child process (default: the AT loop "
+        "keeps its core and the GIL) or in a thread of the watch.")] = "process",
     stop_sigma_cm: Annotated[float | None, typer.Option(
         "--stop-sigma-cm", help="Stop criterion shown on the map: every ground point's σ "
         "(each axis) at most this many cm; coverage done / not yet done and a count in "
@@ -204,6 +207,7 @@ def watch(
         raise ConfigError("--dsm and --ortho-options go with --ortho")
     if serve is None and host != "127.0.0.1":
         raise ConfigError("--host goes with --serve")
+    serve_in = choice("--serve-in", serve_in, ("process", "thread"))
     if stop_sigma_cm is not None and not (math.isfinite(stop_sigma_cm) and stop_sigma_cm > 0):
         raise ConfigError(f"--stop-sigma-cm: expected a number > 0, got {stop_sigma_cm!r}")
     how = parse_method(method)
@@ -212,7 +216,7 @@ def watch(
         from pipeline.ortho.live import watch_ortho_factory
 
         make_listeners = watch_ortho_factory(out, dsm_path=dsm, options_path=ortho_options)
-    with _watch_server(serve, host) as on_claimed:
+    with _watch_server(serve, host, serve_in) as on_claimed:
         summary = watch_flight(flight, out, method=how, options_path=options,
                                threshold=threshold, initial_images=initial_images,
                                budget_ms=budget_ms, resume=resume,
@@ -226,28 +230,37 @@ def watch(
 
 
 @contextlib.contextmanager
-def _watch_server(port: int | None, host: str) -> Iterator[Callable[[Path], None] | None]:
+def _watch_server(port: int | None, host: str,
+                  where: str = "process") -> Iterator[Callable[[Path], None] | None]:
     """``--serve PORT``: the socket is bound now (a busy port fails before the watch starts);
-    the server starts on OUT once the watch has claimed it, in a thread niced as the live
-    ortho's worker (the AT loop first), and stops when the watch has published its results."""
+    the server starts on OUT once the watch has claimed it, niced as the live ortho's worker
+    (the AT loop first), in a child process (``where``; or a thread of the watch), and stops
+    when the watch has published its results."""
     if port is None:
         yield None
         return
-    from pipeline.serve.app import WATCH_SERVE_NICE, bind, server_on, start_thread, stop_thread
+    from pipeline.serve import app as serve_app
 
-    sock = bind(host, port)
-    running: list[tuple[object, object]] = []
+    nice = serve_app.WATCH_SERVE_NICE
+    sock = serve_app.bind(host, port)
+    stops: list[Callable[[], None]] = []
 
     def start(out: Path) -> None:
-        served = server_on(out, sock, host, nice=WATCH_SERVE_NICE)
-        running.append((served, start_thread(served, nice=WATCH_SERVE_NICE)))
-        typer.echo(f"seqat watch: map at {served.url}", err=True)
+        if where == "thread":
+            served = serve_app.server_on(out, sock, host, nice=nice)
+            thread = serve_app.start_thread(served, nice=nice)
+            stops.append(lambda: serve_app.stop_thread(served, thread))
+        else:
+            child = serve_app.start_process(out, sock, host, nice=nice)
+            stops.append(lambda: serve_app.stop_process(child))
+        shown = f"[{host}]" if ":" in host else host
+        typer.echo(f"seqat watch: map at http://{shown}:{sock.getsockname()[1]}/", err=True)
 
     try:
         yield start
     finally:
-        for served, thread in running:
-            stop_thread(served, thread)  # type: ignore[arg-type]
+        for stop in stops:
+            stop()
         sock.close()
 
 

@@ -19,8 +19,12 @@ import contextlib
 import dataclasses
 import errno
 import math
+import os
 import socket
+import subprocess
+import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -218,6 +222,43 @@ def start_thread(served: Served, nice: int = 0) -> threading.Thread:
             break
         thread.join(0.01)
     return thread
+
+
+def serve_child(out: str, fd: int, host: str, nice: int) -> None:
+    """The server process of ``seqat watch --serve``: serve ``out`` on the inherited listening
+    socket ``fd``, ``nice`` steps nicer, until terminated or the parent process is gone."""
+    if nice > 0 and hasattr(os, "nice"):
+        os.nice(nice)
+    parent = os.getppid()
+    served = server_on(Path(out), socket.socket(fileno=fd), host)
+
+    def orphaned() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        served.server.should_exit = True
+
+    threading.Thread(target=orphaned, daemon=True).start()
+    run_server(served)
+
+
+def start_process(out: Path, sock: socket.socket, host: str,
+                  nice: int = WATCH_SERVE_NICE) -> subprocess.Popen[bytes]:
+    """Run the server of ``out`` in a child process on the bound socket ``sock``
+    (:func:`serve_child`); stop it with :func:`stop_process`."""
+    fd = sock.fileno()
+    code = ("import sys; from pipeline.serve.app import serve_child; "
+            "serve_child(sys.argv[1], int(sys.argv[2]), sys.argv[3], int(sys.argv[4]))")
+    return subprocess.Popen([sys.executable, "-c", code, str(out), str(fd), host, str(nice)],
+                            pass_fds=(fd,))
+
+
+def stop_process(child: subprocess.Popen[bytes]) -> None:
+    child.terminate()
+    try:
+        child.wait(10)
+    except subprocess.TimeoutExpired:
+        child.kill()
+        child.wait()
 
 
 def stop_thread(served: Served, thread: threading.Thread) -> None:
