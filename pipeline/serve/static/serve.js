@@ -4,7 +4,8 @@
 "use strict";
 
 const POLL_MS = 1000;
-const map = L.map("map", { zoomControl: true, maxZoom: 24, zoomSnap: 0.25 });
+// whole zooms: a TileLayer redrawn (setUrl) at a fractional map zoom requests fractional tile zooms
+const map = L.map("map", { zoomControl: true, maxZoom: 24, zoomSnap: 1 });
 map.setView([0, 0], 2);
 let version = null;
 let userMoved = false;  // the map follows the data until the user pans or zooms it
