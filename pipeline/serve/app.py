@@ -246,9 +246,8 @@ def start_process(out: Path, sock: socket.socket, host: str,
     """Run the server of ``out`` in a child process on the bound socket ``sock``
     (:func:`serve_child`); stop it with :func:`stop_process`."""
     fd = sock.fileno()
-    code = ("import os, sys; n = int(sys.argv[4]); n > 0 and hasattr(os, 'nice') and "
-            "os.nice(n); from pipeline.serve.app import serve_child; "  # niced before imports
-            "serve_child(sys.argv[1], int(sys.argv[2]), sys.argv[3], 0)")
+    code = ("import sys; from pipeline.serve.app import serve_child; "
+            "serve_child(sys.argv[1], int(sys.argv[2]), sys.argv[3], int(sys.argv[4]))")
     return subprocess.Popen([sys.executable, "-c", code, str(out), str(fd), host, str(nice)],
                             pass_fds=(fd,))
 
