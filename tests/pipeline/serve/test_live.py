@@ -94,11 +94,11 @@ def _opaque_share(png: bytes) -> float:
 
 
 def test_watch_ortho_serve(tmp_path: Path) -> None:
-    """5 images of the rendered Autzen flight: ``seqat watch --ortho --serve`` (flat plane:
+    """4 images of the rendered Autzen flight: ``seqat watch --ortho --serve`` (flat plane:
     its LiDAR is left out); while it goes on the page's endpoints show the live
     estimates and the live mosaic; at the end mosaic.tif and no live tiles."""
     flight, out = tmp_path / "flight", tmp_path / "out"
-    feed_flight(SAMPLE, flight, rate_hz=100.0, limit=5)
+    feed_flight(SAMPLE, flight, rate_hz=100.0, limit=4)
     yaml = flight / "flight.yaml"  # no LiDAR: gridding it would take ~9 s
     yaml.write_text("".join(line for line in yaml.read_text().splitlines(keepends=True)
                             if not line.startswith("lidar:")))
@@ -108,7 +108,7 @@ def test_watch_ortho_serve(tmp_path: Path) -> None:
     def watch() -> None:
         result.append(CliRunner().invoke(app, [
             "watch", str(flight), "--out", str(out), "--ortho", "--serve", str(port),
-            "--idle-timeout-s", "2", "--stop-sigma-cm", "20"]))
+            "--idle-timeout-s", "3", "--stop-sigma-cm", "20"]))
 
     thread = threading.Thread(target=watch, daemon=True)
     thread.start()
@@ -145,7 +145,7 @@ def test_watch_ortho_serve(tmp_path: Path) -> None:
     assert (out / "mosaic.tif").is_file()
     assert sorted(p.name for p in (out / "live").iterdir()) == ["estimates.json"]
     est = json.loads((out / "live" / "estimates.json").read_text())
-    assert est["images"] == 5 and est["stop_sigma_m"] == 0.2
+    assert est["images"] == 4 and est["stop_sigma_m"] == 0.2
     assert all(c["footprint"] is not None and c["at_unix_s"] > 0 for c in est["cameras"])
     assert len(est["points"]["point"]) > 50
     with socket.socket() as again:  # the watch's server stopped with it
