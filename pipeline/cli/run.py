@@ -216,7 +216,7 @@ def watch(
         from pipeline.ortho.live import watch_ortho_factory
 
         make_listeners = watch_ortho_factory(out, dsm_path=dsm, options_path=ortho_options)
-    with _watch_server(serve, host, serve_in) as on_claimed:
+    with watch_server(serve, host, serve_in) as on_claimed:
         summary = watch_flight(flight, out, method=how, options_path=options,
                                threshold=threshold, initial_images=initial_images,
                                budget_ms=budget_ms, resume=resume,
@@ -230,7 +230,7 @@ def watch(
 
 
 @contextlib.contextmanager
-def _watch_server(port: int | None, host: str,
+def watch_server(port: int | None, host: str,
                   where: str = "process") -> Iterator[Callable[[Path], None] | None]:
     """``--serve PORT``: the socket is bound now (a busy port fails before the watch starts);
     the server starts on OUT once the watch has claimed it, niced as the live ortho's worker

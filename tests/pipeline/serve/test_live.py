@@ -21,8 +21,11 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from pipeline.cli import app
+from pipeline.cli.run import watch_server
+from pipeline.ortho.live import watch_ortho_factory
 from pipeline.run.feed import feed_flight
 from pipeline.run.store import read_eop_csv, read_json_object, read_points_csv
+from pipeline.run.watch import WatchOptions, watch_flight
 from pipeline.serve.app import serving
 
 TMS = morecantile.tms.get("WebMercatorQuad")
@@ -94,61 +97,69 @@ def _opaque_share(png: bytes) -> float:
 
 
 def test_watch_ortho_serve(tmp_path: Path) -> None:
-    """4 images of the rendered Autzen flight: ``seqat watch --ortho --serve`` (flat plane:
-    its LiDAR is left out); while it goes on the page's endpoints show the live
-    estimates and the live mosaic; at the end mosaic.tif and no live tiles."""
+    """4 images of the rendered Autzen flight: the watch with its live ortho and the server of
+    ``--serve`` (a child process, as ``seqat watch --ortho --serve``; flat plane: its LiDAR is
+    left out); while it goes on, the page's endpoints show the live estimates and the live
+    mosaic; once stopped, mosaic.tif and no live tiles. The watch is stopped when both were
+    seen, not by a timeout, so a loaded machine only makes the test slower."""
     flight, out = tmp_path / "flight", tmp_path / "out"
     feed_flight(SAMPLE, flight, rate_hz=100.0, limit=4)
     yaml = flight / "flight.yaml"  # no LiDAR: gridding it would take ~9 s
     yaml.write_text("".join(line for line in yaml.read_text().splitlines(keepends=True)
                             if not line.startswith("lidar:")))
     port = _free_port()
+    stop = threading.Event()
     result: list[object] = []
-
-    def watch() -> None:
-        result.append(CliRunner().invoke(app, [
-            "watch", str(flight), "--out", str(out), "--ortho", "--serve", str(port),
-            "--idle-timeout-s", "3", "--stop-sigma-cm", "20"]))
-
-    thread = threading.Thread(target=watch, daemon=True)
-    thread.start()
     url = f"http://127.0.0.1:{port}"
     seen_live_cameras = seen_live_tile = False
-    deadline = time.monotonic() + 120
-    while thread.is_alive() and time.monotonic() < deadline:
-        try:
-            status = doc(url, "/status.json")
-        except OSError:
+    with watch_server(port, "127.0.0.1") as on_claimed:
+
+        def watch() -> None:
+            try:
+                result.append(watch_flight(
+                    flight, out, watch=WatchOptions(idle_timeout_s=120.0), stop=stop,
+                    make_listeners=watch_ortho_factory(out), on_claimed=on_claimed,
+                    stop_sigma_m=0.2, on_image=lambda live, update: None))
+            except BaseException as err:  # noqa: BLE001 - re-raised below
+                result.append(err)
+
+        thread = threading.Thread(target=watch, daemon=True)
+        thread.start()
+        deadline = time.monotonic() + 120
+        while thread.is_alive() and time.monotonic() < deadline and not (
+                seen_live_cameras and seen_live_tile):
+            try:
+                status = doc(url, "/status.json")
+            except OSError:
+                time.sleep(0.05)
+                continue
+            if status["cameras_position"] == "live" and status["cameras"] > 0:
+                cams = doc(url, "/cameras.geojson")["features"]
+                assert all(f["properties"]["estimate"] == "live" for f in cams)
+                assert status["stop"]["sigma_cm"] == 20.0
+                seen_live_cameras = True
+            mosaic = status["mosaic"]
+            if mosaic is not None and mosaic["version"].startswith("live-"):
+                west, south, east, north = mosaic["bounds_wgs84"]
+                t = TMS.tile((west + east) / 2, (south + north) / 2, mosaic["maxzoom"] - 2)
+                with urllib.request.urlopen(f"{url}/tiles/{t.z}/{t.x}/{t.y}.png",
+                                            timeout=30) as r:
+                    assert r.status == 200 and r.headers["Content-Type"] == "image/png"
+                    seen_live_tile = seen_live_tile or _opaque_share(r.read()) > 0.1
             time.sleep(0.05)
-            continue
-        if status["done"]:
-            break
-        if status["cameras_position"] == "live" and status["cameras"] > 0:
-            cams = doc(url, "/cameras.geojson")["features"]
-            assert all(f["properties"]["estimate"] == "live" for f in cams)
-            assert status["stop"]["sigma_cm"] == 20.0
-            seen_live_cameras = True
-        mosaic = status["mosaic"]
-        if mosaic is not None and mosaic["version"].startswith("live-") and not seen_live_tile:
-            west, south, east, north = mosaic["bounds_wgs84"]
-            t = TMS.tile((west + east) / 2, (south + north) / 2, mosaic["maxzoom"] - 2)
-            with urllib.request.urlopen(f"{url}/tiles/{t.z}/{t.x}/{t.y}.png", timeout=10) as r:
-                assert r.status == 200 and r.headers["Content-Type"] == "image/png"
-                png = r.read()
-            seen_live_tile = _opaque_share(png) > 0.1
-        time.sleep(0.05)
-    thread.join(120)
-    (res,) = result
-    assert res.exit_code == 0, res.output  # type: ignore[attr-defined]
-    assert "map at http://127.0.0.1:" in res.output  # type: ignore[attr-defined]
-    assert seen_live_cameras and seen_live_tile
+        stop.set()
+        thread.join(120)
+        assert seen_live_cameras and seen_live_tile
+        (res,) = result
+        assert not isinstance(res, BaseException), res
+        assert doc(url, "/status.json")["done"] is True  # the finished run, same server
     assert (out / "mosaic.tif").is_file()
     assert sorted(p.name for p in (out / "live").iterdir()) == ["estimates.json"]
     est = json.loads((out / "live" / "estimates.json").read_text())
     assert est["images"] == 4 and est["stop_sigma_m"] == 0.2
     assert all(c["footprint"] is not None and c["at_unix_s"] > 0 for c in est["cameras"])
     assert len(est["points"]["point"]) > 50
-    with socket.socket() as again:  # the watch's server stopped with it
+    with socket.socket() as again:  # the server stopped with the watch
         again.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         again.bind(("127.0.0.1", port))
 
