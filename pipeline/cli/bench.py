@@ -29,12 +29,16 @@ GTSAM_BENCH = "gtsam"
 #: [--kind KIND ...] [--flight NAME ...] [--keep]``: seeded mutations of the sample flights run
 #: as subprocesses (:mod:`pipeline.bench.fuzz.suite`; its own arguments follow).
 FUZZ_BENCH = "fuzz"
+#: ``seqat bench live --out DIR [--flight F] [--clients N ...] [--repeat K] [--rate-hz R]
+#: [--limit N]``: the live map's targets, seqat feed into seqat watch --ortho --serve with
+#: polling clients (:mod:`pipeline.bench.live`; its own arguments follow).
+LIVE_BENCH = "live"
 
 
 def _passes_arguments(config: Path) -> bool:
-    """Only the rendered, ortho, gtsam and fuzz benchmarks take arguments of their own."""
+    """Only the rendered, ortho, gtsam, fuzz and live benchmarks take arguments of their own."""
     return not config.exists() and str(config) in (RENDERED_BENCH, ORTHO_BENCH, GTSAM_BENCH,
-                                                   FUZZ_BENCH)
+                                                   FUZZ_BENCH, LIVE_BENCH)
 
 
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
@@ -45,8 +49,9 @@ def bench(
              "(memory and time along a 10,000-image strip); 'faults' (seeded faults), "
              "'rendered RUN --config CONFIG.yaml' (a rendered flight's products against its "
              "truth), 'ortho' (timing of the ortho stage), 'gtsam' (GTSAM's fixed-lag "
-             "smoother beside Seq-R; --lag, --config) or 'fuzz' (seeded bad inputs; --cases, "
-             "--case K replays one; see docs/benchmarks.md).")],
+             "smoother beside Seq-R; --lag, --config), 'fuzz' (seeded bad inputs; --cases, "
+             "--case K replays one) or 'live' (the live map: feed into watch --ortho --serve "
+             "with polling clients; --flight, --clients, --repeat; see docs/benchmarks.md).")],
     out: Annotated[Path, typer.Option("--out", help="Benchmark output folder.")] = Path(
         "out/bench"),
     seed: Annotated[list[int] | None, typer.Option(
@@ -66,7 +71,7 @@ def bench(
     """Compare direct georeferencing, Seq-R, Seq-F and Sim on simulated flights, or, for an
     image flight folder, Seq-R (tracking) with Sim and Seq-F on the same tie points.
     seqat bench faults: seeded blunders, a GNSS jump and a dropout; seqat bench rendered,
-    ortho, gtsam and fuzz take the arguments of their modules (docs/benchmarks.md)."""
+    ortho, gtsam, fuzz and live take the arguments of their modules (docs/benchmarks.md)."""
     if ctx.args and not _passes_arguments(config):
         first = ctx.args[0]
         ctx.fail(f"No such option: {first}" if first.startswith("-") else
@@ -105,6 +110,11 @@ def _bench(*, ctx: typer.Context, config: Path, out: Path, seed: list[int] | Non
         return
     if name == FUZZ_BENCH:
         _fuzz_bench(out, seed, case, ctx.args)
+        return
+    if name == LIVE_BENCH:
+        from pipeline.bench.live import main as live_main
+
+        live_main(["--out", str(out), *ctx.args])
         return
     if str(config) == "long":
         _long_bench(out)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -205,18 +206,96 @@ def watch(
     resume: Annotated[bool, typer.Option(
         "--resume", help="Continue from OUT/journal/ (after a crash or an earlier stop).")]
     = False,
+    ortho: Annotated[bool, typer.Option(
+        "--ortho", help="Orthorectify each image as soon as it is georeferenced; the growing "
+        "mosaic is published in OUT/live/ during the flight, mosaic.tif at the end.")] = False,
+    dsm: Annotated[Path | None, typer.Option(
+        "--dsm", help="--ortho: DSM GeoTIFF (default: OUT/dsm.tif, the flight's lidar, else a "
+        "flat plane).")] = None,
+    ortho_options: Annotated[Path | None, typer.Option(
+        "--ortho-options", help="--ortho: options YAML (sections ortho:, mosaic:, live:, "
+        "dsm:).")] = None,
+    serve: Annotated[int | None, typer.Option(
+        "--serve", help="Also serve the run folder's web map (as seqat serve) on this TCP port "
+        "while the watch goes on (0: any free port).", min=0, max=65535, show_default=False)]
+    = None,
+    host: Annotated[str, typer.Option(
+        "--host", help="--serve: address to listen on (127.0.0.1 unless given).")]
+    = "127.0.0.1",
+    serve_in: Annotated[str, typer.Option(
+        "--serve-in", help="--serve: run the server in a child process (default: the AT loop "
+        "keeps its core and the GIL) or in a thread of the watch.")] = "process",
+    stop_sigma_cm: Annotated[float | None, typer.Option(
+        "--stop-sigma-cm", help="Stop criterion shown on the map: every ground point's σ "
+        "(each axis) at most this many cm; coverage done / not yet done and a count in "
+        "status.json.", show_default=False)] = None,
 ) -> None:
     """Georeference images as they appear in a growing flight folder; one line per image.
     Ctrl-C or --idle-timeout-s stops and publishes the results (as seqat run)."""
-    from pipeline.run.watch import WatchOptions, watch_flight
+    import math
 
-    summary = watch_flight(flight, out, method=parse_method(method), options_path=options,
-                           threshold=threshold, initial_images=initial_images,
-                           budget_ms=budget_ms, resume=resume,
-                           watch=WatchOptions(idle_timeout_s=idle_timeout_s,
-                                              wait_timeout_s=wait_timeout_s, poll_s=poll_s))
+    from pipeline.run.watch import WatchOptions, watch_flight
+    from seqat.errors import ConfigError
+
+    if not ortho and (dsm is not None or ortho_options is not None):
+        raise ConfigError("--dsm and --ortho-options go with --ortho")
+    if serve is None and host != "127.0.0.1":
+        raise ConfigError("--host goes with --serve")
+    serve_in = choice("--serve-in", serve_in, ("process", "thread"))
+    if stop_sigma_cm is not None and not (math.isfinite(stop_sigma_cm) and stop_sigma_cm > 0):
+        raise ConfigError(f"--stop-sigma-cm: expected a number > 0, got {stop_sigma_cm!r}")
+    how = parse_method(method)
+    make_listeners = None
+    if ortho:
+        from pipeline.ortho.live import watch_ortho_factory
+
+        make_listeners = watch_ortho_factory(out, dsm_path=dsm, options_path=ortho_options)
+    with watch_server(serve, host, serve_in) as on_claimed:
+        summary = watch_flight(flight, out, method=how, options_path=options,
+                               threshold=threshold, initial_images=initial_images,
+                               budget_ms=budget_ms, resume=resume,
+                               watch=WatchOptions(idle_timeout_s=idle_timeout_s,
+                                                  wait_timeout_s=wait_timeout_s, poll_s=poll_s),
+                               make_listeners=make_listeners, on_claimed=on_claimed,
+                               stop_sigma_m=None if stop_sigma_cm is None
+                               else stop_sigma_cm / 100.0)
     rows = [("stopped", summary.stopped), *run_rows(summary)]
     console().print(table(f"seqat watch {summary.flight_dir}", rows))
+
+
+@contextlib.contextmanager
+def watch_server(port: int | None, host: str,
+                  where: str = "process") -> Iterator[Callable[[Path], None] | None]:
+    """``--serve PORT``: the socket is bound now (a busy port fails before the watch starts);
+    the server starts on OUT once the watch has claimed it, niced as the live ortho's worker
+    (the AT loop first), in a child process (``where``; or a thread of the watch), and stops
+    when the watch has published its results."""
+    if port is None:
+        yield None
+        return
+    from pipeline.serve import app as serve_app
+
+    nice = serve_app.WATCH_SERVE_NICE
+    sock = serve_app.bind(host, port)
+    stops: list[Callable[[], None]] = []
+
+    def start(out: Path) -> None:
+        if where == "thread":
+            served = serve_app.server_on(out, sock, host, nice=nice)
+            thread = serve_app.start_thread(served, nice=nice)
+            stops.append(lambda: serve_app.stop_thread(served, thread))
+        else:
+            child = serve_app.start_process(out, sock, host, nice=nice)
+            stops.append(lambda: serve_app.stop_process(child))
+        shown = f"[{host}]" if ":" in host else host
+        typer.echo(f"seqat watch: map at http://{shown}:{sock.getsockname()[1]}/", err=True)
+
+    try:
+        yield start
+    finally:
+        for stop in stops:
+            stop()
+        sock.close()
 
 
 @app.command()

@@ -31,5 +31,12 @@ CHECKPOINTS_FILE = "checkpoints.csv"
 CHECKPOINT_OBS_FILE = "checkpoint_obs.csv"
 #: The COLMAP reference of a run, inside its run folder (``seqat reference``).
 REFERENCE_DIR = "reference"
+#: ``OUT/live/``: what a live run publishes for ``seqat serve`` while it goes on
+#: (docs/formats.md, *Live run files*): the current estimates, the live mosaic's index and
+#: its tiles.
+LIVE_DIR = "live"
+LIVE_ESTIMATES_FILE = "estimates.json"
+LIVE_MOSAIC_INDEX = "mosaic.json"
+LIVE_TILES_DIR = "tiles"
 #: The independent SfM check inside it (``seqat reference OUT --sfm``).
 SFM_DIR = "sfm"

@@ -38,12 +38,10 @@ afterwards. Any other error of the worker stops the run at the next image.
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -51,12 +49,14 @@ from pathlib import Path
 import numpy as np
 import pyproj
 
+from pipeline.common.priority import MAX_NICE, lower_thread_priority
 from pipeline.common.strict_yaml import build_dataclass
 from pipeline.common.tables import NavTable
-from pipeline.flight.folder import read_flight
+from pipeline.flight.folder import Flight, read_flight
 from pipeline.flight.schema import CameraConfig
 from pipeline.ortho.base import OrthoOptions
 from pipeline.ortho.dsm import Dsm, DsmOptions
+from pipeline.ortho.live_tiles import LiveTiles
 from pipeline.ortho.mosaic import FEATHER_PX, MosaicBuilder, tiles_of_bounds
 from pipeline.ortho.orthorectifier import Orthorectifier
 from pipeline.ortho.stage import (
@@ -80,9 +80,13 @@ from seqat.types import FloatArray, Frame, ImageUpdate, Solution
 
 #: Default of the re-ortho rule, ortho pixels.
 REORTHO_SHIFT_PX = 0.5
+#: Longest time between two publications of the live mosaic while the worker is behind, s.
+PUBLISH_INTERVAL_S = 1.0
+#: ``seqat watch``: the flat fallback plane reaches this far beyond the cameras known when it
+#: is placed (the flight's extent is not known ahead), metres.
+WATCH_FLAT_MARGIN_M = 10_000.0
 #: Niceness of the ortho worker thread relative to the AT loop (Linux ``setpriority``).
 WORKER_NICE = 10
-MAX_NICE = 19
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -101,16 +105,26 @@ class LiveOrthoOptions:
         The worker thread runs this much nicer than the AT loop (Linux: per-thread priority,
         inherited by the threads it starts: the projection pool, the COG writer and GDAL's
         compression threads), so the two cores go to tracking and AT first. 0: same priority.
+    publish : bool
+        Publish the mosaic's tiles while the run goes on (``OUT/live/``,
+        :mod:`pipeline.ortho.live_tiles`; ``seqat watch --ortho`` turns it on): after each image
+        when the worker has caught up, else at least every ``publish_interval_s``.
+    publish_interval_s : float
     """
 
     reortho_shift_px: float = REORTHO_SHIFT_PX
     background: bool = True
     worker_nice: int = WORKER_NICE
+    publish: bool = False
+    publish_interval_s: float = PUBLISH_INTERVAL_S
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.reortho_shift_px) and self.reortho_shift_px >= 0):
             raise ConfigError(f"reortho_shift_px: expected a number >= 0, got "
                               f"{self.reortho_shift_px!r}")
+        if not (math.isfinite(self.publish_interval_s) and self.publish_interval_s > 0):
+            raise ConfigError(f"publish_interval_s: expected a number > 0, got "
+                              f"{self.publish_interval_s!r}")
         if not 0 <= self.worker_nice <= MAX_NICE:
             raise ConfigError(f"worker_nice: expected 0 to {MAX_NICE}, got {self.worker_nice!r}")
 
@@ -125,15 +139,8 @@ class _Kept:
     footprint_m: FloatArray
 
 
-def _lower_priority(nice: int) -> None:
-    """Make the calling thread ``nice`` steps nicer (Linux: a thread id is a process id for
-    ``setpriority``; elsewhere, or without permission, nothing happens)."""
-    if nice <= 0 or not hasattr(os, "setpriority"):
-        return
-    tid = threading.get_native_id()
-    with contextlib.suppress(OSError):
-        os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + nice,
-                                                 MAX_NICE))
+#: Make the calling thread ``nice`` steps nicer (the worker's initializer).
+_lower_priority = lower_thread_priority
 
 
 class LiveOrtho:
@@ -173,7 +180,7 @@ class LiveOrtho:
         self.out_dir = Path(out_dir)
         self.crs = crs
         self.camera = camera
-        self.images = dict(images)
+        self.images = images  # not copied: a watch adds images as they arrive
         self.nav = nav
         self.options = options or LiveOrthoOptions()
         self._ortho_options = ortho_options
@@ -195,6 +202,10 @@ class LiveOrtho:
                                           initargs=(self.options.worker_nice,))
         self._futures: list[Future[None]] = []
         self._lock = threading.Lock()
+        self._queued = 0  # images handed over and not yet done
+        self._flat_margin_m = 0.0
+        self._live_tiles = (LiveTiles(self.out_dir, self._mosaic, crs)
+                            if self.options.publish else None)
         self._worker_error: BaseException | None = None
         self._error: SeqatError | None = None
         self._summary: OrthoRunSummary | None = None
@@ -227,6 +238,36 @@ class LiveOrtho:
                    feather_px=feather_px, out_crs=out_crs, options=options,
                    camera_approximate=flight.camera_approximate)
 
+    @classmethod
+    def for_watch(cls, flight: Flight, out_dir: Path | str, images: Mapping[str, Path], *,
+                  dsm_path: Path | str | None = None, ortho_options: OrthoOptions | None = None,
+                  feather_px: int = FEATHER_PX, out_crs: str | None = None,
+                  options: LiveOrthoOptions | None = None,
+                  dsm_options: DsmOptions | None = None) -> LiveOrtho:
+        """The live ortho of ``seqat watch --ortho``: made when the first image fixes the CRS
+        and camera; ``images`` grows as images arrive; the live mosaic is published
+        (``options.publish`` on). Without a DSM the flat plane reaches
+        :data:`WATCH_FLAT_MARGIN_M` beyond the cameras known when it is placed.
+
+        Raises
+        ------
+        InputDataError
+            Not an image flight, a bad DSM or LiDAR.
+        """
+        if flight.images_dir is None:
+            raise InputDataError(f"{flight.path}: --ortho needs an image flight (this one has "
+                                 "observations only)")
+        out = Path(out_dir)
+        dsm, warnings = find_dsm(out, flight.crs, Path(dsm_path) if dsm_path else None,
+                                 flight.path, dsm_options)
+        live = cls(out, crs=flight.crs, camera=flight.camera_config, images=images,
+                   nav=flight.nav, dsm=dsm, dsm_warnings=warnings,
+                   ortho_options=ortho_options, feather_px=feather_px, out_crs=out_crs,
+                   options=replace(options or LiveOrthoOptions(), publish=True),
+                   camera_approximate=flight.camera_approximate)
+        live._flat_margin_m = WATCH_FLAT_MARGIN_M
+        return live
+
     # ------------------------------------------------------------------ ImageListener
 
     def on_image(self, frame: Frame, update: ImageUpdate, estimator: object) -> None:
@@ -256,7 +297,8 @@ class LiveOrtho:
                     raise InputDataError(f"{self.out_dir}: no DSM (--dsm, dsm.tif, flight "
                                          "lidar:) and no tie points to place a flat plane")
                 self._start_flat_at(float(np.mean([p.xyz_m[2] for p in solution.points])),
-                                    "the end of the run")
+                                    "the end of the run",
+                                    np.array([e.eop[:3] for e in solution.eops]))
             self._summary = self._finish(solution, t0)
         except SeqatError as err:
             self._error = err
@@ -308,16 +350,26 @@ class LiveOrtho:
         solution = window() if window is not None else estimator.solution()  # type: ignore[attr-defined]
         heights = [p.xyz_m[2] for p in solution.points]
         self._start_flat_at(float(np.mean(heights)),
-                            f"image {image_id} ({len(heights)} points)")
+                            f"image {image_id} ({len(heights)} points)",
+                            np.array([e.eop[:3] for e in solution.eops]))
         self._surface_from = image_id
 
-    def _start_flat_at(self, z_m: float, when: str) -> None:
-        plane, warning = flat_plane(z_m, self.nav.eop[:, :3], self.crs,
+    def _start_flat_at(self, z_m: float, when: str, cameras_xyz: FloatArray) -> None:
+        """The flat plane under the flight's nav (a watch: under ``cameras_xyz``, the
+        cameras known now, and :attr:`_flat_margin_m` beyond them)."""
+        xyz = self.nav.eop[:, :3] if len(self.nav.image_ids) else cameras_xyz.reshape(-1, 3)
+        if self._flat_margin_m > 0:
+            m = self._flat_margin_m
+            lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+            xyz = np.vstack([xyz, [lo[0] - m, lo[1] - m, hi[2]], [hi[0] + m, hi[1] + m, hi[2]]])
+        plane, warning = flat_plane(z_m, xyz, self.crs,
                                     f"the mean height of the tie points known after {when}:")
         self._warnings.append(warning)
         self._start(plane)
 
     def _submit(self, image_id: str, eop: FloatArray, t_submit: float) -> None:
+        with self._lock:
+            self._queued += 1
         if self.options.background:
             self._futures.append(self._worker.submit(self._ortho_live, image_id, eop, t_submit))
             self._futures = [f for f in self._futures if not f.done()]
@@ -340,10 +392,32 @@ class LiveOrtho:
                              latency_ms=(t_end - t_submit) * 1e3)
             self._kept[image_id] = _Kept(eop=eop, tiles=update.tiles, record=record,
                                          footprint_m=result.footprint_m)
+            if self._live_tiles is not None:
+                self._live_tiles.touched(update.tiles, image_id, record.latency_ms,
+                                         time.time() - (time.perf_counter() - t_submit))
         except BaseException as err:  # re-raised in the AT loop (on_image / on_finish)
             with self._lock:
                 self._worker_error = self._worker_error or err
             raise
+        finally:
+            with self._lock:
+                self._queued -= 1
+                caught_up = self._queued == 0
+            if self._live_tiles is not None and self._worker_error is None:
+                try:
+                    self._publish(caught_up)
+                except BaseException as err:  # noqa: BLE001 - re-raised in the AT loop
+                    with self._lock:
+                        self._worker_error = self._worker_error or err
+
+    def _publish(self, caught_up: bool) -> None:
+        """Worker: publish the live mosaic when the worker has caught up, or when the last
+        publication is ``publish_interval_s`` old."""
+        tiles = self._live_tiles
+        assert tiles is not None
+        if tiles.pending and (caught_up or time.monotonic() - tiles.last_publish
+                              >= self.options.publish_interval_s):
+            tiles.publish()
 
     def _raise_worker_error(self) -> None:
         with self._lock:
@@ -412,15 +486,21 @@ class LiveOrtho:
                 listener_ms=TimingStats.from_samples(self._listener_ms),
                 queue_ms=TimingStats.from_samples([r.queue_ms for r in records]),
                 latency_ms=TimingStats.from_samples([r.latency_ms for r in records]),
-                finish_s=time.perf_counter() - t0)
+                finish_s=time.perf_counter() - t0,
+                publish_ms=None if self._live_tiles is None or not self._live_tiles.publish_ms
+                else TimingStats.from_samples(self._live_tiles.publish_ms),
+                publications=0 if self._live_tiles is None else len(self._live_tiles.publish_ms))
 
-        return finish_ortho(
+        summary = finish_ortho(
             self.out_dir, self._mosaic, records, crs=self.crs, out_crs=self._out_crs, eops=eops,
             points=point_table(solution.points),
             footprints={i: self._kept[i].footprint_m for i in final if i in self._kept},
             eop_source="live", dsm_source=self._dsm_source,
             pixel_m=ortho.pixel_m, skipped=skipped, warnings=warnings, t0=self.t0,
             live=live_stats)
+        if self._live_tiles is not None:
+            self._live_tiles.remove()  # mosaic.tif is there
+        return summary
 
     def _reortho(self, image_id: str, eop: FloatArray, tiles: frozenset[tuple[int, int]],
                  kept: _Kept | None) -> None:
@@ -445,6 +525,18 @@ class LiveOrtho:
         self._skipped.pop(image_id, None)
 
 
+def _options(options_path: Path | str | None) -> tuple[
+        OrthoOptions, int, LiveOrthoOptions, DsmOptions | None]:
+    ortho, feather_px, live = OrthoOptions(), FEATHER_PX, LiveOrthoOptions()
+    dsm_options = None
+    if options_path is not None:
+        doc = load_sections(options_path, ("dsm", "live", "mosaic", "ortho"))
+        ortho, feather_px = ortho_mosaic_options(options_path, doc)
+        live = build_dataclass(LiveOrthoOptions, doc.get("live"), str(options_path), key="live")
+        dsm_options = build_dataclass(DsmOptions, doc.get("dsm"), str(options_path), key="dsm")
+    return ortho, feather_px, live, dsm_options
+
+
 def open_live_ortho(flight_dir: Path | str, out_dir: Path | str, *,
                     dsm_path: Path | str | None = None,
                     options_path: Path | str | None = None) -> LiveOrtho:
@@ -454,12 +546,21 @@ def open_live_ortho(flight_dir: Path | str, out_dir: Path | str, *,
     ``mosaic: {feather_px: N}``, ``live:`` (:class:`LiveOrthoOptions`) and ``dsm:``
     (:class:`pipeline.ortho.dsm.DsmOptions`, for the flight's LiDAR), all optional.
     """
-    ortho, feather_px, live = OrthoOptions(), FEATHER_PX, LiveOrthoOptions()
-    dsm_options = None
-    if options_path is not None:
-        doc = load_sections(options_path, ("dsm", "live", "mosaic", "ortho"))
-        ortho, feather_px = ortho_mosaic_options(options_path, doc)
-        live = build_dataclass(LiveOrthoOptions, doc.get("live"), str(options_path), key="live")
-        dsm_options = build_dataclass(DsmOptions, doc.get("dsm"), str(options_path), key="dsm")
+    ortho, feather_px, live, dsm_options = _options(options_path)
     return LiveOrtho.for_flight(flight_dir, out_dir, dsm_path=dsm_path, ortho_options=ortho,
                                 feather_px=feather_px, options=live, dsm_options=dsm_options)
+
+
+def watch_ortho_factory(out_dir: Path | str, *, dsm_path: Path | str | None = None,
+                        options_path: Path | str | None = None) -> Callable[
+                            [Flight, Mapping[str, Path]], tuple[LiveOrtho]]:
+    """``seqat watch --ortho``: the options file is read now (a bad one fails before the
+    watch starts), the live ortho is made at the first image (:meth:`LiveOrtho.for_watch`)."""
+    ortho, feather_px, live, dsm_options = _options(options_path)
+
+    def make(flight: Flight, images: Mapping[str, Path]) -> tuple[LiveOrtho]:
+        return (LiveOrtho.for_watch(flight, out_dir, images, dsm_path=dsm_path,
+                                    ortho_options=ortho, feather_px=feather_px, options=live,
+                                    dsm_options=dsm_options),)
+
+    return make

@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 import pyproj
 import rasterio
+from affine import Affine
 from rasterio.transform import from_origin
 from rasterio.windows import Window
 
@@ -181,6 +182,17 @@ class MosaicBuilder:
             if key in self._stored:
                 self._stored.discard(key)
                 self._tile_path(*key).unlink(missing_ok=True)
+
+    def tile_raster(self, key: tuple[int, int]) -> tuple[np.ndarray, Affine] | None:
+        """One tile as it is now: ``(bands + alpha, T, T)`` and its geotransform; None when
+        it holds no data (emptied, or never touched)."""
+        if key not in self._tiles or self.pixel_m is None:
+            return None
+        tile = self._tile(*key)
+        tc, tr = key
+        T, p = TILE_PX, self.pixel_m
+        data = np.concatenate([np.moveaxis(tile.colour, 2, 0), tile.alpha[None]])
+        return data, from_origin(tc * T * p, -tr * T * p, p, p)
 
     def discard(self) -> None:
         """Drop everything without writing ``mosaic.tif`` (remove the tile store)."""

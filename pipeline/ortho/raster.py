@@ -149,6 +149,21 @@ def write_cog(path: Path | str, data: np.ndarray, *, transform: Affine, crs: pyp
     return path
 
 
+def write_tiled_tiff(path: Path, data: np.ndarray, *, transform: Affine, crs: pyproj.CRS,
+                     alpha: bool = False) -> Path:
+    """Write a small north-up raster as a tiled (256 px), uncompressed GeoTIFF without
+    overviews, atomically: the live mosaic's tiles (:mod:`pipeline.ortho.live_tiles`), where
+    the write time matters more than the size."""
+    count, rows, cols = data.shape
+    profile = {"driver": "GTiff", "width": cols, "height": rows, "count": count,
+               "dtype": data.dtype.name, "crs": rasterio.crs.CRS.from_wkt(crs.to_wkt()),
+               "transform": transform, "tiled": True, "blockxsize": 256, "blockysize": 256}
+    with atomic_path(path) as tmp, rasterio.open(tmp, "w", **profile) as dst:
+        dst.colorinterp = colorinterp_for(count, alpha)
+        dst.write(data)
+    return path
+
+
 def gtiff_to_cog(src_path: Path, dst_path: Path) -> Path:
     """Convert a (tiled) GeoTIFF into a COG with overviews, atomically.
 

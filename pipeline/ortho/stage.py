@@ -171,6 +171,10 @@ class LiveOrthoStats:
     finish_s : float
         ``on_finish``: waiting for the worker, re-orthorectification, mosaic rebuild and
         the final writes (mosaic COG, ``cameras.gpkg``, ``ortho.json``).
+    publish_ms : TimingStats or None
+        ``seqat watch --ortho``: each publication of the live mosaic (touched tiles and the
+        index, ``OUT/live/``); None when it is not published.
+    publications : int
     """
 
     background: bool
@@ -182,6 +186,8 @@ class LiveOrthoStats:
     queue_ms: TimingStats
     latency_ms: TimingStats
     finish_s: float
+    publish_ms: TimingStats | None = None
+    publications: int = 0
 
 
 @dataclass(frozen=True, kw_only=True)

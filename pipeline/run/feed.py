@@ -2,9 +2,10 @@
 
 The destination starts as a flight folder without images: ``flight.yaml`` (the source's, or
 for a bare folder of JPEGs the defaults ``images: images``, ``nav: {source: images}``), the
-header of ``nav.csv`` / ``observations.csv``, and the static files a report uses
-(``truth/``, check points). Then, image after image in acquisition order, every
-``1 / rate_hz`` seconds, it writes what a camera and its downlink would, with the
+header of ``nav.csv`` / ``observations.csv``, and the static files a report or the live
+ortho uses (``truth/``, check points, the ``lidar:`` files inside the flight folder). Then,
+image after image in acquisition order, every ``1 / rate_hz`` seconds, it writes what a
+camera and its downlink would, with the
 partial-file convention of docs/formats.md (*Watched flights*):
 
 * the JPEG as ``images/<name>.part``, then renamed to ``images/<name>``;
@@ -136,6 +137,11 @@ def feed_flight(src_dir: Path | str, dst_dir: Path | str, *, rate_hz: float = DE
             shutil.copytree(src / name, dst / name)
     for name in (CHECKPOINTS_FILE, CHECKPOINT_OBS_FILE):
         if (src / name).is_file():
+            shutil.copy2(src / name, dst / name)
+    lidar = (config.lidar,) if isinstance(config.lidar, str) else (config.lidar or ())
+    for name in lidar:  # flown before: there from the start (absolute paths stay as they are)
+        if not Path(name).is_absolute() and (src / name).is_file():
+            (dst / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(src / name, dst / name)
     (dst / FLIGHT_YAML).write_text(yaml_text, encoding="utf-8")
     if on_start is not None:

@@ -28,7 +28,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
@@ -78,6 +78,7 @@ from pipeline.flight.navigation import (
     resolve_working_crs,
 )
 from pipeline.flight.schema import CameraConfig, FlightConfig, load_flight_config
+from pipeline.run.live_view import LiveEstimates
 from pipeline.run.runner import (
     EstimatorConfig,
     Method,
@@ -514,13 +515,41 @@ def live_line(live: ImageLive, budget_ms: float | None) -> Text:
     return text
 
 
+class ImagePaths(dict[str, Path]):
+    """Image id -> file of the images that arrived; ``get`` of another id (a resumed watch's
+    journaled image) looks for it in the image folder."""
+
+    def __init__(self, folder: Path | None) -> None:
+        super().__init__()
+        self.folder = folder
+
+    def get(self, key: str, default: Path | None = None) -> Path | None:  # type: ignore[override]
+        if key in self:
+            return self[key]
+        if self.folder is not None:
+            for suffix in IMAGE_SUFFIXES:
+                for name in (key + suffix, key + suffix.upper()):
+                    if (self.folder / name).is_file():
+                        self[key] = self.folder / name
+                        return self[key]
+        return default
+
+
+#: Makes the listeners of a watch once its CRS and camera are known (the first image):
+#: called with the flight and the image files (filled as images arrive).
+ListenerFactory = Callable[[Flight, Mapping[str, Path]], Sequence[ImageListener]]
+
+
 def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
                  method: Method = Method.SEQ_R, options_path: Path | str | None = None,
                  threshold: float | None = None, initial_images: int | None = None,
                  budget_ms: float | None = None, resume: bool = False,
                  watch: WatchOptions = WatchOptions(), listeners: Sequence[ImageListener] = (),
                  console: Console | None = None, stop: threading.Event | None = None,
-                 on_image: Callable[[ImageLive, ImageUpdate], None] | None = None) -> RunSummary:
+                 on_image: Callable[[ImageLive, ImageUpdate], None] | None = None,
+                 make_listeners: ListenerFactory | None = None,
+                 stop_sigma_m: float | None = None,
+                 on_claimed: Callable[[Path], None] | None = None) -> RunSummary:
     """Adjust a flight folder's images as they appear; publish the run folder when stopped.
 
     Parameters
@@ -538,6 +567,13 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
         Set it to stop the watch (Ctrl-C and SIGTERM set it too).
     on_image : callable or None
         Called after each image (default: print :func:`live_line`).
+    make_listeners : callable or None
+        More listeners (the live ortho), made when the first image fixes CRS and camera.
+    stop_sigma_m : float or None
+        The user's stop criterion (every ground point σ ≤ this), for ``OUT/live/`` and the
+        page; ``OUT/live/estimates.json`` is written after every image in any case.
+    on_claimed : callable or None
+        Called with OUT once it is claimed and journaled (``--serve`` starts its server).
 
     Returns
     -------
@@ -595,11 +631,21 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
         raise
     stop = stop or threading.Event()
     stopped = "interrupted"
+    paths = ImagePaths(grow.images_dir)
+    made: list[ImageListener] = []
+    estimates: list[LiveEstimates] = []
     try:
+        if on_claimed is not None:
+            on_claimed(out)
         session: RunSession | None = None
         source: ObservationSource | ImageSource | None = None
-        printer = on_image or (lambda live, _: console.print(live_line(live, budget_ms),
-                                                                soft_wrap=True))
+        show = on_image or (lambda live, _: console.print(live_line(live, budget_ms),
+                                                             soft_wrap=True))
+
+        def printer(live: ImageLive, update: ImageUpdate) -> None:
+            for e in estimates:
+                e.on_live(live)
+            show(live, update)
 
         def start() -> tuple[RunSession, ObservationSource | ImageSource]:
             flight = grow.flight
@@ -609,9 +655,14 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
             src: ObservationSource | ImageSource = (
                 ObservationSource(flight) if grow.kind == "observations"
                 else ImageSource(flight, flight_config.tracking))
+            if make_listeners is not None:
+                made.extend(make_listeners(flight, paths))
+            estimates.append(LiveEstimates(out, crs_wkt=flight.crs.to_wkt(),
+                                           camera=flight.camera, stop_sigma_m=stop_sigma_m))
             s = RunSession(estimator=make_estimator(
                 method, flight.camera, with_calibration(options, flight.calibration)), source=src,
-                           listeners=listeners, journal=journal, budget=budget, on_image=printer)
+                           listeners=(*listeners, *made, *estimates), journal=journal,
+                           budget=budget, on_image=printer)
             replay_journal(s, src, journal, contents)
             if s.replayed:
                 console.print(f"seqat: resumed after {s.replayed} images from the journal",
@@ -639,6 +690,8 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
                     if session is None:
                         session, source = start()
                     assert source is not None
+                    if item.path is not None:
+                        paths[item.image] = item.path
                     prepared = _prepare(source, item, grow)
                     if isinstance(prepared, SkippedImage):  # unreadable image data
                         journal.append_skip(prepared)
@@ -664,6 +717,10 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
         solution = session.finish()
     finally:
         journal.close()
+        for listener in (*made, *estimates):
+            close = getattr(listener, "close", None)
+            if close is not None:
+                close()
     flight = grow.flight
     assert flight is not None and source is not None
     inputs = dataclasses.replace(flight, nav=session.nav(), skipped=tuple(skipped),

@@ -5,9 +5,12 @@ a path outside the run folder (the page's own files come from the package's ``st
 folder through Starlette's ``StaticFiles``, which refuses paths leaving it).
 
 Routes (docs/formats.md, *seqat serve*): ``/`` (the page), ``/tiles/{z}/{x}/{y}.png``
-(``mosaic.tif`` as 256 x 256 Web Mercator tiles, transparent outside the data),
-``/status.json``, ``/cameras.geojson``, ``/points.geojson``, ``/static/...`` (the page's
-script and style, Leaflet).
+(``mosaic.tif`` as 256 x 256 Web Mercator tiles, transparent outside the data; before it
+exists, the live mosaic a ``seqat watch --ortho`` publishes in ``live/``),
+``/status.json``, ``/cameras.geojson``, ``/ellipses.geojson``, ``/footprints.geojson``,
+``/points.geojson``, ``/coverage.geojson``, ``/static/...`` (the page's script and style,
+Leaflet). ``status.json`` and ``coverage.geojson`` take ``?stop_sigma_cm=X`` (the page's
+stop criterion field) instead of the run's ``--stop-sigma-cm``.
 """
 
 from __future__ import annotations
@@ -15,9 +18,14 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import errno
+import math
+import os
 import socket
+import subprocess
+import sys
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import uvicorn
@@ -27,8 +35,16 @@ from starlette.responses import FileResponse, JSONResponse, Response
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
+from pipeline.common.columns import LIVE_DIR, LIVE_MOSAIC_INDEX
+from pipeline.common.priority import lower_thread_priority_once
 from pipeline.serve.runview import MOSAIC_FILE, RunView, check_run_folder
-from pipeline.serve.tiles import MosaicTiles, MosaicUnreadable, tile_in_range
+from pipeline.serve.tiles import (
+    EMPTY_TILE,
+    LiveMosaic,
+    MosaicTiles,
+    MosaicUnreadable,
+    tile_in_range,
+)
 from seqat.errors import InputDataError
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
@@ -36,19 +52,42 @@ STATIC_DIR = Path(__file__).resolve().parent / "static"
 NO_CACHE = {"Cache-Control": "no-cache"}
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
+#: ``seqat watch --serve``: the request threads run this much nicer than the AT loop.
+WATCH_SERVE_NICE = 10
 
 
-def build_app(out: Path) -> Starlette:
-    """The application serving the run folder ``out`` (checked by the caller)."""
+def build_app(out: Path, nice: int = 0) -> Starlette:
+    """The application serving the run folder ``out`` (checked by the caller); ``nice``: the
+    threads answering requests run that much nicer (``seqat watch --serve``: the server
+    shares the process with the AT loop and the live ortho)."""
     view = RunView(out)
     tiles = MosaicTiles(out / MOSAIC_FILE)
+    live_tiles = LiveMosaic(out / LIVE_DIR / LIVE_MOSAIC_INDEX)
 
     def mosaic_info() -> tuple[dict[str, object] | None, str | None]:
         try:
             info = tiles.info()
+            if info is None:
+                info = live_tiles.info()
         except MosaicUnreadable as err:
             return None, str(err)
         return (None if info is None else dataclasses.asdict(info)), None
+
+    def stop_param(request: Request) -> float | None:
+        """``?stop_sigma_cm=X`` (X > 0), else None (a bad value is ignored)."""
+        raw = request.query_params.get("stop_sigma_cm")
+        try:
+            value = float(raw) if raw else None
+        except ValueError:
+            return None
+        return value if value is not None and math.isfinite(value) and value > 0 else None
+
+    def niced(endpoint: Callable[[Request], Response]) -> Callable[[Request], Response]:
+        def run(request: Request) -> Response:
+            lower_thread_priority_once(nice)
+            return endpoint(request)
+
+        return run
 
     def index(request: Request) -> Response:
         return FileResponse(STATIC_DIR / "index.html", headers=NO_CACHE)
@@ -59,13 +98,19 @@ def build_app(out: Path) -> Starlette:
             return Response("no such tile", status_code=404, media_type="text/plain")
         try:
             png = tiles.tile(z, x, y)
+            if png is EMPTY_TILE and not (out / MOSAIC_FILE).exists():
+                png = live_tiles.tile(z, x, y)
         except MosaicUnreadable as err:
             return Response(str(err), status_code=503, media_type="text/plain",
                             headers=NO_CACHE)
         return Response(png, media_type="image/png", headers=NO_CACHE)
 
     def status(request: Request) -> Response:
-        return JSONResponse(view.status(*mosaic_info()), headers=NO_CACHE)
+        return JSONResponse(view.status(*mosaic_info(), stop_sigma_cm=stop_param(request)),
+                            headers=NO_CACHE)
+
+    def geojson(doc: dict[str, object]) -> Response:
+        return JSONResponse(doc, media_type="application/geo+json", headers=NO_CACHE)
 
     def cameras(request: Request) -> Response:
         return JSONResponse(view.cameras(), media_type="application/geo+json",
@@ -75,12 +120,25 @@ def build_app(out: Path) -> Starlette:
         return JSONResponse(view.points(), media_type="application/geo+json",
                             headers=NO_CACHE)
 
+    def ellipses(request: Request) -> Response:
+        return geojson(view.ellipses())
+
+    def footprints(request: Request) -> Response:
+        return geojson(view.footprints())
+
+    def coverage(request: Request) -> Response:
+        return geojson(view.coverage(stop_param(request)))
+
+    get = ["GET", "HEAD"]
     app = Starlette(routes=[
-        Route("/", index, methods=["GET", "HEAD"]),
-        Route("/tiles/{z:int}/{x:int}/{y:int}.png", tile, methods=["GET", "HEAD"]),
-        Route("/status.json", status, methods=["GET", "HEAD"]),
-        Route("/cameras.geojson", cameras, methods=["GET", "HEAD"]),
-        Route("/points.geojson", points, methods=["GET", "HEAD"]),
+        Route("/", niced(index), methods=get),
+        Route("/tiles/{z:int}/{x:int}/{y:int}.png", niced(tile), methods=get),
+        Route("/status.json", niced(status), methods=get),
+        Route("/cameras.geojson", niced(cameras), methods=get),
+        Route("/points.geojson", niced(points), methods=get),
+        Route("/ellipses.geojson", niced(ellipses), methods=get),
+        Route("/footprints.geojson", niced(footprints), methods=get),
+        Route("/coverage.geojson", niced(coverage), methods=get),
         Mount("/static", StaticFiles(directory=STATIC_DIR), name="static"),
     ])
     app.state.tiles = tiles
@@ -128,9 +186,14 @@ def make_server(out: Path | str, host: str = DEFAULT_HOST,
     """Check ``out``, bind the socket and build the (not yet started) server."""
     out = Path(out)
     check_run_folder(out)
-    sock = bind(host, port)
+    return server_on(out, bind(host, port), host)
+
+
+def server_on(out: Path, sock: socket.socket, host: str, nice: int = 0) -> Served:
+    """The (not yet started) server of ``out`` on a bound socket (``seqat watch --serve``
+    binds first, so a busy port fails before the watch starts)."""
     real_port = sock.getsockname()[1]
-    config = uvicorn.Config(build_app(out), log_level="warning", access_log=False,
+    config = uvicorn.Config(build_app(out, nice), log_level="warning", access_log=False,
                             lifespan="off")
     shown = f"[{host}]" if ":" in host else host
     return Served(url=f"http://{shown}:{real_port}/", server=uvicorn.Server(config), sock=sock)
@@ -144,19 +207,71 @@ def run_server(served: Served) -> None:
         served.sock.close()
 
 
+def start_thread(served: Served, nice: int = 0) -> threading.Thread:
+    """Run the server in a daemon thread (``nice`` steps nicer: its event loop and the
+    threads it starts); returns once it accepts connections (≤ 5 s)."""
+
+    def run() -> None:
+        lower_thread_priority_once(nice)
+        run_server(served)
+
+    thread = threading.Thread(target=run, name="seqat-serve", daemon=True)
+    thread.start()
+    for _ in range(500):
+        if served.server.started:
+            break
+        thread.join(0.01)
+    return thread
+
+
+def serve_child(out: str, fd: int, host: str, nice: int) -> None:
+    """The server process of ``seqat watch --serve``: serve ``out`` on the inherited listening
+    socket ``fd``, ``nice`` steps nicer, until terminated or the parent process is gone."""
+    if nice > 0 and hasattr(os, "nice"):
+        os.nice(nice)
+    parent = os.getppid()
+    served = server_on(Path(out), socket.socket(fileno=fd), host)
+
+    def orphaned() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        served.server.should_exit = True
+
+    threading.Thread(target=orphaned, daemon=True).start()
+    run_server(served)
+
+
+def start_process(out: Path, sock: socket.socket, host: str,
+                  nice: int = WATCH_SERVE_NICE) -> subprocess.Popen[bytes]:
+    """Run the server of ``out`` in a child process on the bound socket ``sock``
+    (:func:`serve_child`); stop it with :func:`stop_process`."""
+    fd = sock.fileno()
+    code = ("import sys; from pipeline.serve.app import serve_child; "
+            "serve_child(sys.argv[1], int(sys.argv[2]), sys.argv[3], int(sys.argv[4]))")
+    return subprocess.Popen([sys.executable, "-c", code, str(out), str(fd), host, str(nice)],
+                            pass_fds=(fd,))
+
+
+def stop_process(child: subprocess.Popen[bytes]) -> None:
+    child.terminate()
+    try:
+        child.wait(10)
+    except subprocess.TimeoutExpired:
+        child.kill()
+        child.wait()
+
+
+def stop_thread(served: Served, thread: threading.Thread) -> None:
+    served.server.should_exit = True
+    thread.join(10)
+
+
 @contextlib.contextmanager
 def serving(out: Path | str, host: str = DEFAULT_HOST, port: int = 0) -> Iterator[Served]:
     """Serve ``out`` in a background thread for the ``with`` block (tests, scripts)."""
     served = make_server(out, host, port)
-    thread = threading.Thread(target=run_server, args=(served,), name="seqat-serve",
-                              daemon=True)
-    thread.start()
+    thread = start_thread(served)
     try:
-        for _ in range(500):
-            if served.server.started:
-                break
-            thread.join(0.01)
         yield served
     finally:
-        served.server.should_exit = True
-        thread.join(10)
+        stop_thread(served, thread)

@@ -1,25 +1,39 @@
-"""``OUT/mosaic.tif`` as XYZ Web Mercator tiles (rio-tiler, as TiTiler does).
+"""``OUT/mosaic.tif`` (or, during a ``seqat watch --ortho``, the live mosaic's tiles) as XYZ
+Web Mercator tiles (rio-tiler, as TiTiler does).
 
 The tile maths is rio-tiler's and morecantile's (``WebMercatorQuad``); this module only keeps
 one open reader and re-opens it when the file is replaced (a live run publishes the mosaic by
 an atomic rename: a new inode, a new mtime), so a tile always shows the file as it is when it
 is requested. Tiles outside the data are fully transparent 256 x 256 PNGs, as is every tile
 while the run folder has no mosaic yet.
+
+Before ``mosaic.tif`` exists, :class:`LiveMosaic` reads the live ortho's published tiles
+(``OUT/live/mosaic.json`` and ``OUT/live/tiles/*.tif``, :mod:`pipeline.ortho.live_tiles`):
+the index names each small GeoTIFF with its WGS 84 bounds and version; the files a web
+tile's bounds (morecantile) reach are merged by rio-tiler's ``mosaic_reader`` (they do not
+overlap). The page reloads every tile after each image, most of them unchanged, so the PNGs
+are kept (:data:`PNG_CACHE` of them, least recently used out) by web tile and the versions
+of the files it was made of.
 """
 
 from __future__ import annotations
 
 import io
+import json
 import os
 import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
 import morecantile
 import numpy as np
 from PIL import Image
+from rasterio.errors import RasterioIOError
 from rio_tiler.errors import TileOutsideBounds
 from rio_tiler.io import Reader
+from rio_tiler.models import ImageData
+from rio_tiler.mosaic import mosaic_reader
 
 #: Edge of a tile, pixels.
 TILE_PX = 256
@@ -140,3 +154,109 @@ class MosaicTiles:
     def close(self) -> None:
         with self._lock:
             self.close_locked()
+
+
+#: Rendered live-mosaic PNGs kept by :class:`LiveMosaic`.
+PNG_CACHE = 512
+
+
+class LiveMosaic:
+    """The live ortho's published tiles (module docstring); thread-safe."""
+
+    def __init__(self, index: Path) -> None:
+        self.index = index
+        self._lock = threading.Lock()
+        self._key: tuple[int, int, int] | None = None
+        self._doc: dict[str, object] | None = None
+        self._tiles: list[tuple[Path, tuple[float, float, float, float], object]] = []
+        self._png: OrderedDict[tuple[object, ...], bytes] = OrderedDict()
+        self._zooms: tuple[int, int] | None = None
+        self._info: MosaicInfo | None = None
+
+    def _load(self) -> None:
+        """Read the index if it changed (lock held)."""
+        try:
+            st = os.stat(self.index)
+        except OSError:
+            self._key, self._doc, self._tiles, self._info = None, None, [], None
+            return
+        key = (st.st_ino, st.st_mtime_ns, st.st_size)
+        if key == self._key:
+            return
+        try:
+            doc = json.loads(self.index.read_text(encoding="utf-8"))
+            tiles = [(self.index.parent / str(t["file"]),
+                      tuple(float(b) for b in t["bounds_wgs84"]), t.get("version"))
+                     for t in doc["tiles"]]
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise MosaicUnreadable(f"live/{self.index.name}: cannot read: {err}") from err
+        self._key, self._doc = key, doc
+        self._tiles = tiles  # type: ignore[assignment]
+        self._info = None
+        if tiles:
+            if self._zooms is None:
+                with Reader(str(tiles[0][0]), tms=TMS) as r:
+                    self._zooms = (int(r.minzoom), int(r.maxzoom))
+            west = min(b[0] for _, b, _ in tiles)
+            south = min(b[1] for _, b, _ in tiles)
+            east = max(b[2] for _, b, _ in tiles)
+            north = max(b[3] for _, b, _ in tiles)
+            self._info = MosaicInfo(version=f"live-{doc.get('revision')}",
+                                    bounds_wgs84=(west, south, east, north),
+                                    minzoom=max(0, self._zooms[0] - 2), maxzoom=self._zooms[1])
+
+    def info(self) -> MosaicInfo | None:
+        """Bounds and zooms of the published tiles; None without any."""
+        with self._lock:
+            self._load()
+            return self._info
+
+    def document(self) -> dict[str, object] | None:
+        """The index as read last (images published, ...)."""
+        with self._lock:
+            self._load()
+            return self._doc
+
+    def tile(self, z: int, x: int, y: int) -> bytes:
+        """The PNG of tile ``z/x/y`` (:data:`EMPTY_TILE` outside the published tiles).
+
+        Raises
+        ------
+        MosaicUnreadable
+        """
+        bounds = TMS.bounds(morecantile.Tile(x, y, z))
+        with self._lock:
+            self._load()
+            hits = [(str(p), v) for p, b, v in self._tiles
+                    if b[0] < bounds.right and b[2] > bounds.left
+                    and b[1] < bounds.top and b[3] > bounds.bottom]
+            key = (z, x, y, *hits)
+            png = self._png.get(key)
+            if png is not None:
+                self._png.move_to_end(key)
+                return png
+        if not hits:
+            return EMPTY_TILE
+        png = self._render([a for a, _ in hits], z, x, y)
+        with self._lock:
+            self._png[key] = png
+            while len(self._png) > PNG_CACHE:
+                self._png.popitem(last=False)
+        return png
+
+    def _render(self, assets: list[str], z: int, x: int, y: int) -> bytes:
+
+        def read(asset: str, x: int, y: int, z: int) -> ImageData:
+            with Reader(asset, tms=TMS) as r:
+                return r.tile(x, y, z, tilesize=TILE_PX)
+
+        try:
+            img, _ = mosaic_reader(assets, read, x, y, z, threads=1,
+                                   allowed_exceptions=(TileOutsideBounds, RasterioIOError))
+        except Exception as err:  # noqa: BLE001 - a tile replaced or removed meanwhile, ...
+            if type(err).__name__ == "EmptyMosaicError":
+                return EMPTY_TILE
+            raise MosaicUnreadable(f"live mosaic: cannot read: {err}") from err
+        if not img.mask.any():
+            return EMPTY_TILE
+        return img.render(img_format="PNG")

@@ -1,27 +1,39 @@
-// seqat serve: the run folder as a web map. Polls /status.json every 2 s; when its version
-// changes (a new image, a new mosaic, the published results) the tiles, cameras and tie
-// points are fetched again, without reloading the page.
+// seqat serve: the run folder as a web map. Polls /status.json every second; when its version
+// changes (a new image, a new live mosaic, the published results) the tiles, cameras, error
+// ellipses, footprints, tie points and coverage are fetched again, without reloading the page.
 "use strict";
 
-const POLL_MS = 2000;
-const map = L.map("map", { zoomControl: true, maxZoom: 24, zoomSnap: 0.25 });
+const POLL_MS = 1000;
+// whole zooms: a TileLayer redrawn (setUrl) at a fractional map zoom requests fractional tile zooms
+const map = L.map("map", { zoomControl: true, maxZoom: 24, zoomSnap: 1 });
 map.setView([0, 0], 2);
 let version = null;
-let fitted = false;
+let userMoved = false;  // the map follows the data until the user pans or zooms it
+let stopCm = null;       // the page's stop criterion (the field), null: the run's
+let stopShown = null;    // the criterion the shown layers were coloured with
 const tiles = L.tileLayer("/tiles/{z}/{x}/{y}.png?v=0", {
   tileSize: 256, maxZoom: 24, maxNativeZoom: 19, minZoom: 0,
-  attribution: "mosaic.tif · seqat",
+  attribution: "mosaic · seqat",
 }).addTo(map);
-// cameras above the tie points, whatever order they are (re)loaded in
+// cameras above everything, ellipses and tie points above footprints and coverage
+map.createPane("coverage").style.zIndex = 410;
+map.createPane("footprints").style.zIndex = 420;
+map.createPane("ellipses").style.zIndex = 440;
 map.createPane("cameras").style.zIndex = 450;
+const coverage = L.layerGroup().addTo(map);
+const footprints = L.layerGroup().addTo(map);
 const points = L.layerGroup().addTo(map);
+const ellipses = L.layerGroup().addTo(map);
 const cameras = L.layerGroup().addTo(map);
-L.control.layers(null, { "mosaic": tiles, "tie points": points, "cameras": cameras },
-  { position: "topleft" }).addTo(map);
+L.control.layers(null, {
+  "mosaic": tiles, "coverage (stop criterion)": coverage, "footprints": footprints,
+  "tie points": points, "error ellipses": ellipses, "cameras": cameras,
+}, { position: "topleft" }).addTo(map);
 L.control.scale({ imperial: false }).addTo(map);
 
 // viridis, 6 stops: low σ dark blue, high σ yellow
 const STOPS = ["#440154", "#414487", "#2a788e", "#22a884", "#7ad151", "#fde725"];
+const DONE = "#1a9850", NOT_DONE = "#f46d43";
 
 function colour(t) {
   if (!Number.isFinite(t)) return "#888888";
@@ -33,19 +45,37 @@ function fmt(value, digits, unit) {
   return value === null || value === undefined ? "–" : value.toFixed(digits) + (unit || "");
 }
 
-function sigmaRange(features) {
-  const s = features.map(f => f.properties.sigma_position_m).filter(Number.isFinite);
+function range(values) {
+  const s = values.filter(Number.isFinite);
   if (!s.length) return null;
   return [Math.min(...s), Math.max(...s)];
 }
 
-function legend(range) {
+function scaled(v, r) {
+  return r && r[1] > r[0] ? (v - r[0]) / (r[1] - r[0]) : 0.5;
+}
+
+function metres(v) {
+  return v < 0.1 ? (v * 1000).toFixed(1) + " mm" : v.toFixed(3) + " m";
+}
+
+function legend(camRange, ptRange, scale, stop) {
   const el = document.getElementById("legend");
-  if (!range) { el.innerHTML = ""; return; }
-  const unit = v => v < 0.1 ? (v * 1000).toFixed(1) + " mm" : v.toFixed(3) + " m";
-  el.innerHTML = "<div>cameras: posterior σ of the position</div>" +
-    `<div class="bar" style="background: linear-gradient(to right, ${STOPS.join(",")})"></div>` +
-    `<div class="ends"><span>${unit(range[0])}</span><span>${unit(range[1])}</span></div>`;
+  const bar = `<div class="bar" style="background: linear-gradient(to right, ${STOPS.join(",")})"></div>`;
+  let html = "";
+  if (camRange) {
+    html += "<div>cameras: posterior σ of the position" +
+      (scale ? `; ellipses σE × σN, ×${scale}` : "") + "</div>" + bar +
+      `<div class="ends"><span>${metres(camRange[0])}</span><span>${metres(camRange[1])}</span></div>`;
+  }
+  if (stop) {
+    html += `<div><span class="swatch" style="background:${DONE}"></span>σ ≤ ${stop} cm (done) ` +
+      `<span class="swatch" style="background:${NOT_DONE}"></span>not yet</div>`;
+  } else if (ptRange) {
+    html += "<div>tie points: largest σ of X, Y, Z</div>" + bar +
+      `<div class="ends"><span>${metres(ptRange[0])}</span><span>${metres(ptRange[1])}</span></div>`;
+  }
+  el.innerHTML = html;
 }
 
 async function getJson(url) {
@@ -54,37 +84,73 @@ async function getJson(url) {
   return r.json();
 }
 
+function stopQuery() {
+  return stopCm ? "?stop_sigma_cm=" + encodeURIComponent(stopCm) : "";
+}
+
 async function loadCameras() {
-  const fc = await getJson("/cameras.geojson");
-  const range = sigmaRange(fc.features);
+  const [fc, el, fp] = await Promise.all([getJson("/cameras.geojson"),
+    getJson("/ellipses.geojson"), getJson("/footprints.geojson")]);
+  const r = range(fc.features.map(f => f.properties.sigma_position_m));
+  const byImage = {};
   cameras.clearLayers();
   for (const f of fc.features) {
     const p = f.properties;
     const [lon, lat] = f.geometry.coordinates;
-    const t = range && range[1] > range[0] ?
-      (p.sigma_position_m - range[0]) / (range[1] - range[0]) : 0.5;
+    byImage[p.image] = colour(scaled(p.sigma_position_m, r));
+    const where = p.position === "nav" ? " (nav position: no estimate yet)" :
+      p.estimate === "live" ? " (estimate of the live run" +
+        (p.in_window === false ? ", left the window)" : ")") : "";
     L.circleMarker([lat, lon], {
-      radius: 7, color: "#000", weight: 1, fillColor: colour(t), fillOpacity: 0.95,
-      className: "seqat-camera", pane: "cameras",
-    }).bindTooltip(`${p.image}${p.position === "nav" ? " (nav position, run going on)" : ""}` +
+      radius: 6, color: "#000", weight: 1, fillColor: byImage[p.image], fillOpacity: 0.95,
+      className: "seqat-camera" + (p.estimate === "live" ? " seqat-camera-live" : ""),
+      pane: "cameras",
+    }).bindTooltip(`${p.image}${where}` +
       `<br>σ X Y Z ${fmt(p.sx_m, 3)} ${fmt(p.sy_m, 3)} ` +
       `${fmt(p.sz_m, 3)} m<br>σ ω φ κ ${fmt(p.somega_deg, 4)} ${fmt(p.sphi_deg, 4)} ` +
       `${fmt(p.skappa_deg, 4)}°`).addTo(cameras);
   }
-  legend(range);
-  return fc.features;
+  ellipses.clearLayers();
+  L.geoJSON(el, {
+    pane: "ellipses", interactive: false,
+    style: f => ({ color: byImage[f.properties.image] || "#444", weight: 1.5, fillOpacity: 0.15,
+      className: "seqat-ellipse" }),
+  }).addTo(ellipses);
+  footprints.clearLayers();
+  L.geoJSON(fp, {
+    pane: "footprints", interactive: false,
+    style: f => ({ color: f.properties.in_window ? "#1f78b4" : "#777", weight: 1,
+      fill: false, dashArray: f.properties.in_window ? null : "3 3",
+      className: "seqat-footprint" }),
+  }).addTo(footprints);
+  return [fc.features, r, el.scale];
 }
 
-async function loadPoints() {
+async function loadPoints(stop) {
   const fc = await getJson("/points.geojson");
+  const r = range(fc.features.map(f => f.properties.sigma_max_m));
   points.clearLayers();
   for (const f of fc.features) {
     const [lon, lat] = f.geometry.coordinates;
+    const s = f.properties.sigma_max_m;
+    const fill = stop ? (Number.isFinite(s) && s * 100 <= stop ? DONE : NOT_DONE) :
+      colour(scaled(s, r));
     L.circleMarker([lat, lon], {
-      radius: 1.5, stroke: false, fillColor: "#d62728", fillOpacity: 0.6,
+      radius: 2, stroke: false, fillColor: fill, fillOpacity: 0.8,
       className: "seqat-point", interactive: false,
     }).addTo(points);
   }
+  return r;
+}
+
+async function loadCoverage() {
+  const fc = await getJson("/coverage.geojson" + stopQuery());
+  coverage.clearLayers();
+  L.geoJSON(fc, {
+    pane: "coverage", interactive: false,
+    style: f => ({ stroke: false, fillColor: f.properties.done ? DONE : NOT_DONE,
+      fillOpacity: 0.3, className: f.properties.done ? "seqat-cell-done" : "seqat-cell-todo" }),
+  }).addTo(coverage);
 }
 
 function showStatus(s) {
@@ -98,9 +164,28 @@ function showStatus(s) {
   const kind = s.last_latency_kind === "latency_ms" ? "" : " (processing)";
   document.getElementById("latency").textContent = fmt(s.last_latency_ms, 0, " ms") +
     (s.last_latency_ms === null ? "" : kind);
+  const lat = s.latency_ms || {};
+  document.getElementById("lat_tracking").textContent = fmt(lat.tracking, 0, " ms");
+  document.getElementById("lat_at").textContent = fmt(lat.at, 0, " ms");
   document.getElementById("mosaic_latency").textContent = fmt(s.last_mosaic_latency_ms, 0, " ms");
+  document.getElementById("mosaic_images").textContent = s.mosaic_images ?? "–";
+  document.getElementById("cameras_position").textContent =
+    { final: "final estimates", live: "live estimates", nav: "nav (no estimate yet)" }[
+      s.cameras_position] || "–";
   document.getElementById("method").textContent = s.method || "–";
   document.getElementById("crs").textContent = s.crs_name || "–";
+  const stop = document.getElementById("stop");
+  const input = document.getElementById("stop_cm");
+  if (s.stop) {
+    if (document.activeElement !== input && !stopCm) input.value = s.stop.sigma_cm;
+    stop.textContent = `${s.stop.points_done} / ${s.stop.points_total} points, ` +
+      `${s.stop.cells_done} / ${s.stop.cells_total} cells (${s.stop.cell_m} m) done` +
+      (s.stop.reached ? ": reached" : "");
+    stop.className = s.stop.reached ? "reached" : "";
+  } else {
+    stop.textContent = "no criterion set";
+    stop.className = "";
+  }
   const ul = document.getElementById("warnings");
   ul.innerHTML = "";
   for (const w of s.warnings) {
@@ -113,7 +198,7 @@ function showStatus(s) {
 }
 
 function fit(s, features) {
-  if (fitted) return;
+  if (userMoved) return;
   let bounds = null;
   if (s.mosaic) {
     const [w, so, e, n] = s.mosaic.bounds_wgs84;
@@ -123,22 +208,30 @@ function fit(s, features) {
     const [lon, lat] = f.geometry.coordinates;
     bounds = bounds ? bounds.extend([lat, lon]) : L.latLngBounds([lat, lon], [lat, lon]);
   }
-  if (bounds) {
-    map.fitBounds(bounds.pad(0.05));
-    fitted = true;
-  }
+  footprints.eachLayer(g => g.eachLayer && g.eachLayer(
+    p => { bounds = bounds ? bounds.extend(p.getBounds()) : p.getBounds(); }));
+  if (bounds) map.fitBounds(bounds.pad(0.05), { maxZoom: 20 });
+}
+
+for (const kind of ["mousedown", "wheel", "touchstart", "keydown"]) {
+  document.getElementById("map").addEventListener(kind, () => { userMoved = true; },
+    { passive: true });
 }
 
 async function poll() {
   try {
-    const s = await getJson("/status.json");
+    const s = await getJson("/status.json" + stopQuery());
     showStatus(s);
-    if (s.version !== version) {
+    const stop = s.stop ? s.stop.sigma_cm : null;
+    if (s.version !== version || stop !== stopShown) {
       version = s.version;
+      stopShown = stop;
       if (s.mosaic) tiles.options.maxNativeZoom = s.mosaic.maxzoom;
       tiles.setUrl("/tiles/{z}/{x}/{y}.png?v=" + encodeURIComponent(s.version));
-      const features = await loadCameras();
-      await loadPoints();
+      const [features, camRange, scale] = await loadCameras();
+      const ptRange = await loadPoints(stop);
+      await loadCoverage();
+      legend(camRange, ptRange, scale, stop);
       fit(s, features);
     }
   } catch (err) {
@@ -146,5 +239,15 @@ async function poll() {
   }
   setTimeout(poll, POLL_MS);
 }
+
+document.getElementById("stopform").addEventListener("submit", e => {
+  e.preventDefault();
+  const v = parseFloat(document.getElementById("stop_cm").value);
+  stopCm = Number.isFinite(v) && v > 0 ? v : null;
+});
+document.getElementById("stop_cm").addEventListener("change", e => {
+  const v = parseFloat(e.target.value);
+  stopCm = Number.isFinite(v) && v > 0 ? v : null;
+});
 
 poll();

@@ -110,6 +110,7 @@ def test_feed_writes_the_partial_file_convention(tmp_path: Path) -> None:
     assert nav == (AUTZEN / "nav.csv").read_text().splitlines()[:4]
     assert (dst / FLIGHT_YAML).read_text() == (AUTZEN / FLIGHT_YAML).read_text()
     assert (dst / "truth" / "eop.csv").is_file()
+    assert (dst / "lidar" / "surface.laz").is_file()  # lidar: is there before the flight
 
 
 def test_partial_and_truncated_images_wait(tmp_path: Path) -> None:

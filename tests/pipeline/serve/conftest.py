@@ -7,6 +7,7 @@ a border) instead of a live ortho of the rendered flight (~20 s).
 
 from __future__ import annotations
 
+import json
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
@@ -17,7 +18,7 @@ import pytest
 from affine import Affine
 
 from pipeline.ortho.raster import write_cog
-from pipeline.run.store import read_eop_csv, read_json_object
+from pipeline.run.store import read_eop_csv, read_json_object, read_points_csv
 from pipeline.serve.app import Served, serving
 
 #: Mosaic cell, metres, and the border without data, cells.
@@ -55,3 +56,43 @@ def served(mosaic_run: Path) -> Iterator[Served]:
     """``seqat serve`` of ``mosaic_run`` on a free port of 127.0.0.1, in a thread."""
     with serving(mosaic_run) as served:
         yield served
+
+
+def write_live_estimates(out: Path, source: Path, images: int,
+                         stop_sigma_m: float | None = None) -> dict[str, object]:
+    """``out/live/estimates.json`` as a live watch writes it, from the first ``images``
+    cameras and all points of a finished run ``source``."""
+    run = read_json_object(source / "run.json")
+    eop = read_eop_csv(source / "eop.csv")
+    points = read_points_csv(source / "points.csv")
+    cams = []
+    for i in range(images):
+        x, y = eop.eop[i, :2]
+        cams.append({"image": eop.image_ids[i], "eop": eop.eop[i].tolist(),
+                     "sigma": eop.sigma[i].tolist(), "in_window": i >= images - 3,
+                     "at_unix_s": 1.0e9 + i,
+                     "footprint": [[x - 40, y - 30], [x + 40, y - 30], [x + 40, y + 30],
+                                   [x - 40, y + 30]]})
+    doc = {"format": "seqat-live-estimates", "version": 1, "updated_unix_s": 1.0e9,
+           "crs": run["crs"], "images": images, "stage": "sequential", "sigma0": 0.9,
+           "stop_sigma_m": stop_sigma_m,
+           "last": {"image": eop.image_ids[images - 1], "prep_ms": 120.0, "update_ms": 8.0,
+                    "processing_ms": 130.0, "latency_ms": 250.0},
+           "cameras": cams,
+           "points": {"point": list(points.point_ids), "xyz_m": points.xyz_m.tolist(),
+                      "sigma_m": points.sigma_m.tolist(), "n_obs": points.n_obs.tolist()}}
+    (out / "live").mkdir(parents=True, exist_ok=True)
+    (out / "live" / "estimates.json").write_text(json.dumps(doc))
+    return doc
+
+
+@pytest.fixture(scope="session")
+def live_run(mosaic_run: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A live watch's folder: marker, journal and ``live/estimates.json`` (6 cameras, a stop
+    criterion of 8 cm), no published results."""
+    out = tmp_path_factory.mktemp("serve_live") / "live"
+    out.mkdir()
+    shutil.copy(mosaic_run / ".seqat-run", out)
+    shutil.copytree(mosaic_run / "journal", out / "journal")
+    write_live_estimates(out, mosaic_run, 6, stop_sigma_m=0.08)
+    return out

@@ -88,3 +88,30 @@ def test_page_follows_a_live_run_without_reload(browser: Any, mosaic_run: Path,
                    == n_images)
         wait.until(lambda d: d.find_element(By.ID, "state").text == "finished")
         assert browser.execute_script("return window.seqatNotReloaded === true;")
+
+
+def test_page_shows_live_estimates_ellipses_and_stop_criterion(browser: Any,
+                                                               live_run: Path) -> None:
+    """A live watch's ``live/estimates.json``: cameras at their estimates with error
+    ellipses and footprints, tie points and coverage coloured by the stop criterion, which
+    the page's field changes."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    with serving(live_run) as served:
+        browser.get(served.url)
+        wait = WebDriverWait(browser, 20)
+        for css in ("path.seqat-camera-live", "path.seqat-ellipse", "path.seqat-footprint"):
+            wait.until(lambda d, css=css: len(d.find_elements(By.CSS_SELECTOR, css)) == 6)
+        assert browser.find_element(By.ID, "cameras_position").text == "live estimates"
+        assert browser.find_element(By.ID, "lat_at").text == "8 ms"
+        assert "points" in browser.find_element(By.ID, "stop").text
+        assert browser.find_elements(By.CSS_SELECTOR, "path.seqat-cell-todo")
+        field = browser.find_element(By.ID, "stop_cm")
+        field.clear()
+        field.send_keys("100000", Keys.ENTER)
+        wait.until(lambda d: d.find_element(By.ID, "stop").text.endswith("reached"))
+        wait.until(lambda d: not d.find_elements(By.CSS_SELECTOR, "path.seqat-cell-todo"))
+        logs = [e for e in browser.get_log("browser") if e.get("level") == "SEVERE"]
+        assert logs == []

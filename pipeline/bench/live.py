@@ -1,0 +1,306 @@
+"""``seqat bench live``: the live map's targets (issue 15) on a flight fed at the camera's rate.
+
+Each *run* is what a field team does: ``seqat feed FLIGHT --rate R`` writes the flight into a
+folder while ``seqat watch ... --ortho --serve PORT`` (a second process) georeferences it and
+serves the map, and ``clients`` page-like HTTP clients (threads of this process) poll it as
+the page does: ``/status.json`` every second and, when its ``version`` changes, the
+cameras, ellipses, footprints, points, coverage and the mosaic's tiles at the zoom where at
+most 24 tiles cover it, 6 at a time (niced to 19: real browsers run on their own devices).
+Runs with different client counts are interleaved (``--clients 0 2 --repeat 3``: 0, 2, 0, 2,
+0, 2) so the load of the shared machine falls on both alike; ``N:thread`` runs the server in
+a thread of the watch instead of its child process (``--serve-in``).
+
+Measured per run:
+
+* **AT → page** (clients only): the time from an image's AT update (``at_unix_s`` in
+  ``live/estimates.json``) to the end of the first client reload whose ``status.json``
+  counts it in the mosaic (``mosaic_images``) and whose tiles were then loaded; and, for the
+  cameras, to the first reload whose ``/cameras.geojson`` holds the image;
+* **tile serve time**: each tile request's duration at the clients, while the flight runs;
+* **AT and ortho latency** from the published ``run.json`` (``live.update_ms``,
+  ``latency_ms``: input complete → estimate) and ``ortho.json`` (``latency_ms``: AT update →
+  image in the live mosaic), overall and for the first and last quarter of the images.
+
+The flight's LiDAR is gridded once, before the runs (``--dsm``), so a run starts with it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import morecantile
+import numpy as np
+
+from pipeline.bench.common import load_average, machine
+from pipeline.bench.report import Machine
+from pipeline.common.priority import lower_thread_priority_once
+from pipeline.flight.folder import read_flight
+from pipeline.ortho.dsm import build_dsm
+from pipeline.ortho.stage import flight_lidar
+from pipeline.run.store import read_json_object, to_jsonable
+
+TMS = morecantile.tms.get("WebMercatorQuad")
+#: The page's poll interval (pipeline/serve/static/serve.js), seconds.
+PAGE_POLL_S = 1.0
+#: At most this many tiles per reload (a 1280 x 800 window shows about 20).
+MAX_TILES = 24
+#: Tiles a browser loads at once from one host.
+BROWSER_CONNECTIONS = 6
+#: The clients' threads run this nice: a field team's browsers run on their own devices, so
+#: the clients' own parsing should take as little as possible of the two cores measured.
+CLIENT_NICE = 19
+
+
+@dataclass
+class Client:
+    """One page-like client's records."""
+
+    seen_mosaic: list[tuple[float, int]] = field(default_factory=list)  # (t, images in mosaic)
+    seen_cameras: dict[str, float] = field(default_factory=dict)  # image -> t first seen
+    tile_ms: list[float] = field(default_factory=list)
+    tile_ms_live: list[float] = field(default_factory=list)  # before the run finished
+    requests: int = 0
+    errors: int = 0
+
+
+def _get(url: str) -> tuple[bytes, float]:
+    t0 = time.perf_counter()
+    with urllib.request.urlopen(url, timeout=30) as r:
+        body = r.read()
+    return body, (time.perf_counter() - t0) * 1e3
+
+
+def _tiles_for(bounds: Sequence[float], maxzoom: int) -> list[morecantile.Tile]:
+    """The tiles covering ``bounds`` at the highest zoom ≤ ``maxzoom`` with ≤ MAX_TILES."""
+    west, south, east, north = bounds
+    for z in range(maxzoom, -1, -1):
+        tiles = list(TMS.tiles(west, south, east, north, [z]))
+        if len(tiles) <= MAX_TILES:
+            return tiles
+    return []
+
+
+def _client(url: str, stop: threading.Event, rec: Client) -> None:
+    """Poll as the page does until ``stop``: status; on a new version the cameras (then
+    seen), the other layers, and the tiles, :data:`BROWSER_CONNECTIONS` at a time as a
+    browser loads them (the mosaic is seen once they are all loaded)."""
+    version = None
+    lower_thread_priority_once(CLIENT_NICE)
+    with ThreadPoolExecutor(BROWSER_CONNECTIONS, initializer=lower_thread_priority_once,
+                            initargs=(CLIENT_NICE,)) as pool:
+        while not stop.is_set():
+            t_poll = time.monotonic()
+            try:
+                body, _ = _get(url + "status.json")
+                rec.requests += 1
+                status = json.loads(body)
+                if status.get("version") != version:
+                    version = status.get("version")
+                    cams = json.loads(_get(url + "cameras.geojson")[0])
+                    now = time.time()
+                    for f in cams.get("features", []):
+                        if f["properties"].get("position") != "nav":
+                            rec.seen_cameras.setdefault(f["properties"]["image"], now)
+                    for path in ("ellipses.geojson", "footprints.geojson", "points.geojson",
+                                 "coverage.geojson"):
+                        _get(url + path)
+                    rec.requests += 5
+                    mosaic = status.get("mosaic")
+                    if mosaic:
+                        tiles = _tiles_for(mosaic["bounds_wgs84"], int(mosaic["maxzoom"]))
+                        urls = [f"{url}tiles/{t.z}/{t.x}/{t.y}.png?v={version}" for t in tiles]
+                        times = [ms for _, ms in pool.map(_get, urls)]
+                        rec.requests += len(times)
+                        rec.tile_ms += times
+                        if not status.get("done"):
+                            rec.tile_ms_live += times
+                    rec.seen_mosaic.append((time.time(), int(status.get("mosaic_images") or 0)))
+            except (OSError, ValueError):
+                if rec.requests:  # not before the watch's server is up
+                    rec.errors += 1
+            stop.wait(max(0.0, PAGE_POLL_S - (time.monotonic() - t_poll)))
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _stats(values: Sequence[float]) -> dict[str, float | int | None]:
+    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], float)
+    if not len(v):
+        return {"n": 0, "median": None, "p95": None, "max": None}
+    return {"n": int(len(v)), "median": float(np.median(v)),
+            "p95": float(np.percentile(v, 95)), "max": float(v.max())}
+
+
+def _quarters(values: Sequence[float]) -> tuple[float | None, float | None]:
+    v = [x for x in values if x is not None and math.isfinite(x)]
+    if len(v) < 4:
+        return None, None
+    q = max(1, len(v) // 4)
+    return float(np.median(v[:q])), float(np.median(v[-q:]))
+
+
+def one_run(flight: Path, work: Path, *, clients: int, rate_hz: float, dsm: Path | None,
+            idle_s: float, limit: int | None, serve_in: str = "process") -> dict[str, object]:
+    """Feed + watch --ortho --serve with ``clients`` polling clients; the run's figures."""
+    if work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+    fed, out = work / "flight", work / "run"
+    port = _free_port()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    cli = [sys.executable, "-m", "pipeline.cli"]
+    load0 = load_average()
+    feed = subprocess.Popen([*cli, "feed", str(flight), "--out", str(fed), "--rate",
+                             str(rate_hz), "--delay-s", "4",
+                             *(["--limit", str(limit)] if limit else [])],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    while not (fed / "flight.yaml").exists():
+        if feed.poll() is not None:
+            raise RuntimeError(f"seqat feed failed: {feed.stderr.read().decode()}")  # type: ignore[union-attr]
+        time.sleep(0.05)
+    log = (work / "watch.log").open("w")
+    watch = subprocess.Popen([*cli, "watch", str(fed), "--out", str(out), "--ortho",
+                              *(["--dsm", str(dsm)] if dsm else []), "--serve", str(port),
+                              "--serve-in", serve_in,
+                              "--idle-timeout-s", str(idle_s)],
+                             stdout=log, stderr=subprocess.STDOUT, env=env)
+    stop = threading.Event()
+    recs = [Client() for _ in range(clients)]
+    url = f"http://127.0.0.1:{port}/"
+    threads = [threading.Thread(target=_client, args=(url, stop, r), daemon=True)
+               for r in recs]
+    for t in threads:
+        t.start()
+    feed.wait()
+    code = watch.wait()
+    stop.set()
+    for t in threads:
+        t.join(30)
+    log.close()
+    if code != 0:
+        raise RuntimeError(f"seqat watch exit {code}: see {work / 'watch.log'}")
+    run = read_json_object(out / "run.json")
+    ortho = read_json_object(out / "ortho.json")
+    est = read_json_object(out / "live" / "estimates.json")
+    lives = [im["live"] for im in run["images"]]  # type: ignore[union-attr,index]
+    at_ms = [float(x["update_ms"]) for x in lives]
+    track_ms = [float(x["prep_ms"]) for x in lives]
+    latency_ms = [float(x["latency_ms"]) for x in lives if x.get("latency_ms") is not None]
+    ortho_ms = [float(r["latency_ms"]) for r in ortho["images"]  # type: ignore[union-attr]
+                if r.get("latency_ms") is not None]
+    at_unix = {str(c["image"]): float(c["at_unix_s"]) for c in est["cameras"]}  # type: ignore[union-attr]
+    order = [str(c["image"]) for c in est["cameras"]]  # type: ignore[union-attr]
+    to_page_mosaic: list[float] = []
+    to_page_cameras: list[float] = []
+    for rec in recs:
+        for k, image in enumerate(order):
+            seen = next((t for t, n in rec.seen_mosaic if n >= k + 1), None)
+            if seen is not None:
+                to_page_mosaic.append((seen - at_unix[image]) * 1e3)
+            if image in rec.seen_cameras:
+                to_page_cameras.append((rec.seen_cameras[image] - at_unix[image]) * 1e3)
+    q_lat, q_ortho = _quarters(latency_ms), _quarters(ortho_ms)
+    ortho_work_ms = [float(r.get("read_ms") or 0) + float(r["compute_ms"])
+                     + float(r.get("write_ms") or 0) + float(r["mosaic_ms"])
+                     for r in ortho["images"]]  # type: ignore[union-attr]
+    live_stats = ortho["live"]  # type: ignore[index]
+    return {
+        "clients": clients, "serve_in": serve_in, "images": len(lives), "load_1m_start": load0,
+        "load_1m_end": load_average(),
+        "tracking_ms": _stats(track_ms), "at_update_ms": _stats(at_ms),
+        "latency_ms": _stats(latency_ms), "ortho_latency_ms": _stats(ortho_ms),
+        "latency_first_last_quarter_ms": q_lat, "ortho_first_last_quarter_ms": q_ortho,
+        "tracking_first_last_quarter_ms": _quarters(track_ms),
+        "at_first_last_quarter_ms": _quarters(at_ms),
+        "ortho_work_ms": _stats(ortho_work_ms),
+        "ortho_work_first_last_quarter_ms": _quarters(ortho_work_ms),
+        "publish_ms": live_stats.get("publish_ms"),  # type: ignore[union-attr]
+        "publications": live_stats.get("publications"),  # type: ignore[union-attr]
+        "at_to_page_mosaic_ms": _stats(to_page_mosaic),
+        "at_to_page_cameras_ms": _stats(to_page_cameras),
+        "tile_ms_live": _stats([ms for r in recs for ms in r.tile_ms_live]),
+        "tile_ms_all": _stats([ms for r in recs for ms in r.tile_ms]),
+        "client_requests": sum(r.requests for r in recs),
+        "client_errors": sum(r.errors for r in recs),
+        "reorthorectified": len(live_stats["images_reorthorectified"]),  # type: ignore[index]
+        "finish_s": live_stats["finish_s"],  # type: ignore[index]
+    }
+
+
+@dataclass(frozen=True, kw_only=True)
+class LiveMapBench:
+    flight: str
+    rate_hz: float
+    machine: Machine
+    date: str
+    runs: tuple[dict[str, object], ...]
+
+
+def run_live_map_bench(flight: Path, out: Path, *, clients: Sequence[str] = ("0", "2"),
+                       repeat: int = 1, rate_hz: float = 2.0, idle_s: float = 5.0,
+                       limit: int | None = None) -> LiveMapBench:
+    """Interleaved runs (module docstring)."""
+    load0 = load_average()
+    out.mkdir(parents=True, exist_ok=True)
+    dsm = None
+    lidar = flight_lidar(flight)
+    if lidar:
+        crs = read_flight(flight).crs
+        dsm = build_dsm(lidar, out / "dsm.tif", crs=crs).path
+    runs = []
+    for r in range(repeat):
+        for spec in clients:
+            n, _, where = spec.partition(":")
+            result = one_run(flight, out / f"run{r}_clients{n}{where}", clients=int(n),
+                             rate_hz=rate_hz, dsm=dsm, idle_s=idle_s, limit=limit,
+                             serve_in=where or "process")
+            runs.append(result)
+            print(json.dumps(to_jsonable(result)), file=sys.stderr, flush=True)
+    return LiveMapBench(flight=str(flight), rate_hz=rate_hz, machine=machine(load0),
+                        date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                        runs=tuple(runs))
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """``seqat bench live [--flight F] [--clients N ...] [--repeat K] [--rate-hz R]
+    [--limit N] --out DIR``: print the runs as JSON (also ``DIR/live.json``)."""
+    parser = argparse.ArgumentParser(prog=None if argv is None else "seqat bench live",
+                                     description=__doc__.splitlines()[0])
+    parser.add_argument("--flight", type=Path, default=Path("sample_data/autzen_rendered"))
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--clients", nargs="+", default=["0", "2"],
+                        help="clients per run, in turn; N:thread serves from a thread of the "
+                             "watch (--serve-in thread)")
+    parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument("--rate-hz", type=float, default=2.0)
+    parser.add_argument("--idle-s", type=float, default=5.0)
+    parser.add_argument("--limit", type=int)
+    args = parser.parse_args(argv)
+    result = run_live_map_bench(args.flight, args.out, clients=args.clients,
+                                repeat=args.repeat, rate_hz=args.rate_hz, idle_s=args.idle_s,
+                                limit=args.limit)
+    text = json.dumps(to_jsonable(result), indent=1)
+    (args.out / "live.json").write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,130 @@
+"""The growing mosaic published while the flight goes on: ``OUT/live/mosaic.json`` + tiles.
+
+``mosaic.tif`` is written once, at the end (a COG of the whole mosaic: its cost grows with
+the flight). While the run goes on, the live ortho publishes instead the mosaic's work tiles
+an image touched (:class:`pipeline.ortho.mosaic.MosaicBuilder`'s 512 x 512 cell tiles of the
+global ortho grid) as small GeoTIFFs ``OUT/live/tiles/c<col>_r<row>.tif`` (each written
+atomically; tiled, uncompressed, no overviews: half the time of a COG, and a 1 MB tile read
+whole at a low zoom costs little), then the index ``OUT/live/mosaic.json`` (atomically replaced)
+naming every published tile with its WGS 84 bounds and a version, and the images in the
+mosaic so far with the time each was published. The cost per image is the tiles it touched,
+not the mosaic's size; ``seqat serve`` reads the tiles through rio-tiler's mosaic reader
+(docs/formats.md, *Live run files*).
+
+When the run's ``mosaic.tif`` is published, :meth:`LiveTiles.remove` deletes the tiles and
+the index (``seqat serve`` shows ``mosaic.tif`` from then on).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import shutil
+import time
+from collections.abc import Iterable
+from pathlib import Path
+
+import pyproj
+
+from pipeline.common.atomic import atomic_write_text
+from pipeline.common.columns import LIVE_DIR, LIVE_MOSAIC_INDEX, LIVE_TILES_DIR
+from pipeline.ortho.mosaic import MosaicBuilder
+from pipeline.ortho.raster import write_tiled_tiff
+
+INDEX_FORMAT = "seqat-live-mosaic"
+
+
+def tile_name(key: tuple[int, int]) -> str:
+    return f"c{key[0]}_r{key[1]}.tif"
+
+
+class LiveTiles:
+    """Publishes the tiles of a growing mosaic (module docstring). Used from one thread (the
+    live ortho's worker: the one that changes the mosaic).
+
+    Parameters
+    ----------
+    out_dir : Path
+        The run folder.
+    mosaic : MosaicBuilder
+    crs : pyproj.CRS
+        The mosaic's CRS.
+    """
+
+    def __init__(self, out_dir: Path, mosaic: MosaicBuilder, crs: pyproj.CRS) -> None:
+        self.folder = out_dir / LIVE_DIR
+        self.tiles_dir = self.folder / LIVE_TILES_DIR
+        if self.tiles_dir.exists():
+            shutil.rmtree(self.tiles_dir)
+        (self.folder / LIVE_MOSAIC_INDEX).unlink(missing_ok=True)
+        self.tiles_dir.mkdir(parents=True)
+        self.mosaic = mosaic
+        self.crs = crs
+        self._to_wgs84 = pyproj.Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+        self._pending: set[tuple[int, int]] = set()
+        self._waiting_images: list[dict[str, object]] = []
+        self._published: dict[tuple[int, int], dict[str, object]] = {}
+        self._images: list[dict[str, object]] = []
+        self._version = 0
+        self.last_publish = 0.0  # monotonic
+        self.publish_ms: list[float] = []
+
+    def touched(self, tiles: Iterable[tuple[int, int]], image: str, ortho_ms: float,
+                at_unix_s: float | None = None) -> None:
+        """An image went into these tiles (published by the next :meth:`publish`)."""
+        self._pending.update(tiles)
+        self._waiting_images.append({"image": image, "ortho_ms": round(ortho_ms, 1),
+                                     "at_unix_s": at_unix_s})
+
+    @property
+    def pending(self) -> bool:
+        return bool(self._pending or self._waiting_images)
+
+    def publish(self) -> None:
+        """Write the pending tiles, then the index."""
+        if not self.pending:
+            return
+        t0 = time.perf_counter()
+        self._version += 1
+        for key in sorted(self._pending):
+            raster = self.mosaic.tile_raster(key)
+            path = self.tiles_dir / tile_name(key)
+            if raster is None:
+                self._published.pop(key, None)
+                path.unlink(missing_ok=True)
+                continue
+            data, transform = raster
+            write_tiled_tiff(path, data, transform=transform, crs=self.crs, alpha=True)
+            rows, cols = data.shape[1:]
+            west, north = transform.c, transform.f
+            east, south = west + cols * transform.a, north + rows * transform.e
+            bounds = self._to_wgs84.transform_bounds(west, south, east, north, densify_pts=5)
+            self._published[key] = {"file": f"{LIVE_TILES_DIR}/{tile_name(key)}",
+                                    "bounds_wgs84": [round(b, 9) for b in bounds],
+                                    "version": self._version}
+        self._pending.clear()
+        now = round(time.time(), 3)
+        for item in self._waiting_images:
+            self._images.append({**item, "published_unix_s": now})
+        self._waiting_images.clear()
+        tiles = list(self._published.values())
+        doc = {"format": INDEX_FORMAT, "version": 1, "updated_unix_s": now,
+               "revision": self._version, "pixel_m": self.mosaic.pixel_m,
+               "bounds_wgs84": _union([t["bounds_wgs84"] for t in tiles]),  # type: ignore[misc]
+               "tiles": tiles, "images": self._images}
+        atomic_write_text(self.folder / LIVE_MOSAIC_INDEX, json.dumps(doc, separators=(",", ":")))
+        self.last_publish = time.monotonic()
+        self.publish_ms.append((time.perf_counter() - t0) * 1e3)
+
+    def remove(self) -> None:
+        """The run's ``mosaic.tif`` is published: drop the index, then the tiles."""
+        with contextlib.suppress(FileNotFoundError):
+            (self.folder / LIVE_MOSAIC_INDEX).unlink()
+        shutil.rmtree(self.tiles_dir, ignore_errors=True)
+
+
+def _union(bounds: list[list[float]]) -> list[float] | None:
+    if not bounds:
+        return None
+    return [min(b[0] for b in bounds), min(b[1] for b in bounds),
+            max(b[2] for b in bounds), max(b[3] for b in bounds)]
