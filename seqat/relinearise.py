@@ -48,6 +48,12 @@ RELINEARISE_TOLERANCE = 1e-7
 ASTRAY_MIN_RAYS = 4
 #: finish() re-linearises the window when its rows are this far off (pixels).
 FINAL_RELINEARISE_PX = 1e-3
+#: During the flight a re-linearisation takes at most this many Gauss-Newton steps (each
+#: one factorises the window: ~200 ms for Seneca's 5000-parameter window), then leaves the
+#: estimate at the last step's model minimum; if the rows still drift, the next update's
+#: check goes on. Real time needs bounded work per image: 9 steps made a 1.2 s update on
+#: Seneca (2026-12-02). finish() is not bounded (SequentialOptions.relinearise_iterations).
+FLIGHT_RELINEARISE_STEPS = 3
 
 
 class RelinearisationMixin:
@@ -206,19 +212,26 @@ class RelinearisationMixin:
         # solved but not taken: rows linearised at ``xk``, estimate ``xk + delta``).
         step = np.zeros_like(xk)
 
+        # factorisations left (during the flight shared by the robust rounds)
+        budget = (opts.relinearise_iterations * (rounds if robust is not None else 1) + 1
+                  if final else FLIGHT_RELINEARISE_STEPS)
+
         def gauss_newton(step_px: float) -> None:
             """Gauss-Newton steps at the weights ``wf`` until a step moves no parameter more
-            than RELINEARISE_TOLERANCE, or no image point more than ``step_px``."""
-            nonlocal xk, Je, Jp, r, Hp_x, step
+            than RELINEARISE_TOLERANCE, or no image point more than ``step_px``; after
+            the step ``budget`` the last step is the model's (solved, not taken)."""
+            nonlocal xk, Je, Jp, r, Hp_x, step, budget
             step = np.zeros_like(xk)
             cost = 0.5 * float(np.sum(wf[:, None] * r**2)) + prior(xk, Hp_x)
-            for _ in range(opts.relinearise_iterations):
+            for it in range(opts.relinearise_iterations):
                 g = gradient_from_factors(Je, Jp, r, wf, cols, n) + eta_p - Hp_x
                 delta = solver_at(Je, Jp, wf)(g)
+                budget -= 1
                 moved_px = np.max(np.abs(np.einsum("kri,ki->kr", Je, delta[e_idx])
                                          + np.einsum("kri,ki->kr", Jp, delta[p_idx])),
                                   initial=0.0)
-                if moved_px < step_px:
+                if (moved_px < step_px or budget <= 0
+                        or it == opts.relinearise_iterations - 1):
                     step = delta
                     return
                 # step halving: the window's cost never goes up (a turn's rows far from
@@ -239,9 +252,11 @@ class RelinearisationMixin:
 
         # During the flight to the update's pixel tolerance; in finish() the robust weights
         # settle at that tolerance first, then one pass converges to RELINEARISE_TOLERANCE.
-        for _ in range(1 if robust is None else rounds):
+        for rnd in range(1 if robust is None else rounds):
             gauss_newton(opts.iteration_tolerance_px)
-            if robust is None:
+            # the weights change only before another solve: the window ends at the minimum
+            # of the model it keeps (the weights of its last solve)
+            if robust is None or budget <= 0 or rnd == rounds - 1:
                 break
             w_new = f.w0 * cauchy_weight(r, sigma, robust)
             if np.max(np.abs(w_new - wf) / f.w0) < weight_tol:
@@ -249,6 +264,7 @@ class RelinearisationMixin:
             wf = w_new
             step = np.zeros_like(xk)  # new weights: the model is solved again
         if final:  # one tight pass at the settled weights
+            budget = opts.relinearise_iterations
             xk = xk + step  # the loose pass's model minimum starts the tight one
             Hp_x = H_p @ xk
             Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self._cam)

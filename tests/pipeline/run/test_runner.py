@@ -115,7 +115,7 @@ def test_estimation_failure_writes_nothing(make_flight: FlightMaker, tmp_path: P
     fake = RecordingEstimator()
 
     def make(method: Method, camera: PinholeCamera, options: object, *,
-             final_only: bool = False) -> RecordingEstimator:
+             final_only: bool = False, control: object = ()) -> RecordingEstimator:
         return fake
 
     monkeypatch.setattr(runner, "make_estimator", make)
