@@ -77,6 +77,20 @@ def test_engines_agree_and_sigmas_stay_positive_after_every_update(
     """Information and inverse engines: the same estimates and sigmas after every update
     (the inverse update is exact algebra, the factorisation recomputes it); every sigma finite
     and positive, sigma0 finite."""
+    _engines_agree(short_strip, threshold)
+
+
+def test_the_large_window_path_agrees_with_the_inverse_update(
+        short_strip: SimulatedFlight, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every window as a large one: the update takes ``Q[touched, touched]`` from the factor
+    (InformationFactor.block) and the window's correction as one solve (Window.q_apply)."""
+    import seqat.sequential as sequential
+
+    monkeypatch.setattr(sequential, "DENSE_UP_TO", 0)
+    _engines_agree(short_strip, 0.1)
+
+
+def _engines_agree(short_strip: SimulatedFlight, threshold: float | None) -> None:
     runs = {e: SequentialAT(short_strip.camera, SequentialOptions(
         correlation_threshold=threshold, engine=e)) for e in ("information", "inverse")}
     for fr in short_strip.frames():
