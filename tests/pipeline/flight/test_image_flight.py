@@ -53,8 +53,9 @@ def test_seneca_mini_runs_and_georeferences_every_image(mini_run: Path) -> None:
     assert run.eop.image_ids == run.nav.image_ids and len(run.eop) == 18
     record = run.record
     totals = record["totals"]
-    # default sigmas fit the Seneca nav; the matches fit to ~0.5 px (0.48-0.86 over FLANN seeds)
-    assert 0.4 < totals["sigma0"] < 2.0
+    # default sigmas fit the Seneca nav; the matches fit to ~0.4-0.9 px (0.48-0.86 over FLANN
+    # seeds; 0.38-0.40 since one observation per pixel left SIFT's orientation twins out)
+    assert 0.3 < totals["sigma0"] < 2.0
     images = record["images"]
     assert all("tracking" in im for im in images)
     matched = [im["tracking"]["pairs_matched"] > 0 for im in images[1:]]
@@ -218,8 +219,8 @@ def test_flight_bench_compares_methods_on_the_same_tie_points(tmp_path: Path) ->
     assert len(texts) == 1
     assert sum(b.track_length_histogram.values()) == b.tracks > 100
     assert b.track_length_median >= 2
-    # sigma_image_px is 1 px; the matches fit to ~0.5 px (0.48-0.86 over FLANN seeds)
-    assert 0.4 < b.sigma0["sim"] < 2.0 and b.rms_residual_px["sim"] < 2.0
+    # sigma_image_px is 1 px; the matches fit to ~0.4-0.9 px (as above)
+    assert 0.3 < b.sigma0["sim"] < 2.0 and b.rms_residual_px["sim"] < 2.0
     assert b.latency_ms.median >= b.at_ms.median > 0
     # a camera from EXIF is self-calibrated by default; the bench reruns it fixed
     # (an 18-image strip does not determine f against the heights: held at the prior)
