@@ -254,6 +254,8 @@ class _Job:
                 self._failed(kind, fl, future.exception())
             elif future.status != "finished":  # cancelled: the scheduler gave the task up
                 self._failed(kind, fl, RuntimeError(f"task {future.key} {future.status}"))
+            elif isinstance(refused := future.result(), tasks.Refused):
+                self._failed(kind, fl, InputDataError(refused.message))
             else:
                 getattr(self, f"_on_{kind}")(fl, extra, future)
             self._campaign_if_settled()

@@ -18,13 +18,15 @@ composes), ``<flight>/tiles/<col>_<row>.npz`` the flight mosaic's tiles.
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import tempfile
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ParamSpec, TypeVar
 
 import numpy as np
 import pyproj
@@ -57,10 +59,33 @@ from pipeline.ortho.stage import (
     image_files,
     read_image,
 )
-from seqat.errors import InputDataError
+from seqat.errors import InputDataError, SeqatError
 
 TileKey = tuple[int, int]
 Extent = tuple[int, int, int, int]
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+@dataclass(frozen=True)
+class Refused:
+    """What a task returns instead of raising when its input is bad (a :class:`SeqatError`):
+    the flight is reported failed with this one line, and no worker logs a traceback."""
+
+    message: str
+
+
+def refusing(task: Callable[P, R]) -> Callable[P, R | Refused]:
+    """A task body that returns :class:`Refused` for bad input (anything else raises)."""
+
+    @functools.wraps(task)
+    def body(*args: P.args, **kwargs: P.kwargs) -> R | Refused:
+        try:
+            return task(*args, **kwargs)
+        except SeqatError as err:
+            return Refused(str(err))
+
+    return body
 
 
 # --------------------------------------------------------------------------------------------
@@ -68,6 +93,7 @@ Extent = tuple[int, int, int, int]
 # --------------------------------------------------------------------------------------------
 
 
+@refusing
 def run_task(flight_dir: Path, out_dir: Path, method: str) -> int:
     """``seqat run`` of one flight (one sequential stream); the number of images adjusted."""
     from pipeline.run.runner import Method, run_flight
@@ -75,6 +101,7 @@ def run_task(flight_dir: Path, out_dir: Path, method: str) -> int:
     return run_flight(flight_dir, out_dir, method=Method(method), progress=False).n_images
 
 
+@refusing
 def reference_task(out_dir: Path) -> str:
     """``seqat reference`` of one run folder; one line for the summary."""
     from pipeline.reference.stage import run_reference
@@ -83,6 +110,7 @@ def reference_task(out_dir: Path) -> str:
     return f"{rec.n_images_adjusted} images, sigma0 {rec.sigma0:.4f}"
 
 
+@refusing
 def report_task(out_dir: Path) -> str:
     """``seqat report`` of one run folder; the HTML report's path."""
     from pipeline.report.stage import make_report
@@ -113,6 +141,7 @@ class FlightOrtho:
     warnings: tuple[str, ...]
 
 
+@refusing
 def prepare_task(name: str, run_dir: Path, dsm_options: DsmOptions | None) -> FlightOrtho:
     """The run's EOPs, image files and surface (the flight's LiDAR gridded into
     ``dsm.tif`` here when there is none yet), as ``seqat ortho`` chooses them."""
@@ -174,6 +203,7 @@ def _orthorectifier(flight: FlightOrtho, options: OrthoOptions) -> Orthorectifie
     return ortho
 
 
+@refusing
 def ortho_task(flight: FlightOrtho, image_id: str, options: OrthoOptions,
                work_dir: Path) -> OrthoDone:
     """Orthorectify one image: ``ortho/<image>.tif`` and the raster's work file (both
@@ -266,6 +296,7 @@ def compose_tile(key: TileKey, raster_files: Sequence[Path], feather_px: int) ->
     return tile.colour, tile.alpha, extent
 
 
+@refusing
 def flight_tile_task(key: TileKey, raster_files: Sequence[Path], feather_px: int,
                      work_dir: Path) -> TileDone:
     """A flight mosaic's tile as a work file (``<col>_<row>.npz``)."""
@@ -277,6 +308,7 @@ def flight_tile_task(key: TileKey, raster_files: Sequence[Path], feather_px: int
                     images=len(raster_files))
 
 
+@refusing
 def campaign_tile_task(key: TileKey, raster_files: Sequence[Path], feather_px: int,
                        tiles_dir: Path, pixel_m: float, crs: pyproj.CRS) -> TileDone:
     """A campaign mosaic's tile as a COG (``tiles/<col>_<row>.tif``, cropped to its seen
@@ -315,8 +347,15 @@ def _read_tile(done: TileDone) -> tuple[np.ndarray, np.ndarray]:
     return colour, alpha
 
 
+@refusing
 def mosaic_task(path: Path, tiles: Sequence[TileDone], crs: pyproj.CRS, pixel_m: float,
                 images: int, work_dir: Path) -> MosaicResult:
+    """The campaign mosaic: :func:`write_mosaic` as a task."""
+    return write_mosaic(path, tiles, crs, pixel_m, images, work_dir)
+
+
+def write_mosaic(path: Path, tiles: Sequence[TileDone], crs: pyproj.CRS, pixel_m: float,
+                 images: int, work_dir: Path) -> MosaicResult:
     """One mosaic COG (overviews, alpha) from composed tiles (``write_tiles_cog``, as
     :meth:`MosaicBuilder.finish`), atomically."""
     t0 = time.perf_counter()
@@ -343,6 +382,7 @@ class FlightMosaic:
     elapsed_s: float = 0.0  # ortho time before the finish task (the driver's clock)
 
 
+@refusing
 def finish_flight_task(job: FlightMosaic, tiles: Sequence[TileDone],
                        work_dir: Path) -> OrthoRunSummary:
     """The flight's ``mosaic.tif`` from its tiles, then ``cameras.gpkg`` and ``ortho.json``
@@ -351,7 +391,7 @@ def finish_flight_task(job: FlightMosaic, tiles: Sequence[TileDone],
 
     flight = job.flight
     ok = [d for d in job.done if d.record is not None]
-    mosaic = mosaic_task(flight.run_dir / MOSAIC_FILE, tiles, flight.crs, job.pixel_m,
+    mosaic = write_mosaic(flight.run_dir / MOSAIC_FILE, tiles, flight.crs, job.pixel_m,
                          len(ok), work_dir)
     run = read_run(flight.run_dir)
     warnings = [*flight.warnings]

@@ -342,7 +342,8 @@ def ortho_image(ortho: Orthorectifier, mosaic: MosaicBuilder, image_id: str,
     return record, result, update
 
 
-def finish_ortho(run_dir: Path, mosaic: MosaicBuilder | MosaicResult, records: Sequence[ImageOrtho], *,
+def finish_ortho(run_dir: Path, mosaic: MosaicBuilder | MosaicResult,
+                 records: Sequence[ImageOrtho], *,
                  crs: pyproj.CRS, out_crs: pyproj.CRS | None, eops: EopTable,
                  points: PointTable, footprints: Mapping[str, np.ndarray],
                  eop_source: str, dsm_source: str, pixel_m: float | None,
