@@ -340,7 +340,7 @@ class _Job:
                 f"{fl.run_dir}: no image could be orthorectified"
                 + (f" ({errors[-1]})" if errors else "")))
             return
-        by_tile = _by_tile(ok)
+        by_tile = rasters_by_tile(ok)
         fl.pending = len(by_tile)
         work = self.work / fl.flight.name / "tiles"
         for key, files in by_tile.items():
@@ -406,7 +406,7 @@ class _Job:
         if not members:
             self.campaign_stage = "done"
             return
-        by_tile = _by_tile(members)
+        by_tile = rasters_by_tile(members)
         self.campaign_pending = len(by_tile)
         tiles_dir = self.out / CAMPAIGN_DIR / "tiles"
         for key, files in by_tile.items():
@@ -470,7 +470,7 @@ def _has_dashboard() -> bool:
     return importlib.util.find_spec("bokeh") is not None
 
 
-def _by_tile(orthos: Sequence[tasks.OrthoDone]) -> dict[tuple[int, int], list[Path]]:
+def rasters_by_tile(orthos: Sequence[tasks.OrthoDone]) -> dict[tuple[int, int], list[Path]]:
     """The raster files touching each tile, in the given order (acquisition, flights in
     campaign order): the order the blend depends on."""
     by_tile: dict[tuple[int, int], list[Path]] = {}

@@ -212,9 +212,7 @@ def ortho_task(flight: FlightOrtho, image_id: str, options: OrthoOptions,
     path = flight.files.get(image_id)
     if path is None:
         return OrthoDone(image_id=image_id, record=None, footprint_m=None, tiles=(),
-                         raster_file=None,
-                         error=f"{flight.files and next(iter(flight.files.values())).parent}: "
-                               f"no image {image_id}.jpg")
+                         raster_file=None, error=f"no image {image_id}.jpg")
     eop = flight.eops.eop[flight.eops.image_ids.index(image_id)]
     try:
         t0 = time.perf_counter()
