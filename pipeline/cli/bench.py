@@ -29,12 +29,16 @@ GTSAM_BENCH = "gtsam"
 #: [--kind KIND ...] [--flight NAME ...] [--keep]``: seeded mutations of the sample flights run
 #: as subprocesses (:mod:`pipeline.bench.fuzz.suite`; its own arguments follow).
 FUZZ_BENCH = "fuzz"
+#: ``seqat bench dask --out DIR [--flights N] [--repeats R] [--no-kill]``: a campaign's ortho
+#: and mosaic stages on 1 and 2 Dask workers, pixel equality, a worker killed
+#: (:mod:`pipeline.bench.campaign`; its own arguments follow).
+DASK_BENCH = "dask"
 
 
 def _passes_arguments(config: Path) -> bool:
-    """Only the rendered, ortho, gtsam and fuzz benchmarks take arguments of their own."""
+    """Only the rendered, ortho, gtsam, fuzz and dask benchmarks take arguments of their own."""
     return not config.exists() and str(config) in (RENDERED_BENCH, ORTHO_BENCH, GTSAM_BENCH,
-                                                   FUZZ_BENCH)
+                                                   FUZZ_BENCH, DASK_BENCH)
 
 
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
@@ -45,8 +49,9 @@ def bench(
              "(memory and time along a 10,000-image strip); 'faults' (seeded faults), "
              "'rendered RUN --config CONFIG.yaml' (a rendered flight's products against its "
              "truth), 'ortho' (timing of the ortho stage), 'gtsam' (GTSAM's fixed-lag "
-             "smoother beside Seq-R; --lag, --config) or 'fuzz' (seeded bad inputs; --cases, "
-             "--case K replays one; see docs/benchmarks.md).")],
+             "smoother beside Seq-R; --lag, --config), 'fuzz' (seeded bad inputs; --cases, "
+             "--case K replays one) or 'dask' (a campaign on 1 and 2 Dask workers; --flights, "
+             "--repeats; see docs/benchmarks.md).")],
     out: Annotated[Path, typer.Option("--out", help="Benchmark output folder.")] = Path(
         "out/bench"),
     seed: Annotated[list[int] | None, typer.Option(
@@ -96,6 +101,11 @@ def _bench(*, ctx: typer.Context, config: Path, out: Path, seed: list[int] | Non
         from pipeline.bench.ortho import main as ortho_main
 
         ortho_main(["--out", str(out), *ctx.args])
+        return
+    if name == DASK_BENCH:
+        from pipeline.bench.campaign import main as dask_main
+
+        dask_main(["--out", str(out), *ctx.args])
         return
     if name == GTSAM_BENCH:
         from pipeline.bench.gtsam import main as gtsam_main
