@@ -162,3 +162,21 @@ def test_flights_and_campaign_folders_are_found_and_names_must_differ(
     shutil.copytree(small_sim_dir, tmp_path / "y" / "f")
     with pytest.raises(InputDataError, match="a second flight named 'f'"):
         find_flights([tmp_path / "x", tmp_path / "y" / "f"])
+
+
+def test_single_flight_options_are_refused_with_several_flights(small_sim_dir: Path,
+                                                                tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["process", str(small_sim_dir), str(small_sim_dir),
+                                      "--out", str(out), "--observations", "x.csv"])
+    assert result.exit_code == 2
+    assert result.stderr == ("seqat: error: --observations: only with one flight (not with "
+                             "several flights, a campaign folder, --scheduler or --workers)\n")
+    result = CliRunner().invoke(app, ["process", str(small_sim_dir), "--out", str(out),
+                                      "--workers", "0"])
+    assert result.exit_code == 2 and "--workers: expected >= 1" in result.stderr
+    assert not out.exists()
