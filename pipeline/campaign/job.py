@@ -183,6 +183,9 @@ def process_campaign(flights: Sequence[CampaignFlight], out: Path, *, client: An
     t0 = time.perf_counter()
     claim_output_folder(out, [f.folder for f in flights], marker=CAMPAIGN_MARKER,
                         what="campaign folder")
+    # Absolute paths: a worker of a cluster runs in another working directory (same mounts).
+    out = Path(os.path.abspath(out))
+    flights = [replace(f, folder=Path(os.path.abspath(f.folder))) for f in flights]
     work = out / WORK_DIR
     job = _Job(client, flights, out, options, console)
     if _has_dashboard():
