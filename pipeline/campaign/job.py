@@ -188,8 +188,12 @@ def process_campaign(flights: Sequence[CampaignFlight], out: Path, *, client: An
     flights = [replace(f, folder=Path(os.path.abspath(f.folder))) for f in flights]
     work = out / WORK_DIR
     job = _Job(client, flights, out, options, console)
-    if _has_dashboard():
-        console.print(f"Dask dashboard: {client.dashboard_link}")
+    if "dashboard" in client.scheduler_info().get("services", {}):
+        import importlib.util
+
+        note = ("" if importlib.util.find_spec("bokeh") is not None
+                else " (its pages need bokeh on the scheduler: pip install '.[dashboard]')")
+        console.print(f"Dask dashboard: {client.dashboard_link}{note}", highlight=False)
     with Progress(TextColumn("[bold]campaign"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=console,
                   transient=True, disable=not (progress and console.is_terminal)) as bar:
@@ -464,13 +468,6 @@ class _Job:
             pixel_m=float(self.pixel_m) if self.pixel_m is not None else math.nan,
             crs=self.grid_crs.name if self.grid_crs is not None else None, tasks=self.count,
             wall_s=wall_s, warnings=tuple(self.warnings))
-
-
-def _has_dashboard() -> bool:
-    """The dashboard needs bokeh (not a dependency: ``pip install bokeh`` to have it)."""
-    import importlib.util
-
-    return importlib.util.find_spec("bokeh") is not None
 
 
 def rasters_by_tile(orthos: Sequence[tasks.OrthoDone]) -> dict[tuple[int, int], list[Path]]:
