@@ -44,6 +44,7 @@ from pipeline.common.outdir import claim_output_folder
 from pipeline.ortho.base import OrthoOptions
 from pipeline.ortho.dsm import DsmOptions
 from pipeline.ortho.mosaic import FEATHER_PX
+from pipeline.ortho.raster import COG_THREADS_ENV
 from pipeline.ortho.stage import MOSAIC_FILE
 from seqat.errors import InputDataError, SeqatError
 
@@ -56,6 +57,8 @@ WORK_DIR = ".campaign-work"
 STAGES = ("run", "ortho", "reference", "report")
 #: Temporary files of atomic writes (``.<name>.<mkstemp's 8 characters><suffix>``) a killed
 #: worker can leave behind; swept when the job ends.
+#: Environment of a LocalCluster's worker processes (single-threaded workers).
+SINGLE_THREADED_ENV = {COG_THREADS_ENV: "1", "OPENCV_FOR_THREADS_NUM": "1"}
 _TEMPORARY = re.compile(r"^\..+\.[A-Za-z0-9_]{8}(\.tif|\.tmp)$")
 
 
@@ -150,9 +153,12 @@ def open_client(scheduler: str | None, workers: int | None, *, processes: bool =
         except (OSError, TimeoutError) as err:
             raise InputDataError(f"--scheduler {scheduler}: cannot connect: {err}") from err
     n = workers or os.cpu_count() or 1
+    # One core per worker: OpenCV and GDAL's COG compression on one thread too (Dask already
+    # sets OMP/MKL/OpenBLAS to 1), so n workers do not fight over n cores.
+    kwargs = {"env": SINGLE_THREADED_ENV} if processes else {}
     # ":0": any free port (the scheduler serves HTTP anyway; 8787 may be another cluster's)
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes,
-                           dashboard_address=":0", silence_logs=40)
+                           dashboard_address=":0", silence_logs=40, **kwargs)
     return Client(cluster), cluster
 
 
