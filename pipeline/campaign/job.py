@@ -55,11 +55,12 @@ CAMPAIGN_JSON = "campaign.json"
 WORK_DIR = ".campaign-work"
 #: Stages a campaign can run (the benchmark runs ``ortho`` alone on finished runs).
 STAGES = ("run", "ortho", "reference", "report")
-#: Temporary files of atomic writes (``.<name>.<mkstemp's 8 characters><suffix>``) a killed
-#: worker can leave behind; swept when the job ends.
+#: Temporary files of atomic writes (``.<name>.<mkstemp's 8 characters><suffix>``, and the
+#: ``.ovr.tmp`` GDAL's COG driver writes beside one) a killed worker can leave behind; swept
+#: when the job ends.
 #: Environment of a LocalCluster's worker processes (single-threaded workers).
 SINGLE_THREADED_ENV = {COG_THREADS_ENV: "1", "OPENCV_FOR_THREADS_NUM": "1"}
-_TEMPORARY = re.compile(r"^\..+\.[A-Za-z0-9_]{8}(\.tif|\.tmp)$")
+_TEMPORARY = re.compile(r"^\..+\.[A-Za-z0-9_]{8}(\.tif|\.tmp)(\.ovr\.tmp)?$")
 
 
 @dataclass(frozen=True, kw_only=True)
