@@ -200,7 +200,8 @@ def process_campaign(flights: Sequence[CampaignFlight], out: Path, *, client: An
 
         note = ("" if importlib.util.find_spec("bokeh") is not None
                 else " (its pages need bokeh on the scheduler: pip install '.[dashboard]')")
-        console.print(f"Dask dashboard: {client.dashboard_link}{note}", highlight=False)
+        console.print(f"Dask dashboard: {client.dashboard_link}{note}", highlight=False,
+                      markup=False)
     with Progress(TextColumn("[bold]campaign"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=console,
                   transient=True, disable=not (progress and console.is_terminal)) as bar:
