@@ -69,6 +69,12 @@ def _single_threaded() -> int:
     return os.getpid()
 
 
+def _cpu_s() -> float:
+    """In a worker: the CPU seconds of its process so far (all threads)."""
+    times = os.times()
+    return times.user + times.system
+
+
 def raster_digests(out: Path) -> dict[str, str]:
     """sha256 of the pixels and geotransform of every raster the ortho stage writes."""
     digests = {}
@@ -101,10 +107,12 @@ def timed_ortho(flights: Sequence[CampaignFlight], out: Path, workers: int,
         t0 = time.perf_counter()
         if timer is not None:
             timer.start()
+        cpu0 = sum(client.run(_cpu_s).values())
         with get_task_stream(client) as stream:
             summary = process_campaign(flights, out, client=client, progress=False,
                                        options=CampaignOptions(stages=("ortho",), ortho=True))
         wall = time.perf_counter() - t0
+        cpu = sum(client.run(_cpu_s).values()) - cpu0  # a killed worker's CPU is lost
         if timer is not None:
             timer.cancel()
     computing = [ss["stop"] - ss["start"] for task in stream.data
@@ -114,7 +122,8 @@ def timed_ortho(flights: Sequence[CampaignFlight], out: Path, workers: int,
             "failed": [f.name for f in summary.failed], "killed": killed,
             "killed_at_s": kill_after_s if killed else None,
             # sum of the tasks' compute times / wall: how many workers were busy on average
-            "task_s": sum(computing), "mean_busy_workers": sum(computing) / wall}
+            "task_s": sum(computing), "mean_busy_workers": sum(computing) / wall,
+            "workers_cpu_s": cpu}
 
 
 def single_process(flights: Sequence[CampaignFlight], out: Path, work: Path,
