@@ -42,10 +42,12 @@ ALLOWED: dict[str, set[str]] = {
     "ortho": {"common", "flight", "run"},
     "simulate": {"common", "flight", "run", "ortho"},
     "report": {"common", "flight", "run", "reference"},
-    "bench": {"common", "flight", "run", "reference", "ortho", "simulate", "report"},
+    "campaign": {"common", "flight", "run", "reference", "ortho", "report"},
+    "bench": {"common", "flight", "run", "reference", "ortho", "simulate", "report",
+              "campaign"},
     "serve": {"common", "run"},
     "cli": {"common", "tracking", "flight", "run", "reference", "ortho", "simulate", "report",
-            "bench", "serve"},
+            "campaign", "bench", "serve"},
 }
 SEQAT = _modules("seqat")
 

@@ -33,12 +33,17 @@ FUZZ_BENCH = "fuzz"
 #: [--limit N]``: the live map's targets, seqat feed into seqat watch --ortho --serve with
 #: polling clients (:mod:`pipeline.bench.live`; its own arguments follow).
 LIVE_BENCH = "live"
+#: ``seqat bench dask --out DIR [--flights N] [--repeats R] [--no-kill]``: a campaign's ortho
+#: and mosaic stages on 1 and 2 Dask workers, pixel equality, a worker killed
+#: (:mod:`pipeline.bench.campaign`; its own arguments follow).
+DASK_BENCH = "dask"
 
 
 def _passes_arguments(config: Path) -> bool:
-    """Only the rendered, ortho, gtsam, fuzz and live benchmarks take arguments of their own."""
+    """Only the rendered, ortho, gtsam, fuzz, live and dask benchmarks take arguments of their
+    own."""
     return not config.exists() and str(config) in (RENDERED_BENCH, ORTHO_BENCH, GTSAM_BENCH,
-                                                   FUZZ_BENCH, LIVE_BENCH)
+                                                   FUZZ_BENCH, LIVE_BENCH, DASK_BENCH)
 
 
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
@@ -50,8 +55,9 @@ def bench(
              "'rendered RUN --config CONFIG.yaml' (a rendered flight's products against its "
              "truth), 'ortho' (timing of the ortho stage), 'gtsam' (GTSAM's fixed-lag "
              "smoother beside Seq-R; --lag, --config), 'fuzz' (seeded bad inputs; --cases, "
-             "--case K replays one) or 'live' (the live map: feed into watch --ortho --serve "
-             "with polling clients; --flight, --clients, --repeat; see docs/benchmarks.md).")],
+             "--case K replays one), 'live' (the live map: feed into watch --ortho --serve "
+             "with polling clients; --flight, --clients, --repeat) or 'dask' (a campaign on 1 "
+             "and 2 Dask workers; --flights, --repeats; see docs/benchmarks.md).")],
     out: Annotated[Path, typer.Option("--out", help="Benchmark output folder.")] = Path(
         "out/bench"),
     seed: Annotated[list[int] | None, typer.Option(
@@ -101,6 +107,11 @@ def _bench(*, ctx: typer.Context, config: Path, out: Path, seed: list[int] | Non
         from pipeline.bench.ortho import main as ortho_main
 
         ortho_main(["--out", str(out), *ctx.args])
+        return
+    if name == DASK_BENCH:
+        from pipeline.bench.campaign import main as dask_main
+
+        dask_main(["--out", str(out), *ctx.args])
         return
     if name == GTSAM_BENCH:
         from pipeline.bench.gtsam import main as gtsam_main

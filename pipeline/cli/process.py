@@ -92,7 +92,9 @@ def plan_process(flight: Path, *, ortho: bool | None, dsm: Path | None,
 @app.command()
 @guarded
 def process(
-    flight: Annotated[Path, typer.Argument(help="Flight folder.")],
+    flights: Annotated[list[Path], typer.Argument(
+        help="Flight folder; several, or a campaign folder of flights: on Dask.",
+        metavar="FLIGHT...")],
     out: Annotated[Path, typer.Option("--out", help="Output folder.")],
     method: MethodOption = "seq-r",
     self_calibration: Annotated[bool | None, typer.Option(
@@ -118,9 +120,28 @@ def process(
         "--progress/--no-progress", help="Progress bar on a terminal.")] = True,
     gcp: GcpOption = None,
     gcp_sigma_m: GcpSigmaOption = None,
+    scheduler: Annotated[str | None, typer.Option(
+        "--scheduler", help="Dask scheduler address (tcp://host:8786) of an existing cluster "
+        "(default: a local cluster).")] = None,
+    workers: Annotated[int | None, typer.Option(
+        "--workers", help="Workers of the local cluster (default: one per CPU).")] = None,
 ) -> None:
     """Run, COLMAP reference and report of a flight in one command; prints where the map
-    (mosaic.tif, cameras.gpkg) and the report are."""
+    (mosaic.tif, cameras.gpkg) and the report are. Several flights (or a campaign folder):
+    each in OUT/<flight>, as Dask tasks, plus one campaign mosaic (docs/campaigns.md)."""
+    from pipeline.cli.campaign import process_campaign_command, wants_campaign
+
+    if wants_campaign(flights, scheduler, workers):
+        process_campaign_command(flights, out, scheduler=scheduler, workers=workers,
+                                 method=method, ortho=ortho, ortho_options=ortho_options,
+                                 reference=reference, report=report, progress=progress,
+                                 single_flight_options={
+                                     "--self-calibration": self_calibration,
+                                     "--options": options, "--observations": observations,
+                                     "--dsm": dsm, "--gcp": gcp,
+                                     "--gcp-sigma-m": gcp_sigma_m})
+        return
+    flight = flights[0]
     method = parse_method(method).value  # any case: SEQ-R, Sim
     plan = plan_process(flight, ortho=ortho, dsm=dsm, ortho_options=ortho_options,
                         reference=reference, report=report, method=method)

@@ -25,7 +25,7 @@ import shutil
 import tempfile
 import time
 from collections import OrderedDict
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,7 +37,7 @@ from affine import Affine
 from rasterio.transform import from_origin
 from rasterio.windows import Window
 
-from pipeline.ortho.base import ALPHA_OPAQUE, OrthoResult
+from pipeline.ortho.base import ALPHA_OPAQUE, OrthoRaster, OrthoResult
 from pipeline.ortho.raster import COG_BLOCK_PX, atomic_path, colorinterp_for, gtiff_to_cog
 from seqat.errors import ConfigError, InputDataError
 
@@ -109,7 +109,7 @@ class MosaicBuilder:
         # Global (row0, row1, col0, col1) of the seen cells of each tile: the crop of finish().
         self._extent: dict[tuple[int, int], tuple[int, int, int, int]] = {}
         self._stored: set[tuple[int, int]] = set()  # tiles in the tile store
-        self._cache: OrderedDict[tuple[int, int], _Tile] = OrderedDict()
+        self._cache: OrderedDict[tuple[int, int], MosaicTile] = OrderedDict()
         self._dirty: set[tuple[int, int]] = set()
         self._auto_cache = cache_tiles is None
         self._cache_tiles = CACHE_TILES if cache_tiles is None else max(1, cache_tiles)
@@ -137,8 +137,6 @@ class MosaicBuilder:
                 f"image {r.image_id!r}: ortho of {r.pixels.shape[2]} {r.pixels.dtype} band(s) at "
                 f"{r.pixel_m:g} m does not match the mosaic ({self.bands} {self.dtype} at "
                 f"{self.pixel_m:g} m)")
-        feather = (2.0 * self.feather_px * r.pixel_m / r.height_agl_m if self.feather_px
-                   else 0.0)
         rows, cols = r.shape
         T = TILE_PX
         if self._auto_cache:
@@ -147,26 +145,18 @@ class MosaicBuilder:
             self._cache_tiles = max(self._cache_tiles, 2 * span)
         touched_keys: set[tuple[int, int]] = set()
         updated = 0
-        for tr in range(r.row0 // T, (r.row0 + rows - 1) // T + 1):
-            for tc in range(r.col0 // T, (r.col0 + cols - 1) // T + 1):
-                if tiles is not None and (tc, tr) not in tiles:
-                    continue
-                # Overlap of tile (tc, tr) with the ortho, in ortho and in tile coordinates.
-                g_r0, g_r1 = max(tr * T, r.row0), min((tr + 1) * T, r.row0 + rows)
-                g_c0, g_c1 = max(tc * T, r.col0), min((tc + 1) * T, r.col0 + cols)
-                src = (slice(g_r0 - r.row0, g_r1 - r.row0), slice(g_c0 - r.col0, g_c1 - r.col0))
-                seen = r.seen[src]
-                if not seen.any():
-                    continue
-                dst = (slice(g_r0 - tr * T, g_r1 - tr * T), slice(g_c0 - tc * T, g_c1 - tc * T))
-                tile = self._tile(tc, tr)
-                _blend(tile.colour[dst], tile.alpha[dst], tile.off[dst], r.pixels[src], seen,
-                       r.off_nadir[src], feather, ALPHA_OPAQUE[self.dtype])
-                self._grow_extent((tc, tr), seen, g_r0, g_c0)
-                self._tiles.add((tc, tr))
-                self._dirty.add((tc, tr))
-                touched_keys.add((tc, tr))
-                updated += int(seen.sum())
+        for key in raster_tiles(r):
+            if tiles is not None and key not in tiles:
+                continue
+            pasted = paste_into_tile(self._tile(*key), key, r, self.feather_px)
+            if pasted is None:
+                continue
+            cells, extent = pasted
+            self._grow_extent(key, extent)
+            self._tiles.add(key)
+            self._dirty.add(key)
+            touched_keys.add(key)
+            updated += cells
         self._images.add(r.image_id)
         return MosaicUpdate(image_id=r.image_id, tiles_touched=len(touched_keys),
                             cells_updated=updated, update_ms=(time.perf_counter() - t0) * 1e3,
@@ -210,31 +200,15 @@ class MosaicBuilder:
         t0 = time.perf_counter()
         if not self._tiles or self.pixel_m is None or self.dtype is None or self.bands is None:
             raise InputDataError(f"{self.path}: no ortho was added to the mosaic")
-        T, p = TILE_PX, self.pixel_m
-        # Cropped to the seen cells (the tiles are only the work grid): global cell rows
-        # row0..row1, columns col0..col1 (exclusive ends).
-        extents = [self._extent[key] for key in self._tiles]
-        row0, row1 = min(e[0] for e in extents), max(e[1] for e in extents)
-        col0, col1 = min(e[2] for e in extents), max(e[3] for e in extents)
+        p = self.pixel_m
+
+        def read_tile(key: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+            tile = self._tile(*key)
+            return tile.colour, tile.alpha
+
+        row0, row1, col0, col1 = write_tiles_cog(self.path, self.crs, p, self._extent,
+                                                 read_tile, self.work_dir)
         rows, cols = row1 - row0, col1 - col0
-        transform = from_origin(col0 * p, -row0 * p, p, p)
-        count = self.bands + 1
-        profile = {"driver": "GTiff", "width": cols, "height": rows, "count": count,
-                   "dtype": self.dtype.name, "tiled": True, "blockxsize": T, "blockysize": T,
-                   "crs": rasterio.crs.CRS.from_wkt(self.crs.to_wkt()), "transform": transform,
-                   "sparse_ok": True, "BIGTIFF": "IF_SAFER"}
-        with atomic_path(self.work_dir / "mosaic_full.tif") as full:
-            with rasterio.open(full, "w", **profile) as dst:
-                dst.colorinterp = colorinterp_for(count, alpha=True)
-                for tc, tr in sorted(self._tiles, key=lambda t: (t[1], t[0])):
-                    r0, r1 = max(tr * T, row0), min((tr + 1) * T, row1)
-                    c0, c1 = max(tc * T, col0), min((tc + 1) * T, col1)
-                    tile = self._tile(tc, tr)
-                    part = (slice(r0 - tr * T, r1 - tr * T), slice(c0 - tc * T, c1 - tc * T))
-                    data = np.concatenate([np.moveaxis(tile.colour[part], 2, 0),
-                                           tile.alpha[part][None]])
-                    dst.write(data, window=Window(c0 - col0, r0 - row0, c1 - c0, r1 - r0))
-            gtiff_to_cog(full, self.path)
         shutil.rmtree(self.work_dir, ignore_errors=True)
         bounds = (col0 * p, -row1 * p, col1 * p, -row0 * p)
         return MosaicResult(path=self.path, images=len(self._images), tiles=len(self._tiles),
@@ -243,22 +217,15 @@ class MosaicBuilder:
 
     # ----------------------------------------------------------------------------------------
 
-    def _grow_extent(self, key: tuple[int, int], seen: np.ndarray, row0: int,
-                     col0: int) -> None:
-        """Widen the tile's extent by the seen cells of a window whose top-left global cell
-        is ``(row0, col0)``."""
-        rows = np.flatnonzero(seen.any(axis=1))
-        cols = np.flatnonzero(seen.any(axis=0))
-        new = (row0 + int(rows[0]), row0 + int(rows[-1]) + 1, col0 + int(cols[0]),
-               col0 + int(cols[-1]) + 1)
+    def _grow_extent(self, key: tuple[int, int], new: tuple[int, int, int, int]) -> None:
+        """Widen the tile's extent (global ``row0, row1, col0, col1``) by ``new``."""
         old = self._extent.get(key)
-        self._extent[key] = new if old is None else (
-            min(old[0], new[0]), max(old[1], new[1]), min(old[2], new[2]), max(old[3], new[3]))
+        self._extent[key] = new if old is None else union_extent(old, new)
 
     def _tile_path(self, tc: int, tr: int) -> Path:
         return self.work_dir / f"{tc}_{tr}.npz"
 
-    def _tile(self, tc: int, tr: int) -> _Tile:
+    def _tile(self, tc: int, tr: int) -> MosaicTile:
         """The tile from the cache, the tile store or new; evicts the least recently used."""
         key = (tc, tr)
         if key in self._cache:
@@ -267,11 +234,9 @@ class MosaicBuilder:
         assert self.dtype is not None and self.bands is not None
         if key in self._stored:
             with np.load(self._tile_path(tc, tr)) as npz:
-                tile = _Tile(colour=npz["colour"], alpha=npz["alpha"], off=npz["off"])
+                tile = MosaicTile(colour=npz["colour"], alpha=npz["alpha"], off=npz["off"])
         else:
-            tile = _Tile(colour=np.zeros((TILE_PX, TILE_PX, self.bands), self.dtype),
-                         alpha=np.zeros((TILE_PX, TILE_PX), self.dtype),
-                         off=np.full((TILE_PX, TILE_PX), np.inf, np.float32))
+            tile = new_tile(self.bands, self.dtype)
         self._cache[key] = tile
         while len(self._cache) > self._cache_tiles:
             old_key, old = self._cache.popitem(last=False)
@@ -279,7 +244,7 @@ class MosaicBuilder:
                 self._store(old_key, old)
         return tile
 
-    def _store(self, key: tuple[int, int], tile: _Tile) -> None:
+    def _store(self, key: tuple[int, int], tile: MosaicTile) -> None:
         target = self._tile_path(*key)
         fd, tmp = tempfile.mkstemp(dir=self.work_dir, suffix=".npz.tmp")
         try:
@@ -306,8 +271,108 @@ def tiles_of_bounds(bounds: tuple[float, float, float, float], pixel_m: float) -
                      for tc in range(c0 // T, (max(c1, c0 + 1) - 1) // T + 1))
 
 
+def raster_tiles(raster: OrthoRaster) -> tuple[tuple[int, int], ...]:
+    """The ``(column, row)`` of every tile an ortho's window reaches, row by row."""
+    rows, cols = raster.shape
+    T = TILE_PX
+    return tuple((tc, tr) for tr in range(raster.row0 // T, (raster.row0 + rows - 1) // T + 1)
+                 for tc in range(raster.col0 // T, (raster.col0 + cols - 1) // T + 1))
+
+
+def new_tile(bands: int, dtype: np.dtype) -> MosaicTile:
+    """An empty tile (nothing seen: off-nadir tangent +inf)."""
+    return MosaicTile(colour=np.zeros((TILE_PX, TILE_PX, bands), dtype),
+                      alpha=np.zeros((TILE_PX, TILE_PX), dtype),
+                      off=np.full((TILE_PX, TILE_PX), np.inf, np.float32))
+
+
+def paste_into_tile(tile: MosaicTile, key: tuple[int, int], raster: OrthoRaster,
+                    feather_px: int) -> tuple[int, tuple[int, int, int, int]] | None:
+    """Blend the part of an ortho inside tile ``key = (column, row)`` into ``tile`` in place:
+    the one composition step of :class:`MosaicBuilder` and of the distributed mosaic
+    (:mod:`pipeline.campaign`). A tile composed from the same orthos in the same order is the
+    same, bit for bit, whoever composes it.
+
+    Returns
+    -------
+    (cells, extent) or None
+        Cells the ortho sees in the tile and their bounding box as global ``(row0, row1,
+        col0, col1)`` (exclusive ends); None when it sees none there.
+    """
+    r, T = raster, TILE_PX
+    tc, tr = key
+    rows, cols = r.shape
+    # Overlap of tile (tc, tr) with the ortho, in ortho and in tile coordinates.
+    g_r0, g_r1 = max(tr * T, r.row0), min((tr + 1) * T, r.row0 + rows)
+    g_c0, g_c1 = max(tc * T, r.col0), min((tc + 1) * T, r.col0 + cols)
+    if g_r0 >= g_r1 or g_c0 >= g_c1:
+        return None
+    src = (slice(g_r0 - r.row0, g_r1 - r.row0), slice(g_c0 - r.col0, g_c1 - r.col0))
+    seen = r.seen[src]
+    if not seen.any():
+        return None
+    dst = (slice(g_r0 - tr * T, g_r1 - tr * T), slice(g_c0 - tc * T, g_c1 - tc * T))
+    feather = 2.0 * feather_px * r.pixel_m / r.height_agl_m if feather_px else 0.0
+    _blend(tile.colour[dst], tile.alpha[dst], tile.off[dst], r.pixels[src], seen,
+           r.off_nadir[src], feather, ALPHA_OPAQUE[tile.colour.dtype])
+    seen_rows = np.flatnonzero(seen.any(axis=1))
+    seen_cols = np.flatnonzero(seen.any(axis=0))
+    extent = (g_r0 + int(seen_rows[0]), g_r0 + int(seen_rows[-1]) + 1,
+              g_c0 + int(seen_cols[0]), g_c0 + int(seen_cols[-1]) + 1)
+    return int(seen.sum()), extent
+
+
+def union_extent(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> (
+        tuple[int, int, int, int]):
+    """The bounding box of two ``(row0, row1, col0, col1)`` extents."""
+    return min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3])
+
+
+def write_tiles_cog(path: Path, crs: pyproj.CRS, pixel_m: float,
+                    extents: Mapping[tuple[int, int], tuple[int, int, int, int]],
+                    read_tile: Callable[[tuple[int, int]], tuple[np.ndarray, np.ndarray]],
+                    work_dir: Path) -> tuple[int, int, int, int]:
+    """Write mosaic tiles into one COG with overviews and an alpha band, cropped to the cells
+    seen (the union of ``extents``, global ``row0, row1, col0, col1`` per tile).
+
+    ``read_tile(key)`` gives a tile's ``(colour (T, T, bands), alpha (T, T))``; tiles are read
+    one at a time, row by row, into a tiled GeoTIFF in ``work_dir``, which GDAL converts into
+    the COG (block by block: memory does not grow with the mosaic). Returns the crop.
+    """
+    T, p = TILE_PX, pixel_m
+    row0, row1 = min(e[0] for e in extents.values()), max(e[1] for e in extents.values())
+    col0, col1 = min(e[2] for e in extents.values()), max(e[3] for e in extents.values())
+    transform = from_origin(col0 * p, -row0 * p, p, p)
+    profile: dict[str, object] | None = None
+    with atomic_path(work_dir / "mosaic_full.tif") as full:
+        dst = None
+        try:
+            for tc, tr in sorted(extents, key=lambda t: (t[1], t[0])):
+                colour, alpha = read_tile((tc, tr))
+                if dst is None:
+                    count = colour.shape[2] + 1
+                    profile = {"driver": "GTiff", "width": col1 - col0, "height": row1 - row0,
+                               "count": count, "dtype": colour.dtype.name, "tiled": True,
+                               "blockxsize": T, "blockysize": T,
+                               "crs": rasterio.crs.CRS.from_wkt(crs.to_wkt()),
+                               "transform": transform, "sparse_ok": True,
+                               "BIGTIFF": "IF_SAFER"}
+                    dst = rasterio.open(full, "w", **profile)
+                    dst.colorinterp = colorinterp_for(count, alpha=True)
+                r0, r1 = max(tr * T, row0), min((tr + 1) * T, row1)
+                c0, c1 = max(tc * T, col0), min((tc + 1) * T, col1)
+                part = (slice(r0 - tr * T, r1 - tr * T), slice(c0 - tc * T, c1 - tc * T))
+                data = np.concatenate([np.moveaxis(colour[part], 2, 0), alpha[part][None]])
+                dst.write(data, window=Window(c0 - col0, r0 - row0, c1 - c0, r1 - r0))
+        finally:
+            if dst is not None:
+                dst.close()
+        gtiff_to_cog(full, path)
+    return row0, row1, col0, col1
+
+
 @dataclass(frozen=True, kw_only=True, eq=False)
-class _Tile:
+class MosaicTile:
     """One mosaic tile: colour (T, T, bands), alpha (T, T), off-nadir tangent (T, T)."""
 
     colour: np.ndarray

@@ -229,6 +229,19 @@ class Orthorectifier(FootprintMixin, ProjectionMixin, OcclusionMixin):
                            occlusion_ms=occlusion_ms,
                            warnings=tuple(warnings))
 
+    def auto_pixel_m(self, image_id: str, eop: FloatArray) -> float:
+        """The pixel size :meth:`add_image` fixes on its first image when none is given: the
+        GSD at the nadir, rounded to 3 significant digits (a campaign fixes one for all its
+        flights, :mod:`pipeline.campaign`).
+
+        Raises
+        ------
+        InputDataError
+            As :meth:`add_image` for a camera below the surface or off the DSM.
+        """
+        eop = _checked_eop(image_id, eop)
+        return _nice_pixel((eop[2] - self._ground_height(image_id, eop)) / self.camera.fx_px)
+
     def prepare_occlusion(self) -> int:
         """Build the DSM's ray-casting mesh now (``occlusion_method: raycast``; otherwise on
         the first image that needs it); the number of its triangles (0 for the z-buffer)."""

@@ -39,8 +39,10 @@ COG_COMPRESS = "DEFLATE"
 COG_DEFLATE_LEVEL = 1
 #: Overview resampling (averaging; alpha-aware in GDAL).
 COG_OVERVIEW_RESAMPLING = "AVERAGE"
-#: GDAL compresses the tiles on this many threads.
+#: GDAL compresses the tiles on this many threads; the environment variable
+#: ``SEQAT_COG_THREADS`` overrides it (a campaign's workers, one per core, set it to 1).
 COG_THREADS = "ALL_CPUS"
+COG_THREADS_ENV = "SEQAT_COG_THREADS"
 #: GDAL block cache while writing a COG, MB: bounds the memory of the mosaic's conversion
 #: (GDAL's default is 5 % of the RAM and grows with the mosaic).
 COG_CACHE_MB = 256
@@ -61,7 +63,7 @@ def cog_options(dtype: str) -> dict[str, str | int]:
         "OVERVIEWS": "AUTO",
         "RESAMPLING": COG_OVERVIEW_RESAMPLING,
         "BIGTIFF": "IF_SAFER",
-        "NUM_THREADS": COG_THREADS,
+        "NUM_THREADS": os.environ.get(COG_THREADS_ENV, COG_THREADS),
     }
 
 

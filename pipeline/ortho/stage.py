@@ -42,7 +42,7 @@ from pipeline.flight.schema import load_flight_config
 from pipeline.ortho.base import OrthoOptions, OrthoResult
 from pipeline.ortho.dsm import Dsm, DsmOptions, build_dsm, flat_dsm, read_dsm
 from pipeline.ortho.gis_export import write_cameras_gpkg
-from pipeline.ortho.mosaic import FEATHER_PX, MosaicBuilder, MosaicUpdate
+from pipeline.ortho.mosaic import FEATHER_PX, MosaicBuilder, MosaicResult, MosaicUpdate
 from pipeline.ortho.orthorectifier import Orthorectifier
 from pipeline.ortho.raster import reproject_cog
 from pipeline.run.store import TimingStats, read_eop_csv, to_jsonable
@@ -348,15 +348,17 @@ def ortho_image(ortho: Orthorectifier, mosaic: MosaicBuilder, image_id: str,
     return record, result, update
 
 
-def finish_ortho(run_dir: Path, mosaic: MosaicBuilder, records: Sequence[ImageOrtho], *,
+def finish_ortho(run_dir: Path, mosaic: MosaicBuilder | MosaicResult,
+                 records: Sequence[ImageOrtho], *,
                  crs: pyproj.CRS, out_crs: pyproj.CRS | None, eops: EopTable,
                  points: PointTable, footprints: Mapping[str, np.ndarray],
                  eop_source: str, dsm_source: str, pixel_m: float | None,
                  skipped: Sequence[str], warnings: Sequence[str], t0: float,
                  live: Callable[[], LiveOrthoStats] | None = None) -> OrthoRunSummary:
     """Write the mosaic COG (then warp everything to ``out_crs``), ``cameras.gpkg`` and
-    ``ortho.json``; ``live`` gives the live statistics once the rest is written."""
-    mosaic_result = mosaic.finish()
+    ``ortho.json``; ``live`` gives the live statistics once the rest is written. ``mosaic``:
+    the builder to finish, or the mosaic already written (by the campaign's tile tasks)."""
+    mosaic_result = mosaic if isinstance(mosaic, MosaicResult) else mosaic.finish()
     raster_crs = crs
     if out_crs is not None and not out_crs.equals(crs, ignore_axis_order=True):
         for record in records:
