@@ -29,6 +29,21 @@ BIAS_SIGMAS = 1.0
 
 
 @dataclass(frozen=True, kw_only=True)
+class PointResidual:
+    """One ground point of a table: its known coordinates and estimated − known (check
+    points: intersected − known; control points: adjusted − surveyed, NaN on a free axis)."""
+
+    point: str
+    n_images: int
+    x_m: float
+    y_m: float
+    z_m: float
+    dx_m: float
+    dy_m: float
+    dz_m: float
+
+
+@dataclass(frozen=True, kw_only=True)
 class AsprsTable:
     """ASPRS Edition 2 (2023) summary of check point residuals (metres).
 
@@ -51,6 +66,14 @@ class AsprsTable:
     horizontal_class_cm: float | None  # smallest class of ASPRS_CLASSES_CM with RMSE_H <= X
     vertical_class_cm: float | None
     warning: str | None
+
+    def figures(self) -> dict[str, float]:
+        """``report.json``'s RMSE, mean and σ per axis (``checkpoints``, ``control``)."""
+        return {"rmse_x_m": self.rmse_x_m, "rmse_y_m": self.rmse_y_m,
+                "rmse_h_m": self.rmse_h_m, "rmse_v_m": self.rmse_v_m,
+                "mean_x_m": self.mean_x_m, "mean_y_m": self.mean_y_m,
+                "mean_z_m": self.mean_z_m, "std_x_m": self.std_x_m,
+                "std_y_m": self.std_y_m, "std_z_m": self.std_z_m}
 
 
 def asprs_class_cm(rmse_m: float) -> float | None:

@@ -18,22 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.common.tables import PointTable
-from pipeline.report.asprs import AsprsTable, asprs_table
+from pipeline.report.asprs import AsprsTable, PointResidual, asprs_table
 from pipeline.run.control import CONTROL_FILE, ControlTable, read_control_csv
-
-
-@dataclass(frozen=True, kw_only=True)
-class ControlResidual:
-    """One control point: surveyed coordinates and adjusted − surveyed (NaN: a free axis)."""
-
-    point: str
-    n_images: int
-    x_m: float
-    y_m: float
-    z_m: float
-    dx_m: float
-    dy_m: float
-    dz_m: float
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -43,7 +29,7 @@ class ControlReport:
 
     method: str
     table: AsprsTable
-    residuals: tuple[ControlResidual, ...]
+    residuals: tuple[PointResidual, ...]
     not_adjusted: tuple[str, ...]
 
 
@@ -63,10 +49,10 @@ def control_report(method: str, control: ControlTable, points: PointTable) -> Co
             missing.append(name)
             continue
         d = np.where(np.isfinite(sig), points.xyz_m[k] - known, np.nan)
-        residuals.append(ControlResidual(point=name, n_images=int(points.n_obs[k]),
-                                         x_m=float(known[0]), y_m=float(known[1]),
-                                         z_m=float(known[2]), dx_m=float(d[0]),
-                                         dy_m=float(d[1]), dz_m=float(d[2])))
+        residuals.append(PointResidual(point=name, n_images=int(points.n_obs[k]),
+                                       x_m=float(known[0]), y_m=float(known[1]),
+                                       z_m=float(known[2]), dx_m=float(d[0]),
+                                       dy_m=float(d[1]), dz_m=float(d[2])))
     residuals.sort(key=lambda r: (-math.sqrt(np.nansum([r.dx_m**2, r.dy_m**2, r.dz_m**2])),
                                   r.point))
     d = np.array([[r.dx_m, r.dy_m, r.dz_m] for r in residuals]).reshape(-1, 3)
@@ -95,11 +81,8 @@ def control_json(main: ControlReport | None, control: ControlTable | None
     if control is None:
         return None
     t = main.table if main is not None else None
-    figures: dict[str, object] = {} if t is None else {
-        "rmse_x_m": t.rmse_x_m, "rmse_y_m": t.rmse_y_m, "rmse_z_m": t.rmse_z_m,
-        "rmse_h_m": t.rmse_h_m, "rmse_v_m": t.rmse_v_m, "mean_x_m": t.mean_x_m,
-        "mean_y_m": t.mean_y_m, "mean_z_m": t.mean_z_m, "std_x_m": t.std_x_m,
-        "std_y_m": t.std_y_m, "std_z_m": t.std_z_m}
+    figures: dict[str, object] = {} if t is None else {**t.figures(),
+                                                       "rmse_z_m": t.rmse_z_m}
     return {"method": None if main is None else main.method, "count": len(control),
             "adjusted": 0 if main is None else len(main.residuals),
             "points": list(control.names), **figures,

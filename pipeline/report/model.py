@@ -42,6 +42,7 @@ from pipeline.flight.schema import load_flight_config
 from pipeline.reference.stage import REFERENCE_JSON, read_observations
 from pipeline.report.asprs import (
     AsprsTable,
+    PointResidual,
     asprs_table,
     verdict_lines,
 )
@@ -177,24 +178,10 @@ class LiveOperation:
 
 
 @dataclass(frozen=True, kw_only=True)
-class CheckpointResidual:
-    """One check point: its known coordinates and intersected − known."""
-
-    point: str
-    n_images: int
-    x_m: float
-    y_m: float
-    z_m: float
-    dx_m: float
-    dy_m: float
-    dz_m: float
-
-
-@dataclass(frozen=True, kw_only=True)
 class CheckpointReport:
     method: str
     table: AsprsTable
-    residuals: tuple[CheckpointResidual, ...]
+    residuals: tuple[PointResidual, ...]
     not_intersected: tuple[str, ...]  # fewer than two rays
     #: Check points that are also ground control points of the run: left out (control).
     excluded_control: tuple[str, ...] = ()
@@ -533,13 +520,13 @@ def checkpoint_report(method: str, eop: EopTable, run: RunFolder, known_path: Pa
     counts = np.bincount(obs_point[sel], minlength=len(point_ids))
     ok = np.all(np.isfinite(X), axis=1)
     residuals = tuple(
-        CheckpointResidual(point=pid, n_images=int(counts[j]),
-                           x_m=float(known.xyz_m[kindex[pid], 0]),
-                           y_m=float(known.xyz_m[kindex[pid], 1]),
-                           z_m=float(known.xyz_m[kindex[pid], 2]),
-                           dx_m=float(X[j, 0] - known.xyz_m[kindex[pid], 0]),
-                           dy_m=float(X[j, 1] - known.xyz_m[kindex[pid], 1]),
-                           dz_m=float(X[j, 2] - known.xyz_m[kindex[pid], 2]))
+        PointResidual(point=pid, n_images=int(counts[j]),
+                      x_m=float(known.xyz_m[kindex[pid], 0]),
+                      y_m=float(known.xyz_m[kindex[pid], 1]),
+                      z_m=float(known.xyz_m[kindex[pid], 2]),
+                      dx_m=float(X[j, 0] - known.xyz_m[kindex[pid], 0]),
+                      dy_m=float(X[j, 1] - known.xyz_m[kindex[pid], 1]),
+                      dz_m=float(X[j, 2] - known.xyz_m[kindex[pid], 2]))
         for j, pid in enumerate(point_ids) if ok[j] and pid not in exclude)
     # largest first (3D length), ties by name: the table a surveyor reads top down
     residuals = tuple(sorted(residuals, key=lambda r: (-math.sqrt(
@@ -633,12 +620,7 @@ def build_report(out_dir: Path | str, compare: Sequence[Path | str] = ()) -> tup
                for m in methods]
     main_cp = next((c for c in cps if c.method == methods[1].label), None)
     checkpoints = None if main_cp is None else {
-        "method": main_cp.method, "count": main_cp.table.count,
-        "rmse_x_m": main_cp.table.rmse_x_m, "rmse_y_m": main_cp.table.rmse_y_m,
-        "rmse_h_m": main_cp.table.rmse_h_m, "rmse_v_m": main_cp.table.rmse_v_m,
-        "mean_x_m": main_cp.table.mean_x_m, "mean_y_m": main_cp.table.mean_y_m,
-        "mean_z_m": main_cp.table.mean_z_m, "std_x_m": main_cp.table.std_x_m,
-        "std_y_m": main_cp.table.std_y_m, "std_z_m": main_cp.table.std_z_m,
+        "method": main_cp.method, "count": main_cp.table.count, **main_cp.table.figures(),
         "horizontal_class_cm": main_cp.table.horizontal_class_cm,
         "vertical_class_cm": main_cp.table.vertical_class_cm,
         "excluded_as_control": list(main_cp.excluded_control)}
