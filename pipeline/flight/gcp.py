@@ -47,6 +47,7 @@ from pyproj.exceptions import CRSError, ProjError
 from pipeline.common.csvio import ID_PATTERN, NUMBER_PATTERN, decode_line
 from pipeline.common.paths import file_problem
 from pipeline.flight.image_metadata import read_image_metadata
+from pipeline.flight.navigation import checked_transform, has_vertical_datum, to_3d
 from pipeline.flight.schema import (
     DEFAULT_GCP_SIGMA_HORIZONTAL_M,
     DEFAULT_GCP_SIGMA_VERTICAL_M,
@@ -66,8 +67,6 @@ OUTSIDE_TOLERANCE_PX = 2.0
 #: Plausible magnitudes (as csvio.magnitude_limit): coordinates, heights, pixels.
 MAX_COORDINATE = 1e8
 MAX_HEIGHT_M = 1e5
-#: A vertical datum change must move heights by at least this (else the geoid was skipped).
-MIN_GEOID_SHIFT_M = 1e-6
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -131,14 +130,6 @@ def is_control_id(point: str) -> bool:
 # --------------------------------------------------------------------------------------------
 
 
-def _has_vertical_datum(crs: pyproj.CRS) -> bool:
-    return crs.is_compound and any(sub.is_vertical for sub in crs.sub_crs_list)
-
-
-def _as_3d(crs: pyproj.CRS) -> pyproj.CRS:
-    return crs.to_3d() if not crs.is_compound and len(crs.axis_info) == 2 else crs
-
-
 def odm_crs(text: str, where: str) -> pyproj.CRS:
     """The CRS of an ODM CRS line (OpenSfM's ``_parse_projection``, plus anything pyproj
     reads: WKT, ``EPSG:nnnn+vvvv``)."""
@@ -172,12 +163,12 @@ class ToWorld:
         pyproj.network.set_network_enabled(False)
         self.where = where
         self.identity = source.equals(target, ignore_axis_order=True)
-        self.vertical_change = _has_vertical_datum(source) != _has_vertical_datum(target)
+        self.vertical_change = has_vertical_datum(source) != has_vertical_datum(target)
         self._tr: pyproj.Transformer | None = None
         if not self.identity:
             try:
                 self._tr = pyproj.Transformer.from_crs(
-                    _as_3d(source), _as_3d(target), always_xy=True,
+                    to_3d(source), to_3d(target), always_xy=True,
                     only_best=self.vertical_change or None,
                     allow_ballpark=not self.vertical_change)
             except ProjError as err:
@@ -190,18 +181,9 @@ class ToWorld:
         if self._tr is None:
             return xyz.copy()
         z_in = np.nan_to_num(xyz[:, 2])
-        try:
-            x, y, z = self._tr.transform(xyz[:, 0], xyz[:, 1], z_in, errcheck=True)
-        except ProjError as err:
-            raise InputDataError(f"{self.where}: coordinate transformation failed: {err}"
-                                 ) from err
-        out = np.column_stack([x, y, z]).astype(np.float64)
-        if not np.all(np.isfinite(out)):
-            raise InputDataError(f"{self.where}: the coordinate transformation gave non-finite "
-                                 "coordinates (missing grid?)")
-        if self.vertical_change and np.any(np.abs(out[:, 2] - z_in) < MIN_GEOID_SHIFT_M):
-            raise InputDataError(f"{self.where}: heights unchanged by the vertical datum "
-                                 "change: the geoid grid was not applied")
+        out = checked_transform(self._tr, xyz[:, 0], xyz[:, 1], z_in,
+                                vertical_change=self.vertical_change, where=self.where,
+                                error=InputDataError)
         out[np.isnan(xyz[:, 2]), 2] = np.nan
         return out
 

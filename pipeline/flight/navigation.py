@@ -179,8 +179,32 @@ def _horizontal(crs: pyproj.CRS) -> pyproj.CRS | None:
     return crs
 
 
-def _has_vertical_datum(crs: pyproj.CRS) -> bool:
+def has_vertical_datum(crs: pyproj.CRS) -> bool:
+    """A compound CRS with a vertical part (orthometric heights)."""
     return crs.is_compound and any(sub.is_vertical for sub in crs.sub_crs_list)
+
+
+def checked_transform(transformer: pyproj.Transformer, x: FloatArray, y: FloatArray,
+                      z: FloatArray, *, vertical_change: bool, where: str,
+                      error: type[Exception]) -> FloatArray:
+    """``transformer`` applied to points, (n, 3), refusing what PROJ does silently wrong.
+
+    Raises ``error`` naming ``where`` when PROJ fails, returns non-finite values (a missing
+    grid), or leaves heights unchanged although the vertical datum changes (a skipped
+    geoid: :data:`MIN_GEOID_SHIFT_M`).
+    """
+    try:
+        xt, yt, zt = transformer.transform(x, y, z, errcheck=True)
+    except ProjError as err:
+        raise error(f"{where}: coordinate transformation failed: {err}") from err
+    out = np.column_stack([xt, yt, zt]).astype(np.float64)
+    if not np.all(np.isfinite(out)):
+        raise error(f"{where}: the coordinate transformation gave non-finite coordinates "
+                    "(missing grid?)")
+    if vertical_change and np.any(np.abs(out[:, 2] - z) < MIN_GEOID_SHIFT_M):
+        raise error(f"{where}: heights unchanged by the vertical datum change: the geoid "
+                    "grid was not applied")
+    return out
 
 
 def grid_convergence_rad(crs: pyproj.CRS, lon_deg: float, lat_deg: float) -> float:
@@ -226,8 +250,8 @@ class GeodeticToProjected:
         self.crs = crs
         source = pyproj.CRS.from_user_input(WGS84_EGM96 if height_kind == "orthometric"
                                             else WGS84_3D)
-        self._vertical_change = _has_vertical_datum(crs) != (height_kind == "orthometric")
-        target = crs if _has_vertical_datum(crs) else _to_3d(crs)
+        self._vertical_change = has_vertical_datum(crs) != (height_kind == "orthometric")
+        target = crs if has_vertical_datum(crs) else to_3d(crs)
         try:
             if self._vertical_change:
                 self._transformer = pyproj.Transformer.from_crs(
@@ -258,22 +282,13 @@ class GeodeticToProjected:
             changes (a silently skipped geoid).
         """
         lon, lat, h = (np.asarray(a, dtype=np.float64) for a in (lon_deg, lat_deg, h_m))
-        try:
-            x, y, z = self._transformer.transform(lon, lat, h, errcheck=True)
-        except ProjError as err:
-            raise ConfigError(f"crs: transformation to {self.crs.name!r} failed: {err}") from err
-        xyz = np.column_stack([x, y, z]).astype(np.float64)
-        if not np.all(np.isfinite(xyz)):
-            raise ConfigError(f"crs: transformation to {self.crs.name!r} gave non-finite "
-                              "coordinates (missing grid?)")
-        if self._vertical_change and np.any(np.abs(xyz[:, 2] - h) < MIN_GEOID_SHIFT_M):
-            raise ConfigError(f"crs: heights unchanged by the transformation to "
-                              f"{self.crs.name!r}: the geoid was not applied")
-        return xyz
+        return checked_transform(self._transformer, lon, lat, h,
+                                 vertical_change=self._vertical_change,
+                                 where=f"crs (to {self.crs.name!r})", error=ConfigError)
 
 
-def _to_3d(crs: pyproj.CRS) -> pyproj.CRS:
-    """The 3D version of a 2D projected CRS (ellipsoidal height as third axis)."""
+def to_3d(crs: pyproj.CRS) -> pyproj.CRS:
+    """The 3D version of a 2D CRS (ellipsoidal height as third axis); others unchanged."""
     return crs.to_3d() if len(crs.axis_info) == 2 else crs
 
 
