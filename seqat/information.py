@@ -201,26 +201,76 @@ def add_factor_parts(parts: tuple[FloatArray, FloatArray, FloatArray], Je: Float
     observation, on window columns ``cols`` (k, ce + 3): image block, then GP), with the
     image-block x image-block parts summed per image first (the factors of one image share
     those columns: with a self-calibrated camera 13 x 13 of every 16 x 16 block)."""
+    if Je.shape[0] == 0:
+        return parts
+    return _add_entries(parts, *factor_entries(Je, Jp, w, img, cols), r_idx, p_idx, n)
+
+
+def factor_information(Je: FloatArray, Jp: FloatArray, w: FloatArray, img: np.ndarray,
+                       cols: np.ndarray, n: int,
+                       minus: tuple[FloatArray, FloatArray, FloatArray] | None = None,
+                       ) -> SparseMatrix:
+    """``sum J^T W J`` of image-point factors as a sparse n x n matrix (exactly symmetric;
+    the entries of :func:`factor_entries`); with ``minus = (Je0, Jp0, w0)`` the same
+    factors' blocks at another linearisation are subtracted block by block (one entry per
+    difference, not two)."""
+    return sparse_entries(*factor_entries(Je, Jp, w, img, cols, minus), n)
+
+
+def factor_entries(Je: FloatArray, Jp: FloatArray, w: FloatArray, img: np.ndarray,
+                   cols: np.ndarray,
+                   minus: tuple[FloatArray, FloatArray, FloatArray] | None = None,
+                   ) -> tuple[np.ndarray, np.ndarray, FloatArray]:
+    """Rows, columns and values of ``sum J^T W J`` over image-point factors (both
+    triangles; an entry may repeat): the image-block x image-block parts summed per image
+    (36 entries per image, not per observation), the parts with a GP row or column per
+    factor; every block symmetric to the last bit. ``minus``: see
+    :func:`factor_information`."""
     k, ce = Je.shape[0], Je.shape[2]
     if k == 0:
-        return parts
+        z = np.zeros(0, dtype=np.int64)
+        return z, z, np.zeros(0)
     uniq, first, inv = np.unique(img, return_index=True, return_inverse=True)
-    wJe = Je * w[:, None, None]
-    EE = np.einsum("kri,krj->kij", wJe, Je).reshape(k, ce * ce)
-    flat = (inv[:, None] * (ce * ce) + np.arange(ce * ce)).ravel()
-    S = np.bincount(flat, weights=EE.ravel(), minlength=uniq.size * ce * ce)
-    parts = add_block_parts(parts, S.reshape(uniq.size, ce, ce), cols[first, :ce], r_idx,
-                            p_idx, n)
-    # the entries with a GP row or column: [E, P]^T W P and its transpose without P^T W P twice
-    J = np.concatenate([Je, Jp], axis=2)
-    PJ = np.einsum("kri,krj->kij", Jp * w[:, None, None], J)  # (k, 3, ce + 3): GP rows
+
+    def blocks(Je: FloatArray, Jp: FloatArray, w: FloatArray,
+               ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        EE = np.einsum("kri,krj->kij", Je * w[:, None, None], Je).reshape(k, ce * ce)
+        flat = (inv[:, None] * (ce * ce) + np.arange(ce * ce)).ravel()
+        S = np.bincount(flat, weights=EE.ravel(), minlength=uniq.size * ce * ce).reshape(
+            uniq.size, ce, ce)
+        wJp = Jp * w[:, None, None]
+        return (S, np.einsum("kri,krj->kij", wJp, Je),  # PE: GP rows, image-block columns
+                np.einsum("kri,krj->kij", wJp, Jp))
+
+    S, PE, PP = blocks(Je, Jp, w)
+    if minus is not None:
+        S0, PE0, PP0 = blocks(*minus)
+        S, PE, PP = S - S0, PE - PE0, PP - PP0
+    S = 0.5 * (S + np.swapaxes(S, 1, 2))
+    PP = 0.5 * (PP + np.swapaxes(PP, 1, 2))
+    ecols = cols[first, :ce]
     gp_cols = cols[:, ce:]
-    a = np.concatenate([np.broadcast_to(gp_cols[:, :, None], PJ.shape).ravel(),
-                        np.broadcast_to(cols[:, :ce, None], (k, ce, GP_SIZE)).ravel()])
-    b = np.concatenate([np.broadcast_to(cols[:, None, :], PJ.shape).ravel(),
-                        np.broadcast_to(gp_cols[:, None, :], (k, ce, GP_SIZE)).ravel()])
-    v = np.concatenate([PJ.ravel(), np.swapaxes(PJ[:, :, :ce], 1, 2).ravel()])
-    return _add_entries(parts, a, b, v, r_idx, p_idx, n)
+    a = np.concatenate([
+        np.broadcast_to(ecols[:, :, None], S.shape).ravel(),
+        np.broadcast_to(gp_cols[:, :, None], PE.shape).ravel(),
+        np.broadcast_to(cols[:, :ce, None], (k, ce, GP_SIZE)).ravel(),
+        np.broadcast_to(gp_cols[:, :, None], PP.shape).ravel()])
+    b = np.concatenate([
+        np.broadcast_to(ecols[:, None, :], S.shape).ravel(),
+        np.broadcast_to(cols[:, None, :ce], PE.shape).ravel(),
+        np.broadcast_to(gp_cols[:, None, :], (k, ce, GP_SIZE)).ravel(),
+        np.broadcast_to(gp_cols[:, None, :], PP.shape).ravel()])
+    v = np.concatenate([S.ravel(), PE.ravel(), np.swapaxes(PE, 1, 2).ravel(), PP.ravel()])
+    return a, b, v
+
+
+def factor_matvec(Je: FloatArray, Jp: FloatArray, w: FloatArray, cols: np.ndarray,
+                  z: FloatArray) -> FloatArray:
+    """``(sum J^T W J) z`` of image-point factors, O(factors): without forming the matrix."""
+    J = np.concatenate([Je, Jp], axis=2)  # (k, 2, ce + 3)
+    Jz = np.einsum("kri,ki->kr", J, z[cols])
+    return np.bincount(cols.ravel(), weights=np.einsum("kri,kr->ki", J * w[:, None, None],
+                                                       Jz).ravel(), minlength=z.size)
 
 
 def _add_entries(parts: tuple[FloatArray, FloatArray, FloatArray], a: np.ndarray,
@@ -342,6 +392,7 @@ class InformationFactor:
 
     def _chol(self, S: FloatArray) -> None:
         r = S.shape[0]
+        self._Qrr: FloatArray | None = None
         if r == 0:
             self.U = np.zeros((0, 0))
             return
@@ -369,7 +420,6 @@ class InformationFactor:
                 self.r_idx[top], on)
         # S = diag(d) Ss diag(d) = (U diag(d))^T (U diag(d))
         self.U = U / scale[None, :]
-        self._Uinv: FloatArray | None = None
 
     # ------------------------------------------------------------------ solves
     def _solve_S(self, b: FloatArray) -> FloatArray:
@@ -402,31 +452,81 @@ class InformationFactor:
         return self.solve(E)
 
     # ------------------------------------------------------------------ marginals
-    def _u_inverse(self) -> FloatArray:
-        if self._Uinv is None:
+    def _q_rr(self) -> FloatArray:
+        """``Q_RR = S^-1`` from the factor (LAPACK ``potri``: ``U^-1 U^-T``), dense r x r."""
+        if self._Qrr is None:
             r = self.U.shape[0]
-            self._Uinv = scipy.linalg.solve_triangular(self.U, np.eye(r), lower=False,
-                                                       check_finite=False)
-        return self._Uinv
+            if r == 0:
+                self._Qrr = np.zeros((0, 0))
+            else:
+                inv, info = scipy.linalg.lapack.dpotri(self.U, lower=0)
+                if info != 0:  # cannot happen for the factor _chol accepted
+                    raise EstimationError(f"LAPACK potri failed on the reduced system ({info})")
+                Q = np.triu(inv)
+                self._Qrr = Q + np.triu(Q, 1).T
+        return self._Qrr
 
     def diagonal(self) -> FloatArray:
         """``diag(Q)``: every marginal variance (cofactor units), all > 0."""
         out = np.empty(self.n)
         out[self.r_idx] = self.reduced_diagonal()
-        npt = self.p_idx.shape[0]
-        if npt:
-            Uinv = self._u_inverse()  # Q_RR = Uinv Uinv^T
-            Z = (self.B.T @ Uinv).T  # (r, 3 np): Q_pp = Dinv + Z_p^T Z_p
-            extra = np.einsum("ij,ij->j", Z, Z)
-            out[self.p_idx.ravel()] = np.einsum("pii->pi", self.Dinv).ravel() + extra
+        if self.p_idx.shape[0]:
+            out[self.p_idx.ravel()] = (np.einsum("pii->pi", self.Dinv)
+                                       + self._point_extra()).ravel()
         return out
 
     def reduced_diagonal(self) -> FloatArray:
         """``diag(Q_RR)``: marginal variances of the kept (not eliminated) parameters."""
-        if self.U.shape[0] == 0:
-            return np.zeros(0)
-        Uinv = self._u_inverse()
-        return np.einsum("ij,ij->i", Uinv, Uinv)
+        return np.diagonal(self._q_rr()).copy()
+
+    def _point_extra(self) -> FloatArray:
+        """``diag(B_p^T Q_RR B_p)`` (np, 3): what the kept parameters add to each eliminated
+        point's variances (``Q_pp = D_p^-1 + B_p^T Q_RR B_p``, ``B_p = L_Rp D_p^-1``).
+
+        ``B_p`` is non-zero only on the rows of the images (and camera) that see the point:
+        each point reads its own m x m block of ``Q_RR`` (m = 6 per ray), O(sum m^2) in all,
+        instead of the O(nnz(B) r) of ``U^-T B`` (docs/algorithm.md, *Engines*)."""
+        Q = self._q_rr()
+        r, npt = self.r_idx.size, self.p_idx.shape[0]
+        if r == 0:
+            return np.zeros((npt, GP_SIZE))
+        if not scipy.sparse.issparse(self.B):
+            B = np.asarray(self.B)
+            return np.einsum("ij,ij->j", B, Q @ B).reshape(npt, GP_SIZE)
+        C = scipy.sparse.csc_array(self.B)
+        C.sum_duplicates()  # canonical: sorted rows per column, no duplicates
+        ptr, rows, vals = C.indptr, C.indices, C.data
+        cnt = np.diff(ptr).reshape(npt, GP_SIZE)
+        m = cnt[:, 0]
+        start = ptr[:-1:GP_SIZE]
+        same = np.all(cnt == m[:, None], axis=1)
+        extra = np.zeros((npt, GP_SIZE))
+        for mm in np.unique(m[same & (m > 0)]):
+            pts = np.flatnonzero(same & (m == mm))
+            seg = start[pts][:, None] + np.arange(mm)  # (g, mm): the first column's rows
+            R = rows[seg]
+            ok = np.all(R == rows[seg + mm], axis=1) & np.all(R == rows[seg + 2 * mm], axis=1)
+            self._extra_of(Q, R[ok], vals[seg[ok][:, :, None] + mm * np.arange(GP_SIZE)],
+                           extra, pts[ok])
+            same[pts[~ok]] = False
+        rest = np.flatnonzero(~same)  # columns of one point with different rows: dense
+        if rest.size:
+            cols = (rest[:, None] * GP_SIZE + np.arange(GP_SIZE)).ravel()
+            Bc = C[:, cols].toarray()
+            extra[rest] = np.einsum("ij,ij->j", Bc, Q @ Bc).reshape(rest.size, GP_SIZE)
+        return extra
+
+    @staticmethod
+    def _extra_of(Q: FloatArray, R: np.ndarray, Bs: FloatArray, out: FloatArray,
+                  pts: np.ndarray) -> None:
+        """``out[pts] = diag(B_p^T Q[R_p, R_p] B_p)`` for points whose B_p (mm x 3, ``Bs``)
+        lives on the same number of rows ``R`` (g, mm), in chunks of bounded memory."""
+        mm = R.shape[1]
+        for part in np.array_split(np.arange(pts.size),
+                                   max(1, pts.size * mm * mm // 4_000_000)):
+            Rp, Bp = R[part], Bs[part]
+            QB = np.matmul(Q[Rp[:, :, None], Rp[:, None, :]], Bp)
+            out[pts[part]] = np.einsum("gik,gik->gk", Bp, QB)
 
     def block(self, idx: np.ndarray) -> FloatArray:
         """``Q[idx, idx]``, (k, k), without the n x k columns :meth:`columns` forms.

@@ -753,13 +753,14 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         if opts.smoothing_lag is not None:
             self._finalise_old(i)
         self._prune_dormant(i)
-        ms = (time.perf_counter() - t0) * 1e3
+        # the published sigmas (the image's EOP, the window's GPs) are part of the update
         update = self._report(
-            frame, i, ms, rows, n2, len(born), len(pts) - skipped - len(rejected_new), skipped,
+            frame, i, 0.0, rows, n2, len(born), len(pts) - skipped - len(rejected_new), skipped,
             iterations, dropped
         )
         return dataclasses.replace(
             update,
+            update_ms=(time.perf_counter() - t0) * 1e3,
             reopened=len(reopened),
             drift_px=self._drift_px,
             drift_m=self._drift_m,

@@ -28,9 +28,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse
 
 from seqat.errors import EstimationError
 from seqat.types import FloatArray
+
+#: Updates whose ``A21`` has more entries than this form their products sparse (the paper
+#: strip's ~80 x 250 stays dense: there numpy beats scipy.sparse's per-call cost).
+SPARSE_ROWS_FROM = 50_000
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -130,12 +135,26 @@ def solve_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows, *,
     P2A22 = w2[:, None] * A22
     D = A22.T @ P2A22 + A32.T @ (w3[:, None] * A32)  # M22 + L22
     D_inv = spd_inverse(D, "(M22 + L22)")
-    P2bar = -(P2A22 @ D_inv @ P2A22.T)
+    # A row touches one point and one image (and the camera): A21 and A22 have a few
+    # non-zeros per row. A large update forms G, H and P2bar as sparse products, O(m2 t)
+    # instead of O(t^2 m2 + m2 t m2) (docs/algorithm.md, *Engines*); the same numbers.
+    sparse = A21.size > SPARSE_ROWS_FROM
+    if sparse:
+        A21s, P2A22s = scipy.sparse.csr_array(A21), scipy.sparse.csr_array(P2A22)
+        P2bar = -(P2A22s @ (P2A22s @ D_inv).T)
+    else:
+        P2bar = -(P2A22 @ D_inv @ P2A22.T)
     P2bar[np.diag_indices_from(P2bar)] += w2
     P23bar_l3 = -P2A22 @ (D_inv @ (A32.T @ (w3 * rows.l3)))
     Qt = None if block else Q if columns else Q[:, touched]
-    Gt = (Q if block else Qt[touched]) @ A21.T  # type: ignore[index]
-    H = A21 @ Gt
+    Q_tt = Q if block else Qt[touched]  # type: ignore[index]
+    if sparse:
+        Gt = (A21s @ Q_tt).T  # Q_tt symmetric
+        H = A21s @ Gt
+        H = 0.5 * (H + H.T)
+    else:
+        Gt = Q_tt @ A21.T
+        H = A21 @ Gt
     m2 = A21.shape[0]
     S = P2bar @ H
     S[np.diag_indices_from(S)] += 1.0

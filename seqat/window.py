@@ -152,6 +152,13 @@ class Window:
                 self.on_singular(keys)  # removes them: the loop factorises the rest
         return self._factor
 
+    def adopt_factor(self, factor: InformationFactor) -> None:
+        """Take ``factor`` as the factorisation of the current ``L`` (its caller made it
+        from the same information and the window's :meth:`elimination`)."""
+        assert factor.n == self.x.size
+        self._factor = factor
+        self._diag = None
+
     def settle(self) -> None:
         """Information engine: factorise now, so that GPs the data do not determine leave
         (:attr:`on_singular`) before offsets are read; no-op for the inverse engine."""

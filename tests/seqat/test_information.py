@@ -49,6 +49,31 @@ def test_factor_solve_columns_and_marginals_equal_the_dense_inverse(
     np.testing.assert_allclose(f.dense(), Q, rtol=1e-8, atol=1e-12)
 
 
+def test_point_marginals_read_per_point_blocks_even_when_its_columns_differ(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The eliminated points' variances are ``D^-1 + B_p^T Q_RR B_p`` read point by point
+    from ``Q_RR``: equal to the dense formula, also for a point whose three columns of ``B``
+    have different rows (the dense fallback) and with the memory chunking forced."""
+    import scipy.sparse
+
+    import seqat.information as information
+
+    monkeypatch.setattr(information, "SPARSE_FROM", 0)
+    rng = np.random.default_rng(11)
+    L, gp = _window_like(rng, n_e=5, n_p=30, coupled=3)
+    f = InformationFactor(L, gp)
+    B = f.B.toarray()
+    B[np.flatnonzero(B[:, 3])[0], 3] = 0.0  # point 1: its first column loses a row
+    f.B = scipy.sparse.csr_array(B)
+    f.B.eliminate_zeros()
+    Qrr = np.linalg.inv(np.linalg.inv(L)[np.ix_(f.r_idx, f.r_idx)])  # S
+    Qrr = np.linalg.inv(Qrr)
+    want = np.einsum("ij,ij->j", B, Qrr @ B).reshape(-1, 3)
+    np.testing.assert_allclose(f._point_extra(), want, rtol=1e-9, atol=1e-15)
+    monkeypatch.setattr(np, "array_split", lambda a, k: [a[:1], a[1:]])  # two chunks
+    np.testing.assert_allclose(f._point_extra(), want, rtol=1e-9, atol=1e-15)
+
+
 def test_singular_point_block_is_named_not_a_nan() -> None:
     rng = np.random.default_rng(4)
     L, gp = _window_like(rng)

@@ -115,3 +115,33 @@ def test_undetermined_new_parameter_is_an_estimation_error() -> None:
     )
     with pytest.raises(EstimationError, match=r"\(M22 \+ L22\) \(3x3\) is not positive definite"):
         solve_update(Q, np.array([0, 1]), rows)
+
+
+def test_large_update_forms_its_products_sparse_with_the_same_numbers(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Rows that touch one point (3 columns) of the window and the new image (6 columns),
+    as a real update's do: the sparse products give what the dense ones give."""
+    import seqat.update as update
+
+    rng = np.random.default_rng(7)
+    t, n2, m2 = 60, 6 + 3 * 4, 80
+    M = rng.standard_normal((2 * t, t))
+    Q = np.linalg.inv(M.T @ M + np.eye(t))
+    Q = 0.5 * (Q + Q.T)
+    A21 = np.zeros((m2, t))
+    A22 = np.zeros((m2, n2))
+    for i in range(m2):
+        p = rng.integers(t // 3)
+        A21[i, 3 * p:3 * p + 3] = rng.standard_normal(3)
+        A22[i, :6] = rng.standard_normal(6)
+    rows = LinearRows(A21=A21, A22=A22, w2=rng.uniform(0.5, 2.0, m2), l2=rng.standard_normal(m2),
+                      A32=np.eye(n2), w3=np.full(n2, 1e-2), l3=rng.standard_normal(n2))
+    touched = np.arange(t)
+    monkeypatch.setattr(update, "SPARSE_ROWS_FROM", 10**12)
+    dense = solve_update(Q, touched, rows, block=True)
+    monkeypatch.setattr(update, "SPARSE_ROWS_FROM", 0)
+    sparse = solve_update(Q, touched, rows, block=True)
+    for name in ("Gt", "H", "P2bar", "S", "kappa", "delta1_touched", "delta2"):
+        np.testing.assert_allclose(getattr(sparse, name), getattr(dense, name),
+                                   rtol=1e-9, atol=1e-12, err_msg=name)
+    assert sparse.ssr_increment == pytest.approx(dense.ssr_increment, rel=1e-10)
