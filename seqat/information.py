@@ -145,13 +145,6 @@ def sparse_entries(rows: np.ndarray, cols: np.ndarray, values: FloatArray,
     return scipy.sparse.coo_array((values[nz], (rows[nz], cols[nz])), shape=(n, n)).tocsr()
 
 
-def sparse_blocks(blocks: FloatArray, cols: np.ndarray, n: int) -> SparseMatrix:
-    """Blocks (k, c, c) on window columns ``cols`` (k, c) summed into a sparse n x n matrix."""
-    a = np.broadcast_to(cols[:, :, None], blocks.shape)
-    b = np.broadcast_to(cols[:, None, :], blocks.shape)
-    return sparse_entries(a, b, blocks, n)
-
-
 def dense_block(L: WindowMatrix, rows: np.ndarray, cols: np.ndarray) -> FloatArray:
     """``L[np.ix_(rows, cols)]`` as a dense array, for a dense or sparse ``L``."""
     if scipy.sparse.issparse(L):

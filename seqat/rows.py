@@ -19,11 +19,9 @@ from seqat import snooping
 from seqat.calibration import FreeCamera
 from seqat.geometry import wrap_angle
 from seqat.information import (
-    SparseMatrix,
     WindowMatrix,
     add_block,
     padded,
-    sparse_blocks,
     window_matrix,
 )
 from seqat.robust import cauchy_weight
@@ -268,14 +266,6 @@ def gradient_from_factors(Je: FloatArray, Jp: FloatArray, r: FloatArray, w: Floa
                                                        r).ravel(), minlength=n)
 
 
-def normal_from_factors(Je: FloatArray, Jp: FloatArray, r: FloatArray, w: FloatArray,
-                        cols: np.ndarray, n: int) -> tuple[SparseMatrix, FloatArray]:
-    """``J^T W J`` (sparse, n x n) and ``J^T W r`` of image-point factors on ``n`` window
-    columns."""
-    return (sparse_blocks(factor_blocks(Je, Jp, w), cols, n),
-            gradient_from_factors(Je, Jp, r, w, cols, n))
-
-
 @dataclass(eq=False)
 class FactorSet:
     """Image-point factors (one observation each) with their linearisation, as arrays."""
@@ -331,14 +321,6 @@ class FactorSet:
 
     def linearised_ssr(self, e: FloatArray, p: FloatArray) -> float:
         return float(np.sum(self.w[:, None] * self.predicted(e, p) ** 2))
-
-    def information(self, cols: np.ndarray, n: int) -> tuple[SparseMatrix, FloatArray]:
-        """``J^T W J`` (sparse) and ``J^T W (r_lin + J x_lin)`` at the stored
-        linearisation."""
-        x_lin = np.concatenate([self.e_lin, self.p_lin], axis=1)
-        J = np.concatenate([self.Je, self.Jp], axis=2)
-        rhs = self.r_lin + np.einsum("kri,ki->kr", J, x_lin)
-        return normal_from_factors(self.Je, self.Jp, rhs, self.w, cols, n)
 
     def relinearised_at(self, e: FloatArray, p: FloatArray, Je: FloatArray, Jp: FloatArray,
                         r: FloatArray) -> None:
