@@ -8,7 +8,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.seqat-installed
 DEMO := out/demo
 
-.PHONY: demo test bench bench-faults bench-fuzz sysdeps clean
+.PHONY: demo test test-kernels bench bench-faults bench-fuzz sysdeps clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -43,6 +43,13 @@ demo: $(STAMP) sysdeps
 
 test: $(STAMP) sysdeps
 	$(BIN)/python -m pytest -q
+
+# The estimator's tests on another OpenBLAS kernel than the machine's own (Sandy Bridge: AVX,
+# no FMA): results must not depend on the CPU (docs/algorithm.md, *BLAS kernels*).
+test-kernels: $(STAMP)
+	OPENBLAS_CORETYPE=Sandybridge $(BIN)/python -m pytest -q -p no:cacheprovider \
+		tests/seqat/test_information.py tests/seqat/test_robust.py \
+		tests/seqat/test_sequential.py tests/pipeline/bench/test_bench_faults.py
 
 bench: $(STAMP) sysdeps
 	$(BIN)/seqat bench configs/paper_sim.yaml --out out/bench --seed 1 --seed 2 --seed 3 \
