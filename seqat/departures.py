@@ -28,7 +28,7 @@ from seqat.types import EOP_SIZE, EopEstimate, FloatArray, PointEstimate
 from seqat.update import spd_inverse
 from seqat.window import (
     Key,
-    correlations_from_columns,
+    correlations_from_block,
     first_over_threshold,
     key_size,
     keys_of,
@@ -176,13 +176,15 @@ class DepartureMixin:
             given[cam] = diag[cam]  # the camera's own (0 given itself) are not read
             diag = given
         rho = np.zeros(len(offs))
+        eidx = (offs[:, None] + np.arange(EOP_SIZE)).ravel()  # the window's EOP parameters
+        sd_e = np.sqrt(diag[eidx])
         for r in range(len(offs) - 1, -1, -1):
-            o = int(offs[r])
-            cols = w.q_columns(o + np.arange(EOP_SIZE))
+            ref = eidx[EOP_SIZE * r : EOP_SIZE * (r + 1)]
+            block = w.q_entries(eidx, ref)  # Q[EOPs, reference]: no column of a GP
             if given_camera is not None:
                 gain, q_cam = given_camera
-                cols = cols - gain @ q_cam[o + np.arange(EOP_SIZE)].T
-            rho_r = correlations_from_columns(cols, diag, offs, o)
+                block = block - gain[eidx] @ q_cam[ref].T
+            rho_r = correlations_from_block(block, sd_e, r)
             rho = np.maximum(rho, rho_r)
             rho_r[r] = 0.0
             if np.any(rho_r >= thr):
@@ -266,11 +268,8 @@ class DepartureMixin:
                     at=now,
                 )
             )
-        if self._inverse:
-            w.Q = w.Q[np.ix_(keep, keep)]
         w.coupled -= leaving
-        w.x = w.x[keep]
-        w.relayout(keep_keys)
+        w.marginalise(keep_keys, keep, w.L)
 
     def _hold_pending_rays(self, start: int, frame_points: set[int]) -> int:
         """Never lose tie rays by waiting: shorten the cut before the first leaving image that

@@ -322,6 +322,7 @@ class InformationFactor:
         self._kept_gp = (np.zeros(0, dtype=np.int64) if kept_gp is None
                          else np.asarray(kept_gp, dtype=np.int64))
         self.n = n
+        self._pos: tuple[np.ndarray, np.ndarray] | None = None  # _positions(), on request
         eliminate = np.asarray(eliminate, dtype=np.int64)
         r_idx, p_idx = split_indices(n, eliminate)
         self.r_idx, self.p_idx = r_idx, p_idx
@@ -530,10 +531,9 @@ class InformationFactor:
         O(n r k) (docs/algorithm.md, *Engines*)."""
         idx = np.asarray(idx, dtype=np.int64)
         k = idx.size
-        rpos = np.full(self.n, -1, dtype=np.int64)
-        rpos[self.r_idx] = np.arange(self.r_idx.size)
-        ppos = np.full(self.n, -1, dtype=np.int64)
-        ppos[self.p_idx.ravel()] = np.arange(self.p_idx.size)
+        rpos, ppos = self._positions()
+        if self._small():
+            return self._block_from_q_rr(idx, rpos, ppos)
         in_r, in_p = rpos[idx] >= 0, ppos[idx] >= 0
         M = np.zeros((self.r_idx.size, k))
         M[rpos[idx[in_r]], np.flatnonzero(in_r)] = 1.0
@@ -555,6 +555,71 @@ class InformationFactor:
             out[jp] = np.einsum("jc,jck->jk", self.Dinv[blk, q % GP_SIZE], rhs)
         return 0.5 * (out + out.T)
 
+    def entries(self, rows: np.ndarray, cols: np.ndarray) -> FloatArray:
+        """``Q[rows, cols]`` (outer). Kept (not eliminated) rows and columns, the EOPs
+        among them, come from ``Q_RR = S^-1``: read from :meth:`q_rr` in a small window, one
+        LAPACK ``potrs`` on the columns asked for in a large one; no back-substitution of the
+        eliminated GPs. Otherwise from :meth:`columns`."""
+        rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+        rpos = self._positions()[0]
+        rr, rc = rpos[rows], rpos[cols]
+        if rows.size and cols.size and (rr.min() < 0 or rc.min() < 0):
+            return self.columns(cols)[rows]
+        if self._small():
+            return self.q_rr()[np.ix_(rr, rc)]
+        E = np.zeros((self.r_idx.size, cols.size))
+        E[rc, np.arange(cols.size)] = 1.0
+        return self._solve_S(E)[rr]
+
+    def _positions(self) -> tuple[np.ndarray, np.ndarray]:
+        """Position of each window parameter in ``R`` and in ``P`` (-1 where it is not)."""
+        pos = self._pos
+        if pos is None:
+            rpos = np.full(self.n, -1, dtype=np.int64)
+            rpos[self.r_idx] = np.arange(self.r_idx.size)
+            ppos = np.full(self.n, -1, dtype=np.int64)
+            ppos[self.p_idx.ravel()] = np.arange(self.p_idx.size)
+            pos = self._pos = (rpos, ppos)
+        return pos
+
+    def _small(self) -> bool:
+        """A window whose ``L`` is dense (:data:`DENSE_UP_TO`): its cofactor blocks come
+        from ``Q_RR`` formed once (:meth:`q_rr`), cheaper there than a solve per request."""
+        return self.n <= DENSE_UP_TO and not scipy.sparse.issparse(self.B)
+
+    def q_rr(self) -> FloatArray:
+        """``Q_RR = S^-1`` (r, r) of the kept parameters, dense: the one the marginals form
+        (:meth:`_q_rr`, once per factorisation), shared by the window rule and the update."""
+        return self._q_rr()
+
+    def _block_from_q_rr(self, idx: np.ndarray, rpos: np.ndarray,
+                         ppos: np.ndarray) -> FloatArray:
+        """:meth:`block` from ``Q_RR``: ``Q_Rp = -Q_RR B_p``, ``Q_pp' = D_p^-1 [p = p'] +
+        B_p^T Q_RR B_p'`` (``B = L_RP D^-1``) on the eliminated entries asked for."""
+        Q = self.q_rr()
+        in_r = rpos[idx] >= 0
+        jr, jp = np.flatnonzero(in_r), np.flatnonzero(~in_r)
+        R = rpos[idx[jr]]
+        QRR = Q.take(R, axis=0).take(R, axis=1)
+        if not jp.size:
+            return QRR
+        q = ppos[idx[jp]]  # positions in P of the eliminated entries asked for
+        Bq = np.asarray(self.B).take(q, axis=1)
+        QB = Q @ Bq  # (r, |jp|)
+        PP = Bq.T @ QB
+        blk, comp = q // GP_SIZE, q % GP_SIZE
+        a, b = np.nonzero(blk[:, None] == blk[None, :])  # the same point's entries
+        PP[a, b] += self.Dinv[blk[a], comp[a], comp[b]]
+        QRP = -QB.take(R, axis=0)
+        nr = jr.size  # kept entries first, then the eliminated ones; idx's order after
+        out = np.empty((idx.size, idx.size))
+        out[:nr, :nr] = QRR
+        out[:nr, nr:] = QRP
+        out[nr:, :nr] = QRP.T
+        out[nr:, nr:] = 0.5 * (PP + PP.T)
+        order = np.argsort(np.concatenate([jr, jp]))
+        return out.take(order, axis=0).take(order, axis=1)
+
     @staticmethod
     def _columns_of(M: FloatArray | SparseMatrix, cols: np.ndarray) -> FloatArray:
         """``M[:, cols]`` as a dense array (dense or sparse ``M``)."""
@@ -566,3 +631,42 @@ class InformationFactor:
         """The whole cofactor ``Q = L^-1`` (tests and small windows only)."""
         Q = self.solve(np.eye(self.n))
         return 0.5 * (Q + Q.T)
+
+
+class MarginalFactor:
+    """The factorisation of a window's ``L`` answering for the window after parameters
+    left it: marginalising is deleting rows and columns of ``Q = L^-1``, so
+    ``Q' = Q[keep, keep]`` (``keep``: the staying parameters' indices in ``L``). The
+    Schur complement ``L'`` the departure forms has exactly this inverse; until ``L'``
+    changes, the update reads its cofactor blocks here instead of factorising ``L'``
+    (docs/algorithm.md, *Engines*)."""
+
+    def __init__(self, base: InformationFactor, keep: np.ndarray) -> None:
+        self.base = base
+        self.keep = np.asarray(keep, dtype=np.int64)
+        self.n = self.keep.size
+
+    @classmethod
+    def of(cls, base: InformationFactor | MarginalFactor, keep: np.ndarray) -> MarginalFactor:
+        """The marginal on ``keep`` of ``base`` (itself possibly a marginal)."""
+        if isinstance(base, MarginalFactor):
+            return cls(base.base, base.keep[keep])
+        return cls(base, keep)
+
+    def solve(self, b: FloatArray) -> FloatArray:
+        """``Q' b`` (``b`` of shape (n,) or (n, k))."""
+        full = np.zeros((self.base.n,) + b.shape[1:])
+        full[self.keep] = b
+        return self.base.solve(full)[self.keep]
+
+    def columns(self, idx: np.ndarray) -> FloatArray:
+        """``Q'[:, idx]``."""
+        return self.base.columns(self.keep[idx])[self.keep]
+
+    def block(self, idx: np.ndarray) -> FloatArray:
+        """``Q'[idx, idx]``."""
+        return self.base.block(self.keep[idx])
+
+    def entries(self, rows: np.ndarray, cols: np.ndarray) -> FloatArray:
+        """``Q'[rows, cols]`` (outer)."""
+        return self.base.entries(self.keep[rows], self.keep[cols])

@@ -61,7 +61,7 @@ from seqat.camera_window import CameraMixin
 from seqat.departures import Departure, DepartureMixin
 from seqat.errors import EstimationError
 from seqat.geometry import wrap_angle
-from seqat.information import DENSE_UP_TO, window_matrix
+from seqat.information import window_matrix
 from seqat.relinearise import FINAL_RELINEARISE_PX, RelinearisationMixin
 from seqat.reports import RecordedRows, ReportMixin
 from seqat.robust import ROBUST_SCALE
@@ -615,10 +615,9 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             touched_keys += [("p", p) for p in y21_pts]
             touched_keys += list(dict.fromkeys(("e", j) for (j, _, _, _) in y12))
             touched = w.indices(touched_keys)
-            # a small window: the touched columns (one solve gives the block and d1); a large
-            # one: the block alone, d1 by one solve after (docs/algorithm.md, *Engines*)
-            Qc = w.q_columns(touched) if w.x.size <= DENSE_UP_TO else None
-            Qtt = Qc[touched] if Qc is not None else w.q_block(touched)
+            # the block Q[touched, touched] alone; d1 by one solve after (docs/algorithm.md,
+            # *Engines*)
+            Qtt = w.q_block(touched)
             col_of = {}
             c = 0
             for k in touched_keys:
@@ -714,7 +713,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self._forced.difference_update(born)
         if self.recorded is not None:
             self._record(touched_keys, touched, born, i, rows, x1t, x2_0)
-        d1 = Qc @ sol.kappa1 if Qc is not None else w.q_apply(touched, sol.kappa1)
+        d1 = w.q_apply(touched, sol.kappa1)
         w.x = np.concatenate([w.x + d1, x2_0 + sol.delta2])
         if self._inverse:
             w.Q = update_cofactor(w.Q, touched, rows, sol)

@@ -18,7 +18,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from seqat.errors import EstimationError
-from seqat.information import InformationFactor, RankDeficiency, WindowMatrix, submatrix
+from seqat.information import (
+    InformationFactor,
+    MarginalFactor,
+    RankDeficiency,
+    WindowMatrix,
+    submatrix,
+)
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 
 #: Parameter key: (kind, index) with kind "e" (EOP of image index), "p" (GP index) or "c"
@@ -60,9 +66,16 @@ def correlations_from_columns(q_last: FloatArray, q_diag: FloatArray, eop_offset
     """:func:`eop_correlations` from the last image's cofactor columns ``Q[:, last]`` (n, 6)
     and the diagonal of ``Q``: what a factorised engine recovers without forming ``Q``."""
     idx = (eop_offsets[:, None] + np.arange(EOP_SIZE)).ravel()
-    last = last_offset + np.arange(EOP_SIZE)
-    sd = np.sqrt(q_diag)
-    rho = q_last[idx] / (sd[idx, None] * sd[None, last])
+    ref = int(np.flatnonzero(eop_offsets == last_offset)[0])
+    return correlations_from_block(q_last[idx], np.sqrt(q_diag[idx]), ref)
+
+
+def correlations_from_block(q_eop: FloatArray, sd_eop: FloatArray, ref: int) -> FloatArray:
+    """Max |rho| of each window image's EOP block against image ``ref``'s, from
+    ``Q[EOPs, EOPs of ref]`` (6 W, 6) and the EOPs' standard deviations (6 W,), images in
+    window order."""
+    sd_ref = sd_eop[EOP_SIZE * ref : EOP_SIZE * (ref + 1)]
+    rho = q_eop / (sd_eop[:, None] * sd_ref[None, :])
     return np.minimum(np.max(np.abs(rho).reshape(-1, EOP_SIZE * EOP_SIZE), axis=1), 1.0)
 
 
@@ -109,6 +122,9 @@ class Window:
     coupled: set[Key] = field(default_factory=set)
     _Q: FloatArray | None = None
     _factor: InformationFactor | None = None
+    #: Right after a departure: the factorisation the departed parameters left, answering
+    #: for the marginal (``Q' = Q[keep, keep]``) until ``L`` changes again.
+    _marginal: MarginalFactor | None = None
     _diag: FloatArray | None = None
     #: Called with the GP keys whose information is singular (the data do not determine
     #: them); it must take them out of the window. None: the RankDeficiency propagates.
@@ -134,6 +150,7 @@ class Window:
     def changed(self) -> None:
         """``L`` (information engine) or ``Q`` changed: drop what was derived from it."""
         self._factor = None
+        self._marginal = None
         self._diag = None
         if not self.inverse:
             self._Q = None
@@ -161,9 +178,35 @@ class Window:
 
     def settle(self) -> None:
         """Information engine: factorise now, so that GPs the data do not determine leave
-        (:attr:`on_singular`) before offsets are read; no-op for the inverse engine."""
-        if not self.inverse and self.L is not None:
+        (:attr:`on_singular`) before offsets are read; no-op for the inverse engine and right
+        after a departure (the marginal of a factorised, positive definite ``L`` is positive
+        definite: :meth:`marginalise`)."""
+        if not self.inverse and self.L is not None and self._marginal is None:
             self.factor()
+
+    def _solver(self) -> InformationFactor | MarginalFactor:
+        """What answers for ``Q`` (information engine): the factorisation of ``L``, or, right
+        after a departure, the one the departed parameters left (:meth:`marginalise`)."""
+        if self._factor is None and self._marginal is not None:
+            return self._marginal
+        return self.factor()
+
+    def marginalise(self, keep_keys: list[Key], keep: np.ndarray, L: WindowMatrix | None) -> None:
+        """The window after parameters left: ``keep_keys`` stay (window indices ``keep``),
+        ``L`` is the Schur complement of the leaving ones (the caller forms it).
+
+        Marginalising is deleting rows and columns of ``Q``: ``Q' = Q[keep, keep]``. Until
+        ``L`` changes again (the next update adds its rows), the cofactor blocks the update
+        needs come from the factorisation of the ``L`` before the departure
+        (:class:`seqat.information.MarginalFactor`): a departure costs no factorisation."""
+        base = None if self.inverse else (self._factor or self._marginal)
+        if self.inverse:
+            self._Q = self.Q[np.ix_(keep, keep)]
+        self.L = L
+        self.x = self.x[keep]
+        self.relayout(keep_keys)
+        if base is not None:
+            self._marginal = MarginalFactor.of(base, keep)
 
     def couple(self, keys: list[Key]) -> None:
         """A prior now ties ``keys`` together: if two or more are GPs, those are no longer
@@ -207,7 +250,7 @@ class Window:
         """``Q[:, idx]``."""
         if self.inverse:
             return self.Q[:, idx]
-        return self.factor().columns(idx)
+        return self._solver().columns(idx)
 
     def q_diagonal(self) -> FloatArray:
         """``diag(Q)``: every marginal variance (cofactor units)."""
@@ -226,13 +269,21 @@ class Window:
             return self.Q[:, idx] @ v
         b = np.zeros(self.x.size)
         np.add.at(b, idx, v)
-        return self.factor().solve(b)
+        return self._solver().solve(b)
 
     def q_block(self, idx: np.ndarray) -> FloatArray:
         """``Q[idx, idx]``."""
         if self.inverse:
             return self.Q[np.ix_(idx, idx)].copy()
-        return self.factor().block(idx)
+        return self._solver().block(idx)
+
+    def q_entries(self, rows: np.ndarray, cols: np.ndarray) -> FloatArray:
+        """``Q[rows, cols]`` (outer): EOP rows and columns come from the reduced system
+        alone (``Q_RR = S^-1``), no back-substitution of the eliminated GPs
+        (:meth:`seqat.information.InformationFactor.entries`)."""
+        if self.inverse:
+            return self.Q[np.ix_(rows, cols)]
+        return self._solver().entries(rows, cols)
 
     def relayout(self, keys: list[Key]) -> None:
         self.changed()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from seqat.information import InformationFactor, RankDeficiency
+from seqat.information import InformationFactor, MarginalFactor, RankDeficiency
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight
 
@@ -47,6 +47,31 @@ def test_factor_solve_columns_and_marginals_equal_the_dense_inverse(
     np.testing.assert_allclose(f.diagonal(), np.diagonal(Q), rtol=1e-9)
     np.testing.assert_allclose(f.block(idx), Q[np.ix_(idx, idx)], rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(f.dense(), Q, rtol=1e-8, atol=1e-12)
+    eops = np.arange(24)  # kept entries: Q_RR, without the eliminated points
+    np.testing.assert_allclose(f.entries(eops, idx[:2]), Q[np.ix_(eops, idx[:2])],
+                               rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(f.entries(idx, idx), Q[np.ix_(idx, idx)], rtol=1e-9, atol=1e-12)
+
+
+def test_marginal_factor_answers_for_the_schur_complement() -> None:
+    """After a departure the update reads ``Q[keep, keep]`` from the factorisation the leaving
+    parameters left (MarginalFactor): the inverse of the Schur complement the window keeps."""
+    rng = np.random.default_rng(5)
+    L, gp = _window_like(rng)
+    n = L.shape[0]
+    leave = np.r_[0:6, 42:45]  # an image and an eliminated point
+    keep = np.setdiff1d(np.arange(n), leave)
+    Lkk = L[np.ix_(keep, keep)] - L[np.ix_(keep, leave)] @ np.linalg.solve(
+        L[np.ix_(leave, leave)], L[np.ix_(leave, keep)])
+    Qm = np.linalg.inv(Lkk)
+    m = MarginalFactor.of(MarginalFactor.of(InformationFactor(L, gp), np.arange(n)), keep)
+    b = rng.standard_normal(keep.size)
+    np.testing.assert_allclose(m.solve(b), Qm @ b, rtol=1e-9, atol=1e-12)
+    idx = np.array([0, 3, 25, 26, 34])
+    np.testing.assert_allclose(m.columns(idx), Qm[:, idx], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(m.block(idx), Qm[np.ix_(idx, idx)], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(m.entries(idx[:2], idx), Qm[np.ix_(idx[:2], idx)], rtol=1e-9,
+                               atol=1e-12)
 
 
 def test_point_marginals_read_per_point_blocks_even_when_its_columns_differ(
@@ -107,11 +132,12 @@ def test_engines_agree_and_sigmas_stay_positive_after_every_update(
 
 def test_the_large_window_path_agrees_with_the_inverse_update(
         short_strip: SimulatedFlight, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Every window as a large one: the update takes ``Q[touched, touched]`` from the factor
-    (InformationFactor.block) and the window's correction as one solve (Window.q_apply)."""
-    import seqat.sequential as sequential
+    """Every window as a large one: ``L`` sparse, the update's ``Q[touched, touched]`` solved
+    from the factor (InformationFactor.block, not from a dense ``Q_RR``) and the window's
+    correction as one solve (Window.q_apply)."""
+    import seqat.information as information
 
-    monkeypatch.setattr(sequential, "DENSE_UP_TO", 0)
+    monkeypatch.setattr(information, "DENSE_UP_TO", 0)
     _engines_agree(short_strip, 0.1)
 
 
