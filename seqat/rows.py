@@ -243,11 +243,20 @@ class RowBuilder:
         last linearised rows' prediction there; 0 without image rows."""
         k = self.k
         if k == 0:
+            self._true = np.zeros(0)
             return 0.0
         z = np.concatenate([x1t + d1t, x2_0 + d2])
         true_resid = self.obs - self.cam.project(z[self.eidx], z[self.pidx]).ravel()
+        self._true = true_resid
         lin_resid = self._ell[: 2 * k] - self._A[: 2 * k] @ np.concatenate([d1t, d2])
         return float(np.max(np.abs(true_resid - lin_resid)))
+
+    def within_core(self, scale: float) -> bool:
+        """Every image point at the estimate of the last :meth:`linearisation_error` lies
+        within the robust loss's least-squares core (``u² <= k²``): its robust weight there
+        is 1, so the least-squares solution of these rows is already the robust one."""
+        u2 = np.sum(self._true.reshape(-1, 2) ** 2, axis=1) / self.sigmas**2
+        return bool(np.all(u2 <= scale**2))
 
 
 

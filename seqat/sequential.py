@@ -668,10 +668,13 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                     break
                 # Converged when the rows, linearised where they were, still describe the
                 # image points at the new estimate: re-linearising would move it by less.
+                # The first iterate is least squares: it is the robust one too when every
+                # image point there lies within the loss's core (weight 1; clean data).
                 if iterations >= opts.max_update_iterations or (
                     builder.linearisation_error(x1t, x2_0, d1t, d2)
                     < opts.iteration_tolerance_px
-                    and (opts.robust_scale is None or iterations > 1)
+                    and (opts.robust_scale is None or iterations > 1
+                         or builder.within_core(opts.robust_scale))
                 ):
                     break
             if degenerate:

@@ -100,3 +100,19 @@ def test_one_blunder_in_any_row_keeps_seq_r_near_the_clean_run(
         eop, gp = run(dataclasses.replace(f, obs_uv=uv))
         assert eop <= 1.10 * clean_eop, (int(k), eop, clean_eop)
         assert gp <= 1.25 * clean_gp, (int(k), gp, clean_gp)
+
+
+def test_clean_rows_within_the_core_are_solved_as_least_squares(
+        short_strip: SimulatedFlight) -> None:
+    """A robust update whose least-squares iterate leaves every image point within the
+    loss's core (weight 1 there) stops there, as least squares does: with a scale no clean
+    residual reaches, the robust run is the least-squares run, iteration for iteration."""
+    runs = {k: SequentialAT(short_strip.camera, SequentialOptions(robust_scale=k))
+            for k in (None, 50.0)}
+    single = 0
+    for fr in short_strip.frames():
+        ups = {k: est.add_frame(fr) for k, est in runs.items()}
+        assert ups[None].iterations == ups[50.0].iterations
+        np.testing.assert_allclose(ups[50.0].eop.eop, ups[None].eop.eop, rtol=0, atol=1e-9)
+        single += ups[50.0].stage == "sequential" and ups[50.0].iterations == 1
+    assert single > 0  # before: a robust update iterated at least twice
