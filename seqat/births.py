@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from seqat.geometry import depth, intersect_rays, project, wrap_angle
+from seqat.geometry import depth, intersect_rays, project, viewing_axes, wrap_angle
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 from seqat.update import LinearRows
 from seqat.window import Key
@@ -68,8 +68,9 @@ class BirthMixin:
         E_a, I_a = np.asarray(E).reshape(-1, EOP_SIZE), np.asarray(I, dtype=np.int64)
         X = x2[EOP_SIZE:].reshape(-1, GP_SIZE)
         with np.errstate(all="ignore"):
-            d = depth(E_a, X[I_a])
-            d0 = depth(E_a, born_xyz[I_a])
+            axis = viewing_axes(E_a)  # one rotation for both depths
+            d = np.einsum("nj,nj->n", axis, E_a[:, :3] - X[I_a])
+            d0 = np.einsum("nj,nj->n", axis, E_a[:, :3] - born_xyz[I_a])
         bad_ray = ~((d > 0) & (d < BIRTH_DEPTH_FACTOR * np.maximum(d0, 0.0)))
         bad = np.zeros(len(born), dtype=bool)
         np.logical_or.at(bad, I_a, bad_ray)
@@ -92,17 +93,14 @@ class BirthMixin:
                   and len(self._pending[p]) >= self._min_rays(p)]
             if len(ok) < len(candidates):
                 return self._birth(ok, i, nav, use_new=use_new)
-        eops, uvs, idx = [], [], []
-        for c, p in enumerate(candidates):
-            for j, uv, _ in self._pending[p]:
-                if j == i and not use_new:
-                    continue
-                eops.append(nav if j == i else self._eop_value(j))
-                uvs.append(uv)
-                idx.append(c)
-        if not idx:
+        rays = [(c, j, uv) for c, p in enumerate(candidates) for j, uv, _ in self._pending[p]
+                if use_new or j != i]
+        if not rays:
             return [], np.zeros((0, GP_SIZE))
-        E, UV, I = np.asarray(eops), np.asarray(uvs), np.asarray(idx)
+        I = np.fromiter((r[0] for r in rays), dtype=np.int64, count=len(rays))
+        J = np.fromiter((r[1] for r in rays), dtype=np.int64, count=len(rays))
+        UV = np.array([r[2] for r in rays], dtype=np.float64).reshape(-1, 2)
+        E = self._eop_values(J, i, nav)
         X, spread = intersect_rays(E, UV, I, len(candidates), self._camera_now())
         min_angle = np.radians(
             [
@@ -147,6 +145,18 @@ class BirthMixin:
             if ctrl is not None:
                 out.append((t + EOP_SIZE + GP_SIZE * b, ctrl[0], ctrl[1]))
         return out
+
+    def _eop_values(self, images: np.ndarray, i: int, nav: FloatArray) -> FloatArray:
+        """EOP of each of ``images`` (k, 6): the window's estimate, the frozen value of a
+        departed image, ``nav`` for the new image ``i``."""
+        w = self._w
+        offs = w.offsets_of("e", images)
+        E = np.empty((images.size, EOP_SIZE))
+        inside = offs >= 0
+        E[inside] = w.x[offs[inside, None] + np.arange(EOP_SIZE)]
+        for r in np.flatnonzero(~inside):
+            E[r] = nav if images[r] == i else self._frozen_eop[int(images[r])][0]
+        return E
 
     def _eop_value(self, j: int) -> FloatArray:
         w = self._w

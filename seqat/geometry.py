@@ -48,11 +48,9 @@ def rotation_matrix(
     (..., 3, 3) float
         ``R_world_from_cam``.
     """
-    o, p, k = np.broadcast_arrays(
-        np.asarray(omega_rad, dtype=np.float64),
-        np.asarray(phi_rad, dtype=np.float64),
-        np.asarray(kappa_rad, dtype=np.float64),
-    )
+    o, p, k = (np.asarray(a, dtype=np.float64) for a in (omega_rad, phi_rad, kappa_rad))
+    if not o.shape == p.shape == k.shape:
+        o, p, k = np.broadcast_arrays(o, p, k)
     co, so, cp, sp, ck, sk = np.cos(o), np.sin(o), np.cos(p), np.sin(p), np.cos(k), np.sin(k)
     R = np.empty(o.shape + (3, 3))
     R[..., 0, 0] = cp * ck
@@ -203,8 +201,16 @@ def depth(eop: FloatArray, X_world_m: FloatArray) -> FloatArray:
         Positive in front of the camera.
     """
     eop = np.atleast_2d(np.asarray(eop, dtype=np.float64))
-    R = rotation_matrix(eop[:, 3], eop[:, 4], eop[:, 5])
-    return -np.einsum("nj,nj->n", R[:, :, 2], np.atleast_2d(X_world_m) - eop[:, :3])
+    return np.einsum("nj,nj->n", viewing_axes(eop), eop[:, :3] - np.atleast_2d(X_world_m))
+
+
+def viewing_axes(eop: FloatArray) -> FloatArray:
+    """The camera z axis in the world frame, ``R[:, :, 2]`` (n, 3): depends on omega and phi
+    only (``Rx(omega) Ry(phi) e_z``); the camera looks along its negative."""
+    eop = np.atleast_2d(np.asarray(eop, dtype=np.float64))
+    co, so = np.cos(eop[:, 3]), np.sin(eop[:, 3])
+    cp, sp = np.cos(eop[:, 4]), np.sin(eop[:, 4])
+    return np.stack([sp, -so * cp, co * cp], axis=-1)
 
 
 def project_with_jacobians(
@@ -233,31 +239,46 @@ def project_with_jacobians(
     """
     eop = np.atleast_2d(np.asarray(eop, dtype=np.float64))
     X = np.atleast_2d(np.asarray(X_world_m, dtype=np.float64))
-    R, axes = _rotation_axes(eop)
+    n = eop.shape[0]
+    omega, phi = eop[:, 3], eop[:, 4]
+    R = rotation_matrix(omega, phi, eop[:, 5])
     d = X - eop[:, :3]
     p = np.einsum("nji,nj->ni", R, d)  # R^T d
     f = camera.f_px
     inv_z = 1.0 / p[:, 2]
     xn, yn = -p[:, 0] * inv_z, p[:, 1] * inv_z
     # d[xn, yn]/dp: xn = -px/pz, yn = py/pz
-    zero = np.zeros_like(inv_z)
-    dn_dp = np.stack([np.stack([-inv_z, zero, p[:, 0] * inv_z**2], axis=-1),
-                      np.stack([zero, inv_z, -p[:, 1] * inv_z**2], axis=-1)], axis=1)
-    n = eop.shape[0]
+    dn_dp = np.zeros((n, 2, 3))
+    dn_dp[:, 0, 0] = -inv_z
+    dn_dp[:, 0, 2] = -xn * inv_z
+    dn_dp[:, 1, 1] = inv_z
+    dn_dp[:, 1, 2] = -yn * inv_z
     if camera.has_distortion or intrinsics:
         xd, yd, D, K = distort_normalized(xn, yn, camera, jacobians=True)
         duv_dp = f * (D @ dn_dp)
     else:
         xd, yd = xn, yn
         duv_dp = f * dn_dp  # (n, 2, 3)
-    Rt = np.swapaxes(R, 1, 2)
-    J_point = duv_dp @ Rt  # dp/dX = R^T
-    # dp/dtheta_k = -R^T (a_k x d)
-    cross = np.cross(axes, d[:, None, :])  # (n, 3 angles, 3)
-    dp_dangles = -np.einsum("nij,nkj->nik", Rt, cross)  # (n, 3 comps, 3 angles)
     J_eop = np.empty((n, 2, 6))
+    J_point = np.matmul(duv_dp, np.swapaxes(R, 1, 2))  # dp/dX = R^T
     J_eop[:, :, :3] = -J_point
-    J_eop[:, :, 3:] = duv_dp @ dp_dangles
+    # dp/dtheta_k = -R^T (a_k x d) with the world axes a_k of the three angle rotations
+    # (a_omega = e_x, a_phi = Rx e_y, a_kappa = Rx Ry e_z): d[u, v]/dtheta = -J_point C,
+    # C[:, :, k] = a_k x d, written out (np.cross is slow on short stacks)
+    co, so, cp, sp = np.cos(omega), np.sin(omega), np.cos(phi), np.sin(phi)
+    dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
+    ky, kz = -so * cp, co * cp  # a_kappa = [sp, ky, kz]
+    C = np.empty((n, 3, 3))
+    C[:, 0, 0] = 0.0
+    C[:, 1, 0] = -dz
+    C[:, 2, 0] = dy
+    C[:, 0, 1] = co * dz - so * dy
+    C[:, 1, 1] = so * dx
+    C[:, 2, 1] = -co * dx
+    C[:, 0, 2] = ky * dz - kz * dy
+    C[:, 1, 2] = kz * dx - sp * dz
+    C[:, 2, 2] = sp * dy - ky * dx
+    J_eop[:, :, 3:] = np.matmul(J_eop[:, :, :3], C)
     uv = np.stack([camera.cx_px + f * xd, camera.cy_px + f * yd], axis=-1)
     if not intrinsics:
         return uv, J_eop, J_point
@@ -284,11 +305,13 @@ def rays_world(eop: FloatArray, uv_px: FloatArray, camera: PinholeCamera) -> Flo
     eop = np.atleast_2d(np.asarray(eop, dtype=np.float64))
     uv = np.atleast_2d(np.asarray(uv_px, dtype=np.float64))
     R = rotation_matrix(eop[:, 3], eop[:, 4], eop[:, 5])
-    xn, yn = undistort_normalized((uv[:, 0] - camera.cx_px) / camera.f_px,
-                                  (uv[:, 1] - camera.cy_px) / camera.f_px, camera)
-    ray_cam = np.stack([xn, -yn, np.full(uv.shape[0], -1.0)], axis=-1)
+    ray_cam = np.empty((uv.shape[0], 3))
+    xn, yn = (uv[:, 0] - camera.cx_px) / camera.f_px, (uv[:, 1] - camera.cy_px) / camera.f_px
+    if camera.has_distortion:
+        xn, yn = undistort_normalized(xn, yn, camera)
+    ray_cam[:, 0], ray_cam[:, 1], ray_cam[:, 2] = xn, -yn, -1.0
     ray = np.einsum("nij,nj->ni", R, ray_cam)
-    return ray / np.linalg.norm(ray, axis=1, keepdims=True)
+    return ray / np.sqrt(np.einsum("ni,ni->n", ray, ray))[:, None]
 
 
 def intersect_rays(

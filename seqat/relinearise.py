@@ -89,9 +89,14 @@ class RelinearisationMixin:
         k = self.options.robust_scale
         if k is None or f.pt.size == 0:
             return np.zeros(0, dtype=np.int64)
-        out = (np.sum(true**2, axis=1) * f.w0 > k**2).astype(np.int64)
-        pts, inv, n = np.unique(f.pt, return_inverse=True, return_counts=True)
-        n_out = np.bincount(inv, weights=out, minlength=pts.size)
+        out = np.sum(true**2, axis=1) * f.w0 > k**2
+        if not out.any():  # clean data: no ray beyond the scale, no point astray
+            return np.zeros(0, dtype=np.int64)
+        pts = np.unique(f.pt[out])  # only points with a ray out can be astray
+        pos = np.minimum(np.searchsorted(pts, f.pt), pts.size - 1)
+        mine = pts[pos] == f.pt
+        n = np.bincount(pos[mine], minlength=pts.size)
+        n_out = np.bincount(pos[mine & out], minlength=pts.size)
         return pts[(n >= ASTRAY_MIN_RAYS) & (2 * n_out > n)]
 
     def _rescue_points(self, f: FactorSet, astray: np.ndarray, x: FloatArray,
@@ -162,8 +167,9 @@ class RelinearisationMixin:
         final = threshold_px is not None
         rounds, weight_tol = ((FINAL_ROBUST_ROUNDS, FINAL_ROBUST_WEIGHT_TOLERANCE) if final
                               else (ROBUST_ROUNDS, ROBUST_WEIGHT_TOLERANCE))
-        true = f.residuals(x[e_idx], x[p_idx], self._cam)
-        self._drift_px = f.linearisation_error(x[e_idx], x[p_idx], self._cam, true)
+        xe, xp = x[e_idx], x[p_idx]
+        true = f.residuals(xe, xp, self._cam)
+        self._drift_px = f.linearisation_error(xe, xp, self._cam, true)
         astray = self._astray_points(f, true)
         if self._drift_px <= limit and not force and not astray.size:
             return

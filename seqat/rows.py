@@ -289,19 +289,17 @@ class FactorSet:
     Je: FloatArray  # (k, 2, 6 + c) Jacobians there
     Jp: FloatArray  # (k, 2, 3)
     r_lin: FloatArray  # (k, 2) residual there
+    #: The window offsets of each factor's image and point blocks (Factors.in_window), for
+    #: the layout they were read in; None: looked up by :meth:`columns`.
+    offsets: tuple[np.ndarray, np.ndarray] | None = None
 
     def columns(self, w: Window) -> tuple[np.ndarray, np.ndarray]:
         """Window columns of every factor's image block (k, 6 + c: EOP, then the camera's
         free parameters when the window holds them) and GP (k, 3)."""
-        e_keys = {k[1]: off for k, off in w.offset.items() if k[0] == "e"}
-        p_keys = {k[1]: off for k, off in w.offset.items() if k[0] == "p"}
-        e_ids, e_offs = (np.fromiter(d, dtype=np.int64, count=len(d)) for d in
-                         (e_keys, e_keys.values()))
-        p_ids, p_offs = (np.fromiter(d, dtype=np.int64, count=len(d)) for d in
-                         (p_keys, p_keys.values()))
-        e_order, p_order = np.argsort(e_ids), np.argsort(p_ids)
-        e = e_offs[e_order][np.searchsorted(e_ids[e_order], self.img)]
-        p = p_offs[p_order][np.searchsorted(p_ids[p_order], self.pt)]
+        if self.offsets is not None:  # found by Factors.in_window for this layout
+            e, p = self.offsets
+        else:
+            e, p = w.offsets_of("e", self.img), w.offsets_of("p", self.pt)
         cam = [k for k in w.keys if k[0] == "c"]
         cam_cols = w.indices(cam)
         e_cols = np.concatenate([e[:, None] + np.arange(EOP_SIZE),
@@ -384,13 +382,19 @@ class Factors:
         if not self._chunks:
             return None
         parts = self._concat(self._chunks)
-        keep = self._inside(parts, w)
-        if keep_leaving and not keep.all():
-            self._dormant.append(tuple(a[~keep] for a in parts))
-        self._chunks = [tuple(a[keep] for a in parts)] if keep.any() else []
-        if not keep.any():
-            return None
-        return FactorSet(**dict(zip(self._FIELDS, self._chunks[0], strict=True)))
+        e_off, p_off = w.offsets_of("e", parts[0]), w.offsets_of("p", parts[1])
+        keep = (e_off >= 0) & (p_off >= 0)
+        if keep.all():
+            self._chunks = [tuple(parts)]
+        else:
+            if keep_leaving:
+                self._dormant.append(tuple(a[~keep] for a in parts))
+            self._chunks = [tuple(a[keep] for a in parts)] if keep.any() else []
+            if not keep.any():
+                return None
+            e_off, p_off = e_off[keep], p_off[keep]
+        return FactorSet(**dict(zip(self._FIELDS, self._chunks[0], strict=True)),
+                         offsets=(e_off, p_off))
 
     def wake(self, w: Window) -> None:
         """Dormant factors whose image and point are both in the window again (after a
@@ -432,8 +436,11 @@ class Factors:
 
     @staticmethod
     def _concat(chunks: list[tuple[np.ndarray, ...]]) -> list[np.ndarray]:
+        if len(chunks) == 1:
+            return list(chunks[0])
         return [np.concatenate(col) for col in zip(*chunks, strict=True)]
 
     @staticmethod
     def _inside(parts: list[np.ndarray], w: Window) -> np.ndarray:
-        return np.isin(parts[0], w.ids("e")) & np.isin(parts[1], w.ids("p"))
+        return (w.offsets_of("e", parts[0]) >= 0) & (w.offsets_of("p", parts[1]) >= 0)
+

@@ -34,10 +34,13 @@ Key = tuple[str, int]
 CAMERA = "c"
 
 
+#: Block size of the fixed-size key kinds; a camera key's index is its size.
+_SIZES = {"e": EOP_SIZE, "p": GP_SIZE}
+
+
 def key_size(key: Key) -> int:
     """Number of parameters of a key's block."""
-    kind = key[0]
-    return EOP_SIZE if kind == "e" else GP_SIZE if kind == "p" else key[1]
+    return _SIZES.get(key[0], key[1])
 
 
 def eop_correlations(Q: FloatArray, eop_offsets: np.ndarray, last_offset: int) -> FloatArray:
@@ -91,8 +94,9 @@ def first_over_threshold(correlations: FloatArray, threshold: float) -> int:
 
 def keys_of(keys: list[Key], indices: np.ndarray) -> list[Key]:
     """The key of each parameter index, for ``keys`` laid out in that order."""
-    sizes = np.fromiter((key_size(k) for k in keys),
-                        dtype=np.int64, count=len(keys))
+    table = _SIZES
+    sizes = np.fromiter((table.get(k[0], k[1]) for k in keys), dtype=np.int64,
+                        count=len(keys))
     starts = np.cumsum(sizes) - sizes
     return [keys[int(b)] for b in np.searchsorted(starts, indices, side="right") - 1]
 
@@ -126,6 +130,7 @@ class Window:
     #: for the marginal (``Q' = Q[keep, keep]``) until ``L`` changes again.
     _marginal: MarginalFactor | None = None
     _diag: FloatArray | None = None
+    _lookup: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     #: Called with the GP keys whose information is singular (the data do not determine
     #: them); it must take them out of the window. None: the RankDeficiency propagates.
     on_singular: Callable[[list[Key]], None] | None = None
@@ -288,11 +293,33 @@ class Window:
     def relayout(self, keys: list[Key]) -> None:
         self.changed()
         self.keys = keys
-        self.offset = {}
+        self.offset = offset = {}
         off = 0
         for k in keys:
-            self.offset[k] = off
-            off += key_size(k)
+            offset[k] = off
+            kind = k[0]
+            off += EOP_SIZE if kind == "e" else GP_SIZE if kind == "p" else k[1]
+        self._lookup = {}
+
+    def offsets_of(self, kind: str, ids: np.ndarray) -> np.ndarray:
+        """Window offset of the block of each image (``kind`` "e") or GP ("p") index in
+        ``ids``; -1 for those not in the window (vectorised: O(len(ids) log window))."""
+        if not self._lookup:  # both kinds in one pass over the layout
+            flat: dict[str, list[int]] = {"e": [], "p": []}
+            for k, off in self.offset.items():
+                pairs = flat.get(k[0])
+                if pairs is not None:
+                    pairs += (k[1], off)
+            for name, pairs in flat.items():
+                a = np.array(pairs, dtype=np.int64).reshape(-1, 2)
+                a = a[a[:, 0].argsort(kind="stable")]
+                self._lookup[name] = (a[:, 0], a[:, 1])
+        sorted_ids, offs = self._lookup[kind]
+        ids = np.asarray(ids, dtype=np.int64)
+        if sorted_ids.size == 0:
+            return np.full(ids.shape, -1, dtype=np.int64)
+        pos = np.minimum(np.searchsorted(sorted_ids, ids), sorted_ids.size - 1)
+        return np.where(sorted_ids[pos] == ids, offs[pos], -1)
 
     def index(self, key: Key) -> np.ndarray:
         off = self.offset[key]
@@ -302,9 +329,9 @@ class Window:
         """Parameter indices of several blocks, concatenated in the order of ``keys``."""
         if not keys:
             return np.zeros(0, dtype=np.int64)
-        offs = np.fromiter((self.offset[k] for k in keys), dtype=np.int64, count=len(keys))
-        sizes = np.fromiter(
-            (key_size(k) for k in keys), dtype=np.int64, count=len(keys)
-        )
+        offs = np.fromiter(map(self.offset.__getitem__, keys), dtype=np.int64, count=len(keys))
+        table = _SIZES
+        sizes = np.fromiter((table.get(k[0], k[1]) for k in keys), dtype=np.int64,
+                            count=len(keys))
         starts = np.cumsum(sizes) - sizes
         return np.repeat(offs - starts, sizes) + np.arange(int(sizes.sum()))
