@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
+import scipy.sparse
 
 from seqat.geometry import wrap_angle
 from seqat.information import (
@@ -243,16 +244,27 @@ class DepartureMixin:
             # E[x_F | x_W] = x_F - L_FF^-1 L_FW (x_W - x_W0): the RTS gain from the information
             # matrix; marginalising F out of L is its Schur complement, which changes only
             # the block of F's neighbours (the support of L_FW: F's Markov blanket).
-            support = nonzero_columns(submatrix(w.L, leave, keep))
-            L_fs = dense_block(w.L, leave, keep[support])
-            cond = spd_inverse(dense_block(w.L, leave, leave), "information of the leaving "
-                               "parameters")
+            if scipy.sparse.issparse(w.L):
+                support = nonzero_columns(submatrix(w.L, leave, keep))
+                L_fs = dense_block(w.L, leave, keep[support])
+                L_ff = dense_block(w.L, leave, leave)
+            else:  # one gather of the leaving rows (dense window)
+                rows_f = w.L.take(leave, axis=0)
+                L_fw = rows_f.take(keep, axis=1)
+                support = np.flatnonzero(np.any(L_fw != 0.0, axis=0))
+                L_fs, L_ff = L_fw.take(support, axis=1), rows_f.take(leave, axis=1)
+            cond = spd_inverse(L_ff, "information of the leaving parameters")
             gain_s = -cond @ L_fs
             gain = np.zeros((leave.size, keep.size))
             gain[:, support] = gain_s
             fill = L_fs.T @ gain_s
-            L = window_matrix(add_block(submatrix(w.L, keep, keep), support,
-                                        0.5 * (fill + fill.T)))
+            fill = 0.5 * (fill + fill.T)
+            if scipy.sparse.issparse(w.L):
+                L = window_matrix(add_block(submatrix(w.L, keep, keep), support, fill))
+            else:
+                L = w.L.take(keep, axis=0).take(keep, axis=1)  # a copy
+                L[np.ix_(support, support)] += fill
+                L = window_matrix(L)
             # GPs the marginal prior now ties to other GPs are no longer eliminable alone
             w.couple(keys_of(keep_keys, support))
             w.L = L

@@ -57,6 +57,13 @@ class RankDeficiency(EstimationError):
         self.gp_blocks = gp_blocks  # offsets of singular eliminated GP blocks
 
 
+def _median(x: FloatArray) -> float:
+    """``np.median`` of a short 1-D array, without its general machinery."""
+    s = np.sort(x)
+    m = s.size // 2
+    return float(s[m]) if s.size % 2 else float(0.5 * (s[m - 1] + s[m]))
+
+
 def split_indices(n: int, eliminate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Kept indices ``R`` (r,) and eliminated GP blocks ``P`` (np, 3) of an n-parameter
     window whose eliminated GP blocks start at ``eliminate``."""
@@ -79,6 +86,10 @@ SparseMatrix = scipy.sparse.csr_array
 DENSE_UP_TO = 1200
 #: A window's information matrix: dense (small windows) or sparse.
 WindowMatrix = FloatArray | SparseMatrix
+#: ``S^-1 b`` from the factor ``S = U^T U`` in one LAPACK call (two ``solve_triangular``
+#: calls cost twice scipy's argument checking, a measurable share of a small window's update).
+_POTRS = scipy.linalg.lapack.dpotrs
+_POTRF = scipy.linalg.lapack.dpotrf
 
 
 def sparse_information(L: WindowMatrix) -> SparseMatrix:
@@ -160,7 +171,8 @@ def gather_parts(L: FloatArray | SparseMatrix, r_idx: np.ndarray, p_idx: np.ndar
     if not scipy.sparse.issparse(L):
         L = np.asarray(L)
         D = L[p_idx[:, :, None], p_idx[:, None, :]]
-        return D, L[np.ix_(r_idx, r_idx)], L[np.ix_(r_idx, p_idx.ravel())]
+        rows_r = L.take(r_idx, axis=0)  # row gathers, then columns: faster than np.ix_
+        return D, rows_r.take(r_idx, axis=1), rows_r.take(p_idx.ravel(), axis=1)
     p_flat = p_idx.ravel()
     npt = p_idx.shape[0]
     rows_r = L[r_idx]
@@ -337,7 +349,7 @@ class InformationFactor:
             bad = ~(ev[:, 0] > RANK_TOLERANCE * np.maximum(ev[:, -1], 1e-300))
             # ... or next to no information at all (every ray down-weighted to nothing):
             # its elimination would carry rounding into the reduced system
-            bad |= ev[:, -1] < WEAK_TOLERANCE * np.median(ev[:, -1])
+            bad |= ev[:, -1] < WEAK_TOLERANCE * _median(ev[:, -1])
             if np.any(bad):
                 raise RankDeficiency(
                     f"singular 3x3 ground point information block ({int(bad.sum())} points)",
@@ -350,7 +362,7 @@ class InformationFactor:
         if kept.size and npt:
             pos = np.searchsorted(r_idx, kept[:, None] + np.arange(GP_SIZE))
             dk = np.diagonal(L_RR)[pos].max(axis=1)
-            weak = dk < WEAK_TOLERANCE * np.median(np.einsum("pii->pi", D).max(axis=1))
+            weak = dk < WEAK_TOLERANCE * _median(np.einsum("pii->pi", D).max(axis=1))
             if np.any(weak):
                 raise RankDeficiency(
                     f"next to no information on {int(weak.sum())} ground points",
@@ -380,8 +392,14 @@ class InformationFactor:
             else:
                 self.L_RP, self.B = L_RP, B
                 BL = B @ L_RP.T
-        S = L_RR - BL
-        S = 0.5 * (S + S.T)
+        # S = L_RR - BL, symmetric but for the rounding of BL: the Cholesky reads its upper
+        # triangle only (a symmetrising pass cost as much as the product on small windows);
+        # L_RR is the gathered copy unless the caller gave the parts
+        if parts is None:
+            L_RR -= BL
+            S = L_RR
+        else:
+            S = L_RR - BL
         self._chol(S)
 
     def _chol(self, S: FloatArray) -> None:
@@ -393,13 +411,16 @@ class InformationFactor:
         d = np.sqrt(np.abs(np.diagonal(S)))
         ok = d > 0
         scale = np.where(ok, 1.0 / np.where(ok, d, 1.0), 1.0)
-        Ss = S * scale[:, None] * scale[None, :]  # unit diagonal: conditioning, not units
-        try:
-            U = scipy.linalg.cholesky(Ss, lower=False, check_finite=True)
-            rcond = (np.min(np.diagonal(U)) / np.max(np.diagonal(U))) ** 2
-        except (np.linalg.LinAlgError, ValueError):
-            rcond = 0.0
+        Ss = S * scale[:, None]
+        Ss *= scale[None, :]  # unit diagonal: conditioning, not units
+        # LAPACK potrf in place on the Fortran view of Ss (its lower triangle is Ss's upper
+        # one): U = L^T, no copy; a NaN leaves a NaN rcond (not > tolerance)
+        Lt, info = _POTRF(Ss.T, lower=1, clean=1, overwrite_a=1)
+        U = Lt.T
+        diag_u = np.diagonal(U)
+        rcond = (diag_u.min() / diag_u.max()) ** 2 if info == 0 else 0.0
         if not rcond > RANK_TOLERANCE:
+            Ss = S * scale[:, None] * scale[None, :]
             ev, V = np.linalg.eigh(np.nan_to_num(Ss))
             weak = np.abs(V[:, 0])
             top = np.argsort(-weak)[:6]
@@ -419,9 +440,10 @@ class InformationFactor:
     def _solve_S(self, b: FloatArray) -> FloatArray:
         if self.U.shape[0] == 0:
             return b
-        y = scipy.linalg.solve_triangular(self.U, b, trans="T", lower=False,
-                                          check_finite=False)
-        return scipy.linalg.solve_triangular(self.U, y, lower=False, check_finite=False)
+        x, info = _POTRS(self.U, b, lower=0)  # U^-1 U^-T b: the two triangular solves
+        if info != 0:  # pragma: no cover - only for a malformed argument
+            raise EstimationError(f"LAPACK potrs failed on the reduced system ({info})")
+        return x
 
     def solve(self, b: FloatArray) -> FloatArray:
         """``L^-1 b`` for ``b`` of shape (n,) or (n, k)."""

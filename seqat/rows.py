@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+import scipy.sparse
 
 from seqat import snooping
 from seqat.calibration import FreeCamera
@@ -103,7 +104,15 @@ def add_information(L: WindowMatrix, touched: np.ndarray, rows: LinearRows) -> W
     A2 = np.hstack([rows.A21, rows.A22])
     M = A2.T @ (rows.w2[:, None] * A2)
     M[t:, t:] += rows.A32.T @ (rows.w3[:, None] * rows.A32)
-    return window_matrix(add_block(padded(L, n1 + n2), cols, 0.5 * (M + M.T)))
+    M = 0.5 * (M + M.T)
+    if not scipy.sparse.issparse(L):  # one copy, the rows added in place
+        out = np.empty((n1 + n2, n1 + n2))
+        out[:n1, :n1] = L
+        out[:n1, n1:] = 0.0
+        out[n1:] = 0.0
+        out[np.ix_(cols, cols)] += M
+        return window_matrix(out)
+    return window_matrix(add_block(padded(L, n1 + n2), cols, M))
 
 
 class RowBuilder:
@@ -168,6 +177,7 @@ class RowBuilder:
         # design.
         self.flat_e = (rows[:, :, None] * ncol + self.eidx[:, None, :]).ravel()
         self.flat_p = (rows[:, :, None] * ncol + self.pidx[:, None, :]).ravel()
+        self.flat_nav = (2 * k + np.arange(EOP_SIZE)) * ncol + t + np.arange(EOP_SIZE)
         self.obs = np.asarray([o[2] for o in ordered], dtype=np.float64).reshape(2 * k)
         self.ids = np.asarray([o[5] for o in ordered], dtype=np.int64).reshape(k, 2)
         self.sigmas = np.asarray([o[3] for o in ordered], dtype=np.float64).reshape(k)
@@ -189,17 +199,18 @@ class RowBuilder:
         A = np.zeros((n_rows, self.ncol))
         ell = np.empty(n_rows)
         if k:
-            uv, Je, Jp = self.cam.project_with_jacobians(z[self.eidx], z[self.pidx])
+            ze, zp = z[self.eidx], z[self.pidx]
+            uv, Je, Jp = self.cam.project_with_jacobians(ze, zp)
             A.flat[self.flat_e] = Je.ravel()
             A.flat[self.flat_p] = Jp.ravel()
-            ell[: 2 * k] = self.obs - uv.ravel()
             res = (self.obs - uv.ravel()).reshape(k, 2)
-            self._lin = (z[self.eidx], z[self.pidx], Je, Jp, res)
+            ell[: 2 * k] = res.ravel()
+            self._lin = (ze, zp, Je, Jp, res)
             if self.robust_scale is not None:
                 self.w[: 2 * k] = self.w0[: 2 * k] * np.repeat(
                     cauchy_weight(res, self.sigmas, self.robust_scale), 2)
         # GPS/INS constraint of the new EOP (linear, A = I): nav - e_new, angles wrapped.
-        A[2 * k + np.arange(EOP_SIZE), t + np.arange(EOP_SIZE)] = 1.0
+        A.flat[self.flat_nav] = 1.0
         dz = self.nav - z[t : t + EOP_SIZE]
         dz[3:] = wrap_angle(dz[3:])
         nav_end = 2 * k + EOP_SIZE

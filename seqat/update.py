@@ -28,6 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse
 
 from seqat.errors import EstimationError
@@ -36,6 +37,10 @@ from seqat.types import FloatArray
 #: Updates whose ``A21`` has more entries than this form their products sparse (the paper
 #: strip's ~80 x 250 stays dense: there numpy beats scipy.sparse's per-call cost).
 SPARSE_ROWS_FROM = 50_000
+
+_POTRF = scipy.linalg.lapack.dpotrf
+_POTRI = scipy.linalg.lapack.dpotri
+_GESV = scipy.linalg.lapack.dgesv
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -99,17 +104,29 @@ class UpdateSolution:
 
 
 def spd_inverse(M: FloatArray, what: str) -> FloatArray:
-    """Inverse of a symmetric positive definite matrix, or :class:`EstimationError`."""
-    try:
-        np.linalg.cholesky(M)  # raises unless positive definite
-    except np.linalg.LinAlgError as err:
-        ev = np.linalg.eigvalsh(M)
+    """Inverse of a symmetric positive definite matrix, or :class:`EstimationError`.
+
+    LAPACK ``potrf`` (which fails unless ``M`` is positive definite) and ``potri`` on its
+    factor: two calls, the result exactly symmetric (the matrices are small: an update's new
+    parameters, a departure's leaving ones, where numpy's per-call overhead is the cost)."""
+    M = np.asarray(M, dtype=np.float64)
+    if M.shape[0] == 0:
+        return np.zeros((0, 0))
+    U, info = _POTRF(M, lower=0, clean=1)
+    if info == 0 and np.isfinite(U).all():
+        inv, info = _POTRI(U, lower=0)
+    else:
+        info = info or -1
+    if info != 0:
+        ev = np.linalg.eigvalsh(np.nan_to_num(M))
         raise EstimationError(
             f"{what} ({M.shape[0]}x{M.shape[0]}) is not positive definite: "
             f"eigenvalues from {ev[0]:.3g} to {ev[-1]:.3g}"
-        ) from err
-    inv = np.linalg.inv(M)
-    return 0.5 * (inv + inv.T)
+        )
+    # potri writes the upper triangle; below it stand U's zeros (clean): mirror it
+    out = inv + inv.T
+    out.flat[:: M.shape[0] + 1] = np.diagonal(inv)
+    return out
 
 
 def solve_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows, *,
@@ -135,6 +152,7 @@ def solve_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows, *,
     P2A22 = w2[:, None] * A22
     D = A22.T @ P2A22 + A32.T @ (w3[:, None] * A32)  # M22 + L22
     D_inv = spd_inverse(D, "(M22 + L22)")
+    b3 = A32.T @ (w3 * rows.l3)
     # A row touches one point and one image (and the camera): A21 and A22 have a few
     # non-zeros per row. A large update forms G, H and P2bar as sparse products, O(m2 t)
     # instead of O(t^2 m2 + m2 t m2) (docs/algorithm.md, *Engines*); the same numbers.
@@ -144,8 +162,8 @@ def solve_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows, *,
         P2bar = -(P2A22s @ (P2A22s @ D_inv).T)
     else:
         P2bar = -(P2A22 @ D_inv @ P2A22.T)
-    P2bar[np.diag_indices_from(P2bar)] += w2
-    P23bar_l3 = -P2A22 @ (D_inv @ (A32.T @ (w3 * rows.l3)))
+    P2bar.flat[:: P2bar.shape[0] + 1] += w2
+    P23bar_l3 = -P2A22 @ (D_inv @ b3)
     Qt = None if block else Q if columns else Q[:, touched]
     Q_tt = Q if block else Qt[touched]  # type: ignore[index]
     if sparse:
@@ -157,13 +175,14 @@ def solve_update(Q: FloatArray, touched: np.ndarray, rows: LinearRows, *,
         H = A21 @ Gt
     m2 = A21.shape[0]
     S = P2bar @ H
-    S[np.diag_indices_from(S)] += 1.0
-    try:
-        kappa = np.linalg.solve(S, P2bar @ rows.l2 + P23bar_l3)
-    except np.linalg.LinAlgError as err:
-        raise EstimationError(f"[I + P2bar A21 N11^-1 A21^T] ({m2}x{m2}) is singular") from err
+    S.flat[:: m2 + 1] += 1.0
+    kappa = P2bar @ rows.l2 + P23bar_l3
+    if m2:
+        _, _, kappa, info = _GESV(S, kappa)  # LU with partial pivoting, as np.linalg.solve
+        if info != 0:
+            raise EstimationError(f"[I + P2bar A21 N11^-1 A21^T] ({m2}x{m2}) is singular")
     d1t = Gt @ kappa
-    d2 = D_inv @ (P2A22.T @ (rows.l2 - A21 @ d1t) + A32.T @ (w3 * rows.l3))
+    d2 = D_inv @ (P2A22.T @ (rows.l2 - A21 @ d1t) + b3)
     v2 = rows.l2 - A21 @ d1t - A22 @ d2
     v3 = rows.l3 - A32 @ d2
     # Omega grows by the new rows' weighted residuals plus d1^T N11 d1 = kappa^T H kappa.
