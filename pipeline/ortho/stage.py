@@ -172,9 +172,13 @@ class LiveOrthoStats:
         ``on_finish``: waiting for the worker, re-orthorectification, mosaic rebuild and
         the final writes (mosaic COG, ``cameras.gpkg``, ``ortho.json``).
     publish_ms : TimingStats or None
-        ``seqat watch --ortho``: each publication of the live mosaic (touched tiles and the
-        index, ``OUT/live/``); None when it is not published.
+        ``seqat watch --ortho``: each publication of the live mosaic (touched tiles, the web
+        tiles they changed and the index, ``OUT/live/``); None when it is not published.
     publications : int
+    web_tiles_ms : TimingStats or None
+        The part of each publication that rendered the web tiles of the live tile cache.
+    web_tiles : int
+        Web tiles rendered over all publications.
     """
 
     background: bool
@@ -188,6 +192,8 @@ class LiveOrthoStats:
     finish_s: float
     publish_ms: TimingStats | None = None
     publications: int = 0
+    web_tiles_ms: TimingStats | None = None
+    web_tiles: int = 0
 
 
 @dataclass(frozen=True, kw_only=True)

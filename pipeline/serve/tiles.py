@@ -7,18 +7,20 @@ an atomic rename: a new inode, a new mtime), so a tile always shows the file as 
 is requested. Tiles outside the data are fully transparent 256 x 256 PNGs, as is every tile
 while the run folder has no mosaic yet.
 
-Before ``mosaic.tif`` exists, :class:`LiveMosaic` reads the live ortho's published tiles
-(``OUT/live/mosaic.json`` and ``OUT/live/tiles/*.tif``, :mod:`pipeline.ortho.live_tiles`):
-the index names each small GeoTIFF with its WGS 84 bounds and version; the files a web
-tile's bounds (morecantile) reach are merged by rio-tiler's ``mosaic_reader`` (they do not
-overlap). The page reloads every tile after each image, most of them unchanged, so the PNGs
-are kept (:data:`PNG_CACHE` of them, least recently used out) by web tile and the versions
-of the files it was made of.
+Before ``mosaic.tif`` exists, :class:`LiveMosaic` serves the live ortho's publication
+(``OUT/live/mosaic.json``, :mod:`pipeline.ortho.live_tiles`): a web tile is read from the
+live tile cache ``OUT/live/xyz/{z}/{x}/{y}.png`` the watch renders when it publishes (a file
+read, whatever the CPU load), and only a tile not in it is rendered on request, by the same
+function (:func:`pipeline.common.webtiles.render_tile`) from the published work tiles its
+bounds (morecantile) reach: the same PNG. Such PNGs are kept (:data:`PNG_CACHE` of them,
+least recently used out) by web tile and the versions of the files they were made of; below
+the cache's zooms, where a tile reaches many work tiles, rio-tiler's ``mosaic_reader`` reads
+them one by one instead of in one raster. Every tile carries an ETag of its bytes.
 """
 
 from __future__ import annotations
 
-import io
+import hashlib
 import json
 import os
 import threading
@@ -26,29 +28,24 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
-import morecantile
-import numpy as np
-from PIL import Image
+import rasterio
 from rasterio.errors import RasterioIOError
 from rio_tiler.errors import TileOutsideBounds
 from rio_tiler.io import Reader
 from rio_tiler.models import ImageData
 from rio_tiler.mosaic import mosaic_reader
 
-#: Edge of a tile, pixels.
-TILE_PX = 256
-#: The tile matrix set of the XYZ tiles Leaflet and OpenLayers request.
-TMS = morecantile.tms.get("WebMercatorQuad")
+from pipeline.common import webtiles
+from pipeline.common.webtiles import EMPTY_TILE, TILE_PX, TMS, tile_in_range
+
+__all__ = ["EMPTY_TILE", "TILE_PX", "TMS", "LiveMosaic", "MosaicInfo", "MosaicTiles",
+           "MosaicUnreadable", "etag", "tile_in_range"]
 
 
-def _transparent_png() -> bytes:
-    buf = io.BytesIO()
-    Image.fromarray(np.zeros((TILE_PX, TILE_PX, 4), np.uint8), "RGBA").save(buf, "PNG")
-    return buf.getvalue()
-
-
-#: The tile outside the data.
-EMPTY_TILE = _transparent_png()
+def etag(png: bytes) -> str:
+    """A strong ETag of a tile's bytes (the same tile from the cache or rendered on request
+    has the same one)."""
+    return '"' + hashlib.blake2b(png, digest_size=8).hexdigest() + '"'
 
 
 @dataclass(frozen=True)
@@ -63,11 +60,6 @@ class MosaicInfo:
 
 class MosaicUnreadable(Exception):
     """``mosaic.tif`` exists but cannot be read (damaged, or not a raster)."""
-
-
-def tile_in_range(z: int, x: int, y: int) -> bool:
-    """A tile index of ``WebMercatorQuad`` (zoom 0..24)."""
-    return 0 <= z <= 24 and 0 <= x < 2 ** z and 0 <= y < 2 ** z
 
 
 class MosaicTiles:
@@ -171,7 +163,11 @@ class LiveMosaic:
         self._tiles: list[tuple[Path, tuple[float, float, float, float], object]] = []
         self._png: OrderedDict[tuple[object, ...], bytes] = OrderedDict()
         self._zooms: tuple[int, int] | None = None
+        self._cached_zooms: tuple[int, int] | None = None  # the live tile cache's
         self._info: MosaicInfo | None = None
+        #: Tiles answered from the live tile cache and rendered on request.
+        self.served_cached = 0
+        self.rendered = 0
 
     def _load(self) -> None:
         """Read the index if it changed (lock held)."""
@@ -179,6 +175,7 @@ class LiveMosaic:
             st = os.stat(self.index)
         except OSError:
             self._key, self._doc, self._tiles, self._info = None, None, [], None
+            self._cached_zooms = None
             return
         key = (st.st_ino, st.st_mtime_ns, st.st_size)
         if key == self._key:
@@ -193,6 +190,11 @@ class LiveMosaic:
         self._key, self._doc = key, doc
         self._tiles = tiles  # type: ignore[assignment]
         self._info = None
+        xyz = doc.get("xyz")
+        self._cached_zooms = (int(xyz["minzoom"]), int(xyz["maxzoom"])) if isinstance(
+            xyz, dict) and xyz.get("dir") == webtiles.CACHE_DIR else None
+        if self._cached_zooms is not None:
+            self._zooms = (self._cached_zooms[0] + webtiles.ZOOMS_BELOW, self._cached_zooms[1])
         if tiles:
             if self._zooms is None:
                 with Reader(str(tiles[0][0]), tms=TMS) as r:
@@ -218,18 +220,18 @@ class LiveMosaic:
             return self._doc
 
     def tile(self, z: int, x: int, y: int) -> bytes:
-        """The PNG of tile ``z/x/y`` (:data:`EMPTY_TILE` outside the published tiles).
+        """The PNG of tile ``z/x/y`` (:data:`EMPTY_TILE` outside the published tiles): from
+        the live tile cache, else rendered now (module docstring).
 
         Raises
         ------
         MosaicUnreadable
         """
-        bounds = TMS.bounds(morecantile.Tile(x, y, z))
+        bounds = webtiles.tile_bounds_wgs84(z, x, y)
         with self._lock:
             self._load()
-            hits = [(str(p), v) for p, b, v in self._tiles
-                    if b[0] < bounds.right and b[2] > bounds.left
-                    and b[1] < bounds.top and b[3] > bounds.bottom]
+            hits = [(str(p), v) for p, b, v in self._tiles if webtiles.reaches(b, bounds)]
+            cached = self._cached_zooms
             key = (z, x, y, *hits)
             png = self._png.get(key)
             if png is not None:
@@ -237,12 +239,37 @@ class LiveMosaic:
                 return png
         if not hits:
             return EMPTY_TILE
-        png = self._render([a for a, _ in hits], z, x, y)
+        if cached is not None and cached[0] <= z <= cached[1]:
+            try:
+                png = webtiles.cache_path(self.index.parent, z, x, y).read_bytes()
+            except FileNotFoundError:
+                png = None
+            if png is not None:
+                with self._lock:
+                    self.served_cached += 1
+                return png
+            png = self._render_region([a for a, _ in hits], z, x, y)
+        else:
+            png = self._render([a for a, _ in hits], z, x, y)
         with self._lock:
+            self.rendered += 1
             self._png[key] = png
             while len(self._png) > PNG_CACHE:
                 self._png.popitem(last=False)
         return png
+
+    def _render_region(self, assets: list[str], z: int, x: int, y: int) -> bytes:
+        """Render as the watch renders the cache: the work tiles in one raster."""
+        try:
+            parts, crs = [], None
+            for asset in assets:
+                with rasterio.open(asset) as src:
+                    parts.append(webtiles.WorkTile(src.read(), src.transform))
+                    crs = src.crs
+            with webtiles.region_reader(parts, crs) as reader:
+                return webtiles.render_tile(reader, z, x, y)
+        except Exception as err:  # noqa: BLE001 - a tile replaced or removed meanwhile, ...
+            raise MosaicUnreadable(f"live mosaic: cannot read: {err}") from err
 
     def _render(self, assets: list[str], z: int, x: int, y: int) -> bytes:
 
