@@ -80,13 +80,22 @@ class Client:
     requests: int = 0
     errors: int = 0
     events: int = 0  # status events received (page sse)
+    reconnects: int = 0  # event streams that ended or failed after the first event
+    tile_sources: dict[str, int] = field(default_factory=dict)  # X-Seqat-Tile, live tiles
 
 
 def _get(url: str) -> tuple[bytes, float]:
+    body, ms, _ = _get_from(url)
+    return body, ms
+
+
+def _get_from(url: str) -> tuple[bytes, float, str]:
+    """Body, duration (ms) and the server's ``X-Seqat-Tile`` (where a tile came from)."""
     t0 = time.perf_counter()
     with urllib.request.urlopen(url, timeout=30) as r:
         body = r.read()
-    return body, (time.perf_counter() - t0) * 1e3
+        source = r.headers.get("X-Seqat-Tile", "")
+    return body, (time.perf_counter() - t0) * 1e3, source
 
 
 def _tiles_for(bounds: Sequence[float], maxzoom: int) -> list[morecantile.Tile]:
@@ -118,11 +127,14 @@ def _reload(url: str, status: dict[str, object], rec: Client,
     if mosaic:
         tiles = _tiles_for(mosaic["bounds_wgs84"], int(mosaic["maxzoom"]))  # type: ignore[index]
         urls = [f"{url}tiles/{t.z}/{t.x}/{t.y}.png?v={version}" for t in tiles]
-        times = [ms for _, ms in pool.map(_get, urls)]
+        got = list(pool.map(_get_from, urls))
+        times = [ms for _, ms, _ in got]
         rec.requests += len(times)
         rec.tile_ms += times
         if not status.get("done"):
             rec.tile_ms_live += times
+            for _, _, source in got:
+                rec.tile_sources[source] = rec.tile_sources.get(source, 0) + 1
     rec.seen_mosaic.append((time.time(), int(status.get("mosaic_images") or 0)))  # type: ignore[call-overload]
 
 
@@ -182,8 +194,9 @@ class _Stream:
                                 self.cond.notify()
                         kind, data = None, []
             except (OSError, ValueError, http.client.HTTPException):
-                if rec.events:
-                    rec.errors += 1
+                pass
+            if rec.events:
+                rec.reconnects += 1
             stop.wait(0.1)  # the server is not up yet, or it stopped
 
     def next(self, stop: threading.Event) -> dict[str, object] | None:
@@ -328,6 +341,9 @@ def one_run(flight: Path, work: Path, *, clients: int, rate_hz: float, dsm: Path
         "client_requests": sum(r.requests for r in recs),
         "client_errors": sum(r.errors for r in recs),
         "client_events": sum(r.events for r in recs),
+        "client_reconnects": sum(r.reconnects for r in recs),
+        "tile_sources_live": {k: sum(r.tile_sources.get(k, 0) for r in recs)
+                              for k in sorted({k for r in recs for k in r.tile_sources})},
         "reorthorectified": len(live_stats["images_reorthorectified"]),  # type: ignore[index]
         "finish_s": live_stats["finish_s"],  # type: ignore[index]
     }

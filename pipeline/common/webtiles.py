@@ -6,10 +6,14 @@ the web tiles the new images changed into the live tile cache ``OUT/live/xyz/{z}
 ``seqat serve`` answers from that cache (a file read) and renders on request only the tiles
 not in it (:mod:`pipeline.serve.tiles`). Both render with :func:`render_tile`: the work tiles
 a web tile reaches are pasted into one in-memory raster (:func:`region`: they lie on one grid
-and never overlap, so this is a copy at integer offsets) and rio-tiler reads the tile from it
-(morecantile's ``WebMercatorQuad``, rio-tiler's reprojection: no tile maths here). A cached
-tile is therefore the tile the server would render on request, pixel for pixel, and one
-reader serves every web tile of a publication instead of one per work tile and web tile.
+and never overlap, so this is a copy at integer offsets), and GDAL's warper (a rasterio
+``WarpedVRT``, nearest neighbour, as rio-tiler's ``Reader.tile``) reads the tile's 256 x 256
+pixels on the grid of its bounds in morecantile's ``WebMercatorQuad``: no tile maths here. A
+cached tile is therefore the tile the server would render on request, and both are what
+rio-tiler's ``mosaic_reader`` makes of the published work tiles, pixel for pixel
+(tests/pipeline/serve/test_live_cache.py); one raster serves every web tile of a publication,
+and without rio-tiler's per-tile bounds checks and default-transform search a tile costs
+about half as much (docs/benchmarks.md).
 
 The cache's zoom range is the live mosaic's (:func:`live_zooms`): from two zooms below the
 one a work tile fits in to the first zoom finer than the mosaic's cells.
@@ -30,10 +34,13 @@ import numpy as np
 import rasterio
 from affine import Affine
 from PIL import Image
-from rasterio.enums import ColorInterp
+from rasterio.enums import ColorInterp, Resampling
 from rasterio.io import MemoryFile
-from rio_tiler.errors import NoOverviewWarning, TileOutsideBounds
+from rasterio.transform import from_bounds
+from rasterio.vrt import WarpedVRT
+from rio_tiler.errors import NoOverviewWarning
 from rio_tiler.io import Reader
+from rio_tiler.utils import render as rio_render
 
 # the regions are in memory and read at one zoom each: overviews would cost more than they save
 warnings.filterwarnings("ignore", category=NoOverviewWarning)
@@ -96,9 +103,10 @@ def reaches(bounds_wgs84: Sequence[float], tile_bounds: Sequence[float]) -> bool
 
 
 @contextlib.contextmanager
-def region_reader(tiles: Sequence[WorkTile], crs: rasterio.crs.CRS) -> Iterator[Reader]:
-    """A rio-tiler reader of ``tiles`` pasted at their places on their common grid into one
-    in-memory raster (an uncompressed GeoTIFF in a ``MemoryFile``), transparent elsewhere."""
+def region(tiles: Sequence[WorkTile], crs: rasterio.crs.CRS,
+           ) -> Iterator[rasterio.io.DatasetReader]:
+    """``tiles`` pasted at their places on their common grid into one in-memory raster (an
+    uncompressed GeoTIFF in a ``MemoryFile``), transparent elsewhere, opened for reading."""
     if not tiles:
         raise ValueError("a region of no tiles")
     p = tiles[0].transform.a
@@ -119,28 +127,44 @@ def region_reader(tiles: Sequence[WorkTile], crs: rasterio.crs.CRS) -> Iterator[
         with mem.open(**profile) as dst:
             dst.colorinterp = _INTERP[bands]
             dst.write(data)
-        with mem.open() as ds, Reader(ds.name, dataset=ds, tms=TMS) as reader:
-            yield reader
+        with mem.open() as ds:
+            yield ds
 
 
-def render_tile(reader: Reader, z: int, x: int, y: int) -> bytes:
-    """The PNG of web tile ``z/x/y`` read by ``reader`` (:func:`region_reader`);
-    :data:`EMPTY_TILE` where the tile holds no data."""
-    try:
-        img = reader.tile(x, y, z, tilesize=TILE_PX)
-    except TileOutsideBounds:
+def read_tile(dataset: rasterio.io.DatasetReader, z: int, x: int, y: int) -> np.ndarray:
+    """Web tile ``z/x/y`` read from ``dataset`` (:func:`region`: colour or gray bands and
+    alpha) on the tile's 256 x 256 grid in ``WebMercatorQuad`` (nearest neighbour, as
+    rio-tiler's ``Reader.tile``): ``(bands + alpha, 256, 256)``, alpha 0 outside the data."""
+    b = TMS.xy_bounds(morecantile.Tile(x, y, z))
+    with WarpedVRT(dataset, crs=TMS.rasterio_crs,
+                   transform=from_bounds(b.left, b.bottom, b.right, b.top, TILE_PX, TILE_PX),
+                   width=TILE_PX, height=TILE_PX, resampling=Resampling.nearest) as vrt:
+        return vrt.read()
+
+
+def encode_tile(data: np.ndarray) -> bytes:
+    """:func:`read_tile`'s pixels as the tile's PNG (:data:`EMPTY_TILE` without data)."""
+    alpha = data[-1]
+    if not alpha.any():
         return EMPTY_TILE
-    if not img.mask.any():
-        return EMPTY_TILE
-    if img.data.dtype != np.uint8:
-        return img.render(img_format="PNG", ZLEVEL=PNG_LEVEL)
-    return encode_png(np.concatenate([img.data, img.mask[None]]).transpose(1, 2, 0))
+    if data.dtype != np.uint8:
+        return rio_render(data[:-1], (alpha > 0).astype(np.uint8) * 255, img_format="PNG",
+                          ZLEVEL=PNG_LEVEL)
+    if len(data) == 2:  # gray
+        data = np.concatenate([data[:1], data[:1], data])
+    return encode_png(data.transpose(1, 2, 0))
 
 
-def live_zooms(reader: Reader) -> tuple[int, int]:
-    """The live mosaic's zoom range from a reader of one work tile: rio-tiler's zooms of it,
-    the lowest :data:`ZOOMS_BELOW` lower (a whole flight on the screen)."""
-    return max(0, int(reader.minzoom) - ZOOMS_BELOW), int(reader.maxzoom)
+def render_tile(dataset: rasterio.io.DatasetReader, z: int, x: int, y: int) -> bytes:
+    """The PNG of web tile ``z/x/y`` from ``dataset`` (:func:`read_tile`, :func:`encode_tile`)."""
+    return encode_tile(read_tile(dataset, z, x, y))
+
+
+def live_zooms(dataset: rasterio.io.DatasetReader) -> tuple[int, int]:
+    """The live mosaic's zoom range from one work tile (:func:`region`): rio-tiler's zooms of
+    it, the lowest :data:`ZOOMS_BELOW` lower (a whole flight on the screen)."""
+    with Reader(dataset.name, dataset=dataset, tms=TMS) as reader:
+        return max(0, int(reader.minzoom) - ZOOMS_BELOW), int(reader.maxzoom)
 
 
 def cache_path(live_dir: Path, z: int, x: int, y: int) -> Path:

@@ -13,8 +13,9 @@ not the mosaic's size; ``seqat serve`` reads the tiles through rio-tiler's mosai
 
 Before the index, each publication renders the web tiles (XYZ, Web Mercator, every zoom of
 the live mosaic) that the new images changed into the live tile cache
-``OUT/live/xyz/{z}/{x}/{y}.png`` (:mod:`pipeline.common.webtiles`: rio-tiler on one
-in-memory raster of the work tiles the web tiles reach), so ``seqat serve`` answers tiles with
+``OUT/live/xyz/{z}/{x}/{y}.png`` (:mod:`pipeline.common.webtiles`: GDAL's warper on one
+in-memory raster per zoom of the work tiles the web tiles reach; a tile whose pixels did not
+change is not written again), so ``seqat serve`` answers tiles with
 a file read rather than rendering them from the growing mosaic, under CPU contention, when a
 browser asks. What an image changes lies inside its cells seen (the blend writes nothing
 else), so the web tiles over their bounding box are the ones to render again.
@@ -26,6 +27,7 @@ cache and the index (``seqat serve`` shows ``mosaic.tif`` from then on).
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import shutil
 import time
@@ -89,6 +91,7 @@ class LiveTiles:
         self._rio_crs = rasterio.crs.CRS.from_wkt(crs.to_wkt())
         self._zooms: tuple[int, int] | None = None
         self._changed: list[tuple[float, float, float, float]] = []  # WGS 84, since last
+        self._rendered: dict[object, bytes] = {}  # web tile -> digest of its pixels
         self._pending: set[tuple[int, int]] = set()
         self._waiting_images: list[dict[str, object]] = []
         self._published: dict[tuple[int, int], dict[str, object]] = {}
@@ -167,9 +170,10 @@ class LiveTiles:
             raster = self.mosaic.tile_raster(key)
             if raster is None:
                 return
-            with webtiles.region_reader([webtiles.WorkTile(*raster)], self._rio_crs) as reader:
-                self._zooms = webtiles.live_zooms(reader)
+            with webtiles.region([webtiles.WorkTile(*raster)], self._rio_crs) as ds:
+                self._zooms = webtiles.live_zooms(ds)
         zooms = range(self._zooms[0], self._zooms[1] + 1)
+        written = 0
         todo = sorted({t for b in changed for t in webtiles.tiles_over(b, zooms)},
                       key=lambda t: (t.z, t.x, t.y))
         for z in zooms:
@@ -182,12 +186,18 @@ class LiveTiles:
                        if r is not None]
             if not rasters:
                 continue
-            with webtiles.region_reader([webtiles.WorkTile(*r) for r in rasters],
-                                        self._rio_crs) as reader:
+            with webtiles.region([webtiles.WorkTile(*r) for r in rasters],
+                                 self._rio_crs) as ds:
                 for t in level:
+                    data = webtiles.read_tile(ds, t.z, t.x, t.y)
+                    digest = hashlib.blake2b(data.tobytes(), digest_size=16).digest()
+                    if self._rendered.get(t) == digest:
+                        continue  # the new cells are elsewhere in its bounds
+                    self._rendered[t] = digest
                     webtiles.write_cached(self.folder, t.z, t.x, t.y,
-                                          webtiles.render_tile(reader, t.z, t.x, t.y))
-        self.web_tiles.append(len(todo))
+                                          webtiles.encode_tile(data))
+                    written += 1
+        self.web_tiles.append(written)
         self.web_tiles_ms.append((time.perf_counter() - t0) * 1e3)
 
     def remove(self) -> None:

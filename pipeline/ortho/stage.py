@@ -178,7 +178,8 @@ class LiveOrthoStats:
     web_tiles_ms : TimingStats or None
         The part of each publication that rendered the web tiles of the live tile cache.
     web_tiles : int
-        Web tiles rendered over all publications.
+        Web tiles written into the live tile cache over all publications (a tile whose
+        pixels did not change is read, compared and left).
     """
 
     background: bool

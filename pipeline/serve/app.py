@@ -73,6 +73,9 @@ DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
 #: ``seqat watch --serve``: the request threads run this much nicer than the AT loop.
 WATCH_SERVE_NICE = 10
+#: Where a tile came from (``mosaic``: mosaic.tif; ``cache``, ``memory``, ``rendered``,
+#: ``empty``: the live mosaic, :meth:`LiveMosaic.tile_from`), for benchmarks and the curious.
+TILE_SOURCE_HEADER = "X-Seqat-Tile"
 #: How often ``/events`` looks at the run folder's files, s.
 EVENT_POLL_S = 0.1
 #: An event-stream comment at least this often keeps proxies and browsers connected, s.
@@ -124,14 +127,14 @@ def build_app(out: Path, nice: int = 0) -> Starlette:
         if not tile_in_range(z, x, y):
             return Response("no such tile", status_code=404, media_type="text/plain")
         try:
-            png = tiles.tile(z, x, y)
+            png, source = tiles.tile(z, x, y), "mosaic"
             if png is EMPTY_TILE and not (out / MOSAIC_FILE).exists():
-                png = live_tiles.tile(z, x, y)
+                png, source = live_tiles.tile_from(z, x, y)
         except MosaicUnreadable as err:
             return Response(str(err), status_code=503, media_type="text/plain",
                             headers=NO_CACHE)
         tag = etag(png)
-        headers = {**NO_CACHE, "ETag": tag}
+        headers = {**NO_CACHE, "ETag": tag, TILE_SOURCE_HEADER: source}
         if tag in (t.strip() for t in request.headers.get("if-none-match", "").split(",")):
             return Response(status_code=304, headers=headers)
         return Response(png, media_type="image/png", headers=headers)

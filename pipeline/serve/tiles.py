@@ -227,6 +227,11 @@ class LiveMosaic:
         ------
         MosaicUnreadable
         """
+        return self.tile_from(z, x, y)[0]
+
+    def tile_from(self, z: int, x: int, y: int) -> tuple[bytes, str]:
+        """:meth:`tile` and where it came from: ``cache`` (the live tile cache), ``memory``
+        (rendered earlier), ``rendered`` (now) or ``empty`` (outside the published tiles)."""
         bounds = webtiles.tile_bounds_wgs84(z, x, y)
         with self._lock:
             self._load()
@@ -236,9 +241,9 @@ class LiveMosaic:
             png = self._png.get(key)
             if png is not None:
                 self._png.move_to_end(key)
-                return png
+                return png, "memory"
         if not hits:
-            return EMPTY_TILE
+            return EMPTY_TILE, "empty"
         if cached is not None and cached[0] <= z <= cached[1]:
             try:
                 png = webtiles.cache_path(self.index.parent, z, x, y).read_bytes()
@@ -247,7 +252,7 @@ class LiveMosaic:
             if png is not None:
                 with self._lock:
                     self.served_cached += 1
-                return png
+                return png, "cache"
             png = self._render_region([a for a, _ in hits], z, x, y)
         else:
             png = self._render([a for a, _ in hits], z, x, y)
@@ -256,7 +261,7 @@ class LiveMosaic:
             self._png[key] = png
             while len(self._png) > PNG_CACHE:
                 self._png.popitem(last=False)
-        return png
+        return png, "rendered"
 
     def _render_region(self, assets: list[str], z: int, x: int, y: int) -> bytes:
         """Render as the watch renders the cache: the work tiles in one raster."""
@@ -266,8 +271,8 @@ class LiveMosaic:
                 with rasterio.open(asset) as src:
                     parts.append(webtiles.WorkTile(src.read(), src.transform))
                     crs = src.crs
-            with webtiles.region_reader(parts, crs) as reader:
-                return webtiles.render_tile(reader, z, x, y)
+            with webtiles.region(parts, crs) as ds:
+                return webtiles.render_tile(ds, z, x, y)
         except Exception as err:  # noqa: BLE001 - a tile replaced or removed meanwhile, ...
             raise MosaicUnreadable(f"live mosaic: cannot read: {err}") from err
 
