@@ -81,7 +81,8 @@ class Client:
     errors: int = 0
     events: int = 0  # status events received (page sse)
     reconnects: int = 0  # event streams that ended or failed after the first event
-    tile_sources: dict[str, int] = field(default_factory=dict)  # X-Seqat-Tile, live tiles
+    #: live tile request times (ms) by the server's X-Seqat-Tile (where the tile came from)
+    tile_sources: dict[str, list[float]] = field(default_factory=dict)
 
 
 def _get(url: str) -> tuple[bytes, float]:
@@ -133,8 +134,8 @@ def _reload(url: str, status: dict[str, object], rec: Client,
         rec.tile_ms += times
         if not status.get("done"):
             rec.tile_ms_live += times
-            for _, _, source in got:
-                rec.tile_sources[source] = rec.tile_sources.get(source, 0) + 1
+            for _, ms, source in got:
+                rec.tile_sources.setdefault(source, []).append(ms)
     rec.seen_mosaic.append((time.time(), int(status.get("mosaic_images") or 0)))  # type: ignore[call-overload]
 
 
@@ -342,8 +343,9 @@ def one_run(flight: Path, work: Path, *, clients: int, rate_hz: float, dsm: Path
         "client_errors": sum(r.errors for r in recs),
         "client_events": sum(r.events for r in recs),
         "client_reconnects": sum(r.reconnects for r in recs),
-        "tile_sources_live": {k: sum(r.tile_sources.get(k, 0) for r in recs)
-                              for k in sorted({k for r in recs for k in r.tile_sources})},
+        "tile_ms_live_by_source": {
+            k: _stats([ms for r in recs for ms in r.tile_sources.get(k, [])])
+            for k in sorted({k for r in recs for k in r.tile_sources})},
         "reorthorectified": len(live_stats["images_reorthorectified"]),  # type: ignore[index]
         "finish_s": live_stats["finish_s"],  # type: ignore[index]
     }

@@ -4,16 +4,16 @@ A live ``seqat watch --ortho`` publishes the growing mosaic's work tiles (512 x 
 the global ortho grid, :mod:`pipeline.ortho.live_tiles`) and renders, when it publishes them,
 the web tiles the new images changed into the live tile cache ``OUT/live/xyz/{z}/{x}/{y}.png``;
 ``seqat serve`` answers from that cache (a file read) and renders on request only the tiles
-not in it (:mod:`pipeline.serve.tiles`). Both render with :func:`render_tile`: the work tiles
-a web tile reaches are pasted into one in-memory raster (:func:`region`: they lie on one grid
-and never overlap, so this is a copy at integer offsets), and GDAL's warper (a rasterio
-``WarpedVRT``, nearest neighbour, as rio-tiler's ``Reader.tile``) reads the tile's 256 x 256
-pixels on the grid of its bounds in morecantile's ``WebMercatorQuad``: no tile maths here. A
-cached tile is therefore the tile the server would render on request, and both are what
-rio-tiler's ``mosaic_reader`` makes of the published work tiles, pixel for pixel
-(tests/pipeline/serve/test_live_cache.py); one raster serves every web tile of a publication,
-and without rio-tiler's per-tile bounds checks and default-transform search a tile costs
-about half as much (docs/benchmarks.md).
+not in it (:mod:`pipeline.serve.tiles`, rio-tiler's ``mosaic_reader``). The cache is rendered
+by :func:`render_tile`: the work tiles the web tiles of one zoom reach are pasted into one
+in-memory raster (:func:`region`: they lie on one grid and never overlap, so this is a copy
+at integer offsets), and GDAL's warper (a rasterio ``WarpedVRT``, nearest neighbour, as
+rio-tiler's ``Reader.tile``) reads each tile's 256 x 256 pixels on the grid of its bounds in
+morecantile's ``WebMercatorQuad``: no tile maths here. A cached tile is what rio-tiler
+renders of the published work tiles on request, pixel for pixel
+(tests/pipeline/serve/test_live_cache.py), and both are encoded by :func:`encode_tile`; one
+raster serves every web tile of a zoom, and without rio-tiler's per-tile bounds checks and
+default-transform search a tile costs about half as much (docs/benchmarks.md).
 
 The cache's zoom range is the live mosaic's (:func:`live_zooms`): from two zooms below the
 one a work tile fits in to the first zoom finer than the mosaic's cells.

@@ -153,7 +153,7 @@ class LiveTiles:
                "tiles": tiles, "images": self._images,
                "xyz": None if self._zooms is None else {
                    "dir": webtiles.CACHE_DIR, "minzoom": self._zooms[0],
-                   "maxzoom": self._zooms[1]}}
+                   "maxzoom": self._zooms[1], "complete": True}}
         atomic_write_text(self.folder / LIVE_MOSAIC_INDEX, json.dumps(doc, separators=(",", ":")))
         self.last_publish = time.monotonic()
         self.publish_ms.append((time.perf_counter() - t0) * 1e3)

@@ -10,12 +10,13 @@ while the run folder has no mosaic yet.
 Before ``mosaic.tif`` exists, :class:`LiveMosaic` serves the live ortho's publication
 (``OUT/live/mosaic.json``, :mod:`pipeline.ortho.live_tiles`): a web tile is read from the
 live tile cache ``OUT/live/xyz/{z}/{x}/{y}.png`` the watch renders when it publishes (a file
-read, whatever the CPU load), and only a tile not in it is rendered on request, by the same
-function (:func:`pipeline.common.webtiles.render_tile`) from the published work tiles its
-bounds (morecantile) reach: the same PNG. Such PNGs are kept (:data:`PNG_CACHE` of them,
-least recently used out) by web tile and the versions of the files they were made of; below
-the cache's zooms, where a tile reaches many work tiles, rio-tiler's ``mosaic_reader`` reads
-them one by one instead of in one raster. Every tile carries an ETag of its bytes.
+read, whatever the CPU load; a tile missing from a ``complete`` cache holds no data); a tile
+not in it (another zoom, a folder without a cache) is rendered on request: the published
+work tiles its bounds (morecantile) reach, merged by rio-tiler's ``mosaic_reader``, which
+gives the cached tiles' pixels (tests/pipeline/serve/test_live_cache.py), encoded by the same
+function. Such PNGs are kept (:data:`PNG_CACHE` of them, least recently used out) by web
+tile and the versions of the files they were made of. Every tile carries an ETag of its
+bytes.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
-import rasterio
+import numpy as np
 from rasterio.errors import RasterioIOError
 from rio_tiler.errors import TileOutsideBounds
 from rio_tiler.io import Reader
@@ -136,7 +137,8 @@ class MosaicTiles:
                 raise MosaicUnreadable(f"{self.path.name}: cannot read: {err}") from err
         if not img.mask.any():
             return EMPTY_TILE
-        return img.render(img_format="PNG")
+        mask = img.mask[None]
+        return webtiles.encode_tile(np.concatenate([np.where(mask > 0, img.data, 0), mask]))
 
     def close_locked(self) -> None:
         if self._reader is not None:
@@ -164,6 +166,7 @@ class LiveMosaic:
         self._png: OrderedDict[tuple[object, ...], bytes] = OrderedDict()
         self._zooms: tuple[int, int] | None = None
         self._cached_zooms: tuple[int, int] | None = None  # the live tile cache's
+        self._cache_complete = False  # every tile with data at its zooms is in it
         self._info: MosaicInfo | None = None
         #: Tiles answered from the live tile cache and rendered on request.
         self.served_cached = 0
@@ -193,6 +196,7 @@ class LiveMosaic:
         xyz = doc.get("xyz")
         self._cached_zooms = (int(xyz["minzoom"]), int(xyz["maxzoom"])) if isinstance(
             xyz, dict) and xyz.get("dir") == webtiles.CACHE_DIR else None
+        self._cache_complete = isinstance(xyz, dict) and xyz.get("complete") is True
         if self._cached_zooms is not None:
             self._zooms = (self._cached_zooms[0] + webtiles.ZOOMS_BELOW, self._cached_zooms[1])
         if tiles:
@@ -236,7 +240,7 @@ class LiveMosaic:
         with self._lock:
             self._load()
             hits = [(str(p), v) for p, b, v in self._tiles if webtiles.reaches(b, bounds)]
-            cached = self._cached_zooms
+            cached, complete = self._cached_zooms, self._cache_complete
             key = (z, x, y, *hits)
             png = self._png.get(key)
             if png is not None:
@@ -253,28 +257,15 @@ class LiveMosaic:
                 with self._lock:
                     self.served_cached += 1
                 return png, "cache"
-            png = self._render_region([a for a, _ in hits], z, x, y)
-        else:
-            png = self._render([a for a, _ in hits], z, x, y)
+            if complete:  # no image put data there (docs/formats.md, *Live run files*)
+                return EMPTY_TILE, "empty"
+        png = self._render([a for a, _ in hits], z, x, y)
         with self._lock:
             self.rendered += 1
             self._png[key] = png
             while len(self._png) > PNG_CACHE:
                 self._png.popitem(last=False)
         return png, "rendered"
-
-    def _render_region(self, assets: list[str], z: int, x: int, y: int) -> bytes:
-        """Render as the watch renders the cache: the work tiles in one raster."""
-        try:
-            parts, crs = [], None
-            for asset in assets:
-                with rasterio.open(asset) as src:
-                    parts.append(webtiles.WorkTile(src.read(), src.transform))
-                    crs = src.crs
-            with webtiles.region(parts, crs) as ds:
-                return webtiles.render_tile(ds, z, x, y)
-        except Exception as err:  # noqa: BLE001 - a tile replaced or removed meanwhile, ...
-            raise MosaicUnreadable(f"live mosaic: cannot read: {err}") from err
 
     def _render(self, assets: list[str], z: int, x: int, y: int) -> bytes:
 
@@ -291,4 +282,5 @@ class LiveMosaic:
             raise MosaicUnreadable(f"live mosaic: cannot read: {err}") from err
         if not img.mask.any():
             return EMPTY_TILE
-        return img.render(img_format="PNG")
+        mask = img.mask[None]
+        return webtiles.encode_tile(np.concatenate([np.where(mask > 0, img.data, 0), mask]))

@@ -104,11 +104,14 @@ def test_publication_renders_the_changed_web_tiles(live_folder: Path) -> None:
 
 def test_cached_tile_equals_the_tile_rendered_on_request(live_folder: Path,
                                                          tmp_path: Path) -> None:
-    """The same folder without its cache: the server renders every tile on request, and each
-    equals the cached one pixel for pixel (and byte for byte: one encoder)."""
+    """The same folder without its cache (as a watch without one published it): the server
+    renders every tile on request, and each equals the cached one pixel for pixel (and byte
+    for byte: one encoder)."""
     bare = tmp_path / "bare"
     shutil.copytree(live_folder, bare)
     shutil.rmtree(bare / "live" / "xyz")
+    index = bare / "live" / "mosaic.json"
+    index.write_text(json.dumps({**json.loads(index.read_text()), "xyz": None}))
     cache = live_folder / "live" / "xyz"
     files = sorted(cache.rglob("*.png"))
     assert len(files) > 10
