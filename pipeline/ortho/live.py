@@ -329,6 +329,8 @@ class LiveOrtho:
         self._worker.shutdown(wait=True)
         if self._ortho is not None:
             self._ortho.close()
+        if self._live_tiles is not None:
+            self._live_tiles.stop_renderer(0.0)
 
     def __enter__(self) -> LiveOrtho:
         return self
@@ -495,6 +497,8 @@ class LiveOrtho:
                 else TimingStats.from_samples(self._live_tiles.web_tiles_ms),
                 web_tiles=0 if self._live_tiles is None else sum(self._live_tiles.web_tiles))
 
+        if self._live_tiles is not None:
+            self._live_tiles.stop_renderer()  # its last publications, for the page and stats
         summary = finish_ortho(
             self.out_dir, self._mosaic, records, crs=self.crs, out_crs=self._out_crs, eops=eops,
             points=point_table(solution.points),

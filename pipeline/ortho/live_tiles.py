@@ -11,14 +11,13 @@ mosaic so far with the time each was published. The cost per image is the tiles 
 not the mosaic's size; ``seqat serve`` reads the tiles through rio-tiler's mosaic reader
 (docs/formats.md, *Live run files*).
 
-Before the index, each publication renders the web tiles (XYZ, Web Mercator, every zoom of
-the live mosaic) that the new images changed into the live tile cache
-``OUT/live/xyz/{z}/{x}/{y}.png`` (:mod:`pipeline.common.webtiles`: GDAL's warper on one
-in-memory raster per zoom of the work tiles the web tiles reach; a tile whose pixels did not
-change is not written again), so ``seqat serve`` answers tiles with
-a file read rather than rendering them from the growing mosaic, under CPU contention, when a
-browser asks. What an image changes lies inside its cells seen (the blend writes nothing
-else), so the web tiles over their bounding box are the ones to render again.
+Each publication also hands the bounds of the cells the new images saw to the renderer
+(:mod:`pipeline.ortho.live_render`, a child process), which renders the web tiles over them
+(XYZ, Web Mercator, every zoom of the live mosaic) into the live tile cache
+``OUT/live/xyz/{z}/{x}/{y}.png`` and then writes the index, so ``seqat serve`` answers tiles
+with a file read rather than rendering them from the growing mosaic, under CPU contention,
+when a browser asks. What an image changes lies inside its cells seen (the blend writes
+nothing else), so the web tiles over their bounding box are the ones to render again.
 
 When the run's ``mosaic.tif`` is published, :meth:`LiveTiles.remove` deletes the tiles, the
 cache and the index (``seqat serve`` shows ``mosaic.tif`` from then on).
@@ -27,7 +26,6 @@ cache and the index (``seqat serve`` shows ``mosaic.tif`` from then on).
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import shutil
 import time
@@ -36,12 +34,12 @@ from pathlib import Path
 
 import numpy as np
 import pyproj
-import rasterio
 
 from pipeline.common import webtiles
 from pipeline.common.atomic import atomic_write_text
 from pipeline.common.columns import LIVE_DIR, LIVE_MOSAIC_INDEX, LIVE_TILES_DIR
 from pipeline.ortho.base import OrthoRaster
+from pipeline.ortho.live_render import STOP_WAIT_S, RendererProcess
 from pipeline.ortho.mosaic import MosaicBuilder
 from pipeline.ortho.raster import write_tiled_tiff
 
@@ -75,9 +73,13 @@ class LiveTiles:
     mosaic : MosaicBuilder
     crs : pyproj.CRS
         The mosaic's CRS.
+    render : bool
+        Render the live tile cache (a child process, :mod:`pipeline.ortho.live_render`,
+        started at the first publication from the calling thread: it inherits its niceness).
     """
 
-    def __init__(self, out_dir: Path, mosaic: MosaicBuilder, crs: pyproj.CRS) -> None:
+    def __init__(self, out_dir: Path, mosaic: MosaicBuilder, crs: pyproj.CRS,
+                 render: bool = True) -> None:
         self.folder = out_dir / LIVE_DIR
         self.tiles_dir = self.folder / LIVE_TILES_DIR
         if self.tiles_dir.exists():
@@ -88,10 +90,7 @@ class LiveTiles:
         self.mosaic = mosaic
         self.crs = crs
         self._to_wgs84 = pyproj.Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
-        self._rio_crs = rasterio.crs.CRS.from_wkt(crs.to_wkt())
-        self._zooms: tuple[int, int] | None = None
         self._changed: list[tuple[float, float, float, float]] = []  # WGS 84, since last
-        self._rendered: dict[object, bytes] = {}  # web tile -> digest of its pixels
         self._pending: set[tuple[int, int]] = set()
         self._waiting_images: list[dict[str, object]] = []
         self._published: dict[tuple[int, int], dict[str, object]] = {}
@@ -99,8 +98,8 @@ class LiveTiles:
         self._version = 0
         self.last_publish = 0.0  # monotonic
         self.publish_ms: list[float] = []
-        self.web_tiles_ms: list[float] = []
-        self.web_tiles: list[int] = []
+        self._renderer: RendererProcess | None = None
+        self._render = render
 
     def touched(self, tiles: Iterable[tuple[int, int]], image: str, ortho_ms: float,
                 at_unix_s: float | None = None,
@@ -141,7 +140,6 @@ class LiveTiles:
                                     "bounds_wgs84": [round(b, 9) for b in bounds],
                                     "version": self._version}
         self._pending.clear()
-        self._render_web_tiles()
         now = round(time.time(), 3)
         for item in self._waiting_images:
             self._images.append({**item, "published_unix_s": now})
@@ -150,58 +148,41 @@ class LiveTiles:
         doc = {"format": INDEX_FORMAT, "version": 1, "updated_unix_s": now,
                "revision": self._version, "pixel_m": self.mosaic.pixel_m,
                "bounds_wgs84": _union([t["bounds_wgs84"] for t in tiles]),  # type: ignore[misc]
-               "tiles": tiles, "images": self._images,
-               "xyz": None if self._zooms is None else {
-                   "dir": webtiles.CACHE_DIR, "minzoom": self._zooms[0],
-                   "maxzoom": self._zooms[1], "complete": True}}
-        atomic_write_text(self.folder / LIVE_MOSAIC_INDEX, json.dumps(doc, separators=(",", ":")))
+               "tiles": tiles, "images": self._images, "xyz": None}
+        changed, self._changed = self._changed, []
+        if self._render and self._renderer is None:
+            self._renderer = RendererProcess(self.folder, self.crs.to_wkt())
+        # the renderer writes the index once the web tiles are there; without it, now
+        if self._renderer is None or not self._renderer.submit(changed, doc):
+            atomic_write_text(self.folder / LIVE_MOSAIC_INDEX,
+                              json.dumps(doc, separators=(",", ":")))
         self.last_publish = time.monotonic()
         self.publish_ms.append((time.perf_counter() - t0) * 1e3)
 
-    def _render_web_tiles(self) -> None:
-        """Render the web tiles over the changed cells into the live tile cache, every zoom
-        of the live mosaic, one in-memory raster per zoom."""
-        t0 = time.perf_counter()
-        changed, self._changed = self._changed, []
-        if not changed or not self._published:
-            return
-        if self._zooms is None:
-            key = next(iter(self._published))
-            raster = self.mosaic.tile_raster(key)
-            if raster is None:
-                return
-            with webtiles.region([webtiles.WorkTile(*raster)], self._rio_crs) as ds:
-                self._zooms = webtiles.live_zooms(ds)
-        zooms = range(self._zooms[0], self._zooms[1] + 1)
-        written = 0
-        todo = sorted({t for b in changed for t in webtiles.tiles_over(b, zooms)},
-                      key=lambda t: (t.z, t.x, t.y))
-        for z in zooms:
-            level = [t for t in todo if t.z == z]
-            bounds = [webtiles.tile_bounds_wgs84(t.z, t.x, t.y) for t in level]
-            keys = [k for k, info in self._published.items()
-                    if any(webtiles.reaches(info["bounds_wgs84"], b)  # type: ignore[arg-type]
-                           for b in bounds)]
-            rasters = [r for r in (self.mosaic.tile_raster(k) for k in sorted(keys))
-                       if r is not None]
-            if not rasters:
-                continue
-            with webtiles.region([webtiles.WorkTile(*r) for r in rasters],
-                                 self._rio_crs) as ds:
-                for t in level:
-                    data = webtiles.read_tile(ds, t.z, t.x, t.y)
-                    digest = hashlib.blake2b(data.tobytes(), digest_size=16).digest()
-                    if self._rendered.get(t) == digest:
-                        continue  # the new cells are elsewhere in its bounds
-                    self._rendered[t] = digest
-                    webtiles.write_cached(self.folder, t.z, t.x, t.y,
-                                          webtiles.encode_tile(data))
-                    written += 1
-        self.web_tiles.append(written)
-        self.web_tiles_ms.append((time.perf_counter() - t0) * 1e3)
+    @property
+    def web_tiles_ms(self) -> list[float]:
+        """The renderer's time per rendering (:mod:`pipeline.ortho.live_render`)."""
+        return [] if self._renderer is None else list(self._renderer.ms)
+
+    @property
+    def web_tiles(self) -> list[int]:
+        """Web tiles the renderer wrote, per rendering."""
+        return [] if self._renderer is None else list(self._renderer.tiles)
+
+    def wait_rendered(self, timeout: float | None = None) -> bool:
+        """Wait until the renderer has written every publication handed to it (tests)."""
+        return self._renderer is None or self._renderer.wait(timeout)
+
+    def stop_renderer(self, wait_s: float = STOP_WAIT_S) -> None:
+        """Let the renderer finish what it was handed (``wait_s`` at most), then end it."""
+        if self._renderer is not None:
+            self._renderer.stop(wait_s)
 
     def remove(self) -> None:
-        """The run's ``mosaic.tif`` is published: drop the index, then the tiles."""
+        """The run's ``mosaic.tif`` is published: end the renderer, drop the index, then the
+        tiles."""
+        if self._renderer is not None:
+            self._renderer.stop(0.0)
         with contextlib.suppress(FileNotFoundError):
             (self.folder / LIVE_MOSAIC_INDEX).unlink()
         shutil.rmtree(self.tiles_dir, ignore_errors=True)

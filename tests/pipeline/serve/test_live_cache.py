@@ -59,6 +59,8 @@ def publish_images(out: Path, n: int) -> LiveTiles:
         update = mosaic.add(result)
         live.touched(update.tiles, result.image_id, 10.0, time.time(), seen_bounds(result.raster))
         live.publish()
+    assert live.wait_rendered(120)
+    live.stop_renderer()
     return live
 
 
