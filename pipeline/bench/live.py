@@ -334,6 +334,7 @@ def one_run(flight: Path, work: Path, *, clients: int, rate_hz: float, dsm: Path
         "publish_ms": live_stats.get("publish_ms"),  # type: ignore[union-attr]
         "publications": live_stats.get("publications"),  # type: ignore[union-attr]
         "web_tiles_ms": live_stats.get("web_tiles_ms"),  # type: ignore[union-attr]
+        "web_tiles_cpu_ms": live_stats.get("web_tiles_cpu_ms"),  # type: ignore[union-attr]
         "web_tiles": live_stats.get("web_tiles"),  # type: ignore[union-attr]
         "at_to_page_mosaic_ms": _stats(to_page_mosaic),
         "at_to_page_cameras_ms": _stats(to_page_cameras),

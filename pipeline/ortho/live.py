@@ -495,6 +495,9 @@ class LiveOrtho:
                 publications=0 if self._live_tiles is None else len(self._live_tiles.publish_ms),
                 web_tiles_ms=None if self._live_tiles is None or not self._live_tiles.web_tiles_ms
                 else TimingStats.from_samples(self._live_tiles.web_tiles_ms),
+                web_tiles_cpu_ms=None if self._live_tiles is None
+                or not self._live_tiles.web_tiles_cpu_ms
+                else TimingStats.from_samples(self._live_tiles.web_tiles_cpu_ms),
                 web_tiles=0 if self._live_tiles is None else sum(self._live_tiles.web_tiles))
 
         if self._live_tiles is not None:

@@ -29,6 +29,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import OrderedDict
 from pathlib import Path
 
 import rasterio
@@ -39,6 +40,8 @@ from pipeline.common.columns import LIVE_MOSAIC_INDEX
 
 #: Seconds :meth:`RendererProcess.stop` waits for pending jobs before terminating.
 STOP_WAIT_S = 10.0
+#: Work tiles the renderer keeps read (1 MB each at 512 x 512 RGBA).
+PARTS_KEPT = 64
 
 
 class TileRenderer:
@@ -51,35 +54,40 @@ class TileRenderer:
         self.zooms: tuple[int, int] | None = None
         self._digests: dict[tuple[int, int, int], bytes] = {}
         self._published: dict[str, float] = {}
+        self._parts: OrderedDict[tuple[Path, object], webtiles.WorkTile] = OrderedDict()
+
+    def _part(self, path: Path, version: object) -> webtiles.WorkTile:
+        """A published work tile, read once per version (:data:`PARTS_KEPT` kept)."""
+        key = (path, version)
+        part = self._parts.get(key)
+        if part is None:
+            with rasterio.open(path) as src:
+                part = webtiles.WorkTile(src.read(), src.transform)
+            self._parts[key] = part
+            while len(self._parts) > PARTS_KEPT:
+                self._parts.popitem(last=False)
+        self._parts.move_to_end(key)
+        return part
 
     def render(self, changed: list[list[float]], index: dict[str, object]) -> int:
         """Render the web tiles over ``changed``, then write ``index``; tiles written."""
-        tiles = [(self.folder / str(t["file"]), [float(b) for b in t["bounds_wgs84"]])
-                 for t in index["tiles"]]  # type: ignore[union-attr,index]
+        tiles = [(self.folder / str(t["file"]), [float(b) for b in t["bounds_wgs84"]],
+                  t.get("version")) for t in index["tiles"]]  # type: ignore[union-attr,index]
         written = 0
         if tiles and changed:
-            parts: dict[Path, webtiles.WorkTile] = {}
-
-            def part(path: Path) -> webtiles.WorkTile:
-                if path not in parts:
-                    with rasterio.open(path) as src:
-                        parts[path] = webtiles.WorkTile(src.read(), src.transform)
-                return parts[path]
-
             if self.zooms is None:
-                with webtiles.region([part(tiles[0][0])], self.crs) as ds:
+                with webtiles.region([self._part(tiles[0][0], tiles[0][2])], self.crs) as ds:
                     self.zooms = webtiles.live_zooms(ds)
             zooms = range(self.zooms[0], self.zooms[1] + 1)
             todo = sorted({t for b in changed for t in webtiles.tiles_over(b, zooms)},
                           key=lambda t: (t.z, t.x, t.y))
-            for z in zooms:
-                level = [t for t in todo if t.z == z]
-                bounds = [webtiles.tile_bounds_wgs84(t.z, t.x, t.y) for t in level]
-                reach = [p for p, b in tiles if any(webtiles.reaches(b, tb) for tb in bounds)]
-                if not reach:
-                    continue
-                with webtiles.region([part(p) for p in reach], self.crs) as ds:
-                    for t in level:
+            bounds = [webtiles.tile_bounds_wgs84(t.z, t.x, t.y) for t in todo]
+            reach = [(p, v) for p, b, v in tiles
+                     if any(webtiles.reaches(b, tb) for tb in bounds)]
+            if reach:
+                # one raster for every zoom: the warper reads only the window a tile needs
+                with webtiles.region([self._part(p, v) for p, v in reach], self.crs) as ds:
+                    for t in todo:
                         data = webtiles.read_tile(ds, t.z, t.x, t.y)
                         digest = hashlib.blake2b(data.tobytes(), digest_size=16).digest()
                         key = (t.z, t.x, t.y)

@@ -165,6 +165,11 @@ class LiveTiles:
         return [] if self._renderer is None else list(self._renderer.ms)
 
     @property
+    def web_tiles_cpu_ms(self) -> list[float]:
+        """The renderer's CPU time per rendering."""
+        return [] if self._renderer is None else list(self._renderer.cpu_ms)
+
+    @property
     def web_tiles(self) -> list[int]:
         """Web tiles the renderer wrote, per rendering."""
         return [] if self._renderer is None else list(self._renderer.tiles)

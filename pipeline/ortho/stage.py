@@ -175,8 +175,9 @@ class LiveOrthoStats:
         ``seqat watch --ortho``: each publication of the live mosaic (touched tiles, the web
         tiles they changed and the index, ``OUT/live/``); None when it is not published.
     publications : int
-    web_tiles_ms : TimingStats or None
-        The part of each publication that rendered the web tiles of the live tile cache.
+    web_tiles_ms, web_tiles_cpu_ms : TimingStats or None
+        Each rendering of the live tile cache (:mod:`pipeline.ortho.live_render`, a child
+        process: one or more publications), wall and CPU time.
     web_tiles : int
         Web tiles written into the live tile cache over all publications (a tile whose
         pixels did not change is read, compared and left).
@@ -194,6 +195,7 @@ class LiveOrthoStats:
     publish_ms: TimingStats | None = None
     publications: int = 0
     web_tiles_ms: TimingStats | None = None
+    web_tiles_cpu_ms: TimingStats | None = None
     web_tiles: int = 0
 
 
