@@ -1,19 +1,20 @@
 """XYZ Web Mercator tiles of the live mosaic: one renderer for the writer and the server.
 
 A live ``seqat watch --ortho`` publishes the growing mosaic's work tiles (512 x 512 cells of
-the global ortho grid, :mod:`pipeline.ortho.live_tiles`) and renders, when it publishes them,
-the web tiles the new images changed into the live tile cache ``OUT/live/xyz/{z}/{x}/{y}.png``;
-``seqat serve`` answers from that cache (a file read) and renders on request only the tiles
-not in it (:mod:`pipeline.serve.tiles`, rio-tiler's ``mosaic_reader``). The cache is rendered
-by :func:`render_tile`: the work tiles the web tiles of one zoom reach are pasted into one
-in-memory raster (:func:`region`: they lie on one grid and never overlap, so this is a copy
-at integer offsets), and GDAL's warper (a rasterio ``WarpedVRT``, nearest neighbour, as
-rio-tiler's ``Reader.tile``) reads each tile's 256 x 256 pixels on the grid of its bounds in
-morecantile's ``WebMercatorQuad``: no tile maths here. A cached tile is what rio-tiler
-renders of the published work tiles on request, pixel for pixel
-(tests/pipeline/serve/test_live_cache.py), and both are encoded by :func:`encode_tile`; one
-raster serves every web tile of a zoom, and without rio-tiler's per-tile bounds checks and
-default-transform search a tile costs about half as much (docs/benchmarks.md).
+the global ortho grid, :mod:`pipeline.ortho.live_tiles`), and its renderer process
+(:mod:`pipeline.ortho.live_render`) renders the web tiles the new images changed into the
+live tile cache ``OUT/live/xyz/{z}/{x}/{y}.png``; ``seqat serve`` answers from that cache (a
+file read) and renders on request only the tiles not in it (:mod:`pipeline.serve.tiles`,
+rio-tiler's ``mosaic_reader``). The cache is rendered by :func:`render_tile`: the work tiles
+the web tiles of one rendering reach are pasted into one in-memory raster (:func:`region`:
+they lie on one grid and never overlap, so this is a copy at integer offsets), and GDAL's
+warper (a rasterio ``WarpedVRT``, nearest neighbour, as rio-tiler's ``Reader.tile``) reads
+each tile's 256 x 256 pixels on the grid of its bounds in morecantile's ``WebMercatorQuad``:
+no tile maths here. A cached tile is what rio-tiler renders of the published work tiles on
+request, pixel for pixel (tests/pipeline/serve/test_live_cache.py), and both are encoded by
+:func:`encode_tile`; one raster serves every web tile of a rendering, and without rio-tiler's
+per-tile bounds check and default-transform search, and its reading of every work tile per
+web tile, a tile costs 3-7x less CPU than on request (docs/benchmarks.md).
 
 The cache's zoom range is the live mosaic's (:func:`live_zooms`): from two zooms below the
 one a work tile fits in to the first zoom finer than the mosaic's cells.
@@ -170,11 +171,6 @@ def live_zooms(dataset: rasterio.io.DatasetReader) -> tuple[int, int]:
 def cache_path(live_dir: Path, z: int, x: int, y: int) -> Path:
     """Where the live tile cache holds tile ``z/x/y``."""
     return live_dir / CACHE_DIR / str(z) / str(x) / f"{y}.png"
-
-
-def etag(st: os.stat_result) -> str:
-    """A strong ETag of a file version (inode, modification time, size)."""
-    return f'"{st.st_ino:x}-{st.st_mtime_ns:x}-{st.st_size:x}"'
 
 
 def write_cached(live_dir: Path, z: int, x: int, y: int, png: bytes) -> None:
