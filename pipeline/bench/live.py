@@ -2,10 +2,13 @@
 
 Each *run* is what a field team does: ``seqat feed FLIGHT --rate R`` writes the flight into a
 folder while ``seqat watch ... --ortho --serve PORT`` (a second process) georeferences it and
-serves the map, and ``clients`` page-like HTTP clients (threads of this process) poll it as
-the page does: ``/status.json`` every second and, when its ``version`` changes, the
-cameras, ellipses, footprints, points, coverage and the mosaic's tiles at the zoom where at
-most 24 tiles cover it, 6 at a time (niced to 19: real browsers run on their own devices).
+serves the map, and ``clients`` page-like HTTP clients (threads of this process) follow it as
+the page does: ``--page sse`` (the default, the page since the live map's second pass)
+listens to ``/events`` (server-sent events: ``status.json`` when its version changes),
+``--page poll`` (the page before) polls ``/status.json`` every second; on a new ``version``
+either fetches the cameras, ellipses, footprints, points, coverage and the mosaic's tiles at
+the zoom where at most 24 tiles cover it, 6 at a time (niced to 19: real browsers run on
+their own devices).
 Runs with different client counts are interleaved (``--clients 0 2 --repeat 3``: 0, 2, 0, 2,
 0, 2) so the load of the shared machine falls on both alike; ``N:thread`` runs the server in
 a thread of the watch instead of its child process (``--serve-in``).
@@ -27,6 +30,7 @@ The flight's LiDAR is gridded once, before the runs (``--dsm``), so a run starts
 from __future__ import annotations
 
 import argparse
+import http.client
 import json
 import math
 import os
@@ -75,13 +79,24 @@ class Client:
     tile_ms_live: list[float] = field(default_factory=list)  # before the run finished
     requests: int = 0
     errors: int = 0
+    events: int = 0  # status events received (page sse)
+    reconnects: int = 0  # event streams that ended or failed after the first event
+    #: live tile request times (ms) by the server's X-Seqat-Tile (where the tile came from)
+    tile_sources: dict[str, list[float]] = field(default_factory=dict)
 
 
 def _get(url: str) -> tuple[bytes, float]:
+    body, ms, _ = _get_from(url)
+    return body, ms
+
+
+def _get_from(url: str) -> tuple[bytes, float, str]:
+    """Body, duration (ms) and the server's ``X-Seqat-Tile`` (where a tile came from)."""
     t0 = time.perf_counter()
     with urllib.request.urlopen(url, timeout=30) as r:
         body = r.read()
-    return body, (time.perf_counter() - t0) * 1e3
+        source = r.headers.get("X-Seqat-Tile", "")
+    return body, (time.perf_counter() - t0) * 1e3, source
 
 
 def _tiles_for(bounds: Sequence[float], maxzoom: int) -> list[morecantile.Tile]:
@@ -94,10 +109,39 @@ def _tiles_for(bounds: Sequence[float], maxzoom: int) -> list[morecantile.Tile]:
     return []
 
 
+def _reload(url: str, status: dict[str, object], rec: Client,
+            pool: ThreadPoolExecutor) -> None:
+    """What the page does on a new version: the cameras (then seen), the other layers, and
+    the tiles, :data:`BROWSER_CONNECTIONS` at a time as a browser loads them (the mosaic is
+    seen once they are all loaded)."""
+    version = status.get("version")
+    cams = json.loads(_get(url + "cameras.geojson")[0])
+    now = time.time()
+    for f in cams.get("features", []):
+        if f["properties"].get("position") != "nav":
+            rec.seen_cameras.setdefault(f["properties"]["image"], now)
+    for path in ("ellipses.geojson", "footprints.geojson", "points.geojson",
+                 "coverage.geojson"):
+        _get(url + path)
+    rec.requests += 5
+    mosaic = status.get("mosaic")
+    if mosaic:
+        tiles = _tiles_for(mosaic["bounds_wgs84"], int(mosaic["maxzoom"]))  # type: ignore[index]
+        urls = [f"{url}tiles/{t.z}/{t.x}/{t.y}.png?v={version}" for t in tiles]
+        got = list(pool.map(_get_from, urls))
+        times = [ms for _, ms, _ in got]
+        rec.requests += len(times)
+        rec.tile_ms += times
+        if not status.get("done"):
+            rec.tile_ms_live += times
+            for _, ms, source in got:
+                rec.tile_sources.setdefault(source, []).append(ms)
+    rec.seen_mosaic.append((time.time(), int(status.get("mosaic_images") or 0)))  # type: ignore[call-overload]
+
+
 def _client(url: str, stop: threading.Event, rec: Client) -> None:
-    """Poll as the page does until ``stop``: status; on a new version the cameras (then
-    seen), the other layers, and the tiles, :data:`BROWSER_CONNECTIONS` at a time as a
-    browser loads them (the mosaic is seen once they are all loaded)."""
+    """Poll as the page did before server-sent events until ``stop``: status every
+    :data:`PAGE_POLL_S`, a reload (:func:`_reload`) on a new version."""
     version = None
     lower_thread_priority_once(CLIENT_NICE)
     with ThreadPoolExecutor(BROWSER_CONNECTIONS, initializer=lower_thread_priority_once,
@@ -110,29 +154,81 @@ def _client(url: str, stop: threading.Event, rec: Client) -> None:
                 status = json.loads(body)
                 if status.get("version") != version:
                     version = status.get("version")
-                    cams = json.loads(_get(url + "cameras.geojson")[0])
-                    now = time.time()
-                    for f in cams.get("features", []):
-                        if f["properties"].get("position") != "nav":
-                            rec.seen_cameras.setdefault(f["properties"]["image"], now)
-                    for path in ("ellipses.geojson", "footprints.geojson", "points.geojson",
-                                 "coverage.geojson"):
-                        _get(url + path)
-                    rec.requests += 5
-                    mosaic = status.get("mosaic")
-                    if mosaic:
-                        tiles = _tiles_for(mosaic["bounds_wgs84"], int(mosaic["maxzoom"]))
-                        urls = [f"{url}tiles/{t.z}/{t.x}/{t.y}.png?v={version}" for t in tiles]
-                        times = [ms for _, ms in pool.map(_get, urls)]
-                        rec.requests += len(times)
-                        rec.tile_ms += times
-                        if not status.get("done"):
-                            rec.tile_ms_live += times
-                    rec.seen_mosaic.append((time.time(), int(status.get("mosaic_images") or 0)))
+                    _reload(url, status, rec, pool)
             except (OSError, ValueError):
                 if rec.requests:  # not before the watch's server is up
                     rec.errors += 1
             stop.wait(max(0.0, PAGE_POLL_S - (time.monotonic() - t_poll)))
+
+
+class _Stream:
+    """The newest status of an ``/events`` stream, read by a thread (the page's EventSource:
+    statuses that arrive during a reload are coalesced, the newest shown after it)."""
+
+    def __init__(self) -> None:
+        self.cond = threading.Condition()
+        self.latest: dict[str, object] | None = None
+        self.conn: http.client.HTTPConnection | None = None
+
+    def read(self, url: str, stop: threading.Event, rec: Client) -> None:
+        host, port = url.split("//", 1)[1].rstrip("/").rsplit(":", 1)
+        while not stop.is_set():
+            try:
+                self.conn = http.client.HTTPConnection(host, int(port), timeout=60)
+                self.conn.request("GET", "/events")
+                response = self.conn.getresponse()
+                kind, data = None, []
+                while not stop.is_set():
+                    line = response.readline()
+                    if not line:
+                        break
+                    text = line.decode().rstrip("\n")
+                    if text.startswith("event:"):
+                        kind = text.split(":", 1)[1].strip()
+                    elif text.startswith("data:"):
+                        data.append(text.split(":", 1)[1].strip())
+                    elif text == "" and data:
+                        if kind == "status":
+                            with self.cond:
+                                self.latest = json.loads("\n".join(data))
+                                rec.events += 1
+                                self.cond.notify()
+                        kind, data = None, []
+            except (OSError, ValueError, http.client.HTTPException):
+                pass
+            if rec.events:
+                rec.reconnects += 1
+            stop.wait(0.1)  # the server is not up yet, or it stopped
+
+    def next(self, stop: threading.Event) -> dict[str, object] | None:
+        with self.cond:
+            while self.latest is None and not stop.is_set():
+                self.cond.wait(0.1)
+            status, self.latest = self.latest, None
+            return status
+
+
+def _client_sse(url: str, stop: threading.Event, rec: Client) -> None:
+    """Follow ``/events`` as the page does until ``stop``: a reload (:func:`_reload`) on each
+    new version."""
+    version = None
+    lower_thread_priority_once(CLIENT_NICE)
+    stream = _Stream()
+    reader = threading.Thread(target=stream.read, args=(url, stop, rec), daemon=True)
+    reader.start()
+    with ThreadPoolExecutor(BROWSER_CONNECTIONS, initializer=lower_thread_priority_once,
+                            initargs=(CLIENT_NICE,)) as pool:
+        while not stop.is_set():
+            status = stream.next(stop)
+            if status is None or status.get("version") == version:
+                continue
+            version = status.get("version")
+            try:
+                _reload(url, status, rec, pool)
+            except (OSError, ValueError):
+                rec.errors += 1
+    if stream.conn is not None:
+        stream.conn.close()
 
 
 def _free_port() -> int:
@@ -158,7 +254,8 @@ def _quarters(values: Sequence[float]) -> tuple[float | None, float | None]:
 
 
 def one_run(flight: Path, work: Path, *, clients: int, rate_hz: float, dsm: Path | None,
-            idle_s: float, limit: int | None, serve_in: str = "process") -> dict[str, object]:
+            idle_s: float, limit: int | None, serve_in: str = "process",
+            page: str = "sse") -> dict[str, object]:
     """Feed + watch --ortho --serve with ``clients`` polling clients; the run's figures."""
     if work.exists():
         shutil.rmtree(work)
@@ -185,7 +282,8 @@ def one_run(flight: Path, work: Path, *, clients: int, rate_hz: float, dsm: Path
     stop = threading.Event()
     recs = [Client() for _ in range(clients)]
     url = f"http://127.0.0.1:{port}/"
-    threads = [threading.Thread(target=_client, args=(url, stop, r), daemon=True)
+    follow = _client_sse if page == "sse" else _client
+    threads = [threading.Thread(target=follow, args=(url, stop, r), daemon=True)
                for r in recs]
     for t in threads:
         t.start()
@@ -223,7 +321,8 @@ def one_run(flight: Path, work: Path, *, clients: int, rate_hz: float, dsm: Path
                      for r in ortho["images"]]  # type: ignore[union-attr]
     live_stats = ortho["live"]  # type: ignore[index]
     return {
-        "clients": clients, "serve_in": serve_in, "images": len(lives), "load_1m_start": load0,
+        "clients": clients, "serve_in": serve_in, "page": page, "images": len(lives),
+        "load_1m_start": load0,
         "load_1m_end": load_average(),
         "tracking_ms": _stats(track_ms), "at_update_ms": _stats(at_ms),
         "latency_ms": _stats(latency_ms), "ortho_latency_ms": _stats(ortho_ms),
@@ -234,12 +333,20 @@ def one_run(flight: Path, work: Path, *, clients: int, rate_hz: float, dsm: Path
         "ortho_work_first_last_quarter_ms": _quarters(ortho_work_ms),
         "publish_ms": live_stats.get("publish_ms"),  # type: ignore[union-attr]
         "publications": live_stats.get("publications"),  # type: ignore[union-attr]
+        "web_tiles_ms": live_stats.get("web_tiles_ms"),  # type: ignore[union-attr]
+        "web_tiles_cpu_ms": live_stats.get("web_tiles_cpu_ms"),  # type: ignore[union-attr]
+        "web_tiles": live_stats.get("web_tiles"),  # type: ignore[union-attr]
         "at_to_page_mosaic_ms": _stats(to_page_mosaic),
         "at_to_page_cameras_ms": _stats(to_page_cameras),
         "tile_ms_live": _stats([ms for r in recs for ms in r.tile_ms_live]),
         "tile_ms_all": _stats([ms for r in recs for ms in r.tile_ms]),
         "client_requests": sum(r.requests for r in recs),
         "client_errors": sum(r.errors for r in recs),
+        "client_events": sum(r.events for r in recs),
+        "client_reconnects": sum(r.reconnects for r in recs),
+        "tile_ms_live_by_source": {
+            k: _stats([ms for r in recs for ms in r.tile_sources.get(k, [])])
+            for k in sorted({k for r in recs for k in r.tile_sources})},
         "reorthorectified": len(live_stats["images_reorthorectified"]),  # type: ignore[index]
         "finish_s": live_stats["finish_s"],  # type: ignore[index]
     }
@@ -256,7 +363,7 @@ class LiveMapBench:
 
 def run_live_map_bench(flight: Path, out: Path, *, clients: Sequence[str] = ("0", "2"),
                        repeat: int = 1, rate_hz: float = 2.0, idle_s: float = 5.0,
-                       limit: int | None = None) -> LiveMapBench:
+                       limit: int | None = None, page: str = "sse") -> LiveMapBench:
     """Interleaved runs (module docstring)."""
     load0 = load_average()
     out.mkdir(parents=True, exist_ok=True)
@@ -271,7 +378,7 @@ def run_live_map_bench(flight: Path, out: Path, *, clients: Sequence[str] = ("0"
             n, _, where = spec.partition(":")
             result = one_run(flight, out / f"run{r}_clients{n}{where}", clients=int(n),
                              rate_hz=rate_hz, dsm=dsm, idle_s=idle_s, limit=limit,
-                             serve_in=where or "process")
+                             serve_in=where or "process", page=page)
             runs.append(result)
             print(json.dumps(to_jsonable(result)), file=sys.stderr, flush=True)
     return LiveMapBench(flight=str(flight), rate_hz=rate_hz, machine=machine(load0),
@@ -293,10 +400,13 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--rate-hz", type=float, default=2.0)
     parser.add_argument("--idle-s", type=float, default=5.0)
     parser.add_argument("--limit", type=int)
+    parser.add_argument("--page", choices=("sse", "poll"), default="sse",
+                        help="the clients follow /events (the page now) or poll status.json "
+                             "every second (the page before)")
     args = parser.parse_args(argv)
     result = run_live_map_bench(args.flight, args.out, clients=args.clients,
                                 repeat=args.repeat, rate_hz=args.rate_hz, idle_s=args.idle_s,
-                                limit=args.limit)
+                                limit=args.limit, page=args.page)
     text = json.dumps(to_jsonable(result), indent=1)
     (args.out / "live.json").write_text(text)
     print(text)

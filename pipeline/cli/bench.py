@@ -30,8 +30,9 @@ GTSAM_BENCH = "gtsam"
 #: as subprocesses (:mod:`pipeline.bench.fuzz.suite`; its own arguments follow).
 FUZZ_BENCH = "fuzz"
 #: ``seqat bench live --out DIR [--flight F] [--clients N ...] [--repeat K] [--rate-hz R]
-#: [--limit N]``: the live map's targets, seqat feed into seqat watch --ortho --serve with
-#: polling clients (:mod:`pipeline.bench.live`; its own arguments follow).
+#: [--limit N] [--page sse|poll]``: the live map's targets, seqat feed into seqat watch
+#: --ortho --serve with page-like clients (:mod:`pipeline.bench.live`; its own arguments
+#: follow).
 LIVE_BENCH = "live"
 #: ``seqat bench dask --out DIR [--flights N] [--repeats R] [--no-kill]``: a campaign's ortho
 #: and mosaic stages on 1 and 2 Dask workers, pixel equality, a worker killed
@@ -56,8 +57,8 @@ def bench(
              "truth), 'ortho' (timing of the ortho stage), 'gtsam' (GTSAM's fixed-lag "
              "smoother beside Seq-R; --lag, --config), 'fuzz' (seeded bad inputs; --cases, "
              "--case K replays one), 'live' (the live map: feed into watch --ortho --serve "
-             "with polling clients; --flight, --clients, --repeat) or 'dask' (a campaign on 1 "
-             "and 2 Dask workers; --flights, --repeats; see docs/benchmarks.md).")],
+             "with page-like clients; --flight, --clients, --repeat, --page) or 'dask' (a "
+             "campaign on 1 and 2 Dask workers; --flights, --repeats; see docs/benchmarks.md).")],
     out: Annotated[Path, typer.Option("--out", help="Benchmark output folder.")] = Path(
         "out/bench"),
     seed: Annotated[list[int] | None, typer.Option(

@@ -56,7 +56,7 @@ from pipeline.flight.folder import Flight, read_flight
 from pipeline.flight.schema import CameraConfig
 from pipeline.ortho.base import OrthoOptions
 from pipeline.ortho.dsm import Dsm, DsmOptions
-from pipeline.ortho.live_tiles import LiveTiles
+from pipeline.ortho.live_tiles import LiveTiles, seen_bounds
 from pipeline.ortho.mosaic import FEATHER_PX, MosaicBuilder, tiles_of_bounds
 from pipeline.ortho.orthorectifier import Orthorectifier
 from pipeline.ortho.stage import (
@@ -329,6 +329,8 @@ class LiveOrtho:
         self._worker.shutdown(wait=True)
         if self._ortho is not None:
             self._ortho.close()
+        if self._live_tiles is not None:
+            self._live_tiles.stop_renderer(0.0)
 
     def __enter__(self) -> LiveOrtho:
         return self
@@ -394,7 +396,8 @@ class LiveOrtho:
                                          footprint_m=result.footprint_m)
             if self._live_tiles is not None:
                 self._live_tiles.touched(update.tiles, image_id, record.latency_ms,
-                                         time.time() - (time.perf_counter() - t_submit))
+                                         time.time() - (time.perf_counter() - t_submit),
+                                         seen_bounds(result.raster))
         except BaseException as err:  # re-raised in the AT loop (on_image / on_finish)
             with self._lock:
                 self._worker_error = self._worker_error or err
@@ -489,8 +492,16 @@ class LiveOrtho:
                 finish_s=time.perf_counter() - t0,
                 publish_ms=None if self._live_tiles is None or not self._live_tiles.publish_ms
                 else TimingStats.from_samples(self._live_tiles.publish_ms),
-                publications=0 if self._live_tiles is None else len(self._live_tiles.publish_ms))
+                publications=0 if self._live_tiles is None else len(self._live_tiles.publish_ms),
+                web_tiles_ms=None if self._live_tiles is None or not self._live_tiles.web_tiles_ms
+                else TimingStats.from_samples(self._live_tiles.web_tiles_ms),
+                web_tiles_cpu_ms=None if self._live_tiles is None
+                or not self._live_tiles.web_tiles_cpu_ms
+                else TimingStats.from_samples(self._live_tiles.web_tiles_cpu_ms),
+                web_tiles=0 if self._live_tiles is None else sum(self._live_tiles.web_tiles))
 
+        if self._live_tiles is not None:
+            self._live_tiles.stop_renderer()  # its last publications, for the page and stats
         summary = finish_ortho(
             self.out_dir, self._mosaic, records, crs=self.crs, out_crs=self._out_crs, eops=eops,
             points=point_table(solution.points),

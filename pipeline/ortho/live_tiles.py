@@ -11,8 +11,16 @@ mosaic so far with the time each was published. The cost per image is the tiles 
 not the mosaic's size; ``seqat serve`` reads the tiles through rio-tiler's mosaic reader
 (docs/formats.md, *Live run files*).
 
-When the run's ``mosaic.tif`` is published, :meth:`LiveTiles.remove` deletes the tiles and
-the index (``seqat serve`` shows ``mosaic.tif`` from then on).
+Each publication also hands the bounds of the cells the new images saw to the renderer
+(:mod:`pipeline.ortho.live_render`, a child process), which renders the web tiles over them
+(XYZ, Web Mercator, every zoom of the live mosaic) into the live tile cache
+``OUT/live/xyz/{z}/{x}/{y}.png`` and then writes the index, so ``seqat serve`` answers tiles
+with a file read rather than rendering them from the growing mosaic, under CPU contention,
+when a browser asks. What an image changes lies inside its cells seen (the blend writes
+nothing else), so the web tiles over their bounding box are the ones to render again.
+
+When the run's ``mosaic.tif`` is published, :meth:`LiveTiles.remove` deletes the tiles, the
+cache and the index (``seqat serve`` shows ``mosaic.tif`` from then on).
 """
 
 from __future__ import annotations
@@ -24,10 +32,14 @@ import time
 from collections.abc import Iterable
 from pathlib import Path
 
+import numpy as np
 import pyproj
 
+from pipeline.common import webtiles
 from pipeline.common.atomic import atomic_write_text
 from pipeline.common.columns import LIVE_DIR, LIVE_MOSAIC_INDEX, LIVE_TILES_DIR
+from pipeline.ortho.base import OrthoRaster
+from pipeline.ortho.live_render import STOP_WAIT_S, RendererProcess
 from pipeline.ortho.mosaic import MosaicBuilder
 from pipeline.ortho.raster import write_tiled_tiff
 
@@ -36,6 +48,18 @@ INDEX_FORMAT = "seqat-live-mosaic"
 
 def tile_name(key: tuple[int, int]) -> str:
     return f"c{key[0]}_r{key[1]}.tif"
+
+
+def seen_bounds(raster: OrthoRaster) -> tuple[float, float, float, float] | None:
+    """``(west, south, east, north)`` of the cells an ortho sees (what it can change in the
+    mosaic), in the mosaic's CRS; None when it sees none."""
+    rows = np.flatnonzero(raster.seen.any(axis=1))
+    cols = np.flatnonzero(raster.seen.any(axis=0))
+    if not len(rows):
+        return None
+    p = raster.pixel_m
+    return ((raster.col0 + int(cols[0])) * p, -(raster.row0 + int(rows[-1]) + 1) * p,
+            (raster.col0 + int(cols[-1]) + 1) * p, -(raster.row0 + int(rows[0])) * p)
 
 
 class LiveTiles:
@@ -49,18 +73,24 @@ class LiveTiles:
     mosaic : MosaicBuilder
     crs : pyproj.CRS
         The mosaic's CRS.
+    render : bool
+        Render the live tile cache (a child process, :mod:`pipeline.ortho.live_render`,
+        started at the first publication from the calling thread: it inherits its niceness).
     """
 
-    def __init__(self, out_dir: Path, mosaic: MosaicBuilder, crs: pyproj.CRS) -> None:
+    def __init__(self, out_dir: Path, mosaic: MosaicBuilder, crs: pyproj.CRS,
+                 render: bool = True) -> None:
         self.folder = out_dir / LIVE_DIR
         self.tiles_dir = self.folder / LIVE_TILES_DIR
         if self.tiles_dir.exists():
             shutil.rmtree(self.tiles_dir)
+        shutil.rmtree(self.folder / webtiles.CACHE_DIR, ignore_errors=True)
         (self.folder / LIVE_MOSAIC_INDEX).unlink(missing_ok=True)
         self.tiles_dir.mkdir(parents=True)
         self.mosaic = mosaic
         self.crs = crs
         self._to_wgs84 = pyproj.Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+        self._changed: list[tuple[float, float, float, float]] = []  # WGS 84, since last
         self._pending: set[tuple[int, int]] = set()
         self._waiting_images: list[dict[str, object]] = []
         self._published: dict[tuple[int, int], dict[str, object]] = {}
@@ -68,10 +98,17 @@ class LiveTiles:
         self._version = 0
         self.last_publish = 0.0  # monotonic
         self.publish_ms: list[float] = []
+        self._renderer: RendererProcess | None = None
+        self._render = render
 
     def touched(self, tiles: Iterable[tuple[int, int]], image: str, ortho_ms: float,
-                at_unix_s: float | None = None) -> None:
-        """An image went into these tiles (published by the next :meth:`publish`)."""
+                at_unix_s: float | None = None,
+                changed: tuple[float, float, float, float] | None = None) -> None:
+        """An image went into these tiles (published by the next :meth:`publish`);
+        ``changed``: the bounds of the cells it changed in the mosaic's CRS
+        (:func:`seen_bounds`), whose web tiles the publication renders."""
+        if changed is not None:
+            self._changed.append(self._to_wgs84.transform_bounds(*changed, densify_pts=5))
         self._pending.update(tiles)
         self._waiting_images.append({"image": image, "ortho_ms": round(ortho_ms, 1),
                                      "at_unix_s": at_unix_s})
@@ -111,16 +148,50 @@ class LiveTiles:
         doc = {"format": INDEX_FORMAT, "version": 1, "updated_unix_s": now,
                "revision": self._version, "pixel_m": self.mosaic.pixel_m,
                "bounds_wgs84": _union([t["bounds_wgs84"] for t in tiles]),  # type: ignore[misc]
-               "tiles": tiles, "images": self._images}
-        atomic_write_text(self.folder / LIVE_MOSAIC_INDEX, json.dumps(doc, separators=(",", ":")))
+               "tiles": tiles, "images": self._images, "xyz": None}
+        changed, self._changed = self._changed, []
+        if self._render and self._renderer is None:
+            self._renderer = RendererProcess(self.folder, self.crs.to_wkt())
+        # the renderer writes the index once the web tiles are there; without it, now
+        if self._renderer is None or not self._renderer.submit(changed, doc):
+            atomic_write_text(self.folder / LIVE_MOSAIC_INDEX,
+                              json.dumps(doc, separators=(",", ":")))
         self.last_publish = time.monotonic()
         self.publish_ms.append((time.perf_counter() - t0) * 1e3)
 
+    @property
+    def web_tiles_ms(self) -> list[float]:
+        """The renderer's time per rendering (:mod:`pipeline.ortho.live_render`)."""
+        return [] if self._renderer is None else list(self._renderer.ms)
+
+    @property
+    def web_tiles_cpu_ms(self) -> list[float]:
+        """The renderer's CPU time per rendering."""
+        return [] if self._renderer is None else list(self._renderer.cpu_ms)
+
+    @property
+    def web_tiles(self) -> list[int]:
+        """Web tiles the renderer wrote, per rendering."""
+        return [] if self._renderer is None else list(self._renderer.tiles)
+
+    def wait_rendered(self, timeout: float | None = None) -> bool:
+        """Wait until the renderer has written every publication handed to it (tests)."""
+        return self._renderer is None or self._renderer.wait(timeout)
+
+    def stop_renderer(self, wait_s: float = STOP_WAIT_S) -> None:
+        """Let the renderer finish what it was handed (``wait_s`` at most), then end it."""
+        if self._renderer is not None:
+            self._renderer.stop(wait_s)
+
     def remove(self) -> None:
-        """The run's ``mosaic.tif`` is published: drop the index, then the tiles."""
+        """The run's ``mosaic.tif`` is published: end the renderer, drop the index, then the
+        tiles."""
+        if self._renderer is not None:
+            self._renderer.stop(0.0)
         with contextlib.suppress(FileNotFoundError):
             (self.folder / LIVE_MOSAIC_INDEX).unlink()
         shutil.rmtree(self.tiles_dir, ignore_errors=True)
+        shutil.rmtree(self.folder / webtiles.CACHE_DIR, ignore_errors=True)
 
 
 def _union(bounds: list[list[float]]) -> list[float] | None:

@@ -172,9 +172,15 @@ class LiveOrthoStats:
         ``on_finish``: waiting for the worker, re-orthorectification, mosaic rebuild and
         the final writes (mosaic COG, ``cameras.gpkg``, ``ortho.json``).
     publish_ms : TimingStats or None
-        ``seqat watch --ortho``: each publication of the live mosaic (touched tiles and the
-        index, ``OUT/live/``); None when it is not published.
+        ``seqat watch --ortho``: each publication of the live mosaic (touched tiles, the web
+        tiles they changed and the index, ``OUT/live/``); None when it is not published.
     publications : int
+    web_tiles_ms, web_tiles_cpu_ms : TimingStats or None
+        Each rendering of the live tile cache (:mod:`pipeline.ortho.live_render`, a child
+        process: one or more publications), wall and CPU time.
+    web_tiles : int
+        Web tiles written into the live tile cache over all publications (a tile whose
+        pixels did not change is read, compared and left).
     """
 
     background: bool
@@ -188,6 +194,9 @@ class LiveOrthoStats:
     finish_s: float
     publish_ms: TimingStats | None = None
     publications: int = 0
+    web_tiles_ms: TimingStats | None = None
+    web_tiles_cpu_ms: TimingStats | None = None
+    web_tiles: int = 0
 
 
 @dataclass(frozen=True, kw_only=True)

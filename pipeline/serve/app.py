@@ -6,18 +6,27 @@ folder through Starlette's ``StaticFiles``, which refuses paths leaving it).
 
 Routes (docs/formats.md, *seqat serve*): ``/`` (the page), ``/tiles/{z}/{x}/{y}.png``
 (``mosaic.tif`` as 256 x 256 Web Mercator tiles, transparent outside the data; before it
-exists, the live mosaic a ``seqat watch --ortho`` publishes in ``live/``),
-``/status.json``, ``/cameras.geojson``, ``/ellipses.geojson``, ``/footprints.geojson``,
-``/points.geojson``, ``/coverage.geojson``, ``/static/...`` (the page's script and style,
-Leaflet). ``status.json`` and ``coverage.geojson`` take ``?stop_sigma_cm=X`` (the page's
+exists, the live mosaic a ``seqat watch --ortho`` publishes in ``live/``, from its live tile
+cache; every tile with an ETag, ``If-None-Match`` answered 304), ``/status.json``,
+``/events`` (server-sent events: ``status.json`` again whenever its ``version`` changes),
+``/cameras.geojson``, ``/ellipses.geojson``, ``/footprints.geojson``, ``/points.geojson``,
+``/coverage.geojson``, ``/static/...`` (the page's script and style, Leaflet).
+``status.json``, ``events`` and ``coverage.geojson`` take ``?stop_sigma_cm=X`` (the page's
 stop criterion field) instead of the run's ``--stop-sigma-cm``.
+
+The event stream is the same files read again: the server looks at the run folder's files
+(a ``stat`` each) every :data:`EVENT_POLL_S` and sends ``status.json`` when one changed and
+the version with it, so a page learns of an image within that time instead of its poll
+period, and a restarted server or a finished run behave as before.
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import dataclasses
 import errno
+import json
 import math
 import os
 import socket
@@ -25,24 +34,34 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
 
 import uvicorn
 from starlette.applications import Starlette
+from starlette.concurrency import run_in_threadpool
 from starlette.requests import Request
-from starlette.responses import FileResponse, JSONResponse, Response
+from starlette.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
-from pipeline.common.columns import LIVE_DIR, LIVE_MOSAIC_INDEX
+from pipeline.common.columns import (
+    EOP_FILE,
+    LIVE_DIR,
+    LIVE_ESTIMATES_FILE,
+    LIVE_MOSAIC_INDEX,
+    POINTS_FILE,
+    RUN_FILE,
+)
 from pipeline.common.priority import lower_thread_priority_once
-from pipeline.serve.runview import MOSAIC_FILE, RunView, check_run_folder
+from pipeline.run.journal import JOURNAL_DIR, JOURNAL_FILE
+from pipeline.serve.runview import MOSAIC_FILE, ORTHO_JSON, RunView, check_run_folder
 from pipeline.serve.tiles import (
     EMPTY_TILE,
     LiveMosaic,
     MosaicTiles,
     MosaicUnreadable,
+    etag,
     tile_in_range,
 )
 from seqat.errors import InputDataError
@@ -54,6 +73,17 @@ DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
 #: ``seqat watch --serve``: the request threads run this much nicer than the AT loop.
 WATCH_SERVE_NICE = 10
+#: Where a tile came from (``mosaic``: mosaic.tif; ``cache``, ``memory``, ``rendered``,
+#: ``empty``: the live mosaic, :meth:`LiveMosaic.tile_from`), for benchmarks and the curious.
+TILE_SOURCE_HEADER = "X-Seqat-Tile"
+#: How often ``/events`` looks at the run folder's files, s.
+EVENT_POLL_S = 0.1
+#: An event-stream comment at least this often keeps proxies and browsers connected, s.
+EVENT_KEEPALIVE_S = 15.0
+#: Before reconnecting, a browser waits this long (the stream's ``retry:``), ms.
+EVENT_RETRY_MS = 1000
+#: Seconds uvicorn waits for open connections (event streams) when it stops.
+GRACEFUL_SHUTDOWN_S = 1
 
 
 def build_app(out: Path, nice: int = 0) -> Starlette:
@@ -97,17 +127,64 @@ def build_app(out: Path, nice: int = 0) -> Starlette:
         if not tile_in_range(z, x, y):
             return Response("no such tile", status_code=404, media_type="text/plain")
         try:
-            png = tiles.tile(z, x, y)
+            png, source = tiles.tile(z, x, y), "mosaic"
             if png is EMPTY_TILE and not (out / MOSAIC_FILE).exists():
-                png = live_tiles.tile(z, x, y)
+                png, source = live_tiles.tile_from(z, x, y)
         except MosaicUnreadable as err:
             return Response(str(err), status_code=503, media_type="text/plain",
                             headers=NO_CACHE)
-        return Response(png, media_type="image/png", headers=NO_CACHE)
+        tag = etag(png)
+        headers = {**NO_CACHE, "ETag": tag, TILE_SOURCE_HEADER: source}
+        if tag in (t.strip() for t in request.headers.get("if-none-match", "").split(",")):
+            return Response(status_code=304, headers=headers)
+        return Response(png, media_type="image/png", headers=headers)
 
     def status(request: Request) -> Response:
         return JSONResponse(view.status(*mosaic_info(), stop_sigma_cm=stop_param(request)),
                             headers=NO_CACHE)
+
+    watched = [out / n for n in (RUN_FILE, EOP_FILE, POINTS_FILE, ORTHO_JSON, MOSAIC_FILE)] + [
+        out / LIVE_DIR / LIVE_ESTIMATES_FILE, out / LIVE_DIR / LIVE_MOSAIC_INDEX,
+        out / JOURNAL_DIR / JOURNAL_FILE]
+
+    def files_key() -> tuple[tuple[int, int, int] | None, ...]:
+        keys = []
+        for path in watched:
+            try:
+                st = os.stat(path)
+                keys.append((st.st_ino, st.st_mtime_ns, st.st_size))
+            except OSError:
+                keys.append(None)
+        return tuple(keys)
+
+    def niced_status(stop: float | None) -> dict[str, object]:
+        lower_thread_priority_once(nice)
+        return view.status(*mosaic_info(), stop_sigma_cm=stop)
+
+    async def events(request: Request) -> Response:
+        stop = stop_param(request)
+
+        async def stream() -> AsyncIterator[str]:
+            yield f"retry: {EVENT_RETRY_MS}\n\n"
+            key: object = object()
+            version = None
+            sent = time.monotonic()
+            while not app.state.closing:
+                now_key = files_key()
+                if now_key != key:
+                    key = now_key
+                    doc = await run_in_threadpool(niced_status, stop)
+                    if doc["version"] != version:
+                        version = doc["version"]
+                        sent = time.monotonic()
+                        yield f"event: status\ndata: {json.dumps(doc)}\n\n"
+                if time.monotonic() - sent >= EVENT_KEEPALIVE_S:
+                    sent = time.monotonic()
+                    yield ": keep-alive\n\n"
+                await asyncio.sleep(EVENT_POLL_S)
+
+        return StreamingResponse(stream(), media_type="text/event-stream",
+                                 headers={**NO_CACHE, "X-Accel-Buffering": "no"})
 
     def geojson(doc: dict[str, object]) -> Response:
         return JSONResponse(doc, media_type="application/geo+json", headers=NO_CACHE)
@@ -134,6 +211,7 @@ def build_app(out: Path, nice: int = 0) -> Starlette:
         Route("/", niced(index), methods=get),
         Route("/tiles/{z:int}/{x:int}/{y:int}.png", niced(tile), methods=get),
         Route("/status.json", niced(status), methods=get),
+        Route("/events", events, methods=["GET"]),
         Route("/cameras.geojson", niced(cameras), methods=get),
         Route("/points.geojson", niced(points), methods=get),
         Route("/ellipses.geojson", niced(ellipses), methods=get),
@@ -142,6 +220,8 @@ def build_app(out: Path, nice: int = 0) -> Starlette:
         Mount("/static", StaticFiles(directory=STATIC_DIR), name="static"),
     ])
     app.state.tiles = tiles
+    app.state.live_tiles = live_tiles
+    app.state.closing = False  # set when the server stops: the event streams end
     return app
 
 
@@ -179,6 +259,12 @@ class Served:
     url: str
     server: uvicorn.Server
     sock: socket.socket
+    app: Starlette
+
+    def stop(self) -> None:
+        """Ask the server to stop (its event streams end at once)."""
+        self.app.state.closing = True
+        self.server.should_exit = True
 
 
 def make_server(out: Path | str, host: str = DEFAULT_HOST,
@@ -193,10 +279,12 @@ def server_on(out: Path, sock: socket.socket, host: str, nice: int = 0) -> Serve
     """The (not yet started) server of ``out`` on a bound socket (``seqat watch --serve``
     binds first, so a busy port fails before the watch starts)."""
     real_port = sock.getsockname()[1]
-    config = uvicorn.Config(build_app(out, nice), log_level="warning", access_log=False,
-                            lifespan="off")
+    app = build_app(out, nice)
+    config = uvicorn.Config(app, log_level="warning", access_log=False,
+                            lifespan="off", timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S)
     shown = f"[{host}]" if ":" in host else host
-    return Served(url=f"http://{shown}:{real_port}/", server=uvicorn.Server(config), sock=sock)
+    return Served(url=f"http://{shown}:{real_port}/", server=uvicorn.Server(config), sock=sock,
+                  app=app)
 
 
 def run_server(served: Served) -> None:
@@ -235,7 +323,7 @@ def serve_child(out: str, fd: int, host: str, nice: int) -> None:
     def orphaned() -> None:
         while os.getppid() == parent:
             time.sleep(1.0)
-        served.server.should_exit = True
+        served.stop()
 
     threading.Thread(target=orphaned, daemon=True).start()
     run_server(served)
@@ -262,7 +350,7 @@ def stop_process(child: subprocess.Popen[bytes]) -> None:
 
 
 def stop_thread(served: Served, thread: threading.Thread) -> None:
-    served.server.should_exit = True
+    served.stop()
     thread.join(10)
 
 

@@ -7,18 +7,21 @@ an atomic rename: a new inode, a new mtime), so a tile always shows the file as 
 is requested. Tiles outside the data are fully transparent 256 x 256 PNGs, as is every tile
 while the run folder has no mosaic yet.
 
-Before ``mosaic.tif`` exists, :class:`LiveMosaic` reads the live ortho's published tiles
-(``OUT/live/mosaic.json`` and ``OUT/live/tiles/*.tif``, :mod:`pipeline.ortho.live_tiles`):
-the index names each small GeoTIFF with its WGS 84 bounds and version; the files a web
-tile's bounds (morecantile) reach are merged by rio-tiler's ``mosaic_reader`` (they do not
-overlap). The page reloads every tile after each image, most of them unchanged, so the PNGs
-are kept (:data:`PNG_CACHE` of them, least recently used out) by web tile and the versions
-of the files it was made of.
+Before ``mosaic.tif`` exists, :class:`LiveMosaic` serves the live ortho's publication
+(``OUT/live/mosaic.json``, :mod:`pipeline.ortho.live_tiles`): a web tile is read from the
+live tile cache ``OUT/live/xyz/{z}/{x}/{y}.png`` the watch renders when it publishes (a file
+read, whatever the CPU load; a tile missing from a ``complete`` cache holds no data); a tile
+not in it (another zoom, a folder without a cache) is rendered on request: the published
+work tiles its bounds (morecantile) reach, merged by rio-tiler's ``mosaic_reader``, which
+gives the cached tiles' pixels (tests/pipeline/serve/test_live_cache.py), encoded by the same
+function. Such PNGs are kept (:data:`PNG_CACHE` of them, least recently used out) by web
+tile and the versions of the files they were made of. Every tile carries an ETag of its
+bytes.
 """
 
 from __future__ import annotations
 
-import io
+import hashlib
 import json
 import os
 import threading
@@ -26,29 +29,24 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
-import morecantile
 import numpy as np
-from PIL import Image
 from rasterio.errors import RasterioIOError
 from rio_tiler.errors import TileOutsideBounds
 from rio_tiler.io import Reader
 from rio_tiler.models import ImageData
 from rio_tiler.mosaic import mosaic_reader
 
-#: Edge of a tile, pixels.
-TILE_PX = 256
-#: The tile matrix set of the XYZ tiles Leaflet and OpenLayers request.
-TMS = morecantile.tms.get("WebMercatorQuad")
+from pipeline.common import webtiles
+from pipeline.common.webtiles import EMPTY_TILE, TILE_PX, TMS, tile_in_range
+
+__all__ = ["EMPTY_TILE", "TILE_PX", "TMS", "LiveMosaic", "MosaicInfo", "MosaicTiles",
+           "MosaicUnreadable", "etag", "tile_in_range"]
 
 
-def _transparent_png() -> bytes:
-    buf = io.BytesIO()
-    Image.fromarray(np.zeros((TILE_PX, TILE_PX, 4), np.uint8), "RGBA").save(buf, "PNG")
-    return buf.getvalue()
-
-
-#: The tile outside the data.
-EMPTY_TILE = _transparent_png()
+def etag(png: bytes) -> str:
+    """A strong ETag of a tile's bytes (the same tile from the cache or rendered on request
+    has the same one)."""
+    return '"' + hashlib.blake2b(png, digest_size=8).hexdigest() + '"'
 
 
 @dataclass(frozen=True)
@@ -63,11 +61,6 @@ class MosaicInfo:
 
 class MosaicUnreadable(Exception):
     """``mosaic.tif`` exists but cannot be read (damaged, or not a raster)."""
-
-
-def tile_in_range(z: int, x: int, y: int) -> bool:
-    """A tile index of ``WebMercatorQuad`` (zoom 0..24)."""
-    return 0 <= z <= 24 and 0 <= x < 2 ** z and 0 <= y < 2 ** z
 
 
 class MosaicTiles:
@@ -144,7 +137,8 @@ class MosaicTiles:
                 raise MosaicUnreadable(f"{self.path.name}: cannot read: {err}") from err
         if not img.mask.any():
             return EMPTY_TILE
-        return img.render(img_format="PNG")
+        mask = img.mask[None]
+        return webtiles.encode_tile(np.concatenate([np.where(mask > 0, img.data, 0), mask]))
 
     def close_locked(self) -> None:
         if self._reader is not None:
@@ -171,7 +165,12 @@ class LiveMosaic:
         self._tiles: list[tuple[Path, tuple[float, float, float, float], object]] = []
         self._png: OrderedDict[tuple[object, ...], bytes] = OrderedDict()
         self._zooms: tuple[int, int] | None = None
+        self._cached_zooms: tuple[int, int] | None = None  # the live tile cache's
+        self._cache_complete = False  # every tile with data at its zooms is in it
         self._info: MosaicInfo | None = None
+        #: Tiles answered from the live tile cache and rendered on request.
+        self.served_cached = 0
+        self.rendered = 0
 
     def _load(self) -> None:
         """Read the index if it changed (lock held)."""
@@ -179,6 +178,7 @@ class LiveMosaic:
             st = os.stat(self.index)
         except OSError:
             self._key, self._doc, self._tiles, self._info = None, None, [], None
+            self._cached_zooms = None
             return
         key = (st.st_ino, st.st_mtime_ns, st.st_size)
         if key == self._key:
@@ -193,6 +193,12 @@ class LiveMosaic:
         self._key, self._doc = key, doc
         self._tiles = tiles  # type: ignore[assignment]
         self._info = None
+        xyz = doc.get("xyz")
+        self._cached_zooms = (int(xyz["minzoom"]), int(xyz["maxzoom"])) if isinstance(
+            xyz, dict) and xyz.get("dir") == webtiles.CACHE_DIR else None
+        self._cache_complete = isinstance(xyz, dict) and xyz.get("complete") is True
+        if self._cached_zooms is not None:
+            self._zooms = (self._cached_zooms[0] + webtiles.ZOOMS_BELOW, self._cached_zooms[1])
         if tiles:
             if self._zooms is None:
                 with Reader(str(tiles[0][0]), tms=TMS) as r:
@@ -218,31 +224,48 @@ class LiveMosaic:
             return self._doc
 
     def tile(self, z: int, x: int, y: int) -> bytes:
-        """The PNG of tile ``z/x/y`` (:data:`EMPTY_TILE` outside the published tiles).
+        """The PNG of tile ``z/x/y`` (:data:`EMPTY_TILE` outside the published tiles): from
+        the live tile cache, else rendered now (module docstring).
 
         Raises
         ------
         MosaicUnreadable
         """
-        bounds = TMS.bounds(morecantile.Tile(x, y, z))
+        return self.tile_from(z, x, y)[0]
+
+    def tile_from(self, z: int, x: int, y: int) -> tuple[bytes, str]:
+        """:meth:`tile` and where it came from: ``cache`` (the live tile cache), ``memory``
+        (rendered earlier), ``rendered`` (now) or ``empty`` (outside the published tiles)."""
+        bounds = webtiles.tile_bounds_wgs84(z, x, y)
         with self._lock:
             self._load()
-            hits = [(str(p), v) for p, b, v in self._tiles
-                    if b[0] < bounds.right and b[2] > bounds.left
-                    and b[1] < bounds.top and b[3] > bounds.bottom]
+            hits = [(str(p), v) for p, b, v in self._tiles if webtiles.reaches(b, bounds)]
+            cached, complete = self._cached_zooms, self._cache_complete
             key = (z, x, y, *hits)
             png = self._png.get(key)
             if png is not None:
                 self._png.move_to_end(key)
-                return png
+                return png, "memory"
         if not hits:
-            return EMPTY_TILE
+            return EMPTY_TILE, "empty"
+        if cached is not None and cached[0] <= z <= cached[1]:
+            try:
+                png = webtiles.cache_path(self.index.parent, z, x, y).read_bytes()
+            except FileNotFoundError:
+                png = None
+            if png is not None:
+                with self._lock:
+                    self.served_cached += 1
+                return png, "cache"
+            if complete:  # no image put data there (docs/formats.md, *Live run files*)
+                return EMPTY_TILE, "empty"
         png = self._render([a for a, _ in hits], z, x, y)
         with self._lock:
+            self.rendered += 1
             self._png[key] = png
             while len(self._png) > PNG_CACHE:
                 self._png.popitem(last=False)
-        return png
+        return png, "rendered"
 
     def _render(self, assets: list[str], z: int, x: int, y: int) -> bytes:
 
@@ -259,4 +282,5 @@ class LiveMosaic:
             raise MosaicUnreadable(f"live mosaic: cannot read: {err}") from err
         if not img.mask.any():
             return EMPTY_TILE
-        return img.render(img_format="PNG")
+        mask = img.mask[None]
+        return webtiles.encode_tile(np.concatenate([np.where(mask > 0, img.data, 0), mask]))

@@ -38,9 +38,12 @@ class TrackerOptions:
     geometry : {"fundamental", "homography"}
         Model of the verification. The fundamental matrix accepts any rigid scene (buildings,
         trees); a homography only a plane, but constrains matches in 2D instead of 1D.
-    matcher : {"flann", "brute_force"}
-        Descriptor matcher for SIFT (ORB always uses brute-force Hamming). FLANN is ~3-6x
-        faster at 4000 features per image.
+    matcher : {"auto", "brute_force", "flann"}
+        Descriptor matcher for SIFT (ORB always uses brute-force Hamming): ``brute_force``
+        finds the exact nearest neighbours (one BLAS product per pair of images,
+        :mod:`pipeline.tracking.matching`), ``flann`` approximate ones (kd-trees, cheaper at
+        ~4000 features per image), ``auto`` the first up to 2500 x 2500 descriptors per pair
+        and FLANN above.
     sift_contrast_threshold : float
         SIFT ``contrastThreshold``. OpenCV's default 0.04 finds only 5-20 features on the
         low-contrast fields of the Seneca flight (gray std ~13); 0.01 finds 4000 there (the
@@ -82,7 +85,7 @@ class TrackerOptions:
     ransac_threshold_px: float = 1.0
     min_inliers: int = 15
     geometry: Literal["fundamental", "homography"] = "fundamental"
-    matcher: Literal["flann", "brute_force"] = "flann"
+    matcher: Literal["auto", "brute_force", "flann"] = "auto"
     sift_contrast_threshold: float = 0.01
     max_held_images: int = 60
     stale_after_images: int = 40
@@ -111,7 +114,8 @@ class TrackerOptions:
              f"an integer >= {MIN_MODEL_POINTS}")
         need(self.geometry in ("fundamental", "homography"), "geometry",
              "'fundamental' or 'homography'")
-        need(self.matcher in ("flann", "brute_force"), "matcher", "'flann' or 'brute_force'")
+        need(self.matcher in ("auto", "brute_force", "flann"), "matcher",
+             "'auto', 'brute_force' or 'flann'")
         need(self.sift_contrast_threshold > 0.0, "sift_contrast_threshold", "a positive number")
         need(self.max_held_images >= self.neighbours, "max_held_images",
              f"an integer >= neighbours ({self.neighbours})")

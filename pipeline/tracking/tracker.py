@@ -57,6 +57,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.tracking.decode import jpeg_scan_problem
+from pipeline.tracking.matching import NewImageMatcher, ratio_matches
 from pipeline.tracking.options import MIN_MODEL_POINTS, TrackerOptions
 from seqat.errors import InputDataError
 from seqat.geometry import rays_world
@@ -69,12 +70,6 @@ MIN_HEIGHT_M = 1.0
 #: Confidence and iteration cap of USAC_MAGSAC.
 RANSAC_CONFIDENCE = 0.999
 RANSAC_MAX_ITERATIONS = 10000
-#: FLANN kd-tree parameters for SIFT (4 randomised trees, 32 leaf checks).
-FLANN_KDTREE = 1
-FLANN_TREES = 4
-FLANN_CHECKS = 32
-#: Seed of OpenCV's RNG before each kd-tree build (deterministic matching).
-FLANN_SEED = 1
 #: A corner ray must point at least this much below the horizon to give a footprint (radians);
 #: flatter rays count as "horizon" and the image falls back to recency-based candidates.
 MIN_RAY_DEPRESSION_RAD = math.radians(5.0)
@@ -512,44 +507,16 @@ class Tracker:
         n_matches = n_inliers = n_pairs = 0
         if len(kp) < MIN_MODEL_POINTS or not candidates:
             return links, 0, 0, 0
-        sift = opts.detector == "sift"
-        if sift and opts.matcher == "flann":
-            # FLANN's randomised kd-trees draw from OpenCV's thread RNG: seed it so an image's
-            # matches depend on its inputs only, not on what the process did before (a
-            # resumed run must track like an uninterrupted one)
-            cv2.setRNGSeed(FLANN_SEED)
-            matcher: cv2.DescriptorMatcher = cv2.FlannBasedMatcher(
-                {"algorithm": FLANN_KDTREE, "trees": FLANN_TREES}, {"checks": FLANN_CHECKS})
-            matcher.add([desc.astype(np.float32)])
-            matcher.train()  # one index of the new image, queried by every candidate
-        else:
-            matcher = cv2.BFMatcher(cv2.NORM_L2 if sift else cv2.NORM_HAMMING)
-        new_desc = desc.astype(np.float32) if sift else desc
+        matcher = NewImageMatcher(desc, opts.detector, opts.matcher)
         for rank, cand in enumerate(candidates):
             held = cand.held
             if len(held.kp_work) < MIN_MODEL_POINTS:
                 continue
-            q = held.desc.astype(np.float32) if sift else held.desc
-            if isinstance(matcher, cv2.FlannBasedMatcher):
-                knn = matcher.knnMatch(q, k=2)
-            else:
-                knn = matcher.knnMatch(q, new_desc, k=2)
             # ratio test; then one match per new feature (the smallest distance)
-            best: dict[int, tuple[int, float]] = {}
-            for pair in knn:
-                if len(pair) < 2:
-                    continue
-                m0, m1 = pair
-                if m0.distance < opts.ratio * m1.distance:
-                    prev = best.get(m0.trainIdx)
-                    if prev is None or m0.distance < prev[1]:
-                        best[m0.trainIdx] = (m0.queryIdx, m0.distance)
-            n_matches += len(best)
-            if len(best) < opts.min_inliers:
+            idx_new, idx_old, dist = ratio_matches(*matcher.nearest_two(held.desc), opts.ratio)
+            n_matches += len(idx_new)
+            if len(idx_new) < opts.min_inliers:
                 continue
-            idx_new = np.fromiter(best.keys(), dtype=np.int64, count=len(best))
-            idx_old = np.array([best[i][0] for i in idx_new.tolist()], dtype=np.int64)
-            dist = np.array([best[i][1] for i in idx_new.tolist()])
             mask = self._verify(held.kp_work[idx_old], kp[idx_new])
             if mask is None or int(mask.sum()) < opts.min_inliers:
                 continue

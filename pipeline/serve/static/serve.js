@@ -1,6 +1,8 @@
-// seqat serve: the run folder as a web map. Polls /status.json every second; when its version
-// changes (a new image, a new live mosaic, the published results) the tiles, cameras, error
-// ellipses, footprints, tie points and coverage are fetched again, without reloading the page.
+// seqat serve: the run folder as a web map. Listens to /events (server-sent events: status.json
+// each time its version changes); where the stream is not open (no EventSource, server
+// unreachable) it polls /status.json every second instead. When the version changes (a new
+// image, a new live mosaic, the published results) the tiles, cameras, error ellipses,
+// footprints, tie points and coverage are fetched again, without reloading the page.
 "use strict";
 
 const POLL_MS = 1000;
@@ -218,36 +220,83 @@ for (const kind of ["mousedown", "wheel", "touchstart", "keydown"]) {
     { passive: true });
 }
 
-async function poll() {
+let busy = false;     // a refresh is running
+let latest = null;    // the newest status not yet shown
+
+// Show a status; on a new version (or criterion) fetch the layers again. Statuses arriving
+// during a refresh are kept, the newest shown after it (one refresh at a time).
+async function update(s) {
+  latest = s;
+  if (busy) return;
+  busy = true;
   try {
-    const s = await getJson("/status.json" + stopQuery());
-    showStatus(s);
-    const stop = s.stop ? s.stop.sigma_cm : null;
-    if (s.version !== version || stop !== stopShown) {
-      version = s.version;
-      stopShown = stop;
-      if (s.mosaic) tiles.options.maxNativeZoom = s.mosaic.maxzoom;
-      tiles.setUrl("/tiles/{z}/{x}/{y}.png?v=" + encodeURIComponent(s.version));
-      const [features, camRange, scale] = await loadCameras();
-      const ptRange = await loadPoints(stop);
-      await loadCoverage();
-      legend(camRange, ptRange, scale, stop);
-      fit(s, features);
+    while (latest) {
+      const cur = latest;
+      latest = null;
+      showStatus(cur);
+      const stop = cur.stop ? cur.stop.sigma_cm : null;
+      if (cur.version !== version || stop !== stopShown) {
+        version = cur.version;
+        stopShown = stop;
+        if (cur.mosaic) tiles.options.maxNativeZoom = cur.mosaic.maxzoom;
+        tiles.setUrl("/tiles/{z}/{x}/{y}.png?v=" + encodeURIComponent(cur.version));
+        const [features, camRange, scale] = await loadCameras();
+        const ptRange = await loadPoints(stop);
+        await loadCoverage();
+        legend(camRange, ptRange, scale, stop);
+        fit(cur, features);
+      }
     }
   } catch (err) {
     document.getElementById("updated").textContent = "server unreachable: " + err.message;
+  } finally {
+    busy = false;
   }
-  setTimeout(poll, POLL_MS);
+}
+
+let source = null;       // the event stream, when open
+let pollTimer = null;
+
+async function poll() {
+  pollTimer = null;
+  try {
+    await update(await getJson("/status.json" + stopQuery()));
+  } catch (err) {
+    document.getElementById("updated").textContent = "server unreachable: " + err.message;
+  }
+  if (!source || source.readyState !== EventSource.OPEN) pollTimer = setTimeout(poll, POLL_MS);
+}
+
+function listen() {
+  if (source) source.close();
+  source = null;
+  if (!window.EventSource) {
+    if (!pollTimer) poll();
+    return;
+  }
+  source = new EventSource("/events" + stopQuery());
+  source.addEventListener("status", e => update(JSON.parse(e.data)));
+  // the browser reconnects by itself; meanwhile the page polls
+  source.onerror = () => { if (!pollTimer) pollTimer = setTimeout(poll, POLL_MS); };
+  source.onopen = () => { if (pollTimer) { clearTimeout(pollTimer); pollTimer = null; } };
+}
+
+// for tests and the curious: 1 while the event stream is open (EventSource.OPEN)
+window.seqatEventState = () => (source ? source.readyState : -1);
+
+function setStop(v) {
+  const next = Number.isFinite(v) && v > 0 ? v : null;
+  if (next === stopCm) return;
+  stopCm = next;
+  listen();  // the stream's statuses follow the page's criterion
 }
 
 document.getElementById("stopform").addEventListener("submit", e => {
   e.preventDefault();
-  const v = parseFloat(document.getElementById("stop_cm").value);
-  stopCm = Number.isFinite(v) && v > 0 ? v : null;
+  setStop(parseFloat(document.getElementById("stop_cm").value));
 });
 document.getElementById("stop_cm").addEventListener("change", e => {
-  const v = parseFloat(e.target.value);
-  stopCm = Number.isFinite(v) && v > 0 ? v : null;
+  setStop(parseFloat(e.target.value));
 });
 
-poll();
+listen();

@@ -66,7 +66,8 @@ def test_page_shows_tiles_cameras_and_status(browser: Any, served: Served,
 def test_page_follows_a_live_run_without_reload(browser: Any, mosaic_run: Path,
                                                 tmp_path: Path) -> None:
     """A run folder with only its journal; the run then publishes its files: the page,
-    polling status.json, shows the cameras and the finished state without a reload."""
+    told by the server-sent events of /events, shows the cameras and the finished state
+    without a reload."""
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support.ui import WebDriverWait
 
@@ -82,10 +83,11 @@ def test_page_follows_a_live_run_without_reload(browser: Any, mosaic_run: Path,
         assert browser.find_element(By.ID, "images").text == str(n_images)
         assert not browser.find_elements(By.CSS_SELECTOR, "path.seqat-camera")
         browser.execute_script("window.seqatNotReloaded = true;")
+        wait.until(lambda d: d.execute_script("return window.seqatEventState();") == 1)
         for name in ("run.json", "eop.csv", "points.csv", "mosaic.tif"):
             shutil.copy(mosaic_run / name, out / name)
-        wait.until(lambda d: len(d.find_elements(By.CSS_SELECTOR, "path.seqat-camera"))
-                   == n_images)
+        WebDriverWait(browser, 20, poll_frequency=0.05).until(
+            lambda d: len(d.find_elements(By.CSS_SELECTOR, "path.seqat-camera")) == n_images)
         wait.until(lambda d: d.find_element(By.ID, "state").text == "finished")
         assert browser.execute_script("return window.seqatNotReloaded === true;")
 

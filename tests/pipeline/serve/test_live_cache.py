@@ -1,0 +1,238 @@
+"""The live map's second pass (issue 15): the live tile cache a publication renders, served as a
+file with an ETag and equal, pixel for pixel, to the tile the server renders on request; and
+``/events``, the server-sent events that push ``status.json`` when its version changes."""
+
+from __future__ import annotations
+
+import http.client
+import io
+import json
+import shutil
+import time
+import urllib.error
+import urllib.request
+from email.message import Message
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import numpy as np
+import pyproj
+import pytest
+from PIL import Image
+from rio_tiler.errors import TileOutsideBounds
+from rio_tiler.io import Reader
+from rio_tiler.models import ImageData
+from rio_tiler.mosaic import mosaic_reader
+
+from pipeline.common import webtiles
+from pipeline.ortho.base import OrthoRaster, OrthoResult
+from pipeline.ortho.live_tiles import LiveTiles, seen_bounds
+from pipeline.ortho.mosaic import MosaicBuilder
+from pipeline.serve.app import Served, serving
+
+CRS = pyproj.CRS.from_epsg(32610)
+#: Cell size of the synthetic mosaic, metres, and its first cell (UTM 10N, near Autzen).
+PIXEL_M = 0.3
+COL0, ROW0 = 1_650_000, -16_000_000
+
+
+def ortho(image: str, col0: int, row0: int, rows: int, cols: int, seed: int) -> OrthoResult:
+    """A synthetic ortho: random colours, a round seen area, nadir at its centre."""
+    rng = np.random.default_rng(seed)
+    r, c = np.mgrid[0:rows, 0:cols]
+    off = np.hypot(r - rows / 2, c - cols / 2).astype(np.float32) / max(rows, cols)
+    seen = off < 0.45
+    pixels = rng.integers(1, 255, (rows, cols, 3), dtype=np.uint8) * seen[..., None]
+    raster = OrthoRaster(image_id=image, col0=col0, row0=row0, pixel_m=PIXEL_M, pixels=pixels,
+                         seen=seen, off_nadir=off, height_agl_m=100.0)
+    return OrthoResult(image_id=image, path=None, raster=raster,
+                       footprint_m=np.zeros((0, 2)), seen_cells=int(seen.sum()),
+                       occluded_cells=0, off_dsm_cells=0, compute_ms=0.0, write_ms=0.0)
+
+
+def publish_images(out: Path, n: int) -> LiveTiles:
+    """``n`` overlapping orthos along a strip into a live mosaic, published after each."""
+    mosaic = MosaicBuilder(out / "mosaic.tif", CRS)
+    live = LiveTiles(out, mosaic, CRS)
+    for k in range(n):
+        result = ortho(f"img_{k}", COL0 + 150 * k, ROW0 + 40 * k, 500, 700, seed=k)
+        update = mosaic.add(result)
+        live.touched(update.tiles, result.image_id, 10.0, time.time(), seen_bounds(result.raster))
+        live.publish()
+    assert live.wait_rendered(120)
+    live.stop_renderer()
+    return live
+
+
+@pytest.fixture(scope="module")
+def live_folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("live_cache") / "run"
+    out.mkdir()
+    (out / ".seqat-run").write_text("")
+    publish_images(out, 3)
+    return out
+
+
+def rgba(png: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGBA"))
+
+
+def get(served: Served, path: str, headers: dict[str, str] | None = None
+        ) -> tuple[int, Message, bytes]:
+    """Status, headers (names in any case) and body of a GET."""
+    req = urllib.request.Request(served.url.rstrip("/") + path, headers=headers or {})
+    try:
+        with urllib.request.urlopen(req, timeout=30) as r:
+            return r.status, r.headers, r.read()
+    except urllib.error.HTTPError as err:
+        return err.code, err.headers, err.read()
+
+
+def test_publication_renders_the_changed_web_tiles(live_folder: Path) -> None:
+    doc = json.loads((live_folder / "live" / "mosaic.json").read_text())
+    zmin, zmax = doc["xyz"]["minzoom"], doc["xyz"]["maxzoom"]
+    assert doc["xyz"]["dir"] == webtiles.CACHE_DIR and zmin < zmax
+    cached = {tuple(int(v) for v in p.with_suffix("").relative_to(
+        live_folder / "live" / "xyz").parts) for p in (live_folder / "live" / "xyz").rglob("*.png")}
+    # every zoom, and every web tile over the published mosaic that holds data is cached
+    assert {z for z, _, _ in cached} == set(range(zmin, zmax + 1))
+    expected = {(t.z, t.x, t.y) for t in webtiles.tiles_over(doc["bounds_wgs84"],
+                                                             range(zmin, zmax + 1))}
+    assert cached <= expected
+    with serving(live_folder) as served:
+        for z, x, y in sorted(expected - cached):
+            assert not rgba(get(served, f"/tiles/{z}/{x}/{y}.png")[2])[..., 3].any()
+
+
+def test_cached_tile_equals_the_tile_rendered_on_request(live_folder: Path,
+                                                         tmp_path: Path) -> None:
+    """The same folder without its cache (as a watch without one published it): the server
+    renders every tile on request, and each equals the cached one pixel for pixel (and byte
+    for byte: one encoder)."""
+    bare = tmp_path / "bare"
+    shutil.copytree(live_folder, bare)
+    shutil.rmtree(bare / "live" / "xyz")
+    index = bare / "live" / "mosaic.json"
+    index.write_text(json.dumps({**json.loads(index.read_text()), "xyz": None}))
+    cache = live_folder / "live" / "xyz"
+    files = sorted(cache.rglob("*.png"))
+    assert len(files) > 10
+    with serving(live_folder) as cached, serving(bare) as bare_served:
+        opaque = 0
+        for path in files:
+            z, x, y = (int(v) for v in path.with_suffix("").relative_to(cache).parts)
+            status, headers, body = get(cached, f"/tiles/{z}/{x}/{y}.png")
+            assert status == 200 and body == path.read_bytes()
+            status, bare_headers, rendered = get(bare_served, f"/tiles/{z}/{x}/{y}.png")
+            assert status == 200
+            np.testing.assert_array_equal(rgba(rendered), rgba(body))
+            assert headers["ETag"] == bare_headers["ETag"]
+            opaque += int(rgba(body)[..., 3].any())
+        assert opaque > 10
+        live = cached.app.state.live_tiles
+        assert live.served_cached == len(files) and live.rendered == 0
+        assert bare_served.app.state.live_tiles.rendered > 0
+
+
+def rio_tiler_tile(live: Path, z: int, x: int, y: int) -> np.ndarray:
+    """The tile as rio-tiler makes it of the published work tiles (``mosaic_reader`` over
+    ``Reader.tile``, TiTiler's way), RGBA."""
+    doc = json.loads((live / "mosaic.json").read_text())
+    bounds = webtiles.tile_bounds_wgs84(z, x, y)
+    assets = [str(live / t["file"]) for t in doc["tiles"]
+              if webtiles.reaches(t["bounds_wgs84"], bounds)]
+
+    def read(asset: str, x: int, y: int, z: int) -> ImageData:
+        with Reader(asset, tms=webtiles.TMS) as r:
+            return r.tile(x, y, z, tilesize=webtiles.TILE_PX)
+
+    img, _ = mosaic_reader(assets, read, x, y, z, threads=1,
+                           allowed_exceptions=(TileOutsideBounds,))
+    rgb = np.where(img.mask[None] > 0, img.data, 0)
+    return np.concatenate([rgb, img.mask[None]]).transpose(1, 2, 0)
+
+
+def test_cached_tiles_are_what_rio_tiler_renders(live_folder: Path) -> None:
+    """Every cached tile with data equals rio-tiler's rendering of the published work tiles,
+    pixel for pixel (the cache warps them itself, without rio-tiler's per-tile overhead)."""
+    cache = live_folder / "live" / "xyz"
+    checked = 0
+    for path in sorted(cache.rglob("*.png")):
+        z, x, y = (int(v) for v in path.with_suffix("").relative_to(cache).parts)
+        ours = rgba(path.read_bytes())
+        if not ours[..., 3].any():
+            continue
+        theirs = rio_tiler_tile(live_folder / "live", z, x, y)
+        np.testing.assert_array_equal(ours[..., 3] > 0, theirs[..., 3] > 0)
+        np.testing.assert_array_equal(np.where(ours[..., 3:] > 0, ours, 0), theirs)
+        checked += 1
+    assert checked > 10
+
+
+def test_tile_etag_and_not_modified(live_folder: Path) -> None:
+    path = next((live_folder / "live" / "xyz").rglob("*.png"))
+    z, x, y = (int(v) for v in path.with_suffix("").relative_to(
+        live_folder / "live" / "xyz").parts)
+    with serving(live_folder) as served:
+        status, headers, body = get(served, f"/tiles/{z}/{x}/{y}.png")
+        assert status == 200 and headers["Cache-Control"] == "no-cache"
+        tag = headers["ETag"]
+        assert tag.startswith('"') and len(body) > 0
+        status, headers, body = get(served, f"/tiles/{z}/{x}/{y}.png",
+                                    {"If-None-Match": tag})
+        assert status == 304 and body == b"" and headers["ETag"] == tag
+        status, _, body = get(served, f"/tiles/{z}/{x}/{y}.png", {"If-None-Match": '"other"'})
+        assert status == 200 and body
+
+
+def read_event(response: http.client.HTTPResponse, deadline: float) -> dict[str, object]:
+    """The next ``status`` event of an event stream (comments and ``retry:`` skipped)."""
+    kind, data = None, []
+    while time.monotonic() < deadline:
+        line = response.readline().decode()
+        if not line:
+            raise AssertionError("the event stream ended")
+        line = line.rstrip("\n")
+        if line.startswith("event:"):
+            kind = line.split(":", 1)[1].strip()
+        elif line.startswith("data:"):
+            data.append(line.split(":", 1)[1].strip())
+        elif line == "" and data:
+            if kind == "status":
+                return json.loads("\n".join(data))  # type: ignore[no-any-return]
+            kind, data = None, []
+    raise AssertionError("no event in time")
+
+
+def test_events_push_a_new_version(mosaic_run: Path, tmp_path: Path) -> None:
+    """A live folder (journal only): the stream sends its status at once, then a new status
+    as soon as the run publishes its files, well within the page's old 1 s poll."""
+    out = tmp_path / "live"
+    out.mkdir()
+    shutil.copy(mosaic_run / ".seqat-run", out)
+    shutil.copytree(mosaic_run / "journal", out / "journal")
+    conn = None
+    try:
+        with serving(out) as served:
+            parts = urlsplit(served.url)
+            conn = http.client.HTTPConnection(parts.hostname, parts.port, timeout=30)
+            conn.request("GET", "/events?stop_sigma_cm=5")
+            response = conn.getresponse()
+            assert response.status == 200
+            assert response.headers["Content-Type"].startswith("text/event-stream")
+            first = read_event(response, time.monotonic() + 20)
+            assert first["done"] is False and first["stop"]["sigma_cm"] == 5.0  # type: ignore[index]
+            for name in ("run.json", "eop.csv", "points.csv", "mosaic.tif"):
+                shutil.copy(mosaic_run / name, out / name)
+            t0 = time.monotonic()
+            doc = read_event(response, t0 + 20)
+            while doc["done"] is not True:
+                doc = read_event(response, t0 + 20)
+            assert doc["version"] != first["version"] and doc["mosaic"] is not None
+            assert get(served, "/status.json")[0] == 200  # other requests meanwhile
+            t_stop = time.monotonic()
+        # the server stops although the stream is still open
+        assert time.monotonic() - t_stop < 5
+    finally:
+        if conn is not None:
+            conn.close()
