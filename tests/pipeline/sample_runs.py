@@ -11,6 +11,10 @@ STRIP = REPO_ROOT / "sample_data" / "strip_demo"
 AUTZEN = REPO_ROOT / "sample_data" / "autzen_rendered"
 #: A real image flight (18 Seneca images; nav and camera from EXIF/XMP).
 MINI = REPO_ROOT / "sample_data" / "seneca_mini"
+#: Ortho pixel of the session's chain on MINI, metres: 3.5x its GSD (0.070 m), 1/12 of the
+#: pixels; what the chain is tested for (every stage writes its files, the ortho runs image by
+#: image) does not depend on it. The GSD default: tests/pipeline/ortho/test_ortho.py.
+MINI_ORTHO_PIXEL_M = 0.25
 #: Result files that must be bit-identical between equivalent runs.
 RESULT_FILES = ("eop.csv", "points.csv", "observations.csv")
 #: What ``seqat run --ortho --report`` writes besides the files of a plain ``seqat run``.

@@ -23,7 +23,7 @@ from seqat.errors import InputDataError
 from seqat.geometry import project, rotation_matrix
 from seqat.types import PinholeCamera
 
-from ..sample_runs import MINI, copy_run_files
+from ..sample_runs import MINI, MINI_ORTHO_PIXEL_M, copy_run_files
 
 #: EXIF of the Seneca images: 4.3 mm, 16393.44 px/inch at ExifImageWidth 4000 px.
 MINI_F_PX = 4.3 * 16393.44262295082 / 25.4 * 1000 / 4000
@@ -253,7 +253,7 @@ def test_flight_bench_compares_methods_on_the_same_tie_points(
 
 
 def test_run_with_ortho_and_report_writes_the_whole_chain(mini_chain: Path) -> None:
-    out = mini_chain  # seqat run MINI --ortho --report (exit 0: the fixture checks it)
+    out = mini_chain  # seqat run MINI --ortho --ortho-options --report (exit 0: checked)
     for name in ("eop.csv", "mosaic.tif", "cameras.gpkg", "report.html", "report.json"):
         assert (out / name).stat().st_size > 0, name
     assert len(list((out / "ortho").glob("*.tif"))) == 18
@@ -261,7 +261,9 @@ def test_run_with_ortho_and_report_writes_the_whole_chain(mini_chain: Path) -> N
     assert report["methods"] == ["direct", "seq-r"]
     run = read_run(out)
     assert report["tie_points"]["count"] == len(run.points)
-    live = json.loads((out / "ortho.json").read_text())["live"]  # the ortho ran image by image
+    ortho = json.loads((out / "ortho.json").read_text())
+    assert ortho["pixel_m"] == MINI_ORTHO_PIXEL_M  # the --ortho-options file was read
+    live = ortho["live"]  # the ortho ran image by image
     assert live["surface_from_image"] is not None  # no lidar: flat plane after the first GPs
     stages = {s["stage"]: s for s in report["latency"]["stages"]}
     assert report["latency"]["ortho"] == "live"
