@@ -116,12 +116,20 @@ def test_undetermined_parameters_are_held_at_their_prior(strip: SimulatedFlight,
         assert s < 1.1 * HOLD_RATIO * sig[n], n
 
 
+#: Self-calibration of the Seq-F against Sim comparison: every parameter free.
+EVERY_FREE = SelfCalibration(hold_undetermined=False)
+
+
+@pytest.fixture(scope="module")
+def small_block_sim(small_block: SimulatedFlight) -> Solution:
+    """Sim of ``small_block`` with ``EVERY_FREE`` (read-only for the tests)."""
+    return _sim(small_block, EVERY_FREE)
+
+
 @pytest.mark.parametrize("engine", ["information", "inverse"])
 def test_seq_f_equals_sim_with_self_calibration(small_block: SimulatedFlight,
-                                                engine: str) -> None:
-    block = small_block
-    cal = SelfCalibration(hold_undetermined=False)
-    ref = _sim(block, cal)
+                                                small_block_sim: Solution, engine: str) -> None:
+    block, cal, ref = small_block, EVERY_FREE, small_block_sim
     seq = SequentialAT(_prior(block.camera), SequentialOptions(
         correlation_threshold=None, calibration=cal, engine=engine))
     for f in block.frames():
