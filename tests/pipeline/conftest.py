@@ -15,7 +15,7 @@ from pipeline.simulate.folder import write_simulated_flight
 from seqat.simulate import SimulatedFlight, simulate_strip
 
 from .sample_flight import FLIGHT_FILES, SIM_CRS, SIM_SEED, SMALL_SIM, FlightMaker
-from .sample_runs import AUTZEN, STRIP
+from .sample_runs import AUTZEN, MINI, MINI_ORTHO_PIXEL_M, STRIP
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 #: Where the shared data folder may be, in order of preference.
@@ -97,4 +97,24 @@ def autzen_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
     out = tmp_path_factory.mktemp("autzen_run") / "out"
     run_flight(AUTZEN, out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="session")
+def mini_chain(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``seqat run sample_data/seneca_mini --ortho --ortho-options O --report`` (Seq-R with
+    tracking, live ortho on the tie-point plane, report; read-only for the tests). The suite
+    tracks these 18 images once: the image-flight, SfM and flight-bench tests read this run
+    (``copy_run_files`` gives its plain ``seqat run`` folder)."""
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+
+    root = tmp_path_factory.mktemp("mini_chain")
+    options = root / "ortho.yaml"
+    options.write_text(f"ortho:\n  pixel_m: {MINI_ORTHO_PIXEL_M}\n", encoding="utf-8")
+    out = root / "out"
+    result = CliRunner().invoke(app, ["run", str(MINI), "--out", str(out), "--no-progress",
+                                      "--ortho", "--ortho-options", str(options), "--report"])
+    assert result.exit_code == 0, result.output
     return out

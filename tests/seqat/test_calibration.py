@@ -58,6 +58,12 @@ def _sim(flight: SimulatedFlight, calibration: SelfCalibration | None) -> Soluti
     return sim.solution()
 
 
+@pytest.fixture(scope="module")
+def strip_sim(strip: SimulatedFlight) -> Solution:
+    """Sim of ``strip`` with the default self-calibration (read-only for the tests)."""
+    return _sim(strip, SelfCalibration())
+
+
 def _rmse(sol: Solution, flight: SimulatedFlight) -> np.ndarray:
     d = np.array([e.eop for e in sol.eops]) - flight.truth_eop
     return np.sqrt(np.mean(d[:, :3] ** 2, axis=0))
@@ -93,8 +99,9 @@ def test_sim_recovers_the_camera_within_its_sigma(block: SimulatedFlight) -> Non
     assert np.all(np.isfinite(est.correlation)) and np.allclose(np.diagonal(est.correlation), 1)
 
 
-def test_undetermined_parameters_are_held_at_their_prior(strip: SimulatedFlight) -> None:
-    est = _sim(strip, SelfCalibration()).camera
+def test_undetermined_parameters_are_held_at_their_prior(strip: SimulatedFlight,
+                                                         strip_sim: Solution) -> None:
+    est = strip_sim.camera
     assert est is not None
     assert {"cx_px", "cy_px"} <= set(est.held)
     prior = _prior(strip.camera)
@@ -109,12 +116,20 @@ def test_undetermined_parameters_are_held_at_their_prior(strip: SimulatedFlight)
         assert s < 1.1 * HOLD_RATIO * sig[n], n
 
 
+#: Self-calibration of the Seq-F against Sim comparison: every parameter free.
+EVERY_FREE = SelfCalibration(hold_undetermined=False)
+
+
+@pytest.fixture(scope="module")
+def small_block_sim(small_block: SimulatedFlight) -> Solution:
+    """Sim of ``small_block`` with ``EVERY_FREE`` (read-only for the tests)."""
+    return _sim(small_block, EVERY_FREE)
+
+
 @pytest.mark.parametrize("engine", ["information", "inverse"])
 def test_seq_f_equals_sim_with_self_calibration(small_block: SimulatedFlight,
-                                                engine: str) -> None:
-    block = small_block
-    cal = SelfCalibration(hold_undetermined=False)
-    ref = _sim(block, cal)
+                                                small_block_sim: Solution, engine: str) -> None:
+    block, cal, ref = small_block, EVERY_FREE, small_block_sim
     seq = SequentialAT(_prior(block.camera), SequentialOptions(
         correlation_threshold=None, calibration=cal, engine=engine))
     for f in block.frames():
@@ -135,7 +150,8 @@ def test_seq_f_equals_sim_with_self_calibration(small_block: SimulatedFlight,
     assert sol.sigma0 == pytest.approx(ref.sigma0, rel=2e-5)
 
 
-def test_seq_r_window_is_cut_with_self_calibration(strip: SimulatedFlight) -> None:
+def test_seq_r_window_is_cut_with_self_calibration(strip: SimulatedFlight,
+                                                   strip_sim: Solution) -> None:
     """The shared camera correlates every image with every other; the window rule reads
     the correlations given the camera, so the window stays short as without it."""
     prior = _prior(strip.camera)
@@ -152,7 +168,7 @@ def test_seq_r_window_is_cut_with_self_calibration(strip: SimulatedFlight) -> No
     # after the last image what the flight did not determine is held at its prior, as Sim
     # holds it; the others agree with Sim's
     seq.finish()
-    final, sim = seq.solution().camera, _sim(strip, SelfCalibration()).camera
+    final, sim = seq.solution().camera, strip_sim.camera
     assert final is not None and sim is not None
     assert set(final.held) == set(sim.held) >= {"cx_px", "cy_px"} and not final.undetermined
     for n in final.held:

@@ -23,18 +23,16 @@ from seqat.errors import InputDataError
 from seqat.geometry import project, rotation_matrix
 from seqat.types import PinholeCamera
 
-from ..conftest import REPO_ROOT
+from ..sample_runs import MINI, MINI_ORTHO_PIXEL_M, copy_run_files
 
-MINI = REPO_ROOT / "sample_data" / "seneca_mini"
 #: EXIF of the Seneca images: 4.3 mm, 16393.44 px/inch at ExifImageWidth 4000 px.
 MINI_F_PX = 4.3 * 16393.44262295082 / 25.4 * 1000 / 4000
 
 
 @pytest.fixture(scope="module")
-def mini_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("mini") / "run"
-    run_flight(MINI, out, method=Method.SEQ_R, progress=False)
-    return out
+def mini_run(mini_chain: Path) -> Path:
+    """The session's Seq-R run of the sample (``seqat run --ortho --report``, read-only)."""
+    return mini_chain
 
 
 def test_bare_image_folder_reads_nav_and_camera_from_exif() -> None:
@@ -208,10 +206,26 @@ def test_resection_recovers_the_rotation_despite_outliers() -> None:
     assert not np.any(res.inliers[:15]) and np.all(res.inliers[15:])
 
 
-def test_flight_bench_compares_methods_on_the_same_tie_points(tmp_path: Path) -> None:
-    from pipeline.bench.flight import run_flight_bench
+def test_flight_bench_compares_methods_on_the_same_tie_points(
+        mini_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from pipeline.bench import flight as bench_flight
 
-    b = run_flight_bench(MINI, tmp_path)
+    tracking_runs: list[Path] = []
+
+    def run_flight_in_bench(flight: Path, out: Path, **kwargs: object) -> object:
+        if kwargs == {"method": Method.SEQ_R, "progress": True}:
+            # The bench's own tracking run is the session's Seq-R run of the same flight with
+            # the same options (tracking and results are deterministic): its files, not a
+            # fourth tracking of the 18 images in the suite.
+            assert Path(flight) == MINI
+            tracking_runs.append(copy_run_files(mini_run, Path(out)))
+            return None
+        assert kwargs.get("observations") is not None, kwargs  # the others replay its points
+        return run_flight(flight, out, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(bench_flight, "run_flight", run_flight_in_bench)
+    b = bench_flight.run_flight_bench(MINI, tmp_path)
+    assert tracking_runs == [tmp_path / "seq-r"]
     doc = json.loads((tmp_path / "bench_flight.json").read_text())
     assert doc["images"] == 18 and (tmp_path / "latency.png").stat().st_size > 0
     # every run read the same observations
@@ -238,11 +252,8 @@ def test_flight_bench_compares_methods_on_the_same_tie_points(tmp_path: Path) ->
     assert doc["at_ms"]["p99"] >= doc["at_ms"]["p95"]
 
 
-def test_run_with_ortho_and_report_writes_the_whole_chain(tmp_path: Path) -> None:
-    out = tmp_path / "out"
-    result = CliRunner().invoke(app, ["run", str(MINI), "--out", str(out), "--no-progress",
-                                      "--ortho", "--report"])
-    assert result.exit_code == 0, result.output
+def test_run_with_ortho_and_report_writes_the_whole_chain(mini_chain: Path) -> None:
+    out = mini_chain  # seqat run MINI --ortho --ortho-options --report (exit 0: checked)
     for name in ("eop.csv", "mosaic.tif", "cameras.gpkg", "report.html", "report.json"):
         assert (out / name).stat().st_size > 0, name
     assert len(list((out / "ortho").glob("*.tif"))) == 18
@@ -250,7 +261,9 @@ def test_run_with_ortho_and_report_writes_the_whole_chain(tmp_path: Path) -> Non
     assert report["methods"] == ["direct", "seq-r"]
     run = read_run(out)
     assert report["tie_points"]["count"] == len(run.points)
-    live = json.loads((out / "ortho.json").read_text())["live"]  # the ortho ran image by image
+    ortho = json.loads((out / "ortho.json").read_text())
+    assert ortho["pixel_m"] == MINI_ORTHO_PIXEL_M  # the --ortho-options file was read
+    live = ortho["live"]  # the ortho ran image by image
     assert live["surface_from_image"] is not None  # no lidar: flat plane after the first GPs
     stages = {s["stage"]: s for s in report["latency"]["stages"]}
     assert report["latency"]["ortho"] == "live"

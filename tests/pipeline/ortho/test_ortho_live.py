@@ -72,19 +72,29 @@ def _mosaic(path: Path) -> tuple[np.ndarray, object]:
         return src.read(), src.transform
 
 
+@pytest.fixture(scope="module")
+def post_mosaic(tmp_path_factory: pytest.TempPathFactory) -> tuple[np.ndarray, object]:
+    """Pixels and transform of the post-run mosaic (``seqat ortho``) of ``write_run``'s run
+    on the scene DSM: what the live mosaic must equal when it ends on the same EOPs."""
+    root = tmp_path_factory.mktemp("post")
+    out = write_run(root)
+    post = orthorectify_run(_copy_run(out, root / "post"),
+                            dsm_path=write_scene_dsm(root / "dsm.tif"),
+                            options=OrthoOptions(pixel_m=PIXEL_M), progress=False)
+    return _mosaic(post.mosaic)
+
+
 @pytest.mark.parametrize("background", [True, False])
 def test_live_mosaic_equals_the_post_run_one_when_eops_do_not_move(
-        tmp_path: Path, background: bool) -> None:
+        tmp_path: Path, post_mosaic: tuple[np.ndarray, object], background: bool) -> None:
     out = write_run(tmp_path)
     dsm = write_scene_dsm(tmp_path / "dsm.tif")
-    post = orthorectify_run(_copy_run(out, tmp_path / "post"), dsm_path=dsm,
-                            options=OrthoOptions(pixel_m=PIXEL_M), progress=False)
     solution = _solution(out)
     with _live(out, dsm, background=background) as live:
         _feed(live, solution, {e.image_id: e.eop for e in solution.eops})
     summary = live.result()
     live_pixels, live_transform = _mosaic(out / "mosaic.tif")
-    post_pixels, post_transform = _mosaic(post.mosaic)
+    post_pixels, post_transform = post_mosaic
     assert live_transform == post_transform
     np.testing.assert_array_equal(live_pixels, post_pixels)
     mosaic_matches_texture(out / "mosaic.tif")
@@ -103,7 +113,8 @@ def test_live_mosaic_equals_the_post_run_one_when_eops_do_not_move(
     assert not list(out.glob(".mosaic.tif.tiles"))  # tile store removed
 
 
-def test_reortho_rule_and_rebuilt_mosaic(tmp_path: Path) -> None:
+def test_reortho_rule_and_rebuilt_mosaic(tmp_path: Path,
+                                        post_mosaic: tuple[np.ndarray, object]) -> None:
     out = write_run(tmp_path)
     dsm = write_scene_dsm(tmp_path / "dsm.tif")
     solution = _solution(out)
@@ -124,12 +135,10 @@ def test_reortho_rule_and_rebuilt_mosaic(tmp_path: Path) -> None:
     # Rule 0: every image that moved at all is done again, and the rebuilt tiles give
     # exactly the mosaic of the post-run ortho with the final EOPs.
     out0 = write_run(tmp_path / "zero")
-    post = orthorectify_run(_copy_run(out0, tmp_path / "post"), dsm_path=dsm,
-                            options=OrthoOptions(pixel_m=PIXEL_M), progress=False)
     with _live(out0, dsm, reortho_shift_px=0.0) as live:
         _feed(live, solution, live_eops)
     assert live.result().live.images_reorthorectified == ("img_0000", "img_0001")  # type: ignore[union-attr]
-    np.testing.assert_array_equal(_mosaic(out0 / "mosaic.tif")[0], _mosaic(post.mosaic)[0])
+    np.testing.assert_array_equal(_mosaic(out0 / "mosaic.tif")[0], post_mosaic[0])
 
 
 def test_flat_fallback_waits_for_the_first_ground_points(tmp_path: Path) -> None:

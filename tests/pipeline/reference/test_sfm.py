@@ -28,13 +28,11 @@ from pipeline.reference.sfm_stage import (
     run_sfm_check,
 )
 from pipeline.reference.similarity import fit_similarity, pose_agreement
-from pipeline.run.runner import Method, run_flight
 from seqat.cvframe import cv_pose_from_eop
 from seqat.errors import EstimationError
 
-from ..conftest import REPO_ROOT
+from ..sample_runs import MINI, copy_run_files
 
-MINI = REPO_ROOT / "sample_data" / "seneca_mini"
 #: The check on the 18 Seneca sample images (~25 s CPU) with every default: SIFT's first octave
 #: 0 and the mapper's thresholds lowered for the weakly textured fields of images 466-470
 #: (with COLMAP's mapper defaults, min_pose_inliers=30 and no two-view tracks, 11 of 18
@@ -131,10 +129,10 @@ def test_similarity_needs_five_points() -> None:
 
 
 @pytest.fixture(scope="module")
-def mini_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("sfm_mini") / "run"
-    run_flight(MINI, out, method=Method.SEQ_R, progress=False)
-    return out
+def mini_run(mini_chain: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The session's Seq-R run of the sample as a plain ``seqat run`` folder (a copy: the
+    check writes into it)."""
+    return copy_run_files(mini_chain, tmp_path_factory.mktemp("sfm_mini") / "run")
 
 
 @pytest.fixture(scope="module")

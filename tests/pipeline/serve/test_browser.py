@@ -23,8 +23,9 @@ pytestmark = pytest.mark.skipif(CHROMIUM is None or CHROMEDRIVER is None,
                                        "(apt-get install chromium chromium-driver)")
 
 
-@pytest.fixture
-def browser() -> Iterator[Any]:
+@pytest.fixture(scope="module")
+def chromium() -> Iterator[Any]:
+    """One headless chromium for the module's tests (a start costs ~2 s of CPU)."""
     webdriver = pytest.importorskip("selenium.webdriver")
     from selenium.webdriver.chrome.service import Service
 
@@ -41,6 +42,15 @@ def browser() -> Iterator[Any]:
             yield driver
         finally:
             driver.quit()
+
+
+@pytest.fixture
+def browser(chromium: Any) -> Any:
+    """The module's chromium on a blank page, its browser log emptied: each test sees only
+    its own page and log messages (every server is on its own port: its own origin)."""
+    chromium.get("about:blank")
+    chromium.get_log("browser")
+    return chromium
 
 
 def test_page_shows_tiles_cameras_and_status(browser: Any, served: Served,
