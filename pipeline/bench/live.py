@@ -17,8 +17,10 @@ Measured per run:
 
 * **AT → page** (clients only): the time from an image's AT update (``at_unix_s`` in
   ``live/estimates.json``) to the end of the first client reload whose ``status.json``
-  counts it in the mosaic (``mosaic_images``) and whose tiles were then loaded; and, for the
-  cameras, to the first reload whose ``/cameras.geojson`` holds the image;
+  counts it in the mosaic (``mosaic_images``) and whose tiles were then loaded; for the
+  cameras, to the first reload whose ``/cameras.geojson`` holds the image; for the *images*,
+  to the end of the first reload that loaded its quick-look (``/footprints.geojson`` names
+  it) or found it in the mosaic (``in_mosaic``);
 * **tile serve time**: each tile request's duration at the clients, while the flight runs;
 * **AT and ortho latency** from the published ``run.json`` (``live.update_ms``,
   ``latency_ms``: input complete → estimate) and ``ortho.json`` (``latency_ms``: AT update →
@@ -75,6 +77,9 @@ class Client:
 
     seen_mosaic: list[tuple[float, int]] = field(default_factory=list)  # (t, images in mosaic)
     seen_cameras: dict[str, float] = field(default_factory=dict)  # image -> t first seen
+    #: image -> t its pixels were first on the page (its quick-look loaded, or the mosaic)
+    seen_images: dict[str, float] = field(default_factory=dict)
+    quicklook_ms: list[float] = field(default_factory=list)
     tile_ms: list[float] = field(default_factory=list)
     tile_ms_live: list[float] = field(default_factory=list)  # before the run finished
     requests: int = 0
@@ -120,10 +125,25 @@ def _reload(url: str, status: dict[str, object], rec: Client,
     for f in cams.get("features", []):
         if f["properties"].get("position") != "nav":
             rec.seen_cameras.setdefault(f["properties"]["image"], now)
-    for path in ("ellipses.geojson", "footprints.geojson", "points.geojson",
-                 "coverage.geojson"):
+    footprints = json.loads(_get(url + "footprints.geojson")[0])
+    for path in ("ellipses.geojson", "points.geojson", "coverage.geojson"):
         _get(url + path)
     rec.requests += 5
+    # the images themselves: a quick-look, loaded as the page does, or the mosaic
+    looks = []
+    for f in footprints.get("features", []):
+        p = f["properties"]
+        if p["image"] in rec.seen_images:
+            continue
+        if p.get("in_mosaic"):
+            rec.seen_images[p["image"]] = time.time()
+        elif p.get("quicklook"):
+            looks.append((p["image"], url + p["quicklook"].lstrip("/")))
+    for (image, _), (_, ms, _) in zip(looks, pool.map(_get_from, [u for _, u in looks]),
+                                      strict=True):
+        rec.seen_images.setdefault(image, time.time())
+        rec.quicklook_ms.append(ms)
+    rec.requests += len(looks)
     mosaic = status.get("mosaic")
     if mosaic:
         tiles = _tiles_for(mosaic["bounds_wgs84"], int(mosaic["maxzoom"]))  # type: ignore[index]
@@ -308,6 +328,7 @@ def one_run(flight: Path, work: Path, *, clients: int, rate_hz: float, dsm: Path
     order = [str(c["image"]) for c in est["cameras"]]  # type: ignore[union-attr]
     to_page_mosaic: list[float] = []
     to_page_cameras: list[float] = []
+    to_page_images: list[float] = []
     for rec in recs:
         for k, image in enumerate(order):
             seen = next((t for t, n in rec.seen_mosaic if n >= k + 1), None)
@@ -315,6 +336,8 @@ def one_run(flight: Path, work: Path, *, clients: int, rate_hz: float, dsm: Path
                 to_page_mosaic.append((seen - at_unix[image]) * 1e3)
             if image in rec.seen_cameras:
                 to_page_cameras.append((rec.seen_cameras[image] - at_unix[image]) * 1e3)
+            if image in rec.seen_images:
+                to_page_images.append((rec.seen_images[image] - at_unix[image]) * 1e3)
     q_lat, q_ortho = _quarters(latency_ms), _quarters(ortho_ms)
     ortho_work_ms = [float(r.get("read_ms") or 0) + float(r["compute_ms"])
                      + float(r.get("write_ms") or 0) + float(r["mosaic_ms"])
@@ -338,6 +361,8 @@ def one_run(flight: Path, work: Path, *, clients: int, rate_hz: float, dsm: Path
         "web_tiles": live_stats.get("web_tiles"),  # type: ignore[union-attr]
         "at_to_page_mosaic_ms": _stats(to_page_mosaic),
         "at_to_page_cameras_ms": _stats(to_page_cameras),
+        "at_to_page_images_ms": _stats(to_page_images),
+        "quicklook_ms": _stats([ms for r in recs for ms in r.quicklook_ms]),
         "tile_ms_live": _stats([ms for r in recs for ms in r.tile_ms_live]),
         "tile_ms_all": _stats([ms for r in recs for ms in r.tile_ms]),
         "client_requests": sum(r.requests for r in recs),

@@ -38,5 +38,6 @@ LIVE_DIR = "live"
 LIVE_ESTIMATES_FILE = "estimates.json"
 LIVE_MOSAIC_INDEX = "mosaic.json"
 LIVE_TILES_DIR = "tiles"
+LIVE_QUICKLOOK_DIR = "quicklook"
 #: The independent SfM check inside it (``seqat reference OUT --sfm``).
 SFM_DIR = "sfm"

@@ -12,22 +12,32 @@ AT loop only copies a window's worth of numbers per image and never waits for a 
 Each camera carries the wall-clock time of its first estimate (``at_unix_s``: the AT update
 that georeferenced it) and its footprint on the plane at the mean height of the window's
 ground points (the four image corners' rays; the camera's distortion is ignored).
+
+Given the image files, the writer also makes each georeferenced image's *quick-look*
+(``OUT/live/quicklook/<n>.jpg``: the image at most :data:`QUICKLOOK_PX` pixels wide, ``n``
+its position in the run) before the first ``estimates.json`` that names it, so the page can
+show the image itself on its footprint as soon as it shows its camera, long before the
+orthorectified mosaic has it (docs/formats.md, *Live run files*).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
+import tempfile
 import threading
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from pipeline.common.atomic import atomic_write_text
-from pipeline.common.columns import LIVE_DIR, LIVE_ESTIMATES_FILE
+from pipeline.common.columns import LIVE_DIR, LIVE_ESTIMATES_FILE, LIVE_QUICKLOOK_DIR
 from seqat.geometry import rays_world
 from seqat.types import FloatArray, Frame, ImageUpdate, PinholeCamera, Solution
 
@@ -35,6 +45,12 @@ from seqat.types import FloatArray, Frame, ImageUpdate, PinholeCamera, Solution
 ESTIMATES_FORMAT = "seqat-live-estimates"
 #: Default shortest time between two writes, seconds.
 MIN_INTERVAL_S = 0.2
+#: Quick-looks: at most this many pixels wide and high (the aspect ratio kept), JPEG quality.
+QUICKLOOK_PX = 512
+QUICKLOOK_JPEG_QUALITY = 80
+#: OpenCV's reduced decoding (a JPEG decoded at 1/2, 1/4, 1/8 of its size: much less work).
+_REDUCED = ((8, cv2.IMREAD_REDUCED_COLOR_8), (4, cv2.IMREAD_REDUCED_COLOR_4),
+            (2, cv2.IMREAD_REDUCED_COLOR_2))
 
 
 def _round(values: FloatArray, digits: int) -> list[object]:
@@ -60,6 +76,49 @@ def footprint(eop: FloatArray, camera: PinholeCamera, ground_z_m: float) -> Floa
     return np.asarray(eop[:2], dtype=np.float64) + rays[:, :2] * scale[:, None]
 
 
+def quicklook_name(n: int) -> str:
+    """File name of the quick-look of the run's ``n``-th image (0-based), in
+    ``live/quicklook/``."""
+    return f"{n}.jpg"
+
+
+def write_quicklook(image: Path, out: Path, width_px: int, max_px: int = QUICKLOOK_PX) -> bool:
+    """Write a JPEG of ``image`` at most ``max_px`` wide and high to ``out`` (replaced
+    atomically); ``width_px``: the image's width, for OpenCV's reduced decoding. False (and
+    nothing written) when the file cannot be read as an image."""
+    flag = cv2.IMREAD_COLOR
+    for factor, reduced in _REDUCED:
+        if width_px // factor >= max_px:
+            flag = reduced
+            break
+    try:
+        data = np.fromfile(image, dtype=np.uint8)
+    except OSError:
+        return False
+    pixels = cv2.imdecode(data, flag) if data.size else None
+    if pixels is None or pixels.size == 0:
+        return False
+    h, w = pixels.shape[:2]
+    scale = min(1.0, max_px / max(h, w))
+    if scale < 1.0:
+        pixels = cv2.resize(pixels, (max(1, round(w * scale)), max(1, round(h * scale))),
+                            interpolation=cv2.INTER_AREA)
+    ok, jpeg = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, QUICKLOOK_JPEG_QUALITY])
+    if not ok:
+        return False
+    # a preview: atomic (never seen half-written) but not fsynced
+    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(jpeg.tobytes())
+        os.replace(tmp, out)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    return True
+
+
 @dataclass(kw_only=True, eq=False)
 class _Camera:
     eop: FloatArray
@@ -82,13 +141,21 @@ class LiveEstimates:
     stop_sigma_m : float or None
         The user's stop criterion (every ground point σ ≤ this), recorded for the page.
     min_interval_s : float
+    images : Mapping[str, Path], optional
+        Image file per image id (a watch fills it as images arrive): a quick-look of each
+        georeferenced image is written (module docstring). None: no quick-looks.
     """
 
     def __init__(self, out_dir: Path | str, *, crs_wkt: str, camera: PinholeCamera,
                  stop_sigma_m: float | None = None,
-                 min_interval_s: float = MIN_INTERVAL_S) -> None:
+                 min_interval_s: float = MIN_INTERVAL_S,
+                 images: Mapping[str, Path] | None = None) -> None:
         self.path = Path(out_dir) / LIVE_DIR / LIVE_ESTIMATES_FILE
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.images = images
+        self._quicklooks: dict[str, str | None] = {}  # image -> file in live/ (None: none)
+        if images is not None:
+            (self.path.parent / LIVE_QUICKLOOK_DIR).mkdir(exist_ok=True)
         self.crs_wkt = crs_wkt
         self.camera = camera
         self.stop_sigma_m = stop_sigma_m
@@ -175,6 +242,7 @@ class LiveEstimates:
                     state = (list(self._order), dict(self._cameras), set(self._window),
                              dict(self._points), self._sigma0, self._stage,
                              dict(self._latency))
+                self._write_quicklooks(state[0])
                 doc = self._document(*state)
                 text = json.dumps(doc, separators=(",", ":"), allow_nan=False)
                 atomic_write_text(self.path, text)
@@ -187,6 +255,19 @@ class LiveEstimates:
             with self._lock:
                 self._written = version
 
+    def _write_quicklooks(self, order: list[str]) -> None:
+        """Writer: the quick-look of every image that has none yet (module docstring)."""
+        if self.images is None:
+            return
+        for n, image in enumerate(order):
+            if image in self._quicklooks:
+                continue
+            path = self.images.get(image)
+            name = f"{LIVE_QUICKLOOK_DIR}/{quicklook_name(n)}"
+            ok = path is not None and write_quicklook(
+                Path(path), self.path.parent / name, self.camera.width_px)
+            self._quicklooks[image] = name if ok else None
+
     def _document(self, order: list[str], cameras: dict[str, _Camera], window: set[str],
                   points: dict[str, tuple[FloatArray, FloatArray, int]], sigma0: float | None,
                   stage: str | None, latency: dict[str, float | None]) -> dict[str, object]:
@@ -198,7 +279,8 @@ class LiveEstimates:
                 "image": image, "eop": _round(c.eop[:3], 4) + _round(c.eop[3:], 8),
                 "sigma": _round(c.sigma[:3], 5) + _round(c.sigma[3:], 8),
                 "in_window": image in window, "at_unix_s": round(c.at_unix_s, 3),
-                "footprint": None if c.footprint is None else _round(c.footprint, 2)})
+                "footprint": None if c.footprint is None else _round(c.footprint, 2),
+                "quicklook": self._quicklooks.get(image)})
         ids = list(points)
         xyz = np.array([points[i][0] for i in ids]).reshape(-1, 3)
         sig = np.array([points[i][1] for i in ids]).reshape(-1, 3)

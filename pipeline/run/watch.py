@@ -657,8 +657,10 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
                 else ImageSource(flight, flight_config.tracking))
             if make_listeners is not None:
                 made.extend(make_listeners(flight, paths))
-            estimates.append(LiveEstimates(out, crs_wkt=flight.crs.to_wkt(),
-                                           camera=flight.camera, stop_sigma_m=stop_sigma_m))
+            estimates.append(LiveEstimates(
+                out, crs_wkt=flight.crs.to_wkt(), camera=flight.camera,
+                stop_sigma_m=stop_sigma_m,
+                images=paths if grow.kind != "observations" else None))
             s = RunSession(estimator=make_estimator(
                 method, flight.camera, with_calibration(options, flight.calibration)), source=src,
                            listeners=(*listeners, *made, *estimates), journal=journal,

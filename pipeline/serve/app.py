@@ -10,7 +10,8 @@ exists, the live mosaic a ``seqat watch --ortho`` publishes in ``live/``, from i
 cache; every tile with an ETag, ``If-None-Match`` answered 304), ``/status.json``,
 ``/events`` (server-sent events: ``status.json`` again whenever its ``version`` changes),
 ``/cameras.geojson``, ``/ellipses.geojson``, ``/footprints.geojson``, ``/points.geojson``,
-``/coverage.geojson``, ``/static/...`` (the page's script and style, Leaflet).
+``/coverage.geojson``, ``/quicklook/{n}.jpg`` (the quick-look of a live run's ``n``-th
+image, ``live/quicklook/``), ``/static/...`` (the page's script and style, Leaflet).
 ``status.json``, ``events`` and ``coverage.geojson`` take ``?stop_sigma_cm=X`` (the page's
 stop criterion field) instead of the run's ``--stop-sigma-cm``.
 
@@ -50,11 +51,13 @@ from pipeline.common.columns import (
     LIVE_DIR,
     LIVE_ESTIMATES_FILE,
     LIVE_MOSAIC_INDEX,
+    LIVE_QUICKLOOK_DIR,
     POINTS_FILE,
     RUN_FILE,
 )
 from pipeline.common.priority import lower_thread_priority_once
 from pipeline.run.journal import JOURNAL_DIR, JOURNAL_FILE
+from pipeline.run.live_view import quicklook_name
 from pipeline.serve.runview import MOSAIC_FILE, ORTHO_JSON, RunView, check_run_folder
 from pipeline.serve.tiles import (
     EMPTY_TILE,
@@ -206,6 +209,13 @@ def build_app(out: Path, nice: int = 0) -> Starlette:
     def coverage(request: Request) -> Response:
         return geojson(view.coverage(stop_param(request)))
 
+    def quicklook(request: Request) -> Response:
+        path = out / LIVE_DIR / LIVE_QUICKLOOK_DIR / quicklook_name(request.path_params["n"])
+        if not path.is_file():
+            return Response("no such quick-look", status_code=404, media_type="text/plain",
+                            headers=NO_CACHE)
+        return FileResponse(path, media_type="image/jpeg", headers=NO_CACHE)
+
     get = ["GET", "HEAD"]
     app = Starlette(routes=[
         Route("/", niced(index), methods=get),
@@ -217,6 +227,7 @@ def build_app(out: Path, nice: int = 0) -> Starlette:
         Route("/ellipses.geojson", niced(ellipses), methods=get),
         Route("/footprints.geojson", niced(footprints), methods=get),
         Route("/coverage.geojson", niced(coverage), methods=get),
+        Route("/quicklook/{n:int}.jpg", niced(quicklook), methods=get),
         Mount("/static", StaticFiles(directory=STATIC_DIR), name="static"),
     ])
     app.state.tiles = tiles

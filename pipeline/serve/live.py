@@ -19,6 +19,7 @@ All geometry is made in the run's working CRS (metres) and turned into WGS 84 by
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -31,6 +32,8 @@ ELLIPSE_VERTICES = 36
 COVERAGE_CELLS_ACROSS = 20
 #: ... and about this many points per cell at least.
 POINTS_PER_CELL = 8
+#: A quick-look's name in ``estimates.json`` (pipeline/run/live_view.py).
+_QUICKLOOK = re.compile(r"quicklook/([0-9]{1,9})\.jpg")
 
 
 def nice_number(value: float) -> float:
@@ -90,9 +93,19 @@ def ellipses(transformer: pyproj.Transformer, images: Sequence[str], xy: np.ndar
     return _collection(features, scale=scale)
 
 
-def footprints(transformer: pyproj.Transformer,
-               cameras: Sequence[Mapping[str, object]]) -> FeatureCollection:
-    """The cameras' footprints of ``estimates.json`` (corners on the mean ground height)."""
+def quicklook_url(name: object) -> str | None:
+    """The route of a quick-look named in ``estimates.json`` (``quicklook/<n>.jpg``), None
+    for anything else (the route takes a number only: no file name reaches the server)."""
+    match = _QUICKLOOK.fullmatch(name) if isinstance(name, str) else None
+    return None if match is None else f"/quicklook/{int(match.group(1))}.jpg"
+
+
+def footprints(transformer: pyproj.Transformer, cameras: Sequence[Mapping[str, object]],
+               in_mosaic: frozenset[str] = frozenset()) -> FeatureCollection:
+    """The cameras' footprints of ``estimates.json`` (corners on the mean ground height);
+    each with its quick-look's route (``quicklook``, None without one), the corners in the
+    order of the image's corners (``corners``: top-left, top-right, bottom-right,
+    bottom-left, lon/lat) and whether the mosaic shows the image (``in_mosaic``)."""
     features = []
     for cam in cameras:
         corners = cam.get("footprint")
@@ -105,10 +118,14 @@ def footprints(transformer: pyproj.Transformer,
         ring = _ring(transformer, xy)
         if ring is None:
             continue
+        image = cam.get("image")
         features.append({"type": "Feature", "geometry": {"type": "Polygon",
                                                          "coordinates": [ring]},
-                         "properties": {"image": cam.get("image"),
-                                        "in_window": bool(cam.get("in_window"))}})
+                         "properties": {"image": image,
+                                        "in_window": bool(cam.get("in_window")),
+                                        "quicklook": quicklook_url(cam.get("quicklook")),
+                                        "corners": ring[:4],
+                                        "in_mosaic": image in in_mosaic}})
     return _collection(features)
 
 

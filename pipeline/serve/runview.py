@@ -479,13 +479,26 @@ class RunView:
         if est is None:
             return {"type": "FeatureCollection", "features": []}
 
+        in_mosaic = self.mosaic_image_ids()
+
         def load() -> dict[str, object]:
             transformer = self._table_transformer(est.cameras)
             if transformer is None:
                 return {"type": "FeatureCollection", "features": []}
-            return shapes.footprints(transformer, est.doc["cameras"])  # type: ignore[arg-type]
+            return shapes.footprints(transformer, est.doc["cameras"],  # type: ignore[arg-type]
+                                     in_mosaic)
 
-        return self._cached("footprints", est.cameras.key, load)
+        return self._cached("footprints", (est.cameras.key, in_mosaic), load)
+
+    def mosaic_image_ids(self) -> frozenset[str]:
+        """The images the mosaic shows: ``ortho.json``'s once the run's ortho is published,
+        else those of the live mosaic's index (announced with their web tiles)."""
+        for doc in (self._json(ORTHO_JSON)[0], self._live_mosaic()):
+            rows = None if doc is None else doc.get("images")
+            if isinstance(rows, list):
+                return frozenset(str(r.get("image")) for r in rows
+                                 if isinstance(r, dict) and r.get("image") is not None)
+        return frozenset()
 
     def coverage(self, stop_sigma_cm: float | None = None) -> dict[str, object]:
         """Coverage cells of the stop criterion, done / not yet done."""

@@ -2,7 +2,9 @@
 // each time its version changes); where the stream is not open (no EventSource, server
 // unreachable) it polls /status.json every second instead. When the version changes (a new
 // image, a new live mosaic, the published results) the tiles, cameras, error ellipses,
-// footprints, tie points and coverage are fetched again, without reloading the page.
+// footprints, tie points and coverage are fetched again, without reloading the page. Each
+// georeferenced image is shown at once as its quick-look on its footprint, until the mosaic
+// has it.
 "use strict";
 
 const POLL_MS = 1000;
@@ -17,7 +19,9 @@ const tiles = L.tileLayer("/tiles/{z}/{x}/{y}.png?v=0", {
   tileSize: 256, maxZoom: 24, maxNativeZoom: 19, minZoom: 0,
   attribution: "mosaic · seqat",
 }).addTo(map);
-// cameras above everything, ellipses and tie points above footprints and coverage
+// cameras above everything, ellipses and tie points above footprints and coverage, the
+// quick-looks just above the mosaic
+map.createPane("quicklooks").style.zIndex = 405;
 map.createPane("coverage").style.zIndex = 410;
 map.createPane("footprints").style.zIndex = 420;
 map.createPane("ellipses").style.zIndex = 440;
@@ -27,8 +31,10 @@ const footprints = L.layerGroup().addTo(map);
 const points = L.layerGroup().addTo(map);
 const ellipses = L.layerGroup().addTo(map);
 const cameras = L.layerGroup().addTo(map);
+const quicklooks = L.layerGroup().addTo(map);
 L.control.layers(null, {
-  "mosaic": tiles, "coverage (stop criterion)": coverage, "footprints": footprints,
+  "mosaic": tiles, "images (quick-look, until the mosaic has them)": quicklooks,
+  "coverage (stop criterion)": coverage, "footprints": footprints,
   "tie points": points, "error ellipses": ellipses, "cameras": cameras,
 }, { position: "topleft" }).addTo(map);
 L.control.scale({ imperial: false }).addTo(map);
@@ -80,6 +86,100 @@ function legend(camRange, ptRange, scale, stop) {
   el.innerHTML = html;
 }
 
+// The homography taking the four points src to dst ([[x, y] x 4]), row-major with h8 = 1:
+// the 8 x 8 linear system solved by Gaussian elimination with partial pivoting.
+function homography(src, dst) {
+  const A = [];
+  for (let i = 0; i < 4; i++) {
+    const [x, y] = src[i], [u, v] = dst[i];
+    A.push([x, y, 1, 0, 0, 0, -u * x, -u * y, u]);
+    A.push([0, 0, 0, x, y, 1, -v * x, -v * y, v]);
+  }
+  for (let c = 0; c < 8; c++) {
+    let p = c;
+    for (let r = c + 1; r < 8; r++) if (Math.abs(A[r][c]) > Math.abs(A[p][c])) p = r;
+    [A[c], A[p]] = [A[p], A[c]];
+    if (Math.abs(A[c][c]) < 1e-12) return null;  // three corners on a line
+    for (let r = 0; r < 8; r++) {
+      if (r === c) continue;
+      const f = A[r][c] / A[c][c];
+      for (let k = c; k < 9; k++) A[r][k] -= f * A[c][k];
+    }
+  }
+  return A.map((row, i) => row[8] / A[i][i]).concat([1]);
+}
+
+// An image on its footprint: the image's corners (top-left, top-right, bottom-right,
+// bottom-left) mapped onto the footprint's by a CSS projective transform (matrix3d), redrawn
+// when the zoom changes (a pan moves the pane, not the layer), hidden while zoom animates.
+const QuickLook = L.Layer.extend({
+  initialize(url, corners) {
+    this.url = url;
+    this._corners = corners.map(c => L.latLng(c[1], c[0]));
+  },
+  onAdd(map) {
+    const img = this._img = L.DomUtil.create("img", "seqat-quicklook leaflet-zoom-hide",
+      map.getPane("quicklooks"));
+    img.style.position = "absolute";
+    img.style.left = "0px";
+    img.style.top = "0px";
+    img.style.transformOrigin = "0 0";
+    img.style.pointerEvents = "none";
+    img.alt = "";
+    img.onload = () => this._place();
+    img.src = this.url;
+    map.on("zoomend viewreset", this._place, this);
+  },
+  onRemove(map) {
+    map.off("zoomend viewreset", this._place, this);
+    L.DomUtil.remove(this._img);
+  },
+  setCorners(corners) {
+    this._corners = corners.map(c => L.latLng(c[1], c[0]));
+    this._place();
+  },
+  _place() {
+    const img = this._img;
+    if (!this._map || !img || !img.naturalWidth) return;
+    const w = img.naturalWidth, h = img.naturalHeight;
+    const dst = this._corners.map(c => {
+      const p = this._map.latLngToLayerPoint(c);
+      return [p.x, p.y];
+    });
+    const H = homography([[0, 0], [w, 0], [w, h], [0, h]], dst);
+    if (!H) { img.style.display = "none"; return; }
+    img.style.display = "";
+    img.style.width = w + "px";
+    img.style.height = h + "px";
+    img.style.transform = "matrix3d(" + [H[0], H[3], 0, H[6], H[1], H[4], 0, H[7],
+      0, 0, 1, 0, H[2], H[5], 0, H[8]].join(",") + ")";
+    img.classList.add("seqat-quicklook-placed");
+  },
+});
+const shownQuicklooks = {};  // image -> QuickLook
+
+// The quick-looks of the images the mosaic does not show yet (footprints.geojson).
+function showQuicklooks(fp) {
+  const keep = new Set();
+  for (const f of fp.features) {
+    const p = f.properties;
+    if (!p.quicklook || p.in_mosaic || !p.corners) continue;
+    keep.add(p.image);
+    const shown = shownQuicklooks[p.image];
+    if (shown && shown.url === p.quicklook) shown.setCorners(p.corners);
+    else {
+      if (shown) quicklooks.removeLayer(shown);
+      shownQuicklooks[p.image] = new QuickLook(p.quicklook, p.corners).addTo(quicklooks);
+    }
+  }
+  for (const image of Object.keys(shownQuicklooks)) {
+    if (!keep.has(image)) {
+      quicklooks.removeLayer(shownQuicklooks[image]);
+      delete shownQuicklooks[image];
+    }
+  }
+}
+
 async function getJson(url) {
   const r = await fetch(url, { cache: "no-store" });
   if (!r.ok) throw new Error(url + ": HTTP " + r.status);
@@ -125,6 +225,7 @@ async function loadCameras() {
       fill: false, dashArray: f.properties.in_window ? null : "3 3",
       className: "seqat-footprint" }),
   }).addTo(footprints);
+  showQuicklooks(fp);
   return [fc.features, r, el.scale];
 }
 

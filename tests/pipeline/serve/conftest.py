@@ -12,12 +12,14 @@ import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pyproj
 import pytest
 from affine import Affine
 
 from pipeline.ortho.raster import write_cog
+from pipeline.run.live_view import quicklook_name, write_quicklook
 from pipeline.run.store import read_eop_csv, read_json_object, read_points_csv
 from pipeline.serve.app import Served, serving
 
@@ -58,21 +60,40 @@ def served(mosaic_run: Path) -> Iterator[Served]:
         yield served
 
 
+def quicklook_source(path: Path) -> Path:
+    """An 800 x 600 JPEG, red on the left half, blue on the right (what a quick-look of it
+    shows is checkable), at ``path``."""
+    pixels = np.zeros((600, 800, 3), np.uint8)
+    pixels[:, :400, 2] = 230  # BGR: red
+    pixels[:, 400:, 0] = 230  # blue
+    assert cv2.imwrite(str(path), pixels)
+    return path
+
+
 def write_live_estimates(out: Path, source: Path, images: int,
-                         stop_sigma_m: float | None = None) -> dict[str, object]:
+                         stop_sigma_m: float | None = None,
+                         quicklooks: bool = False) -> dict[str, object]:
     """``out/live/estimates.json`` as a live watch writes it, from the first ``images``
-    cameras and all points of a finished run ``source``."""
+    cameras and all points of a finished run ``source``; ``quicklooks``: with a quick-look
+    of :func:`quicklook_source` for each camera."""
     run = read_json_object(source / "run.json")
     eop = read_eop_csv(source / "eop.csv")
     points = read_points_csv(source / "points.csv")
     cams = []
+    if quicklooks:
+        (out / "live" / "quicklook").mkdir(parents=True, exist_ok=True)
+        jpeg = quicklook_source(out / "live" / "source.jpg")
     for i in range(images):
         x, y = eop.eop[i, :2]
+        name = None
+        if quicklooks:
+            name = f"quicklook/{quicklook_name(i)}"
+            assert write_quicklook(jpeg, out / "live" / name, 800)
         cams.append({"image": eop.image_ids[i], "eop": eop.eop[i].tolist(),
                      "sigma": eop.sigma[i].tolist(), "in_window": i >= images - 3,
                      "at_unix_s": 1.0e9 + i,
                      "footprint": [[x - 40, y - 30], [x + 40, y - 30], [x + 40, y + 30],
-                                   [x - 40, y + 30]]})
+                                   [x - 40, y + 30]], "quicklook": name})
     doc = {"format": "seqat-live-estimates", "version": 1, "updated_unix_s": 1.0e9,
            "crs": run["crs"], "images": images, "stage": "sequential", "sigma0": 0.9,
            "stop_sigma_m": stop_sigma_m,
@@ -88,11 +109,11 @@ def write_live_estimates(out: Path, source: Path, images: int,
 
 @pytest.fixture(scope="session")
 def live_run(mosaic_run: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A live watch's folder: marker, journal and ``live/estimates.json`` (6 cameras, a stop
-    criterion of 8 cm), no published results."""
+    """A live watch's folder: marker, journal and ``live/estimates.json`` (6 cameras with
+    quick-looks, a stop criterion of 8 cm), no published results."""
     out = tmp_path_factory.mktemp("serve_live") / "live"
     out.mkdir()
     shutil.copy(mosaic_run / ".seqat-run", out)
     shutil.copytree(mosaic_run / "journal", out / "journal")
-    write_live_estimates(out, mosaic_run, 6, stop_sigma_m=0.08)
+    write_live_estimates(out, mosaic_run, 6, stop_sigma_m=0.08, quicklooks=True)
     return out

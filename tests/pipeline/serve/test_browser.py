@@ -118,6 +118,7 @@ def test_page_shows_live_estimates_ellipses_and_stop_criterion(browser: Any,
             wait.until(lambda d, css=css: len(d.find_elements(By.CSS_SELECTOR, css)) == 6)
         assert browser.find_element(By.ID, "cameras_position").text == "live estimates"
         assert browser.find_element(By.ID, "lat_at").text == "8 ms"
+        _check_quicklooks(browser, wait, 6)
         assert "points" in browser.find_element(By.ID, "stop").text
         assert browser.find_elements(By.CSS_SELECTOR, "path.seqat-cell-todo")
         field = browser.find_element(By.ID, "stop_cm")
@@ -127,3 +128,37 @@ def test_page_shows_live_estimates_ellipses_and_stop_criterion(browser: Any,
         wait.until(lambda d: not d.find_elements(By.CSS_SELECTOR, "path.seqat-cell-todo"))
         logs = [e for e in browser.get_log("browser") if e.get("level") == "SEVERE"]
         assert logs == []
+
+
+def _check_quicklooks(browser: Any, wait: Any, n: int) -> None:
+    """Each image's quick-look is placed on its footprint (the image's bounding box is the
+    footprint's), and shows the picture the right way round: the source is red on its left
+    half, blue on its right (conftest.quicklook_source) and the footprints' left corners are
+    west (conftest.write_live_estimates), so the newest image, drawn on top, is red on the
+    footprint's west side and blue on its east side."""
+    import io
+
+    from PIL import Image
+    from selenium.webdriver.common.by import By
+
+    wait.until(lambda d: len(d.find_elements(By.CSS_SELECTOR,
+                                             "img.seqat-quicklook-placed")) == n)
+    boxes = browser.execute_script("""
+        const r = e => { const b = e.getBoundingClientRect();
+                         return [b.left, b.top, b.right, b.bottom]; };
+        return [Array.from(document.querySelectorAll('img.seqat-quicklook')).map(r),
+                Array.from(document.querySelectorAll('path.seqat-footprint')).map(r)];""")
+    for img, foot in zip(*boxes, strict=True):
+        assert img == pytest.approx(foot, abs=2.0)  # pixels
+    left, top, right, bottom = boxes[0][-1]
+    ratio = browser.execute_script("return window.devicePixelRatio;")
+    shot = Image.open(io.BytesIO(browser.get_screenshot_as_png())).convert("RGB")
+    y = int((top + 0.3 * (bottom - top)) * ratio)
+
+    def colour(fx: float) -> tuple[int, ...]:
+        x = int((left + fx * (right - left)) * ratio)
+        return tuple(int(v) for v in shot.getpixel((x, y)))
+
+    west, east = colour(0.15), colour(0.85)  # under the coverage cells' 30 % tint
+    assert west[0] > west[2] + 60, west
+    assert east[2] > east[0] + 60, east

@@ -111,7 +111,7 @@ def test_watch_ortho_serve(tmp_path: Path) -> None:
     stop = threading.Event()
     result: list[object] = []
     url = f"http://127.0.0.1:{port}"
-    seen_live_cameras = seen_live_tile = False
+    seen_live_cameras = seen_live_tile = seen_quicklook = False
     with watch_server(port, "127.0.0.1") as on_claimed:
 
         def watch() -> None:
@@ -127,7 +127,7 @@ def test_watch_ortho_serve(tmp_path: Path) -> None:
         thread.start()
         deadline = time.monotonic() + 120
         while thread.is_alive() and time.monotonic() < deadline and not (
-                seen_live_cameras and seen_live_tile):
+                seen_live_cameras and seen_live_tile and seen_quicklook):
             try:
                 status = doc(url, "/status.json")
             except OSError:
@@ -138,6 +138,11 @@ def test_watch_ortho_serve(tmp_path: Path) -> None:
                 assert all(f["properties"]["estimate"] == "live" for f in cams)
                 assert status["stop"]["sigma_cm"] == 20.0
                 seen_live_cameras = True
+                for f in doc(url, "/footprints.geojson")["features"]:
+                    if f["properties"]["quicklook"] and not seen_quicklook:
+                        with urllib.request.urlopen(url + f["properties"]["quicklook"],
+                                                    timeout=30) as r:
+                            seen_quicklook = r.headers["Content-Type"] == "image/jpeg"
             mosaic = status["mosaic"]
             if mosaic is not None and mosaic["version"].startswith("live-"):
                 west, south, east, north = mosaic["bounds_wgs84"]
@@ -149,12 +154,18 @@ def test_watch_ortho_serve(tmp_path: Path) -> None:
             time.sleep(0.05)
         stop.set()
         thread.join(120)
-        assert seen_live_cameras and seen_live_tile
+        assert seen_live_cameras and seen_live_tile and seen_quicklook
         (res,) = result
         assert not isinstance(res, BaseException), res
         assert doc(url, "/status.json")["done"] is True  # the finished run, same server
     assert (out / "mosaic.tif").is_file()
-    assert sorted(p.name for p in (out / "live").iterdir()) == ["estimates.json"]
+    # the live mosaic's files are gone; the estimates and the quick-looks stay
+    assert sorted(p.name for p in (out / "live").iterdir()) == ["estimates.json", "quicklook"]
+    names = [c["quicklook"] for c in read_json_object(out / "live" / "estimates.json")[
+        "cameras"]]
+    assert names == [f"quicklook/{i}.jpg" for i in range(4)]
+    assert sorted(p.name for p in (out / "live" / "quicklook").iterdir()) == [
+        f"{i}.jpg" for i in range(4)]
     est = json.loads((out / "live" / "estimates.json").read_text())
     assert est["images"] == 4 and est["stop_sigma_m"] == 0.2
     assert all(c["footprint"] is not None and c["at_unix_s"] > 0 for c in est["cameras"])

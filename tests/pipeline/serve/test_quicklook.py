@@ -1,0 +1,116 @@
+"""Quick-looks of a live run (issue 15): each georeferenced image, small, written by the
+estimates writer before ``estimates.json`` names it, served at ``/quicklook/{n}.jpg`` and
+placed by the page on its footprint until the mosaic shows the image."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import urllib.error
+import urllib.request
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline.run.live_view import LiveEstimates, quicklook_name, write_quicklook
+from pipeline.serve.app import serving
+from pipeline.serve.live import quicklook_url
+from pipeline.serve.runview import RunView
+from seqat.types import PinholeCamera
+from tests.pipeline.serve.conftest import quicklook_source
+
+
+def _get(url: str) -> tuple[int, bytes, str]:
+    try:
+        with urllib.request.urlopen(url, timeout=10) as r:
+            return r.status, r.read(), r.headers.get("Content-Type", "")
+    except urllib.error.HTTPError as err:
+        return err.code, b"", ""
+
+
+@pytest.mark.parametrize("width, height, expected", [(800, 600, (512, 384)),
+                                                     (4000, 3000, (512, 384)),
+                                                     (300, 500, (300, 500)),
+                                                     (600, 3000, (102, 512))])
+def test_quicklook_size_and_content(tmp_path: Path, width: int, height: int,
+                                    expected: tuple[int, int]) -> None:
+    """At most 512 px wide and high, the aspect ratio kept, never enlarged, the picture's
+    content (left half red, right half blue) in place; reduced decoding for large JPEGs."""
+    pixels = np.zeros((height, width, 3), np.uint8)
+    pixels[:, : width // 2, 2] = 230
+    pixels[:, width // 2:, 0] = 230
+    src = tmp_path / "in.jpg"
+    assert cv2.imwrite(str(src), pixels)
+    out = tmp_path / "q.jpg"
+    assert write_quicklook(src, out, width)
+    small = cv2.imread(str(out))
+    assert (small.shape[1], small.shape[0]) == expected
+    w = small.shape[1]
+    left, right = small[:, : w // 2 - 3].mean(axis=(0, 1)), small[:, w // 2 + 3:].mean(axis=(0, 1))
+    assert left[2] > 200 and left[0] < 30 and right[0] > 200 and right[2] < 30
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no temp
+
+
+def test_quicklook_of_unreadable_files(tmp_path: Path) -> None:
+    for name, data in (("empty.jpg", b""), ("text.jpg", b"not an image")):
+        (tmp_path / name).write_bytes(data)
+        assert not write_quicklook(tmp_path / name, tmp_path / "q.jpg", 800)
+    assert not write_quicklook(tmp_path / "absent.jpg", tmp_path / "q.jpg", 800)
+    assert not (tmp_path / "q.jpg").exists()
+
+
+def test_live_estimates_write_quicklooks_before_naming_them(tmp_path: Path) -> None:
+    """The writer makes each image's quick-look before the first ``estimates.json`` that
+    names it; an image whose file cannot be read has none (``quicklook`` null)."""
+    camera = PinholeCamera(f_px=800.0, cx_px=400.0, cy_px=300.0, width_px=800,
+                           height_px=600)
+    images = {"a": quicklook_source(tmp_path / "a.jpg"), "b": tmp_path / "missing.jpg"}
+    out = tmp_path / "out"
+    est = LiveEstimates(out, crs_wkt="LOCAL_CS[\"m\"]", camera=camera, images=images,
+                        min_interval_s=0.0)
+    try:
+        for k, image in enumerate(("a", "b")):
+            eop = SimpleNamespace(image_id=image, eop=np.array([10.0 * k, 0, 500, 0, 0, 0]),
+                                  sigma=np.full(6, 0.01))
+            update = SimpleNamespace(eop=eop, sigma0=1.0, stage="sequential")
+            est.on_image(None, update, None)  # type: ignore[arg-type]
+            est.on_live(None)
+    finally:
+        est.close()
+    doc = json.loads((out / "live" / "estimates.json").read_text())
+    names = {c["image"]: c["quicklook"] for c in doc["cameras"]}
+    assert names == {"a": f"quicklook/{quicklook_name(0)}", "b": None}
+    assert cv2.imread(str(out / "live" / names["a"])).shape == (384, 512, 3)
+
+
+def test_quicklooks_served_with_footprints(live_run: Path, tmp_path: Path) -> None:
+    """``footprints.geojson`` names each quick-look's route with the footprint's corners in
+    the image's corner order; the route serves the JPEG, nothing else; an image the
+    mosaic shows is marked ``in_mosaic``."""
+    assert quicklook_url("quicklook/3.jpg") == "/quicklook/3.jpg"
+    for bad in ("../run.json", "quicklook/3.png", "quicklook/../3.jpg", "/etc/passwd", 3, None):
+        assert quicklook_url(bad) is None
+    with serving(live_run) as served:
+        with urllib.request.urlopen(served.url + "footprints.geojson", timeout=10) as r:
+            fp = json.loads(r.read())
+        props = [f["properties"] for f in fp["features"]]
+        assert [p["quicklook"] for p in props] == [f"/quicklook/{i}.jpg" for i in range(6)]
+        assert not any(p["in_mosaic"] for p in props)
+        for f in fp["features"]:
+            ring = f["geometry"]["coordinates"][0]
+            assert f["properties"]["corners"] == ring[:4]
+        status, body, kind = _get(served.url + "quicklook/0.jpg")
+        assert status == 200 and kind == "image/jpeg"
+        assert cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR).shape[1] == 512
+        for path in ("quicklook/6.jpg", "quicklook/-1.jpg", "quicklook/x.jpg",
+                     "quicklook/..%2Fsource.jpg"):
+            assert _get(served.url + path)[0] == 404
+    out = tmp_path / "run"
+    shutil.copytree(live_run, out)
+    first = props[0]["image"]
+    (out / "ortho.json").write_text(json.dumps({"images": [{"image": first}]}))
+    marked = [f["properties"]["in_mosaic"] for f in RunView(out).footprints()["features"]]
+    assert marked == [True] + [False] * 5
