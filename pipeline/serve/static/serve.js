@@ -20,8 +20,8 @@ const tiles = L.tileLayer("/tiles/{z}/{x}/{y}.png?v=0", {
   attribution: "mosaic · seqat",
 }).addTo(map);
 // cameras above everything, ellipses and tie points above footprints and coverage, the
-// quick-looks just above the mosaic
-map.createPane("quicklooks").style.zIndex = 405;
+// quick-looks just above the mosaic, under everything else (Leaflet's overlay pane is 400)
+map.createPane("quicklooks").style.zIndex = 350;
 map.createPane("coverage").style.zIndex = 410;
 map.createPane("footprints").style.zIndex = 420;
 map.createPane("ellipses").style.zIndex = 440;
