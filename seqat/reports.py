@@ -68,13 +68,16 @@ class ReportMixin:
         dropped: int,
     ) -> ImageUpdate:
         w = self._w
+        # first the variances: factorising may drop a GP the data do not determine
+        # (Window.on_singular), which moves the offsets read below
+        diag = w.q_diagonal()
         scale = sigma_scale(self.sigma0, self._redundancy)
         idx = w.index(("e", i))
         eop = w.x[idx].copy()
         eop[:3] += self._origin  # type: ignore[operator]
         eop[3:] = wrap_angle(eop[3:])
         gp_offs = np.fromiter((w.offset[k] for k in w.keys if k[0] == "p"), dtype=np.int64)
-        var = w.q_diagonal()[gp_offs[:, None] + np.arange(GP_SIZE)] * scale**2
+        var = diag[gp_offs[:, None] + np.arange(GP_SIZE)] * scale**2
         rms = rms_point_sigma(var)
         n_img = len(self._window_images)
         return ImageUpdate(
@@ -98,7 +101,7 @@ class ReportMixin:
             observations_skipped=skipped,
             iterations=iterations,
             eop=EopEstimate(
-                image_id=frame.image_id, eop=eop, sigma=np.sqrt(w.q_diagonal()[idx]) * scale
+                image_id=frame.image_id, eop=eop, sigma=np.sqrt(diag[idx]) * scale
             ),
             images_left_window=dropped,
         )
