@@ -577,6 +577,51 @@ class InformationFactor:
             out[jp] = np.einsum("jc,jck->jk", self.Dinv[blk, q % GP_SIZE], rhs)
         return 0.5 * (out + out.T)
 
+    def diagonal_blocks(self, idx: np.ndarray, sizes: np.ndarray) -> list[FloatArray]:
+        """The diagonal blocks of ``Q[idx, idx]``: ``idx`` is consecutive groups of
+        ``sizes`` parameters (one key each: an image's 6, a point's 3), each group's
+        ``Q[g, g]`` returned, none of the off-diagonal ones :meth:`block` would form
+        (O(k^2) of them for k parameters; a departure of 40 images and their points asked
+        for 2500 x 2500 to keep 3 x 3 and 6 x 6 blocks).
+
+        A group of kept parameters reads ``Q_RR``; an eliminated point's is
+        ``D_p^-1 + B_p^T Q_RR B_p`` (``B_p = L_Rp D_p^-1``), one product ``Q_RR B`` on the
+        columns of the points asked for."""
+        idx = np.asarray(idx, dtype=np.int64)
+        sizes = np.asarray(sizes, dtype=np.int64)
+        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        rpos, ppos = self._positions()
+        Q = self.q_rr()
+        out: list[FloatArray] = [np.zeros((0, 0))] * sizes.size
+        elim: list[int] = []  # groups that are one eliminated point, whole
+        for g, (a, m) in enumerate(zip(starts, sizes, strict=True)):
+            gi = idx[a:a + m]
+            r = rpos[gi]
+            if np.all(r >= 0):
+                out[g] = Q[np.ix_(r, r)].copy()
+            elif (m == GP_SIZE and np.all(ppos[gi] >= 0) and ppos[gi[0]] % GP_SIZE == 0
+                  and np.array_equal(ppos[gi], ppos[gi[0]] + np.arange(GP_SIZE))):
+                elim.append(g)
+            else:  # a group across R and P (no key is): the general block
+                out[g] = self.block(gi)
+        r = Q.shape[0]
+        # in chunks of bounded memory (r x 3 columns per point, twice)
+        for part in np.array_split(np.asarray(elim, dtype=np.int64),
+                                   max(1, r * GP_SIZE * len(elim) // 4_000_000)):
+            if not part.size:
+                continue
+            blk = ppos[idx[starts[part]]] // GP_SIZE
+            Qpp = self.Dinv[blk].copy()
+            if r:
+                cols = (blk[:, None] * GP_SIZE + np.arange(GP_SIZE)).ravel()
+                Bc = self._columns_of(self.B, cols).reshape(r, blk.size, GP_SIZE)
+                QB = np.tensordot(Q, Bc, axes=(1, 0))  # (r, points, 3)
+                Qpp += np.einsum("rpi,rpj->pij", Bc, QB)
+            Qpp = 0.5 * (Qpp + np.swapaxes(Qpp, 1, 2))
+            for g, q in zip(part, Qpp, strict=True):
+                out[g] = q
+        return out
+
     def entries(self, rows: np.ndarray, cols: np.ndarray) -> FloatArray:
         """``Q[rows, cols]`` (outer). Kept (not eliminated) rows and columns, the EOPs
         among them, come from ``Q_RR = S^-1``: read from :meth:`q_rr` in a small window, one
@@ -650,9 +695,21 @@ class InformationFactor:
         return np.asarray(M)[:, cols]
 
     def dense(self) -> FloatArray:
-        """The whole cofactor ``Q = L^-1`` (tests and small windows only)."""
-        Q = self.solve(np.eye(self.n))
-        return 0.5 * (Q + Q.T)
+        """The whole cofactor ``Q = L^-1``, dense, by blocks: ``Q_RR = S^-1``,
+        ``Q_RP = -Q_RR B``, ``Q_PP = D^-1 + B^T Q_RR B`` (``D^-1`` per point), O(r^2 p +
+        r p^2) for p eliminated parameters, not the O(n^3) of a dense inverse (a departure's
+        conditional, :func:`seqat.departures.leaving_conditional`)."""
+        Qrr = self.q_rr()
+        npt = self.p_idx.shape[0]
+        B = self.B.toarray() if scipy.sparse.issparse(self.B) else np.asarray(self.B)
+        Qrp = -(Qrr @ B)  # dense BLAS: a sparse B times many columns is slower
+        Qpp = -(B.T @ Qrp)
+        blocks = np.arange(npt)[:, None] * GP_SIZE + np.arange(GP_SIZE)
+        Qpp[blocks[:, :, None], blocks[:, None, :]] += self.Dinv
+        Qpp = 0.5 * (Qpp + Qpp.T)
+        blocked = np.block([[Qrr, Qrp], [Qrp.T, Qpp]])  # R first, then P
+        order = np.argsort(np.concatenate([self.r_idx, self.p_idx.ravel()]))
+        return blocked.take(order, axis=0).take(order, axis=1)
 
 
 class MarginalFactor:
@@ -688,6 +745,10 @@ class MarginalFactor:
     def block(self, idx: np.ndarray) -> FloatArray:
         """``Q'[idx, idx]``."""
         return self.base.block(self.keep[idx])
+
+    def diagonal_blocks(self, idx: np.ndarray, sizes: np.ndarray) -> list[FloatArray]:
+        """:meth:`InformationFactor.diagonal_blocks` of ``Q'``."""
+        return self.base.diagonal_blocks(self.keep[idx], sizes)
 
     def entries(self, rows: np.ndarray, cols: np.ndarray) -> FloatArray:
         """``Q'[rows, cols]`` (outer)."""

@@ -282,6 +282,22 @@ class Window:
             return self.Q[np.ix_(idx, idx)].copy()
         return self._solver().block(idx)
 
+    def q_key_blocks(self, keys: list[Key]) -> list[FloatArray]:
+        """``Q[k, k]`` of each key, without the blocks between them."""
+        if not keys:
+            return []
+        idx = self.indices(keys)
+        if self.inverse:
+            out, off = [], 0
+            for k in keys:
+                m = key_size(k)
+                sub = idx[off:off + m]
+                out.append(self.Q[np.ix_(sub, sub)].copy())
+                off += m
+            return out
+        sizes = np.array([key_size(k) for k in keys], dtype=np.int64)
+        return self._solver().diagonal_blocks(idx, sizes)
+
     def q_entries(self, rows: np.ndarray, cols: np.ndarray) -> FloatArray:
         """``Q[rows, cols]`` (outer): EOP rows and columns come from the reduced system
         alone (``Q_RR = S^-1``), no back-substitution of the eliminated GPs

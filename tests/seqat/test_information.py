@@ -74,6 +74,38 @@ def test_marginal_factor_answers_for_the_schur_complement() -> None:
                                atol=1e-12)
 
 
+@pytest.mark.parametrize("sparse", [False, True])
+def test_diagonal_blocks_equal_the_dense_inverse(sparse: bool,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """A departure keeps each leaving key's own marginal block (an image's 6 x 6, a point's
+    3 x 3, kept or eliminated): the diagonal blocks of ``Q`` without forming the blocks
+    between them; also through a MarginalFactor, and with the memory chunking forced."""
+    import seqat.information as information
+
+    monkeypatch.setattr(information, "SPARSE_FROM", 0 if sparse else 10**12)
+    rng = np.random.default_rng(7)
+    L, gp = _window_like(rng, n_e=4, n_p=12, coupled=2)
+    n = L.shape[0]
+    Q = np.linalg.inv(L)
+    f = InformationFactor(L, gp)
+    # image 1, a coupled (kept) point, two eliminated points, image 3
+    groups = [np.arange(6, 12), np.arange(27, 30), np.arange(36, 39), np.arange(57, 60),
+              np.arange(18, 24)]
+    idx = np.concatenate(groups)
+    sizes = np.array([g.size for g in groups])
+    got = f.diagonal_blocks(idx, sizes)
+    for g, b in zip(groups, got, strict=True):
+        np.testing.assert_allclose(b, Q[np.ix_(g, g)], rtol=1e-9, atol=1e-12)
+        np.testing.assert_array_equal(b, b.T)
+    monkeypatch.setattr(np, "array_split", lambda a, k: [a[:1], a[1:]])  # two chunks
+    for g, b in zip(groups, f.diagonal_blocks(idx, sizes), strict=True):
+        np.testing.assert_allclose(b, Q[np.ix_(g, g)], rtol=1e-9, atol=1e-12)
+    keep = np.setdiff1d(np.arange(n), np.arange(0, 6))  # image 0 left: indices shift by 6
+    m = MarginalFactor.of(f, keep)
+    for g, b in zip(groups, m.diagonal_blocks(idx - 6, sizes), strict=True):
+        np.testing.assert_allclose(b, Q[np.ix_(g, g)], rtol=1e-9, atol=1e-12)
+
+
 def test_point_marginals_read_per_point_blocks_even_when_its_columns_differ(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """The eliminated points' variances are ``D^-1 + B_p^T Q_RR B_p`` read point by point
