@@ -155,7 +155,8 @@ def test_run_outputs_are_published_together(tmp_path: Path) -> None:
     solution = Solution(eops=tuple(eops), points=tuple(points), sigma0=1.0, redundancy=3)
     out = tmp_path / "a" / "run"
     record = sample_record(eops)
-    obs = format_observation_lines("img_0000", ("p1", "p2"), np.array([[1.5, 2.25], [3.0, 4.0]]))
+    obs = format_observation_lines("img_0000", ("p1", "p2"), np.array([[1.5, 2.25], [3.0, 4.0]]),
+                                   "img_0000")
     files = write_run_outputs(out, solution, record, obs)
     names = ["eop.csv", "points.csv", "run.json", "nav.csv", "observations.csv",
              "shots.geojson", "cameras_opk.csv", "cameras_opk.prj", "tie_points.laz"]
