@@ -175,7 +175,8 @@ def test_run_outputs_are_published_together(tmp_path: Path) -> None:
     assert run.inputs.skipped == record.inputs.skipped
     assert run.inputs.warnings == ("a warning",)
     assert run.observations_path.read_text().splitlines() == [
-        "image,point,x_px,y_px", "img_0000,p1,1.5,2.25", "img_0000,p2,3.0,4.0"]
+        "image,point,x_px,y_px,frame", "img_0000,p1,1.5,2.25,img_0000",
+        "img_0000,p2,3.0,4.0,img_0000"]
     np.testing.assert_array_equal(run.points.xyz_m, np.array([p.xyz_m for p in points]))
 
 
