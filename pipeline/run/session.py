@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol
@@ -293,15 +294,20 @@ class RunSession:
         return warnings
 
     def late_summary(self, solution: Solution) -> dict[str, object]:
-        """``run.json`` ``totals.late``: late observations received, and the images that
-        have a tie point (an observation of an estimated ground point) only through them."""
+        """``run.json`` ``totals.late``: late observations received, the images that got
+        some, and the images tied only thanks to them: every estimated ground point the image
+        observes would have fewer than two rays without the late ones."""
         estimated = {p.point_id for p in solution.points}
-        late_only = [image for image, late in self._late_points.items()
-                     if estimated.intersection(late) and not estimated.intersection(
-                         set(self._image_points[image]) - set(late))]
-        images = sorted(self._late_points, key=self._nav_ids.index)
-        return {"observations": self.n_late, "images": len(images),
-                "images_tied_only_by_late": sorted(late_only, key=self._nav_ids.index)}
+        rays: Counter[str] = Counter(p for pts in self._image_points.values() for p in pts)
+        late: Counter[str] = Counter(p for pts in self._late_points.values() for p in pts)
+        late_only = []
+        for image, points in self._image_points.items():
+            tied = [p for p in points if p in estimated]
+            if tied and all(rays[p] - late[p] < 2 for p in tied):
+                late_only.append(image)
+        order = {iid: k for k, iid in enumerate(self._nav_ids)}
+        return {"observations": self.n_late, "images": len(self._late_points),
+                "images_tied_only_by_late": sorted(late_only, key=order.__getitem__)}
 
     def observations_text(self) -> str:
         """Rows of the run's ``observations.csv`` (no header)."""

@@ -107,7 +107,13 @@ class Initialiser:
                               frame.nav_eop, self.threshold_deg)
         keep = np.ones(len(point_ids), dtype=bool)
         if res.eop is not None and reject:
-            keep[np.asarray(used, dtype=np.int64)[~res.inliers]] = False
+            # a plane point from a late ray never rejects the observation: the late ray's
+            # image may be one without ties yet, its attitude the INS's (degrees off), and
+            # the point is what would tie it (Seneca IMG_0455)
+            late = {p for p in frame.late_point_ids if p not in self._known}
+            out = [k for k in np.asarray(used, dtype=np.int64)[~res.inliers].tolist()
+                   if point_ids[k] not in late]
+            keep[np.asarray(out, dtype=np.int64)] = False
         frame = dataclasses.replace(frame, point_ids=tuple(np.asarray(point_ids)[keep]),
                                     uv_px=ideal[keep], initial_eop=res.eop)
         return frame, res, len(known), keep

@@ -4,8 +4,9 @@ A held image keeps every feature for matching but emitted only some. When a veri
 links a feature of the new image to a feature a held image did not emit, the held feature
 is emitted now, as a *late observation* of the held image: it joins the track of the new
 image's feature (a continued or a fresh one) unless that track holds a feature of the held
-image already. At most ``late_per_pair`` per pair (``late_untied_per_pair`` when the pair has
-no tie through emitted features), smallest descriptor distance first; one per held pixel.
+image already. Per pair at most what tops its ties (verified matches through emitted
+features) up to ``late_per_pair`` (``late_untied_per_pair`` when it has none): pairs tied
+well get none, weak ones are filled; smallest descriptor distance first; one per held pixel.
 """
 
 from __future__ import annotations
@@ -54,7 +55,10 @@ def pair_ties(links: dict[int, list[tuple[int, int, float]]]) -> dict[int, int]:
 
 
 def _cap(ties: dict[int, int], rank: int, per_pair: int, untied: int) -> int:
-    return untied if ties.get(rank, 0) == 0 else per_pair
+    """Late observations allowed for the pair: ``untied`` without a tie through emitted
+    features, else what tops its ties up to ``per_pair``."""
+    n = ties.get(rank, 0)
+    return untied if n == 0 else max(0, per_pair - n)
 
 
 def late_candidates(unlinked: Sequence[tuple[int, int, int, float]], ties: dict[int, int],

@@ -73,8 +73,9 @@ class TrackerOptions:
     late_per_pair : int
         Late observations (docs/algorithm.md, *Late observations*): when a verified match
         links a feature of the new image to a feature a held image did not emit, the held
-        image's feature is emitted now, as a late observation of that image, for at most this
-        many matches per pair (smallest descriptor distance first); 0: never.
+        image's feature is emitted now, as a late observation of that image: per pair as many
+        as top its ties (verified matches through emitted features) up to this number
+        (smallest descriptor distance first; a pair tied this well gets none); 0: never.
     late_untied_per_pair : int
         The cap instead when the pair has no tie through emitted features (the new image, or
         the held one, would otherwise have no tie point with the other): >= ``late_per_pair``.

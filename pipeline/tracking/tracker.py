@@ -26,9 +26,10 @@ points pending). Nothing is looked ahead.
 some. When a verified match links a feature of ``i`` to a feature of a held image ``j`` that
 ``j`` did not emit, ``j``'s feature is emitted *now*, as a late observation of ``j`` carried
 by ``i``'s :class:`TrackedImage` (``late_*``): it joins the track of ``i``'s feature (a
-continued or a fresh one) unless that track already holds a feature of ``j``. At most
-``late_per_pair`` per pair, ``late_untied_per_pair`` when the pair has no tie through
-emitted features, smallest descriptor distance first; one per pixel of ``j``. This is the
+continued or a fresh one) unless that track already holds a feature of ``j``. Per pair
+as many as top its ties through emitted features up to ``late_per_pair``
+(``late_untied_per_pair`` when it has none), smallest descriptor distance first; one per
+pixel of ``j``. This is the
 only thing emitted about an earlier image later; without it, an image whose matches all
 fell on features its neighbour did not emit would have no tie point. The held image's point
 numbers are replaced, never changed in place (:meth:`Tracker.state` snapshots share them),

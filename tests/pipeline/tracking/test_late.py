@@ -25,7 +25,7 @@ from tests.pipeline.tracking.test_tracking import (
 #: Image 0 emits only a few features (one grid cell): most of what image 1 matches in it was
 #: not emitted.
 FEW = TrackerOptions(working_width_px=600, emit_per_image=40, emit_grid=(1, 1),
-                     late_per_pair=7, late_untied_per_pair=25)
+                     late_per_pair=60, late_untied_per_pair=80)
 
 
 def _ground(uv: np.ndarray, eop: np.ndarray) -> np.ndarray:
@@ -57,9 +57,12 @@ def test_late_observations_emitted_capped_and_on_their_tracks(
     first = out[1]
     assert first.stats.late == len(first.late_point_ids) > 0
     assert set(first.late_image_ids) == {"img0"}
-    # capped per pair: the pair has a tie through an emitted feature or not
+    # capped per pair (ties topped up to late_per_pair, or the untied cap) and by the
+    # emission budget of the new image
     ties = len(set(first.point_ids) & set(before.point_ids))
-    assert len(first.late_point_ids) <= (FEW.late_per_pair if ties else FEW.late_untied_per_pair)
+    assert len(first.late_point_ids) <= (FEW.late_per_pair - ties if ties
+                                         else FEW.late_untied_per_pair)
+    assert first.stats.emitted <= FEW.emit_per_image
     # every late observation is on the track of a feature of the new image, at the same
     # ground point
     own = dict(zip(first.point_ids, first.uv_px, strict=True))
@@ -135,12 +138,12 @@ def test_late_caps_sites_and_track_invariant() -> None:
     # has track 100 already), 3 -> 9, 4 -> -1 (not emitted)
     new_nums = np.array([7, 8, 100, 9, -1], dtype=np.int64)
     unlinked = [(0, 0, 1, 5.0), (0, 1, 2, 6.0), (0, 2, 3, 1.0), (0, 3, 0, 9.0), (0, 4, 5, 0.5)]
-    for ties, cap in (({0: 3}, 1), ({}, 2)):
-        late, preferred = late_candidates(unlinked, ties, 1, 2)
+    for ties, cap in (({0: 3}, 1), ({}, 2)):  # 4 tops 3 ties up by 1; 2 without a tie
+        late, preferred = late_candidates(unlinked, ties, 4, 2)
         assert late[0][0] == (4, 5) and preferred == [4, 2, 0, 1][:cap]  # by distance
         h = dataclasses.replace(held)
         tracks = {7: [1, 1], 8: [1, 1], 9: [1, 1], 100: [3, 2]}
-        out = emit_late([h], late, ties, new_nums, tracks, 1, 2)
+        out = emit_late([h], late, ties, new_nums, tracks, 4, 2)
         # 4: not emitted; 2: track 100 is the held image's already; then 0 -> site of
         # features 1 and 2 (one pixel) takes 7; then 1 -> feature 2, its site emitted now
         assert [(o[0], o[1]) for o in out] == [("h", 7), ("h", 9)][:cap]
@@ -151,3 +154,6 @@ def test_late_caps_sites_and_track_invariant() -> None:
             assert h.point_nums[0] == 9 and tracks[8] == [1, 1]
     late, preferred = late_candidates(unlinked, {}, 0, 0)
     assert late == {} and preferred == []
+    late, preferred = late_candidates(unlinked, {0: 4}, 4, 8)  # tied enough: none
+    assert preferred == [] and emit_late([dataclasses.replace(held)], late, {0: 4}, new_nums,
+                                         {}, 4, 8) == []
