@@ -5,8 +5,9 @@ links a feature of the new image to a feature a held image did not emit, the hel
 is emitted now, as a *late observation* of the held image: it joins the track of the new
 image's feature (a continued or a fresh one) unless that track holds a feature of the held
 image already. Per pair at most what tops its ties (verified matches through emitted
-features) up to ``late_per_pair`` (``late_untied_per_pair`` when it has none): pairs tied
-well get none, weak ones are filled; smallest descriptor distance first; one per held pixel.
+features) up to ``late_per_pair`` (``late_untied_per_pair`` when it has none, or when the
+held image has no tie with any image yet): pairs tied well get none, weak ones are filled;
+smallest descriptor distance first; one per held pixel.
 """
 
 from __future__ import annotations

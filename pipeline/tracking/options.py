@@ -77,8 +77,9 @@ class TrackerOptions:
         as top its ties (verified matches through emitted features) up to this number
         (smallest descriptor distance first; a pair tied this well gets none); 0: never.
     late_untied_per_pair : int
-        The cap instead when the pair has no tie through emitted features (the new image, or
-        the held one, would otherwise have no tie point with the other): >= ``late_per_pair``.
+        The cap instead when the pair has no tie through emitted features, or the held
+        image has no tie with any image yet (the new image, or the held one, would otherwise
+        have no tie point): >= ``late_per_pair``.
     resection_threshold_deg : float
         RANSAC threshold (angle between an image ray and the direction from the GPS position
         to its point) of the resection that gives each new image its initial attitude

@@ -28,8 +28,8 @@ some. When a verified match links a feature of ``i`` to a feature of a held imag
 by ``i``'s :class:`TrackedImage` (``late_*``): it joins the track of ``i``'s feature (a
 continued or a fresh one) unless that track already holds a feature of ``j``. Per pair
 as many as top its ties through emitted features up to ``late_per_pair``
-(``late_untied_per_pair`` when it has none), smallest descriptor distance first; one per
-pixel of ``j``. This is the
+(``late_untied_per_pair`` when it has none, or when none of ``j``'s tracks has a second
+image yet), smallest descriptor distance first; one per pixel of ``j``. This is the
 only thing emitted about an earlier image later; without it, an image whose matches all
 fell on features its neighbour did not emit would have no tie point. The held image's point
 numbers are replaced, never changed in place (:meth:`Tracker.state` snapshots share them),
@@ -382,9 +382,15 @@ class Tracker:
         links, unlinked, n_matches, n_inliers, n_pairs = self._match(
             kp_work, desc, candidates, nav, plane_z)
         site = feature_sites(kp_work)
+        # held images none of whose tracks reached a second image yet: untied, whatever
+        # this image's links to them (the larger cap of late observations)
+        isolated = [rank for rank, c in enumerate(candidates)
+                    if not any(self._tracks[n][0] >= 2 for n in
+                               np.unique(c.held.point_nums[c.held.point_nums >= 0]).tolist())]
         point_nums, n_new, n_ext, n_conflicts = self._assign(len(kp_work), links, site)
         opts = self.options
         ties = pair_ties(links)
+        ties.update({rank: 0 for rank in isolated})
         late, preferred = late_candidates(unlinked, ties, opts.late_per_pair,
                                           opts.late_untied_per_pair)
         prefer = np.asarray([f for f in dict.fromkeys(preferred) if point_nums[f] < 0],
