@@ -12,7 +12,7 @@ import pytest
 
 from pipeline.common.csvio import read_csv
 from pipeline.flight.folder import read_flight
-from pipeline.run.journal import read_journal
+from pipeline.run.journal import encode_record, read_journal
 from pipeline.run.runner import Method, run_flight
 from seqat.errors import InputDataError
 
@@ -109,3 +109,24 @@ def test_resume_after_late_observations_equals_uninterrupted(autzen_run: Path,
     out = tmp_path / "out"
     _crash_and_resume(AUTZEN, out, first + 2, np.random.default_rng(first))
     assert_same_results(autzen_run, out)
+
+
+def test_a_version_1_journal_still_reads(autzen_run: Path, tmp_path: Path) -> None:
+    """Journals of the previous layout (no late observations) are read: frames without
+    late observations, the tracker state without late emissions."""
+    out = tmp_path / "old"
+    shutil.copytree(autzen_run, out)
+    path = out / "journal" / "journal.log"
+    lines = []
+    for line in path.read_bytes().splitlines(keepends=True):
+        doc = json.loads(line.split(b" ", 3)[3])
+        if doc["kind"] == "header":
+            doc["version"] = 1
+        for key in ("late_images", "late_points", "late_uv_px", "late_observed_px"):
+            doc.pop(key, None)
+        lines.append(encode_record(doc))
+    path.write_bytes(b"".join(lines))
+    contents = read_journal(out)
+    assert contents is not None and contents.images
+    assert all(rec.frame.n_late == 0 and rec.late_observed_px.shape == (0, 2)
+               for rec in contents.images)
