@@ -339,7 +339,8 @@ class DepartureMixin:
 
     def _reopenable(self, key: Key, i: int) -> bool:
         left = self._departed.get(key)
-        return left is not None and i - left[0] <= self._reopen_age
+        age = self._reopen_age
+        return left is not None and age > 0 and i - left[0] <= age  # 0: never
 
     @property
     def _reopen_age(self) -> int:
@@ -412,6 +413,17 @@ class DepartureMixin:
             for p in points:
                 self._drop_pending_ray(p, j)
 
+    def _kept_rays(self, j: int) -> list[int]:
+        """Points of which departed image ``j`` still holds a pending ray (kept in
+        :attr:`_departed_rays`): a re-opened image takes them back, so that they leave with
+        it again (and are forgotten in time) instead of staying pending untracked."""
+        out: list[int] = []
+        for jj, points in self._departed_rays:
+            if jj == j:
+                out += [p for p in points if p in self._pending and p not in out
+                        and any(r[0] == j for r in self._pending[p])]
+        return out
+
     def _drop_pending_ray(self, p: int, j: int) -> None:
         """Forget image ``j``'s pending ray of point ``p`` (and the point with its last ray)."""
         if p not in self._pending:
@@ -437,17 +449,21 @@ class DepartureMixin:
         n = w.x.size
         sizes = [key_size(k) for k in keys]
         m = sum(sizes)
-        if w.L is None:
+        if w.L is None or not self._records:
+            # no departure records (smoothing off): frozen value and cofactor, uncorrelated
             J = np.zeros((m, n))
             mean = np.concatenate([self._frozen_value(k) for k in keys])
             C = scipy.linalg.block_diag(*(self._frozen_cof[k] for k in keys))
+            for key in keys:
+                self._departed.pop(key, None)
         else:
             mean, J, C = self._conditional_prior(keys, sizes)
             self._split_records(keys)
         for key in keys:
             if key[0] == "e":
                 j = key[1]
-                self._img_points[j] = []
+                # its kept pending rays are window rays again (born now or later)
+                self._img_points[j] = self._kept_rays(j)
                 pos = sum(1 for jj in self._window_images if jj < j)
                 self._window_images.insert(pos, j)
             else:

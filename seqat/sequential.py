@@ -62,6 +62,7 @@ from seqat.departures import Departure, DepartureMixin
 from seqat.errors import EstimationError
 from seqat.geometry import wrap_angle
 from seqat.information import window_matrix
+from seqat.late import LateMixin
 from seqat.relinearise import FINAL_RELINEARISE_PX, RelinearisationMixin
 from seqat.reports import RecordedRows, ReportMixin
 from seqat.robust import ROBUST_SCALE
@@ -100,13 +101,11 @@ UPDATE_BLAS_THREADS = 1
 _BLAS = ThreadpoolController()
 
 
-
 #: Data snooping: at most this many reject-and-resolve rounds per image.
 MAX_SNOOPING_ROUNDS = 40
 
 #: Window engines (SequentialOptions.engine).
 ENGINES = ("information", "inverse")
-
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -200,7 +199,7 @@ class SequentialOptions:
 
 
 class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin,
-                   CameraMixin):
+                   CameraMixin, LateMixin):
     """Seq-F / Seq-R sequential aerial triangulation of a stream of frames.
 
     Parameters
@@ -258,6 +257,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self._w = Window()
         self._window_images: deque[int] = deque()
         self._image_ids: list[str] = []
+        self._image_index: dict[str, int] = {}
         self._point_ids: list[str] = []
         self._point_index: dict[str, int] = {}
         self._img_points: dict[int, list[int]] = {}
@@ -439,7 +439,6 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             camera=self.camera_estimate(),
         )
 
-
     # ------------------------------------------------------------------ initial stage (Sim)
     def _add_initial(self, frame: Frame) -> ImageUpdate:
         sim = self._initial
@@ -448,6 +447,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         upd = sim.add_frame(frame)
         i = len(self._image_ids)
         self._image_ids.append(frame.image_id)
+        self._image_index[frame.image_id] = i
         if i + 1 >= self.options.initial_images:
             self._start_sequential(sim)
         ms = (time.perf_counter() - t0) * 1e3
@@ -530,14 +530,15 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self._initial = None
 
     # ------------------------------------------------------------------ sequential stage
-
-
     def _add_sequential(self, frame: Frame) -> ImageUpdate:
         t0 = time.perf_counter()
         opts, w = self.options, self._w
         assert self._origin is not None
         i = len(self._image_ids)
+        # late observations of earlier images first: pending rays, or rows of window GPs
+        late_rows, late_pending, late_skipped = self._insert_late(frame, i)
         self._image_ids.append(frame.image_id)
+        self._image_index[frame.image_id] = i
         pts: list[int] = []
         for pid in frame.point_ids:
             p = self._point_index.get(pid)
@@ -545,7 +546,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                 p = self._point_index[pid] = len(self._point_ids)
                 self._point_ids.append(pid)
             pts.append(p)
-        dropped = self._select_window(set(pts))
+        dropped = self._select_window(set(pts) | {p for _, p, _, _ in late_rows})
         self._forget_old_rays(i)
 
         nav = frame.nav_eop.copy()
@@ -574,6 +575,11 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                 if len(lst) >= self._min_rays(p):
                     candidates.append(p)
         in_frame = set(candidates)
+        # points a late ray alone brings to enough rays (their new ray was left out)
+        for p in dict.fromkeys(late_pending):
+            if p not in in_frame and len(self._pending.get(p, ())) >= self._min_rays(p):
+                candidates.append(p)
+                in_frame.add(p)
         candidates += [p for p in self._forced if p not in in_frame and p in self._pending]
 
         nav_sigma = free_nav_sigma(frame.nav_sigma)
@@ -583,6 +589,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         downweighted: list[str] = []
         reopened: list[Key] = []
         held: set[int] = set()  # points whose birth made the update singular (wait)
+        late_out: set[tuple[int, int]] = set()  # late rows rejected by data snooping
         rounds = 0
         while True:
             w.settle()  # an undetermined GP leaves now, before the rows are laid out
@@ -592,14 +599,19 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             ready = [p for p in candidates if p in self._pending and p not in held
                      and len(self._pending[p]) >= self._min_rays(p)]
             born, born_xyz = self._birth(ready, i, init, use_new=init_known)
-            reopen += list(dict.fromkeys(
-                ("e", j) for p in born for (j, _, _) in self._pending[p]
-                if j != i and ("e", j) not in w.offset))
+            reopen += [("e", j) for p in born for (j, _, _) in self._pending[p]
+                       if j != i and ("e", j) not in w.offset]
+            y11 = [r for r in late_rows if (r[0], r[1]) not in late_out
+                   and self._key_usable(("e", r[0]), i) and self._key_usable(("p", r[1]), i)]
+            reopen += [k for j, p, _, _ in y11 for k in (("e", j), ("p", p))
+                       if k not in w.offset]
+            reopen = list(dict.fromkeys(reopen))
             if reopen:
                 self._reopen(reopen)
                 reopened += reopen
                 w.settle()
                 y21 = [(p, uv) for p, uv in y21 if ("p", p) in w.offset]
+                y11 = [r for r in y11 if ("e", r[0]) in w.offset and ("p", r[1]) in w.offset]
             y21_pts = [p for p, _ in y21]
             y21_uv = [uv for _, uv in y21]
 
@@ -614,6 +626,9 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             touched_keys: list[Key] = [self._cam_key] if self._cam_key is not None else []
             touched_keys += [("p", p) for p in y21_pts]
             touched_keys += list(dict.fromkeys(("e", j) for (j, _, _, _) in y12))
+            # late rays of estimated points: rows of two existing parameters (A22 = 0)
+            touched_keys = list(dict.fromkeys(
+                touched_keys + [k for j, p, _, _ in y11 for k in (("e", j), ("p", p))]))
             touched = w.indices(touched_keys)
             # the block Q[touched, touched] alone; d1 by one solve after (docs/algorithm.md,
             # *Engines*)
@@ -635,6 +650,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                 (col_of[("e", j)], t + EOP_SIZE + GP_SIZE * b, uv, s, True, (j, born[b]))
                 for (j, b, uv, s) in y12
             ]
+            obs += [(col_of[("e", j)], col_of[("p", p)], uv, s, True, (j, p))
+                    for (j, p, uv, s) in y11]
             # y22 rows touch an existing parameter too when the camera is estimated
             obs += [(t, t + EOP_SIZE + GP_SIZE * b, uv, s, self._cam_key is not None,
                      (i, born[b])) for (b, uv, s) in y22]
@@ -703,6 +720,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                 rejected.append((j, p, wq))
                 if j == i:
                     rejected_new.add(p)
+                elif ("p", p) in w.offset and p not in born:
+                    late_out.add((j, p))  # a late row of an estimated point
                 if p in self._pending:  # a ray of a point being born: it stays out
                     self._drop_pending_ray(p, j)
                     if j != i and p in self._img_points.get(j, ()):
@@ -740,13 +759,17 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         for p in y21_pts:
             self._gp_count[p] += 1
             self._gp_nobs[p] += 1
+        for j, p, _, _ in y11:
+            self._gp_count[p] += 1
+            self._gp_nobs[p] += 1
+            self._img_points[j].append(p)
         for p in born:
             obs = self._pending.pop(p)
             self._gp_count[p] = self._gp_nobs[p] = len(obs)
             self._gp_order.append(p)
             self._n_points += 1
             for j, _, _ in obs:
-                if ("e", j) in reopened:
+                if ("e", j) in reopened and p not in self._img_points[j]:
                     self._img_points[j].append(p)
         self._drift_m = self._drift_deg = float("nan")
         if opts.relinearise_px is not None:
@@ -756,8 +779,10 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             self._finalise_old(i)
         self._prune_dormant(i)
         # the published sigmas (the image's EOP, the window's GPs) are part of the update
+        late_used = len(late_pending) + len(y11)
         update = self._report(
-            frame, i, 0.0, rows, n2, len(born), len(pts) - skipped - len(rejected_new), skipped,
+            frame, i, 0.0, rows, n2, len(born),
+            len(pts) - skipped - len(rejected_new) + late_used, skipped + late_skipped,
             iterations, dropped
         )
         return dataclasses.replace(
@@ -770,4 +795,5 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             rejected=tuple((self._image_ids[j], self._point_ids[p], round(wq, 2))
                            for j, p, wq in rejected),
             nav_downweighted=tuple(downweighted),
+            late_used=late_used,
         )

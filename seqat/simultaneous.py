@@ -14,13 +14,14 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
 
 from seqat import snooping
 from seqat.calibration import FreeCamera, SelfCalibration, correlation, to_hold
+from seqat.catalogue import Catalogue
 from seqat.errors import EstimationError, InputDataError
 from seqat.geometry import depth, intersect_rays, project, project_with_jacobians
 from seqat.normals import (
@@ -341,21 +342,6 @@ def rms_point_sigma(variances_m2: FloatArray) -> tuple[float, float, float]:
     return (float(rms[0]), float(rms[1]), float(rms[2]))
 
 
-@dataclass(eq=False)
-class _Catalogue:
-    """Growing store of the frames seen so far (used by the simultaneous baseline)."""
-
-    image_ids: list[str] = field(default_factory=list)
-    nav_eop: list[FloatArray] = field(default_factory=list)
-    nav_sigma: list[FloatArray] = field(default_factory=list)
-    point_index: dict[str, int] = field(default_factory=dict)
-    point_ids: list[str] = field(default_factory=list)
-    obs_image: list[int] = field(default_factory=list)
-    obs_point: list[int] = field(default_factory=list)
-    obs_uv: list[FloatArray] = field(default_factory=list)
-    obs_sigma: list[float] = field(default_factory=list)
-
-
 @dataclass(frozen=True, kw_only=True, eq=False)
 class SimState:
     """Everything a simultaneous solution knows, for handing over to the sequential stage.
@@ -406,7 +392,7 @@ class SimultaneousAT:
         #: The camera at the last solution (the prior ``camera`` until self-calibrated).
         self.camera_now = camera
         self._held: tuple[str, ...] = ()  # free parameters the last solution held at the prior
-        self._cat = _Catalogue()
+        self._cat = Catalogue()
         self._origin: FloatArray | None = None
         self._result: SimResult | None = None
         self._point_sel: np.ndarray = np.zeros(0, dtype=np.int64)
@@ -425,21 +411,9 @@ class SimultaneousAT:
         cat = self._cat
         if self._origin is None:
             self._origin = np.round(frame.nav_eop[:3])
-        i = len(cat.image_ids)
-        cat.image_ids.append(frame.image_id)
         nav = frame.nav_eop.copy()
         nav[:3] -= self._origin
-        cat.nav_eop.append(nav)
-        cat.nav_sigma.append(free_nav_sigma(frame.nav_sigma))
-        for pid, uv in zip(frame.point_ids, frame.uv_px, strict=True):
-            j = cat.point_index.get(pid)
-            if j is None:
-                j = cat.point_index[pid] = len(cat.point_ids)
-                cat.point_ids.append(pid)
-            cat.obs_image.append(i)
-            cat.obs_point.append(j)
-            cat.obs_uv.append(uv)
-            cat.obs_sigma.append(frame.sigma_px)
+        i = cat.add_frame(frame, nav, free_nav_sigma(frame.nav_sigma))
         init = nav
         if frame.initial_eop is not None:
             init = frame.initial_eop.copy()
@@ -754,7 +728,8 @@ class SimultaneousAT:
             rms_gp_sigma_m=rms_gp,  # type: ignore[arg-type]
             n_points_total=n_pts,
             new_points=0,
-            observations_used=len(frame.point_ids),
+            observations_used=len(frame.point_ids) + frame.n_late,
+            late_used=frame.n_late,
             observations_skipped=0,
             iterations=iterations,
             eop=EopEstimate(image_id=frame.image_id, eop=eop, sigma=sigma),

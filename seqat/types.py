@@ -102,6 +102,14 @@ class Frame:
         Initial value of the image's EOP for the estimator's linearisation (e.g. a space
         resection on known ground points), world frame; not an observation. ``None``: the
         nav is the initial value.
+    late_image_ids, late_point_ids : tuple[str, ...]
+        *Late observations* arriving with this frame: observations of *earlier* images
+        (ids of images the estimator already has) that the tracker emitted only now, when
+        this image matched a feature those images held without emitting it
+        (docs/algorithm.md, *Late observations*). One entry per observation; an
+        (image, point) pair appears once, never for this frame's own image.
+    late_uv_px : (m, 2) float
+        Their ideal pinhole pixels in the earlier image, with ``sigma_px``.
     """
 
     image_id: str
@@ -111,6 +119,32 @@ class Frame:
     uv_px: FloatArray
     sigma_px: float = 1.0
     initial_eop: FloatArray | None = None
+    late_image_ids: tuple[str, ...] = ()
+    late_point_ids: tuple[str, ...] = ()
+    late_uv_px: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((0, 2)))
+
+    @property
+    def n_late(self) -> int:
+        """Number of late observations of earlier images this frame carries."""
+        return len(self.late_point_ids)
+
+    def _check_late(self, where: str) -> FloatArray:
+        late_uv = np.asarray(self.late_uv_px, dtype=np.float64).reshape(-1, 2)
+        n = len(self.late_point_ids)
+        if len(self.late_image_ids) != n or late_uv.shape[0] != n:
+            raise InputDataError(
+                f"{where}: {len(self.late_image_ids)} late image ids, {n} late point ids and "
+                f"{late_uv.shape[0]} late image points: expected one of each per late "
+                "observation")
+        if not np.all(np.isfinite(late_uv)):
+            raise InputDataError(f"{where}: late image coordinates must be finite")
+        if self.image_id in self.late_image_ids:
+            raise InputDataError(f"{where}: a late observation names the frame's own image "
+                                 "(late observations are of earlier images)")
+        pairs = set(zip(self.late_image_ids, self.late_point_ids, strict=True))
+        if len(pairs) != n:
+            raise InputDataError(f"{where}: a late observation (image, point) appears twice")
+        return late_uv
 
     def __post_init__(self) -> None:
         nav = np.asarray(self.nav_eop, dtype=np.float64).reshape(-1)
@@ -138,6 +172,10 @@ class Frame:
                 raise InputDataError(f"{where}: initial_eop must be 6 finite numbers, "
                                      f"got {init!r}")
             object.__setattr__(self, "initial_eop", init)
+        late_uv = self._check_late(where)
+        object.__setattr__(self, "late_uv_px", late_uv)
+        object.__setattr__(self, "late_image_ids", tuple(self.late_image_ids))
+        object.__setattr__(self, "late_point_ids", tuple(self.late_point_ids))
         object.__setattr__(self, "nav_eop", nav)
         object.__setattr__(self, "nav_sigma", sig)
         object.__setattr__(self, "uv_px", uv)
@@ -294,3 +332,6 @@ class ImageUpdate:
     rejected: tuple[tuple[str, str, float], ...] = ()
     #: Data snooping: GPS/INS groups ("position", "attitude") down-weighted in this update.
     nav_downweighted: tuple[str, ...] = ()
+    #: Late observations of earlier images the frame carried that the estimator used (as
+    #: pending rays or rows); those it could not use are in ``observations_skipped``.
+    late_used: int = 0

@@ -29,7 +29,7 @@ import numpy as np  # noqa: E402
 from pipeline.bench.common import load_average, machine  # noqa: E402
 from pipeline.bench.report import Machine  # noqa: E402
 from pipeline.common.atomic import atomic_write_text
-from pipeline.common.columns import EOP_FILE, OBS_COLUMNS
+from pipeline.common.columns import EOP_FILE, OBS_COLUMNS, OBS_FRAME_COLUMN
 from pipeline.common.csvio import read_csv  # noqa: E402
 from pipeline.common.tables import EopTable, NavTable
 from pipeline.report.model import image_residuals_px  # noqa: E402
@@ -140,7 +140,7 @@ def _colmap(sim_run: Path) -> tuple[dict[str, object], EopTable | None]:
 def _tracks(obs_path: Path) -> tuple[Counter[str], int]:
     counts: Counter[str] = Counter()
     n = 0
-    for row in read_csv(obs_path, OBS_COLUMNS):
+    for row in read_csv(obs_path, OBS_COLUMNS, (OBS_FRAME_COLUMN,)):
         counts[row.ident("point")] += 1
         n += 1
     return counts, n

@@ -15,6 +15,12 @@ OBSERVATIONS_FILE = "observations.csv"
 NAV_COLUMNS = ("image", "time_s", "x_m", "y_m", "z_m", "omega_deg", "phi_deg", "kappa_deg")
 #: Columns of ``observations.csv`` (flight input and run output).
 OBS_COLUMNS = ("image", "point", "x_px", "y_px")
+#: Optional column of ``observations.csv``: the frame (image update) a row arrived with; a
+#: row of an earlier image than its frame is a late observation (docs/formats.md). Without
+#: it every row arrived with its own image.
+OBS_FRAME_COLUMN = "frame"
+#: Columns of a run's ``observations.csv`` (always with the frame).
+RUN_OBS_COLUMNS = (*OBS_COLUMNS, OBS_FRAME_COLUMN)
 #: Name of the flight description inside a flight folder.
 FLIGHT_YAML = "flight.yaml"
 #: Folder of the exact truth of simulated flights.

@@ -97,7 +97,8 @@ class CsvRow:
         return int(value)
 
 
-def read_csv(path: Path | str, columns: Sequence[str]) -> Iterator[CsvRow]:
+def read_csv(path: Path | str, columns: Sequence[str],
+             optional: Sequence[str] = ()) -> Iterator[CsvRow]:
     """Stream the data rows of a CSV file with exactly the given columns.
 
     Parameters
@@ -105,6 +106,9 @@ def read_csv(path: Path | str, columns: Sequence[str]) -> Iterator[CsvRow]:
     path : Path or str
     columns : sequence of str
         Required column names (header order is free; extra or repeated columns are errors).
+    optional : sequence of str
+        Columns the header may have (at most once each); a row's ``values`` lack a column
+        the header does not have.
 
     Yields
     ------
@@ -130,7 +134,7 @@ def read_csv(path: Path | str, columns: Sequence[str]) -> Iterator[CsvRow]:
                                  f"{','.join(columns)}") from None
         except (csv.Error, UnicodeDecodeError) as err:
             raise InputDataError(f"{where}:{reader.line_num}: malformed CSV: {err}") from err
-        check_header(where, header, columns)
+        check_header(where, header, columns, optional)
         while True:
             try:
                 fields = next(reader)
@@ -165,11 +169,14 @@ def _decoded_lines(handle: BinaryIO, where: str) -> Iterator[str]:
         yield decode_line(raw, where, number)
 
 
-def check_header(where: str, header: Sequence[str], columns: Sequence[str]) -> None:
-    """Raise unless ``header`` names every column of ``columns`` exactly once."""
-    if sorted(header) != sorted(columns):
+def check_header(where: str, header: Sequence[str], columns: Sequence[str],
+                 optional: Sequence[str] = ()) -> None:
+    """Raise unless ``header`` names every column of ``columns`` exactly once (and any of
+    ``optional`` at most once)."""
+    expected = [*columns, *(c for c in optional if c in header)]
+    if sorted(header) != sorted(expected):
         missing = [c for c in columns if c not in header]
-        extra = [h for h in header if h not in columns or header.count(h) > 1]
+        extra = [h for h in header if h not in expected or header.count(h) > 1]
         detail = "; ".join(part for part in (
             f"missing {', '.join(missing)}" if missing else "",
             f"unexpected {', '.join(dict.fromkeys(extra))}" if extra else "") if part)

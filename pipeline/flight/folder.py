@@ -15,14 +15,14 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import pyproj
 
-from pipeline.common.columns import FLIGHT_YAML, IMAGES_DIR, TRUTH_DIR
+from pipeline.common.columns import FLIGHT_YAML, IMAGES_DIR, OBS_FRAME_COLUMN, TRUTH_DIR
 from pipeline.common.csvio import CsvRow, read_csv
 from pipeline.common.paths import exists_as_anything, file_problem, folder_problem
 from pipeline.common.tables import GroundPoints, NavTable
@@ -528,12 +528,16 @@ class ObservationStats:
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class _Group:
-    """The contiguous observation rows of one image."""
+    """The contiguous observation rows of one frame: its image's, and the late observations
+    of earlier images that arrived with it (``frame`` column)."""
 
     image_id: str
     nav_row: int
     point_ids: tuple[str, ...]
     uv_px: FloatArray  # (k, 2) observed pixels
+    late_image_ids: tuple[str, ...] = ()
+    late_point_ids: tuple[str, ...] = ()
+    late_uv_px: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 class FrameSource:
@@ -560,22 +564,27 @@ class FrameSource:
         return len(self._flight.nav)
 
     def __iter__(self) -> Iterator[Frame]:
-        for frame, _ in self.with_observed():
+        for frame, _, _ in self.with_observed():
             yield frame
 
-    def with_observed(self) -> Iterator[tuple[Frame, FloatArray]]:
-        """Frames together with their observed (distorted) pixels, ``(k, 2)``."""
+    def with_observed(self) -> Iterator[tuple[Frame, FloatArray, FloatArray]]:
+        """Frames together with the observed (distorted) pixels of their observations,
+        ``(k, 2)``, and of their late observations, ``(m, 2)``."""
         next_row = 0
         empty = np.zeros((0, 2))
+        corrector = self._flight.corrector
         for group in self._groups():
             while next_row < group.nav_row:
-                yield self._frame(next_row, (), empty), empty
+                yield self._frame(next_row, (), empty), empty, empty
                 next_row += 1
-            uv = self._flight.corrector.ideal_pixels(group.uv_px)
-            yield self._frame(group.nav_row, group.point_ids, uv), group.uv_px
+            frame = dataclasses.replace(
+                self._frame(group.nav_row, group.point_ids, corrector.ideal_pixels(group.uv_px)),
+                late_image_ids=group.late_image_ids, late_point_ids=group.late_point_ids,
+                late_uv_px=corrector.ideal_pixels(group.late_uv_px))
+            yield frame, group.uv_px, group.late_uv_px
             next_row = group.nav_row + 1
         while next_row < len(self._flight.nav):
-            yield self._frame(next_row, (), empty), empty
+            yield self._frame(next_row, (), empty), empty, empty
             next_row += 1
 
     def validate(self) -> ObservationStats:
@@ -588,9 +597,10 @@ class FrameSource:
         n_obs, n_images = 0, 0
         points: set[str] = set()
         for group in self._groups():
-            n_obs += len(group.point_ids)
+            n_obs += len(group.point_ids) + len(group.late_point_ids)
             n_images += 1
             points.update(group.point_ids)
+            points.update(group.late_point_ids)
         dropped, total, first = self.outside
         warnings = ((outside_warning(self._flight.observations_path, dropped, total, first),)
                     if dropped else ())
@@ -604,58 +614,89 @@ class FrameSource:
                      sigma_px=self._flight.config.sigma_image_px)
 
     def _groups(self) -> Iterator[_Group]:
-        """Contiguous per-image groups of ``observations.csv``, validated, in nav order."""
+        """Contiguous per-frame groups of ``observations.csv``, validated, in nav order.
+
+        Without a ``frame`` column every row arrived with its own image (the frame = the
+        image); with it, a row of an earlier image than its frame is a late observation."""
         cam = self._flight.camera_config
-        done: dict[str, int] = {}  # finished image -> last line of its rows
+        done: dict[str, int] = {}  # finished frame -> last line of its rows
         current: str | None = None
         current_row = -1
         point_line: dict[str, int] = {}
+        late_line: dict[str, dict[str, int]] = {}  # late image -> point -> line
         uvs: list[tuple[float, float]] = []
+        late: list[tuple[str, str, float, float]] = []
         last_line = 0
         nav_name = self._flight.config.nav.file
         left_out = {s.image for s in self._flight.skipped}  # nav.dropout: skip
         assert self._flight.observations_path is not None
         tolerance = outside_tolerance_px(self._flight.config.sigma_image_px)
         dropped, total, first = 0, 0, ""
-        for row in read_csv(self._flight.observations_path, OBSERVATION_COLUMNS):
+
+        def group() -> _Group:
+            assert current is not None
+            return _Group(image_id=current, nav_row=current_row, point_ids=tuple(point_line),
+                          uv_px=np.asarray(uvs).reshape(-1, 2),
+                          late_image_ids=tuple(r[0] for r in late),
+                          late_point_ids=tuple(r[1] for r in late),
+                          late_uv_px=np.asarray([r[2:] for r in late]).reshape(-1, 2))
+
+        for row in read_csv(self._flight.observations_path, OBSERVATION_COLUMNS,
+                            (OBS_FRAME_COLUMN,)):
             total += 1
             image = row.ident("image")
-            if image in left_out and image not in self._nav_index:
+            frame = row.ident(OBS_FRAME_COLUMN) if OBS_FRAME_COLUMN in row.values else image
+            if (image in left_out and image not in self._nav_index) or (
+                    frame in left_out and frame not in self._nav_index):
                 continue
-            if image != current:
+            if frame != current:
                 if current is not None:
-                    yield _Group(image_id=current, nav_row=current_row,
-                                 point_ids=tuple(point_line), uv_px=np.asarray(uvs))
+                    yield group()
                     done[current] = last_line
-                if image in done:
-                    raise row.error(f"rows of image {image!r} are not contiguous (its earlier "
-                                    f"rows end at line {done[image]}); group rows by image")
-                nav_row = self._nav_index.get(image)
+                if frame in done:
+                    raise row.error(f"rows of {'image' if frame == image else 'frame'} "
+                                    f"{frame!r} are not contiguous (its earlier rows end at "
+                                    f"line {done[frame]}); group rows by image (frame)")
+                nav_row = self._nav_index.get(frame)
                 if nav_row is None:
-                    raise row.error(f"field 'image': unknown image {image!r} (not in "
+                    field_name = "image" if frame == image else OBS_FRAME_COLUMN
+                    raise row.error(f"field {field_name!r}: unknown image {frame!r} (not in "
                                     f"{nav_name})")
                 if nav_row < current_row:
-                    raise row.error(f"image {image!r} comes after image {current!r} but was "
+                    raise row.error(f"image {frame!r} comes after image {current!r} but was "
                                     f"acquired before it ({nav_name}); rows must follow the "
                                     "acquisition order")
-                current, current_row = image, nav_row
-                point_line, uvs = {}, []
+                current, current_row = frame, nav_row
+                point_line, uvs, late, late_line = {}, [], [], {}
             last_line = row.line
+            if image != frame:  # a late observation of an earlier image
+                image_row = self._nav_index.get(image)
+                if image_row is None:
+                    raise row.error(f"field 'image': unknown image {image!r} (not in "
+                                    f"{nav_name})")
+                if image_row >= current_row:
+                    raise row.error(f"late observation of image {image!r} in frame {frame!r}, "
+                                    "which was not acquired after it (a row's frame is its "
+                                    "image or a later one)")
             try:
-                point, u, v = observation_row(row, image, point_line, cam, tolerance)
+                point, u, v = observation_row(
+                    row, image, point_line if image == frame else late_line.setdefault(image, {}),
+                    cam, tolerance)
             except PixelOutsideImage as err:
                 dropped += 1
                 first = first or str(err)
                 continue
-            uvs.append((u, v))
+            if image == frame:
+                uvs.append((u, v))
+            else:
+                late.append((image, point, u, v))
         self.outside = (dropped, total, first)
         if dropped > MAX_OUTSIDE_FRACTION * total:
             raise InputDataError(f"{self._flight.observations_path}: {dropped} of {total} "
                                  "observations lie outside the image (first: "
                                  f"{first}); the file does not fit the camera of the flight")
         if current is not None:
-            yield _Group(image_id=current, nav_row=current_row, point_ids=tuple(point_line),
-                         uv_px=np.asarray(uvs))
+            yield group()
 
 
 class PixelOutsideImage(InputDataError):

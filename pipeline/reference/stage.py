@@ -20,7 +20,13 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.common.atomic import atomic_write_text, building_folder
-from pipeline.common.columns import EOP_FILE, POINTS_FILE, REFERENCE_DIR, SFM_DIR
+from pipeline.common.columns import (
+    EOP_FILE,
+    OBS_FRAME_COLUMN,
+    POINTS_FILE,
+    REFERENCE_DIR,
+    SFM_DIR,
+)
 from pipeline.common.csvio import read_csv
 from pipeline.flight.camera import PixelCorrector, pinhole_camera
 from pipeline.flight.nav_files import OBSERVATION_COLUMNS
@@ -81,7 +87,7 @@ def read_observations(path: Path, image_index: dict[str, int]) -> tuple[
     uv: list[tuple[float, float]] = []
     point_index: dict[str, int] = {}
     seen: dict[tuple[int, int], int] = {}
-    for row in read_csv(path, OBSERVATION_COLUMNS):
+    for row in read_csv(path, OBSERVATION_COLUMNS, (OBS_FRAME_COLUMN,)):  # frame unused
         image = row.ident("image")
         i = image_index.get(image)
         if i is None:

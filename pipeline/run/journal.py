@@ -28,7 +28,7 @@ import json
 import os
 import zlib
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -44,8 +44,10 @@ from seqat.types import FloatArray, Frame
 JOURNAL_DIR = "journal"
 JOURNAL_FILE = "journal.log"
 TRACKER_DIR = "tracker"
-#: Layout version (header ``version``); a journal of another version is refused.
-JOURNAL_VERSION = 1
+#: Layout version (header ``version``). 2: late observations in the image records and the
+#: tracker's late emissions in its state files; version 1 journals (none) are still read.
+JOURNAL_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 #: First field of every record line.
 MAGIC = b"SQJ1"
 #: Digits of the image number in tracker state file names (``tracker/00000012.npz``).
@@ -72,6 +74,8 @@ class ImageRecord:
     observed_px : (k, 2) float
         Observed (distorted, full-resolution) pixels of the frame's observations, for the
         run folder's ``observations.csv``.
+    late_observed_px : (m, 2) float
+        The same for the frame's late observations (of earlier images).
     threshold : float or None
         Seq-R correlation threshold this image was adjusted with (the latency budget may
         change it between images).
@@ -94,6 +98,7 @@ class ImageRecord:
     tracking: Mapping[str, object] | None = None
     budget_event: Mapping[str, object] | None = None
     tracker_state: bool = False
+    late_observed_px: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -147,7 +152,10 @@ def _image_payload(rec: ImageRecord) -> dict[str, object]:
             "observed_px": _floats(rec.observed_px), "threshold": rec.threshold,
             "live": to_jsonable(rec.live), "tracking": to_jsonable(rec.tracking),
             "budget_event": to_jsonable(rec.budget_event),
-            "tracker_state": rec.tracker_state}
+            "tracker_state": rec.tracker_state,
+            "late_images": list(f.late_image_ids), "late_points": list(f.late_point_ids),
+            "late_uv_px": _floats(f.late_uv_px),
+            "late_observed_px": _floats(rec.late_observed_px)}
 
 
 def _image_record(doc: Mapping[str, object]) -> ImageRecord:
@@ -158,7 +166,11 @@ def _image_record(doc: Mapping[str, object]) -> ImageRecord:
                   point_ids=tuple(str(p) for p in doc["points"]),  # type: ignore[attr-defined]
                   uv_px=np.asarray(doc["uv_px"], dtype=float).reshape(-1, 2),
                   sigma_px=float(doc["sigma_px"]),  # type: ignore[arg-type]
-                  initial_eop=None if init is None else np.asarray(init, dtype=float))
+                  initial_eop=None if init is None else np.asarray(init, dtype=float),
+                  # version 1 records have no late observations
+                  late_image_ids=tuple(str(p) for p in doc.get("late_images", ())),  # type: ignore[attr-defined]
+                  late_point_ids=tuple(str(p) for p in doc.get("late_points", ())),  # type: ignore[attr-defined]
+                  late_uv_px=np.asarray(doc.get("late_uv_px", ()), dtype=float).reshape(-1, 2))
     threshold = doc["threshold"]
     tracking, event = doc["tracking"], doc["budget_event"]
     live = doc["live"]
@@ -170,7 +182,9 @@ def _image_record(doc: Mapping[str, object]) -> ImageRecord:
                        observed_px=np.asarray(doc["observed_px"], dtype=float).reshape(-1, 2),
                        threshold=None if threshold is None else float(threshold),  # type: ignore[arg-type]
                        live=live, tracking=tracking, budget_event=event,
-                       tracker_state=bool(doc["tracker_state"]))
+                       tracker_state=bool(doc["tracker_state"]),
+                       late_observed_px=np.asarray(doc.get("late_observed_px", ()),
+                                                   dtype=float).reshape(-1, 2))
 
 
 def encode_record(payload: Mapping[str, object]) -> bytes:
@@ -237,9 +251,10 @@ def read_journal(out_dir: Path | str) -> JournalContents | None:
     if docs[0].get("kind") != "header":
         raise InputDataError(f"{path}: no valid header record; rerun without --resume")
     header = docs[0]
-    if header.get("version") != JOURNAL_VERSION:
+    if header.get("version") not in READABLE_VERSIONS:
         raise InputDataError(f"{path}: journal version {header.get('version')!r}, this seqat "
-                             f"writes {JOURNAL_VERSION}; rerun without --resume")
+                             f"reads {', '.join(map(str, READABLE_VERSIONS))}; rerun without "
+                             "--resume")
     images: list[ImageRecord] = []
     skips: list[SkippedImage] = []
     setup: dict[str, object] | None = None
@@ -312,7 +327,11 @@ def _write_state(path: Path, state: TrackerState) -> None:
                  origin_xy=origin,
                  held=np.array([[h.seq, h.last_overlap_seq] for h in state.held],
                                dtype=np.int64).reshape(-1, 2),
-                 tracks=state.tracks)
+                 tracks=state.tracks,
+                 # the held images' late emissions: their files keep the numbers as added
+                 late=np.concatenate([np.column_stack([np.full(len(h.late), h.seq), h.late])
+                                      for h in state.held] + [np.zeros((0, 3))]
+                                     ).astype(np.int64).reshape(-1, 3))
         handle.flush()
         os.fsync(handle.fileno())
     os.replace(tmp, path)
@@ -331,12 +350,16 @@ def _read_state(out_dir: Path, seq: int) -> TrackerState:
                                  f"({err}); rerun without --resume") from err
 
     last = load(seq)
+    late = last.get("late", np.zeros((0, 3), dtype=np.int64))  # version 1: none
     held: list[HeldImage] = []
     for held_seq, last_overlap in last["held"].tolist():
         d = last if held_seq == seq else load(held_seq)
+        mine = late[late[:, 0] == held_seq, 1:]
+        nums = np.array(d["point_nums"], dtype=np.int64)
+        nums[mine[:, 0]] = mine[:, 1]
         held.append(HeldImage(image_id=str(d["image_id"]), seq=held_seq, nav_eop=d["nav_eop"],
-                              kp_work=d["kp_work"], desc=d["desc"], point_nums=d["point_nums"],
-                              last_overlap_seq=last_overlap))
+                              kp_work=d["kp_work"], desc=d["desc"], point_nums=nums,
+                              last_overlap_seq=last_overlap, late=mine.copy()))
     origin = last["origin_xy"]
     n_seq, next_point = last["counters"].tolist()
     return TrackerState(seq=n_seq, next_point=next_point,

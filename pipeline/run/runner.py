@@ -350,7 +350,8 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                        sequential_update_ms=timing_seq,
                        wall_s=time.perf_counter() - t_start, sigma0=solution.sigma0,
                        redundancy=solution.redundancy, accuracy=accuracy, latency_ms=latency,
-                       journal_ms=TimingStats.from_samples(session.journal_ms))
+                       journal_ms=TimingStats.from_samples(session.journal_ms),
+                       late=session.late_summary(solution))
     record = RunRecord(method=method.value, flight=flight, inputs=inputs, options=options,
                        final_only=final_only, images=tuple(updates), totals=totals,
                        tracking_options=tracking_options, tracking=tuple(session.tracking),

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol
@@ -159,7 +160,10 @@ class RunSession:
         self.n_observations = 0
         self._lines: list[str] = []
         self._points: set[str] = set()
-        self._image_points: list[tuple[str, tuple[str, ...]]] = []
+        #: image -> its point ids: its own observations, then late ones of later frames
+        self._image_points: dict[str, list[str]] = {}
+        self._late_points: dict[str, list[str]] = {}  # image -> late observations' points
+        self.n_late = 0
         self._nav_ids: list[str] = []
         self._nav_times: list[float] = []
         self._nav_eops: list[np.ndarray] = []
@@ -191,13 +195,16 @@ class RunSession:
             t_journal = time.perf_counter()
             state = self.source.tracker_state()
             record = ImageRecord(seq=len(self.updates), frame=frame, time_s=prepared.time_s,
-                                 observed_px=prepared.observed_px, threshold=threshold,
+                                 observed_px=prepared.observed_px,
+                                 late_observed_px=prepared.late_observed_px,
+                                 threshold=threshold,
                                  live=dataclasses.asdict(live), tracking=prepared.tracking,
                                  budget_event=None if event is None else dataclasses.asdict(event),
                                  tracker_state=state is not None)
             self.journal.append_image(record, state)
             self.journal_ms.append((time.perf_counter() - t_journal) * 1e3)
-        self._keep(update, live, prepared.tracking, prepared.time_s, prepared.observed_px, frame)
+        self._keep(update, live, prepared.tracking, prepared.time_s, prepared.observed_px, frame,
+                   prepared.late_observed_px)
         if self.on_image is not None:
             self.on_image(live, update)
         return live
@@ -218,7 +225,8 @@ class RunSession:
                 _set_threshold(self.estimator, event.new_threshold)
         live = ImageLive(**{**record.live,  # type: ignore[arg-type]
                             "sigma_position_m": tuple(record.live["sigma_position_m"])})  # type: ignore[call-overload]
-        self._keep(update, live, record.tracking, record.time_s, record.observed_px, frame)
+        self._keep(update, live, record.tracking, record.time_s, record.observed_px, frame,
+                   record.late_observed_px)
         self.replayed += 1
 
     def _update(self, frame: Frame) -> ImageUpdate:
@@ -229,16 +237,25 @@ class RunSession:
         return update
 
     def _keep(self, update: ImageUpdate, live: ImageLive, tracking: Mapping[str, object] | None,
-              time_s: float, observed_px: np.ndarray, frame: Frame) -> None:
+              time_s: float, observed_px: np.ndarray, frame: Frame,
+              late_observed_px: np.ndarray) -> None:
         self.updates.append(update)
         self.live.append(live)
         if tracking is not None:
             self.tracking.append(tracking)
+        # the frame's late observations first (the estimator took them first)
+        self._lines.append(format_observation_lines(
+            frame.late_image_ids, frame.late_point_ids, late_observed_px, frame.image_id))
         self._lines.append(format_observation_lines(frame.image_id, frame.point_ids,
-                                                    observed_px))
+                                                    observed_px, frame.image_id))
         self._points.update(frame.point_ids)
-        self._image_points.append((frame.image_id, frame.point_ids))
-        self.n_observations += len(frame.point_ids)
+        self._points.update(frame.late_point_ids)
+        for image, point in zip(frame.late_image_ids, frame.late_point_ids, strict=True):
+            self._image_points.setdefault(image, []).append(point)
+            self._late_points.setdefault(image, []).append(point)
+        self._image_points.setdefault(frame.image_id, []).extend(frame.point_ids)
+        self.n_observations += len(frame.point_ids) + frame.n_late
+        self.n_late += frame.n_late
         self._nav_ids.append(frame.image_id)
         self._nav_times.append(time_s)
         self._nav_eops.append(frame.nav_eop)
@@ -266,7 +283,7 @@ class RunSession:
             return [f"the flight has no tie points: no ground point was estimated from its "
                     f"{len(self._image_points)} images (no overlap, or images that all look "
                     "alike); its EOPs are the GPS/INS nav"]
-        lonely = [image for image, points in self._image_points
+        lonely = [image for image, points in self._image_points.items()
                   if not estimated.intersection(points)]
         warnings = [f"{image}: no tie points (none of its observations is a ground point of "
                     "the solution); its EOP rests on its GPS/INS nav"
@@ -275,6 +292,22 @@ class RunSession:
             warnings.append(f"{len(lonely) - MAX_IMAGE_WARNINGS} more image(s) without tie "
                             f"points (of {len(self._image_points)})")
         return warnings
+
+    def late_summary(self, solution: Solution) -> dict[str, object]:
+        """``run.json`` ``totals.late``: late observations received, the images that got
+        some, and the images tied only thanks to them: every estimated ground point the image
+        observes would have fewer than two rays without the late ones."""
+        estimated = {p.point_id for p in solution.points}
+        rays: Counter[str] = Counter(p for pts in self._image_points.values() for p in pts)
+        late: Counter[str] = Counter(p for pts in self._late_points.values() for p in pts)
+        late_only = []
+        for image, points in self._image_points.items():
+            tied = [p for p in points if p in estimated]
+            if tied and all(rays[p] - late[p] < 2 for p in tied):
+                late_only.append(image)
+        order = {iid: k for k, iid in enumerate(self._nav_ids)}
+        return {"observations": self.n_late, "images": len(self._late_points),
+                "images_tied_only_by_late": sorted(late_only, key=order.__getitem__)}
 
     def observations_text(self) -> str:
         """Rows of the run's ``observations.csv`` (no header)."""

@@ -107,7 +107,13 @@ class Initialiser:
                               frame.nav_eop, self.threshold_deg)
         keep = np.ones(len(point_ids), dtype=bool)
         if res.eop is not None and reject:
-            keep[np.asarray(used, dtype=np.int64)[~res.inliers]] = False
+            # a plane point from a late ray never rejects the observation: the late ray's
+            # image may be one without ties yet, its attitude the INS's (degrees off), and
+            # the point is what would tie it (Seneca IMG_0455)
+            late = {p for p in frame.late_point_ids if p not in self._known}
+            out = [k for k in np.asarray(used, dtype=np.int64)[~res.inliers].tolist()
+                   if point_ids[k] not in late]
+            keep[np.asarray(out, dtype=np.int64)] = False
         frame = dataclasses.replace(frame, point_ids=tuple(np.asarray(point_ids)[keep]),
                                     uv_px=ideal[keep], initial_eop=res.eop)
         return frame, res, len(known), keep
@@ -138,8 +144,19 @@ class Initialiser:
                                     uv_px=frame.uv_px[keep], initial_eop=res.eop)
         return frame, res, keep
 
+    def record_late(self, frame: Frame) -> None:
+        """Keep the late rays a frame carries (of earlier images the estimator still
+        holds), before the frame is resected: a new image's feature that joined a track
+        only through a late observation then has that earlier ray as a plane point."""
+        for iid, pid, uv in zip(frame.late_image_ids, frame.late_point_ids, frame.late_uv_px,
+                                strict=True):
+            if iid in self._eops and pid not in self._known:
+                self._last_obs[pid] = (iid, uv)
+
     def record(self, frame: Frame) -> None:
-        """Keep the rays of a frame sent to the estimator (plane points of later frames)."""
+        """Keep the rays of a frame sent to the estimator (plane points of later frames):
+        its late rays (:meth:`record_late`, idempotent), then its own."""
+        self.record_late(frame)
         for pid, uv in zip(frame.point_ids, frame.uv_px, strict=True):
             self._last_obs[pid] = (frame.image_id, uv)
 
@@ -168,6 +185,8 @@ class PreparedFrame:
         Acquisition time (nav).
     observed_px : (k, 2) float
         Observed pixels of the frame's observations (``observations.csv`` of the run).
+    late_observed_px : (m, 2) float
+        Observed pixels of the frame's late observations (of earlier images).
     tracking : Mapping or None
         Tracker statistics and resection counts (image flights).
     rejected : int
@@ -186,6 +205,9 @@ class PreparedFrame:
     rejected: int = 0
     prep_ms: float = 0.0
     ready_s: float | None = None
+    late_observed_px: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((0, 2)))
+
+
 def with_control(flight: Flight, frame: Frame, observed_px: FloatArray) -> tuple[Frame,
                                                                                FloatArray]:
     """The frame with the flight's GCP observations of its image (``gcp:NAME``) appended; an
@@ -247,17 +269,19 @@ class ObservationSource(_InitialisedSource):
         """The flight's frames from nav row ``start`` on (earlier rows are read, not used);
         a GNSS dropout that cannot be bridged comes as its :class:`SkippedImage`."""
         times = self._flight.nav.times_s
-        for k, (frame, observed) in enumerate(self._flight.frames().with_observed()):
+        for k, (frame, observed, late) in enumerate(self._flight.frames().with_observed()):
             if k >= start:
                 yield self.prepare(frame, observed, float(times[k]),
-                                   dropout=self._flight.is_dropout(k))
+                                   dropout=self._flight.is_dropout(k), late_observed_px=late)
 
     def prepare(self, frame: Frame, observed_px: FloatArray, time_s: float,
-                ready_s: float | None = None, *,
-                dropout: bool = False) -> PreparedFrame | SkippedImage:
+                ready_s: float | None = None, *, dropout: bool = False,
+                late_observed_px: FloatArray | None = None) -> PreparedFrame | SkippedImage:
         """Give a frame of precomputed observations its initial EOP (nothing is rejected); a
-        dropout (``dropout``) is resected in 6 DoF on the known points, or skipped."""
+        dropout (``dropout``) is resected in 6 DoF on the known points, or skipped.
+        ``late_observed_px``: observed pixels of the frame's late observations."""
         t0 = time.perf_counter()
+        self._init.record_late(frame)
         frame, observed_px = with_control(self._flight, frame, observed_px)
         if dropout:
             bridged, res, _ = self._init.bridge(frame, reject=False)
@@ -270,8 +294,10 @@ class ObservationSource(_InitialisedSource):
         else:
             frame, _, _, _ = self._init.resect(frame, reject=False)
         self._init.record(frame)
+        late = np.zeros((0, 2)) if late_observed_px is None else late_observed_px
         return PreparedFrame(frame=frame, time_s=time_s, observed_px=observed_px,
-                             prep_ms=(time.perf_counter() - t0) * 1e3, ready_s=ready_s)
+                             prep_ms=(time.perf_counter() - t0) * 1e3, ready_s=ready_s,
+                             late_observed_px=np.asarray(late, dtype=np.float64).reshape(-1, 2))
 
 
 def read_tracker_image(path: Path, tracker: Tracker, width_px: int, height_px: int) -> np.ndarray:
@@ -339,9 +365,15 @@ class ImageSource(_InitialisedSource):
             nav_sigma = flight.nav_sigma
         tracked = self._tracker.add_image(image_id, gray, nav_eop, self._init.ground_z)
         observed: FloatArray = np.asarray(tracked.uv_px, dtype=np.float64).reshape(-1, 2)
+        late_observed = np.asarray(tracked.late_uv_px, dtype=np.float64).reshape(-1, 2)
         frame = Frame(image_id=image_id, nav_eop=nav_eop, nav_sigma=nav_sigma,
                       point_ids=tracked.point_ids, uv_px=flight.corrector.ideal_pixels(observed),
-                      sigma_px=flight.config.sigma_image_px)
+                      sigma_px=flight.config.sigma_image_px,
+                      late_image_ids=tracked.late_image_ids,
+                      late_point_ids=tracked.late_point_ids,
+                      late_uv_px=flight.corrector.ideal_pixels(late_observed))
+        # the late rays of earlier images: plane points of this image's resection
+        self._init.record_late(frame)
         stats: dict[str, object] = {**dataclasses.asdict(tracked.stats), "read_ms": read_ms}
         if dropout:
             cleaned, pose, keep = self._init.bridge(frame)
@@ -372,7 +404,8 @@ class ImageSource(_InitialisedSource):
         rejected = int((~keep).sum())
         return PreparedFrame(frame=frame, time_s=time_s, observed_px=observed_kept,
                              tracking=stats, rejected=rejected,
-                             prep_ms=(time.perf_counter() - t0) * 1e3, ready_s=ready_s)
+                             prep_ms=(time.perf_counter() - t0) * 1e3, ready_s=ready_s,
+                             late_observed_px=late_observed)
 
     def tracker_state(self) -> TrackerState | None:
         """The tracker after the last image (journaled after every image)."""

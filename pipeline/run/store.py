@@ -39,11 +39,11 @@ from pipeline.common.columns import (
     EOP_FILE,
     NAV_COLUMNS,
     NAV_FILE,
-    OBS_COLUMNS,
     OBSERVATIONS_FILE,
     POINT_COLUMNS,
     POINTS_FILE,
     RUN_FILE,
+    RUN_OBS_COLUMNS,
 )
 from pipeline.common.csvio import format_csv_line, read_csv
 from pipeline.common.strict_yaml import build_dataclass
@@ -167,11 +167,16 @@ def format_nav_csv(ids: Sequence[str], times_s: np.ndarray, eop: np.ndarray) -> 
     return "".join(lines)
 
 
-def format_observation_lines(image_id: str, point_ids: Sequence[str], uv_px: np.ndarray) -> str:
-    """Rows of one image for ``observations.csv`` (no header)."""
-    return "".join(format_csv_line([image_id, pid, fmt(u), fmt(v)])
-                   for pid, (u, v) in zip(point_ids, np.asarray(uv_px).reshape(-1, 2),
-                                          strict=True))
+def format_observation_lines(image_id: str | Sequence[str], point_ids: Sequence[str],
+                             uv_px: np.ndarray, frame_id: str | None = None) -> str:
+    """Rows of one image for ``observations.csv`` (no header); with ``frame_id`` the
+    ``frame`` column too (the image update the rows arrived with). ``image_id`` may give
+    one image per row (the late observations a frame carries)."""
+    images = [image_id] * len(point_ids) if isinstance(image_id, str) else list(image_id)
+    tail = [] if frame_id is None else [frame_id]
+    return "".join(format_csv_line([iid, pid, fmt(u), fmt(v), *tail])
+                   for iid, pid, (u, v) in zip(images, point_ids,
+                                               np.asarray(uv_px).reshape(-1, 2), strict=True))
 
 
 def eop_table(eops: Sequence[EopEstimate]) -> EopTable:
@@ -232,6 +237,9 @@ class RunTotals:
     accuracy: Accuracy | None = None
     latency_ms: TimingStats | None = None  # end to end per image (watch mode)
     journal_ms: TimingStats | None = None  # journaling each new image (state file + record)
+    #: late observations: ``observations``, ``images`` (that got some),
+    #: ``images_tied_only_by_late`` (RunSession.late_summary)
+    late: Mapping[str, object] | None = None
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -414,7 +422,7 @@ def write_run_outputs(out_dir: Path | str, solution: Solution, record: RunRecord
         POINTS_FILE: format_points_csv(solution.points),
         RUN_FILE: format_run_json(record),
         NAV_FILE: format_nav_csv(nav.image_ids, nav.times_s, nav.eop),
-        OBSERVATIONS_FILE: format_csv_line(OBS_COLUMNS) + observations_text,
+        OBSERVATIONS_FILE: format_csv_line(RUN_OBS_COLUMNS) + observations_text,
         **({CONTROL_FILE: record.control_csv} if record.control_csv is not None else {}),
         **exports,
     })

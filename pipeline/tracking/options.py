@@ -70,6 +70,16 @@ class TrackerOptions:
         per image, as aerial triangulation does; ``None`` emits every feature.
     emit_grid : (int, int)
         Columns and rows of the grid new features are spread over.
+    late_per_pair : int
+        Late observations (docs/algorithm.md, *Late observations*): when a verified match
+        links a feature of the new image to a feature a held image did not emit, the held
+        image's feature is emitted now, as a late observation of that image: per pair as many
+        as top its ties (verified matches through emitted features) up to this number
+        (smallest descriptor distance first; a pair tied this well gets none); 0: never.
+    late_untied_per_pair : int
+        The cap instead when the pair has no tie through emitted features, or the held
+        image has no tie with any image yet (the new image, or the held one, would otherwise
+        have no tie point): >= ``late_per_pair``.
     resection_threshold_deg : float
         RANSAC threshold (angle between an image ray and the direction from the GPS position
         to its point) of the resection that gives each new image its initial attitude
@@ -95,6 +105,8 @@ class TrackerOptions:
     emit_per_image: int | None = 200
     resection_threshold_deg: float = 3.0
     emit_grid: tuple[int, int] = (8, 6)
+    late_per_pair: int = 20
+    late_untied_per_pair: int = 50
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, expected: str) -> None:
@@ -129,6 +141,9 @@ class TrackerOptions:
              "a positive integer or null")
         need(len(self.emit_grid) == 2 and min(self.emit_grid) >= 1, "emit_grid",
              "two positive integers [columns, rows]")
+        need(self.late_per_pair >= 0, "late_per_pair", "an integer >= 0")
+        need(self.late_untied_per_pair >= self.late_per_pair, "late_untied_per_pair",
+             f"an integer >= late_per_pair ({self.late_per_pair})")
         need(self.max_relief_fraction is None or self.max_relief_fraction > 0.0,
              "max_relief_fraction", "a positive number or null")
 

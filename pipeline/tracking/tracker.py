@@ -16,10 +16,24 @@ When image ``i`` arrives (:meth:`Tracker.add_image`) the tracker
    or a fresh id (``t`` + 7-digit counter, unique over the flight); features at one pixel
    (SIFT's orientations of one blob, :func:`feature_sites`) are one observation.
 
-**Every** kept feature of ``i`` is emitted (:class:`TrackedImage`), matched or not: a track born
-later between ``i`` and a later image needs ``i``'s observation to have reached the estimator
-already (the estimator keeps single-ray points pending). Nothing of ``i`` is emitted again
-later and nothing is looked ahead.
+Up to ``emit_per_image`` features of ``i`` are emitted (:class:`TrackedImage`), matched or
+not: every continuation of a track, then features matched to non-emitted features of held
+images (below), then new features over a grid. A track born later between ``i`` and a later
+image then has ``i``'s observation in the estimator already (the estimator keeps single-ray
+points pending). Nothing is looked ahead.
+
+**Late observations.** A held image keeps all its features for matching but emitted only
+some. When a verified match links a feature of ``i`` to a feature of a held image ``j`` that
+``j`` did not emit, ``j``'s feature is emitted *now*, as a late observation of ``j`` carried
+by ``i``'s :class:`TrackedImage` (``late_*``): it joins the track of ``i``'s feature (a
+continued or a fresh one) unless that track already holds a feature of ``j``. Per pair
+as many as top its ties through emitted features up to ``late_per_pair``
+(``late_untied_per_pair`` when it has none, or when none of ``j``'s tracks has a second
+image yet), smallest descriptor distance first; one per pixel of ``j``. This is the
+only thing emitted about an earlier image later; without it, an image whose matches all
+fell on features its neighbour did not emit would have no tie point. The held image's point
+numbers are replaced, never changed in place (:meth:`Tracker.state` snapshots share them),
+and its late emissions are kept apart (``HeldImage.late``) for the journal.
 
 Tracks are never merged. If a feature of ``i`` matches features of several different tracks
 (through different candidate images), it joins the one with the most verified matches (ties:
@@ -57,6 +71,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.tracking.decode import jpeg_scan_problem
+from pipeline.tracking.late import emit_late, feature_sites, late_candidates, pair_ties
 from pipeline.tracking.matching import NewImageMatcher, ratio_matches
 from pipeline.tracking.options import MIN_MODEL_POINTS, TrackerOptions
 from seqat.errors import InputDataError
@@ -90,21 +105,6 @@ BGR_CHANNELS = 3
 #: covers full pixels ``[k f, (k + 1) f)``, checked against ``INTER_AREA`` to < 0.01 px).
 REDUCED_GRAY_FLAGS = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2,
                       4: cv2.IMREAD_REDUCED_GRAYSCALE_4, 8: cv2.IMREAD_REDUCED_GRAYSCALE_8}
-
-
-def feature_sites(kp: NDArray[np.float32]) -> NDArray[np.int64]:
-    """Site of every keypoint: keypoints at exactly the same pixel share one.
-
-    SIFT gives a blob with two orientation peaks two keypoints at one pixel (OpenCV: ~19 %
-    of Seneca's). Both descriptors help matching, but one pixel is one observation: two
-    tracks through it would count the same measurement twice (a doubled weight, sigmas too
-    optimistic by sqrt 2).
-    """
-    if len(kp) == 0:
-        return np.zeros(0, dtype=np.int64)
-    _, inverse = np.unique(np.ascontiguousarray(kp, dtype=np.float32).view(np.int64).ravel(),
-                           return_inverse=True)
-    return inverse.astype(np.int64).reshape(-1)
 
 
 class TrackerCamera(Protocol):
@@ -148,6 +148,8 @@ class TrackStats:
     split_conflicts : int
         Features whose verified matches pointed to more than one track, plus features that
         lost a track to another feature of the same image.
+    late : int
+        Late observations of held images emitted with this image.
     detect_ms, match_ms, total_ms : float
         Wall times: gray conversion, downscale and detection; candidate selection, matching,
         verification and linking; the whole call.
@@ -165,6 +167,7 @@ class TrackStats:
     detect_ms: float
     match_ms: float
     total_ms: float
+    late: int = 0
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -180,17 +183,26 @@ class TrackedImage:
         Observed pixels of the full-resolution image (OpenCV convention; lens distortion not
         removed: :class:`pipeline.flight.camera.PixelCorrector` does that).
     stats : TrackStats
+    late_image_ids, late_point_ids : tuple[str, ...]
+        Late observations of held (earlier) images emitted with this image (module
+        docstring): image and track id of each.
+    late_uv_px : (m, 2) float
+        Their observed full-resolution pixels in the earlier image.
     """
 
     image_id: str
     point_ids: tuple[str, ...]
     uv_px: FloatArray
     stats: TrackStats
+    late_image_ids: tuple[str, ...] = ()
+    late_point_ids: tuple[str, ...] = ()
+    late_uv_px: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 @dataclass(kw_only=True, eq=False)
 class HeldImage:
-    """What the tracker keeps of an earlier image (no pixels); arrays never change once held."""
+    """What the tracker keeps of an earlier image (no pixels). Arrays never change in place
+    once held: a late emission replaces ``point_nums`` and ``late`` by new arrays."""
 
     image_id: str
     seq: int  # acquisition index
@@ -199,6 +211,9 @@ class HeldImage:
     desc: NDArray[np.uint8]  # (n, d) descriptors
     point_nums: NDArray[np.int64]  # (n,) point number of each keypoint's pixel, -1: not emitted
     last_overlap_seq: int = field(default=0)
+    #: (m, 2) [keypoint index, point number] of every late emission (``point_nums`` includes
+    #: them): what changed since the image was added.
+    late: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -364,11 +379,23 @@ class Tracker:
         plane_z = (float(ground_z_m) if ground_z_m is not None and math.isfinite(ground_z_m)
                    else float(nav[2]) - self.options.default_height_above_ground_m)
         candidates = self._select_candidates(nav, plane_z)
-        links, n_matches, n_inliers, n_pairs = self._match(kp_work, desc, candidates, nav,
-                                                           plane_z)
+        links, unlinked, n_matches, n_inliers, n_pairs = self._match(
+            kp_work, desc, candidates, nav, plane_z)
         site = feature_sites(kp_work)
+        # held images none of whose tracks reached a second image yet: untied, whatever
+        # this image's links to them (the larger cap of late observations)
+        isolated = [rank for rank, c in enumerate(candidates)
+                    if not any(self._tracks[n][0] >= 2 for n in
+                               np.unique(c.held.point_nums[c.held.point_nums >= 0]).tolist())]
         point_nums, n_new, n_ext, n_conflicts = self._assign(len(kp_work), links, site)
-        keep = self._emitted(kp_work, response, point_nums, site)
+        opts = self.options
+        ties = pair_ties(links)
+        ties.update({rank: 0 for rank in isolated})
+        late, preferred = late_candidates(unlinked, ties, opts.late_per_pair,
+                                          opts.late_untied_per_pair)
+        prefer = np.asarray([f for f in dict.fromkeys(preferred) if point_nums[f] < 0],
+                            dtype=np.int64)
+        keep = self._emitted(kp_work, response, point_nums, site, prefer)
         fresh = keep[point_nums[keep] < 0]
         point_nums[fresh] = np.arange(self._next_point, self._next_point + len(fresh))
         for num in point_nums[fresh].tolist():
@@ -378,6 +405,11 @@ class Tracker:
         site_num = np.full(int(site.max(initial=-1)) + 1, -1, dtype=np.int64)
         site_num[site[keep]] = point_nums[keep]
         held_nums = site_num[site]
+        late_out = emit_late([c.held for c in candidates], late, ties, held_nums,
+                             self._tracks, opts.late_per_pair, opts.late_untied_per_pair)
+        # a fresh track a late observation joined got its second image now
+        fresh_nums = set(point_nums[fresh].tolist())
+        n_new += len({num for _, num, _ in late_out if num in fresh_nums})
         t2 = time.perf_counter()
 
         # every feature is held for matching (verification needs many matches); only the
@@ -389,15 +421,20 @@ class Tracker:
         self._prune()
 
         uv_full = self.to_full_px(kp_work[keep])
-        ids = tuple(f"t{n:0{POINT_ID_DIGITS}d}" for n in point_nums[keep].tolist())
+        ids = tuple(_point_id(n) for n in point_nums[keep].tolist())
+        late_uv = self.to_full_px(np.array([uv for _, _, uv in late_out]).reshape(-1, 2))
         t3 = time.perf_counter()
         stats = TrackStats(
             features=n_detected, emitted=len(ids),
             candidates=tuple(c.held.image_id for c in candidates),
             pairs_matched=n_pairs, matches=n_matches, inliers=n_inliers, new_tracks=n_new,
             extended_tracks=n_ext, split_conflicts=n_conflicts,
-            detect_ms=1e3 * (t1 - t0), match_ms=1e3 * (t2 - t1), total_ms=1e3 * (t3 - t0))
-        return TrackedImage(image_id=image_id, point_ids=ids, uv_px=uv_full, stats=stats)
+            detect_ms=1e3 * (t1 - t0), match_ms=1e3 * (t2 - t1), total_ms=1e3 * (t3 - t0),
+            late=len(late_out))
+        return TrackedImage(image_id=image_id, point_ids=ids, uv_px=uv_full, stats=stats,
+                            late_image_ids=tuple(h for h, _, _ in late_out),
+                            late_point_ids=tuple(_point_id(n) for _, n, _ in late_out),
+                            late_uv_px=late_uv)
 
     # ----------------------------------------------------------------------------------------
     def _check_input(self, image_id: str, image: NDArray[np.uint8],
@@ -490,7 +527,8 @@ class Tracker:
     # ----------------------------------------------------------------------------------------
     def _match(self, kp: NDArray[np.float32], desc: NDArray[np.uint8],
                candidates: list[_Candidate], nav: FloatArray,
-               plane_z: float) -> tuple[dict[int, list[tuple[int, int, float]]], int, int, int]:
+               plane_z: float) -> tuple[dict[int, list[tuple[int, int, float]]],
+                                        list[tuple[int, int, int, float]], int, int, int]:
         """Match the new image with each candidate and verify each pair.
 
         Verification: the geometric model (MAGSAC), then, with the fundamental matrix and
@@ -500,13 +538,17 @@ class Tracker:
         -------
         links : dict
             New-feature index -> list of ``(point number, candidate rank, distance)``.
+        unlinked : list
+            Verified matches with a feature the candidate did not emit:
+            ``(candidate rank, new feature, held feature, distance)`` (late observations).
         matches, inliers, pairs : int
         """
         opts = self.options
         links: dict[int, list[tuple[int, int, float]]] = {}
+        unlinked: list[tuple[int, int, int, float]] = []
         n_matches = n_inliers = n_pairs = 0
         if len(kp) < MIN_MODEL_POINTS or not candidates:
-            return links, 0, 0, 0
+            return links, unlinked, 0, 0, 0
         matcher = NewImageMatcher(desc, opts.detector, opts.matcher)
         for rank, cand in enumerate(candidates):
             held = cand.held
@@ -530,9 +572,11 @@ class Tracker:
             for i_new, i_old, d in zip(idx_new[mask].tolist(), idx_old[mask].tolist(),
                                        dist[mask].tolist(), strict=True):
                 num = int(held.point_nums[i_old])
-                if num >= 0:  # a match with a feature that was not emitted carries no track
+                if num >= 0:
                     links.setdefault(i_new, []).append((num, rank, d))
-        return links, n_matches, n_inliers, n_pairs
+                else:  # a feature the held image did not emit: a late observation, maybe
+                    unlinked.append((rank, i_new, i_old, d))
+        return links, unlinked, n_matches, n_inliers, n_pairs
 
     def _plane_gate(self, pts_old: NDArray[np.float32], pts_new: NDArray[np.float32],
                     mask: NDArray[np.bool_], nav_old: FloatArray, nav_new: FloatArray,
@@ -635,16 +679,31 @@ class Tracker:
 
     def _emitted(self, kp: NDArray[np.float32], response: FloatArray,
                  point_nums: NDArray[np.int64],
-                 site: NDArray[np.int64] | None = None) -> NDArray[np.int64]:
+                 site: NDArray[np.int64] | None = None,
+                 prefer: NDArray[np.int64] | None = None) -> NDArray[np.int64]:
         """Indices of the features that become observations (``emit_per_image``).
 
-        Continuations of tracks first (all of them), then the strongest new feature of each
-        grid cell in turn, cells visited in order of their strongest feature. One
-        observation per ``site`` (:func:`feature_sites`): the strongest of its features.
+        Continuations of tracks first (all of them), then the ``prefer`` features (matched
+        to features held images did not emit: late observations, in the order given), then
+        the strongest new feature of each grid cell in turn, cells visited in order of
+        their strongest feature; within the budget. One observation per ``site``
+        (:func:`feature_sites`): the strongest of its features.
         """
         opts = self.options
         linked = np.flatnonzero(point_nums >= 0)
-        new = np.flatnonzero(point_nums < 0)
+        if prefer is not None and prefer.size:
+            sites = site if site is not None else np.arange(point_nums.size)
+            taken = set(sites[linked].tolist())
+            first: list[int] = []
+            for f in prefer.tolist():
+                if sites[f] not in taken:
+                    taken.add(int(sites[f]))
+                    first.append(f)
+            budget = (len(first) if opts.emit_per_image is None
+                      else max(0, opts.emit_per_image - linked.size))
+            linked = np.sort(np.concatenate([linked, np.asarray(first[:budget],
+                                                                dtype=np.int64)]))
+        new = np.setdiff1d(np.flatnonzero(point_nums < 0), linked)
         if site is not None and new.size:
             free = ~np.isin(site[new], site[linked])  # a continued site emits nothing new
             new = new[free]
@@ -691,6 +750,11 @@ class Tracker:
             track[1] -= 1
             if track[1] == 0:
                 del self._tracks[num]
+
+
+def _point_id(num: int) -> str:
+    """Track id of point number ``num`` (``t0000001``)."""
+    return f"t{num:0{POINT_ID_DIGITS}d}"
 
 
 def read_gray_image(path: Path | str, decode_factor: int = 1) -> NDArray[np.uint8]:

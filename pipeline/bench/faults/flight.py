@@ -25,7 +25,12 @@ import numpy as np
 import yaml
 
 from pipeline.bench.faults.cases import SIM, Case, FaultBenchOptions, Outcome, Scenario
-from pipeline.common.columns import FLIGHT_YAML, NAV_GEODETIC_COLUMNS, OBS_COLUMNS
+from pipeline.common.columns import (
+    FLIGHT_YAML,
+    NAV_GEODETIC_COLUMNS,
+    OBS_COLUMNS,
+    OBS_FRAME_COLUMN,
+)
 from pipeline.common.csvio import format_csv_line, read_csv
 from pipeline.common.strict_yaml import load_yaml
 from pipeline.flight.folder import read_flight, read_truth
@@ -77,13 +82,15 @@ class FolderCase(Case):
         run_flight(flight_dir, tracking, progress=False)
         self.image_ids = flight.nav.image_ids
         img = flight.nav.index()
-        rows = list(read_csv(tracking / "observations.csv", OBS_COLUMNS))
+        rows = list(read_csv(tracking / "observations.csv", OBS_COLUMNS, (OBS_FRAME_COLUMN,)))
         points: dict[str, int] = {}
         for r in rows:
             points.setdefault(r.values["point"], len(points))
         self.point_ids = tuple(points)
         self.obs_image = np.asarray([img[r.values["image"]] for r in rows], dtype=np.int64)
         self.obs_point = np.asarray([points[r.values["point"]] for r in rows], dtype=np.int64)
+        # the frame each row arrived with (late observations), kept in the flight written
+        self.obs_frame = tuple(r.values.get(OBS_FRAME_COLUMN, r.values["image"]) for r in rows)
         self.obs_uv = np.asarray([[r.number("x_px"), r.number("y_px")] for r in rows],
                                  dtype=np.float64).reshape(-1, 2)
         self.times_s = flight.nav.times_s
@@ -143,11 +150,12 @@ class FolderCase(Case):
         return "".join(lines)
 
     def _observations_csv(self, sc: Scenario) -> str:
-        lines = [format_csv_line(OBS_COLUMNS)]
+        lines = [format_csv_line((*OBS_COLUMNS, OBS_FRAME_COLUMN))]
         for q in np.flatnonzero(sc.keep):
             lines.append(format_csv_line([self.image_ids[self.obs_image[q]],
                                           self.point_ids[self.obs_point[q]],
-                                          fmt(sc.uv_px[q, 0]), fmt(sc.uv_px[q, 1])]))
+                                          fmt(sc.uv_px[q, 0]), fmt(sc.uv_px[q, 1]),
+                                          self.obs_frame[q]]))
         return "".join(lines)
 
     def _options_yaml(self, sc: Scenario, options: FaultBenchOptions) -> str:

@@ -155,7 +155,8 @@ def test_run_outputs_are_published_together(tmp_path: Path) -> None:
     solution = Solution(eops=tuple(eops), points=tuple(points), sigma0=1.0, redundancy=3)
     out = tmp_path / "a" / "run"
     record = sample_record(eops)
-    obs = format_observation_lines("img_0000", ("p1", "p2"), np.array([[1.5, 2.25], [3.0, 4.0]]))
+    obs = format_observation_lines("img_0000", ("p1", "p2"), np.array([[1.5, 2.25], [3.0, 4.0]]),
+                                   "img_0000")
     files = write_run_outputs(out, solution, record, obs)
     names = ["eop.csv", "points.csv", "run.json", "nav.csv", "observations.csv",
              "shots.geojson", "cameras_opk.csv", "cameras_opk.prj", "tie_points.laz"]
@@ -174,7 +175,8 @@ def test_run_outputs_are_published_together(tmp_path: Path) -> None:
     assert run.inputs.skipped == record.inputs.skipped
     assert run.inputs.warnings == ("a warning",)
     assert run.observations_path.read_text().splitlines() == [
-        "image,point,x_px,y_px", "img_0000,p1,1.5,2.25", "img_0000,p2,3.0,4.0"]
+        "image,point,x_px,y_px,frame", "img_0000,p1,1.5,2.25,img_0000",
+        "img_0000,p2,3.0,4.0,img_0000"]
     np.testing.assert_array_equal(run.points.xyz_m, np.array([p.xyz_m for p in points]))
 
 
