@@ -90,6 +90,11 @@ class Departure:
     at: int  # index of the image before which F left
 
 
+def dep_offsets(keys: tuple[Key, ...]) -> list[int]:
+    """Offset of each key in a record's stacked values."""
+    return [0, *np.cumsum([key_size(k) for k in keys])[:-1].tolist()]
+
+
 class DepartureMixin:
     """Window cut, departures, re-opening and smoothing of :class:`SequentialAT`."""
 
@@ -155,14 +160,31 @@ class DepartureMixin:
         self._w.settle()
 
     def _smoothed_departed(self) -> dict[Key, FloatArray]:
-        """RTS backward pass over the departures, newest first: O(sum |F| |W|)."""
+        """RTS backward pass over the departures, newest first: O(sum |F| |W|).
+
+        A GP rescued after a record was made (:meth:`_rescue_points`: re-intersected from
+        its good rays, a jump of up to 100 m after wandering astray) has not changed by a
+        linear update of the record's estimate: the record sees no change of it. Passed
+        through the gain, the jump moved the images that had left (a simulated block at 20 %
+        blunders: one image 4.3 m off instead of 0.7 m; taking out the jump alone, not the
+        wandering before it, left images 30-95 m off)."""
         w = self._w
         value: dict[Key, FloatArray] = dict(self._dropped_value)
         value.update({k: w.x[w.index(k)] for k in w.keys})
-        for dep in reversed(self._departures[self._first_record:]):
+        last_rescue: dict[Key, int] = {}  # records made before a GP's last rescue
+        for n_records, key in self._rescues:
+            last_rescue[key] = max(last_rescue.get(key, 0), n_records)
+        for r in range(len(self._departures) - 1, self._first_record - 1, -1):
+            dep = self._departures[r]
             if dep is None:
                 continue
-            x_w = np.concatenate([value[k] for k in dep.staying])
+            if any(last_rescue.get(k, 0) > r for k in dep.staying):
+                x_w = np.concatenate([value[k] if last_rescue.get(k, 0) <= r else
+                                      dep.x_staying[o : o + key_size(k)]
+                                      for k, o in zip(dep.staying, dep_offsets(dep.staying),
+                                                      strict=True)])
+            else:
+                x_w = np.concatenate([value[k] for k in dep.staying])
             x_f = dep.x_leaving + dep.gain @ (x_w - dep.x_staying)
             off = 0
             for k in dep.leaving:

@@ -288,12 +288,10 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self.diverged: list[str] = []
         #: Points the data do not determine (singular information), taken out: point ids.
         self.undetermined: list[str] = []
-        # GPs most of whose rays disagreed with them, re-intersected robustly (relinearise)
-        self.rescued: list[str] = []
-        # departed keys re-opened by finish() (their real-time values stay frozen)
-        self._final_reopened: set[Key] = set()
-        # finish(): the departed parameters not re-opened for being too many (0: none)
-        self.final_reopen_skipped = 0
+        self.rescued: list[str] = []  # GPs re-intersected robustly (relinearise)
+        self._rescues: list[tuple[int, Key]] = []  # (records made before it, GP rescued)
+        self._final_reopened: set[Key] = set()  # departed keys re-opened by finish()
+        self.final_reopen_skipped = 0  # finish(): departed ones not re-opened (too many)
         self._dropped_value: dict[Key, FloatArray] = {}
         self._w.on_singular = self._drop_undetermined
         #: Observations removed by data snooping: (image id, point id, w-test value).

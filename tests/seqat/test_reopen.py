@@ -109,3 +109,31 @@ def test_simulated_block_geometry() -> None:
     np.testing.assert_allclose(kappa, [0.0, 180.0, 0.0], atol=1e-9)
     np.testing.assert_allclose(np.diff(e[[0, 20, 40], 1]), -cfg.spacing_m, atol=1e-6)
     assert np.allclose(e[19, :2], e[20, :2] + [0.0, cfg.spacing_m])  # turn at the same end
+
+
+def test_smoothing_does_not_pass_a_rescue_jump_to_images_that_left_before_it() -> None:
+    """RTS: ``x_F = x_F0 + G (x_W - x_W0)``. A GP rescued after the record was made (a
+    non-linear jump, not a measurement update) counts as unchanged for that record; a GP
+    rescued before it, or another GP, passes its change as usual."""
+    from types import SimpleNamespace
+
+    from seqat.departures import Departure, DepartureMixin
+
+    gain = np.arange(6 * 6, dtype=float).reshape(6, 6) / 100.0  # (|F| = 6, |W| = 2 GPs)
+    dep = Departure(leaving=(("e", 0),), staying=(("p", 1), ("p", 2)),
+                    x_leaving=np.ones(6), x_staying=np.zeros(6), gain=gain,
+                    conditional=np.eye(6), at=1)
+    now = np.array([100.0, -50.0, 30.0, 0.1, 0.2, 0.3])  # GP 1 jumped, GP 2 moved a little
+    window = SimpleNamespace(keys=[("p", 1), ("p", 2)], x=now,
+                             index=lambda k: np.arange(3) + 3 * (k[1] - 1))
+
+    def smoothed(rescues: list[tuple[int, tuple[str, int]]]) -> np.ndarray:
+        est = SimpleNamespace(_w=window, _dropped_value={}, _departures=[dep],
+                              _first_record=0, _rescues=rescues)
+        return DepartureMixin._smoothed_departed(est)[("e", 0)]  # type: ignore[arg-type]
+
+    np.testing.assert_allclose(smoothed([]), 1.0 + gain @ now)
+    np.testing.assert_allclose(smoothed([(0, ("p", 1))]), 1.0 + gain @ now)  # before it
+    only_gp2 = np.concatenate([np.zeros(3), now[3:]])
+    np.testing.assert_allclose(smoothed([(1, ("p", 1))]), 1.0 + gain @ only_gp2)
+    np.testing.assert_allclose(smoothed([(1, ("p", 1)), (0, ("p", 2))]), 1.0 + gain @ only_gp2)
