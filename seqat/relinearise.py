@@ -10,15 +10,13 @@ from collections.abc import Callable
 import numpy as np
 import scipy.sparse
 
+from seqat.assembly import WindowAssembly
 from seqat.geometry import intersect_rays
 from seqat.information import (
     InformationFactor,
     RankDeficiency,
-    add_factor_parts,
     factor_information,
     factor_matvec,
-    gather_parts,
-    split_indices,
     window_matrix,
 )
 from seqat.robust import cauchy_weight, robust_cost, robust_weight
@@ -196,13 +194,11 @@ class RelinearisationMixin:
             return float(0.5 * z @ Hp_z - eta_p @ z)
 
         n = x.size
-        if not self._inverse:
-            # the GP-eliminated blocks of H_p once; each step adds its rows' blocks to them
-            # (no n x n matrix per step: docs/algorithm.md, *Re-linearising the window*)
-            gp, kept = w.elimination()
-            r_idx, p_blk = split_indices(n, gp)
-            base = add_factor_parts(gather_parts(L, r_idx, p_blk), f.Je, f.Jp, -f.w, f.img,
-                                    cols, r_idx, p_blk, n)
+        # H_p plus the rows at each iterate: its values on L's pattern once, each step
+        # scatters its rows' blocks onto them (seqat.assembly; no n x n matrix built per step:
+        # docs/algorithm.md, *Re-linearising the window*)
+        gp, kept = w.elimination()
+        assembly = None if self._inverse else WindowAssembly(L, f.img, cols, gp, J_old)
 
         def solver_at(Je: FloatArray, Jp: FloatArray,
                       wf: FloatArray) -> Callable[[FloatArray], FloatArray]:
@@ -210,8 +206,8 @@ class RelinearisationMixin:
                 H = factor_information(Je, Jp, wf, f.img, cols, n) + H_p_dense
                 H = H.toarray() if scipy.sparse.issparse(H) else H
                 return lambda g: np.linalg.solve(H, g)
-            parts = add_factor_parts(base, Je, Jp, wf, f.img, cols, r_idx, p_blk, n)
-            factor = InformationFactor(None, gp, kept, parts=parts, n=n)
+            assert assembly is not None
+            factor = InformationFactor(None, gp, kept, parts=assembly.parts(Je, Jp, wf), n=n)
             last_factor[:] = [(Je, Jp, wf), factor]
             return factor.solve
 
@@ -296,7 +292,8 @@ class RelinearisationMixin:
             gauss_newton(0.0)
         # the window's information: L with the own rows' old blocks replaced by the new ones
         # (one sparse addition of their difference, exactly symmetric)
-        H = window_matrix(L + factor_information(Je, Jp, wf, f.img, cols, n, minus=J_old))
+        H = (assembly.matrix(Je, Jp, wf) if assembly is not None else
+             window_matrix(L + factor_information(Je, Jp, wf, f.img, cols, n, minus=J_old)))
         x_new = xk + step
         r_new = r - (np.einsum("kri,ki->kr", Je, step[e_idx])
                      + np.einsum("kri,ki->kr", Jp, step[p_idx]))  # rows as linearised
