@@ -91,6 +91,7 @@ def replay(run_dir: Path, flight_dir: Path, profile_images: set[str] | None = No
                      "left": upd.images_left_window, "reopened": upd.reopened,
                      "window_images": upd.window_images, "window_params": upd.window_params,
                      "late": upd.late_used, "drift_px": upd.drift_px,
+                     "eop": np.asarray(upd.eop.eop, dtype=np.float64).tolist(),
                      "parts": {k: round(v, 1) for k, v in parts.items()}})
     t0 = time.process_time()
     est.finish()
@@ -105,7 +106,12 @@ def main() -> None:
     ap.add_argument("--sim", type=Path)
     ap.add_argument("--profile", type=int, default=0)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--steps", type=int, help="seqat.relinearise.FLIGHT_RELINEARISE_STEPS")
     a = ap.parse_args()
+    if a.steps is not None:
+        import seqat.relinearise
+
+        seqat.relinearise.FLIGHT_RELINEARISE_STEPS = a.steps
     est, rows, finish_ms = replay(a.run_dir, a.flight_dir)
     seq = [r for r in rows if r["stage"] == "sequential"]
     ms = np.array([r["cpu_ms"] for r in seq])
@@ -136,6 +142,14 @@ def main() -> None:
         print(f"Seq-R - Sim: position rms per axis {np.round(prms, 4)} m (3-D {pos:.4f}), "
               f"attitude rms per axis {np.round(arms, 4)} deg (3-D {att:.4f})")
         out.update(seq_r_minus_sim_pos_m=prms.tolist(), seq_r_minus_sim_att_deg=arms.tolist())
+        # live: each image's EOP as its own update published it
+        live = np.array([r["eop"] for r in rows])
+        _, dp, da = eop_differences(tuple(r["image"] for r in rows), live, sim.image_ids,
+                                    sim.eop)
+        lp, la = np.sqrt(np.mean(dp**2, axis=0)), np.sqrt(np.mean(da**2, axis=0))
+        print(f"live (at its own update) - Sim: position rms {np.round(lp, 3)} m, "
+              f"attitude rms {np.round(la, 3)} deg")
+        out.update(live_minus_sim_pos_m=lp.tolist(), live_minus_sim_att_deg=la.tolist())
     if a.json is not None:
         a.json.write_text(json.dumps(out, indent=1, default=float))
     if a.profile:

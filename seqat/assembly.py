@@ -219,8 +219,9 @@ class WindowAssembly:
         return data[self.d], RR.reshape(r, r), RP
 
     def matrix(self, Je: FloatArray, Jp: FloatArray, w: FloatArray) -> WindowMatrix:
-        """``H_p`` plus the factors at (``Je``, ``Jp``, ``w``): the new ``L`` (sparse: exact
-        zeros dropped, as a sparse sum drops them)."""
+        """``H_p`` plus the factors at (``Je``, ``Jp``, ``w``): the new ``L``, stored as the
+        window keeps it (:func:`seqat.information.window_matrix`; sparse: exact zeros dropped,
+        as a sparse sum drops them)."""
         data = self._data(Je, Jp, w) if self.fast else None
         if data is None:
             return window_matrix(self.L + factor_information(
@@ -228,7 +229,7 @@ class WindowAssembly:
         H = scipy.sparse.csr_array((data[:-1], self.indices.copy(), self.indptr.copy()),
                                    shape=(self.n, self.n))
         H.eliminate_zeros()
-        return H
+        return window_matrix(H)
 
     def _general_parts(self, Je: FloatArray, Jp: FloatArray, w: FloatArray,
                        ) -> tuple[FloatArray, FloatArray, FloatArray | SparseMatrix]:
