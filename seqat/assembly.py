@@ -87,12 +87,16 @@ class WindowAssembly:
         self.ce = old[0].shape[2]
         self._base: tuple[FloatArray, FloatArray, FloatArray] | None = None  # general way
         self._last: tuple[tuple[FloatArray, ...], FloatArray] | None = None
+        #: ``H_p`` on L's pattern (CSR), when the factors are on it; else None
+        self.kept: SparseMatrix | None = None
         self.fast = self._pattern()
         if self.fast:
             removed = self._scatter(*old)
             self.fast = removed is not None
             if removed is not None:
                 self.data_p = self.data_p - removed
+                self.kept = scipy.sparse.csr_array((self.data_p[:-1], self.indices,
+                                                    self.indptr), shape=(self.n, self.n))
 
     # ------------------------------------------------------------------ the pattern
     def _pattern(self) -> bool:

@@ -174,31 +174,30 @@ class RelinearisationMixin:
         self.relinearisations += 1
         L = w.L if w.L is not None else window_matrix(np.linalg.inv(w.Q))
         cols = np.concatenate([e_idx, p_idx], axis=1)  # (k, 9) window columns per factor
-        # The kept information H_p = L - (the own rows at their old linearisation) is never
-        # formed (O(n) entries per step): products with it are L's minus the old rows', and
-        # its GP-eliminated blocks are L's minus theirs (docs/algorithm.md, *Re-linearising
-        # the window*). The inverse engine (small windows) forms it.
+        # The kept information H_p = L - (the own rows at their old linearisation): its
+        # values on L's pattern, and each iterate's rows scattered onto them (seqat.assembly;
+        # no sparse matrix built per step); where L's pattern does not allow it (a dense
+        # small window) H_p is not formed (O(n) entries per step): products with it are L's
+        # minus the old rows', its GP-eliminated blocks L's minus theirs (docs/algorithm.md,
+        # *Re-linearising the window*). The inverse engine (small windows) forms it.
         J_old = (f.Je, f.Jp, f.w)
         x_lin = np.concatenate([f.e_lin, f.p_lin], axis=1)
         rhs_old = f.r_lin + np.einsum("kri,ki->kr", np.concatenate([f.Je, f.Jp], axis=2), x_lin)
         eta_p = L @ x - gradient_from_factors(f.Je, f.Jp, rhs_old, f.w, cols, x.size)
         H_p_dense = (L - factor_information(*J_old, f.img, cols, x.size)
                      if self._inverse else None)
+        n = x.size
+        gp, kept = w.elimination()
+        assembly = None if self._inverse else WindowAssembly(L, f.img, cols, gp, J_old)
+        H_p = H_p_dense if assembly is None or assembly.kept is None else assembly.kept
 
         def H_p_times(z: FloatArray) -> FloatArray:
-            if H_p_dense is not None:
-                return H_p_dense @ z
+            if H_p is not None:
+                return H_p @ z
             return L @ z - factor_matvec(*J_old, cols, z)
 
         def prior(z: FloatArray, Hp_z: FloatArray) -> float:  # the kept information / 2
             return float(0.5 * z @ Hp_z - eta_p @ z)
-
-        n = x.size
-        # H_p plus the rows at each iterate: its values on L's pattern once, each step
-        # scatters its rows' blocks onto them (seqat.assembly; no n x n matrix built per step:
-        # docs/algorithm.md, *Re-linearising the window*)
-        gp, kept = w.elimination()
-        assembly = None if self._inverse else WindowAssembly(L, f.img, cols, gp, J_old)
 
         def solver_at(Je: FloatArray, Jp: FloatArray,
                       wf: FloatArray) -> Callable[[FloatArray], FloatArray]:
