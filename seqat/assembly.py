@@ -32,6 +32,7 @@ from seqat.information import (
     factor_information,
     gather_parts,
     image_factor_blocks,
+    image_sum_index,
     split_indices,
     window_matrix,
 )
@@ -105,7 +106,7 @@ class WindowAssembly:
         if not scipy.sparse.issparse(L) or L.format != "csr" or self.img.size == 0:
             return False
         runs = _runs(cols[:, :ce])
-        if runs is None:
+        if runs is None or np.any(np.diff(self.gp) <= 0):  # (the window's GPs are in order)
             return False
         if not L.has_canonical_format:
             L = L.copy()
@@ -120,6 +121,7 @@ class WindowAssembly:
         keys = np.repeat(np.arange(n, dtype=np.int64) * n, np.diff(indptr)) + indices
         uniq, first, self.inv = np.unique(self.img, return_index=True, return_inverse=True)
         self.nimg = uniq.size
+        self.flat = image_sum_index(self.inv, ce)
         ecols = cols[:, :ce]
 
         def block(r: np.ndarray, c: np.ndarray, runs: list[tuple[int, int]]) -> np.ndarray:
@@ -187,7 +189,7 @@ class WindowAssembly:
     def _scatter(self, Je: FloatArray, Jp: FloatArray, w: FloatArray) -> FloatArray | None:
         """The factors' ``sum J^T W J`` on the pattern (its data), exactly symmetric; None
         when an entry outside the pattern is not zero."""
-        S, PE, PP = image_factor_blocks(Je, Jp, w, self.inv, self.nimg)
+        S, PE, PP = image_factor_blocks(Je, Jp, w, self.inv, self.nimg, flat=self.flat)
         v = np.concatenate([S.ravel(), PE.ravel(), PE.ravel(), PP.ravel()])
         if np.any(v[self.outside] != 0.0):
             return None
@@ -230,7 +232,7 @@ class WindowAssembly:
         if data is None:
             return window_matrix(self.L + factor_information(
                 Je, Jp, w, self.img, self.cols, self.n, minus=self.old))
-        H = scipy.sparse.csr_array((data[:-1], self.indices.copy(), self.indptr.copy()),
+        H = scipy.sparse.csr_array((data[:-1].copy(), self.indices.copy(), self.indptr.copy()),
                                    shape=(self.n, self.n))
         H.eliminate_zeros()
         return window_matrix(H)
