@@ -62,7 +62,24 @@ def instrument(est, parts: dict[str, float]) -> None:  # noqa: ANN001
         setattr(est, name, timed)
 
 
-def replay(run_dir: Path, flight_dir: Path, profile_images: set[str] | None = None):  # noqa: ANN201
+def window_eops(est) -> tuple[tuple[str, ...], np.ndarray]:  # noqa: ANN001
+    """The window images' current EOPs (no factorisation: the replay's timing untouched)."""
+    w, origin = est._w, est._origin
+    if est._initial is not None or origin is None:
+        sol = est.solution()
+        return tuple(e.image_id for e in sol.eops), np.array([e.eop for e in sol.eops])
+    ids, eops = [], []
+    for k in w.keys:
+        if k[0] == "e":
+            val = w.x[w.index(k)].copy()
+            val[:3] += origin
+            ids.append(est._image_ids[k[1]])
+            eops.append(val)
+    return tuple(ids), np.array(eops)
+
+
+def replay(run_dir: Path, flight_dir: Path, profile_images: set[str] | None = None,
+           window_sim=None):  # noqa: ANN001, ANN201
     contents = read_journal(run_dir)
     assert contents is not None, f"{run_dir}: no journal"
     est = build(flight_dir)
@@ -85,7 +102,13 @@ def replay(run_dir: Path, flight_dir: Path, profile_images: set[str] | None = No
         ms = (time.process_time() - t0) * 1e3
         if prof is not None:
             prof.dump_stats(f"/tmp/relin_profile_{rec.frame.image_id}.prof")
+        if window_sim is not None:  # the window's EOPs - Sim after this update (m, deg rms)
+            ids, eops = window_eops(est)
+            _, dp, da = eop_differences(ids, eops, window_sim.image_ids, window_sim.eop)
+            window_acc = (float(np.sqrt(np.mean(np.sum(dp**2, axis=1)))),
+                          float(np.sqrt(np.mean(np.sum(da**2, axis=1)))))
         rows.append({"image": rec.frame.image_id, "stage": upd.stage, "cpu_ms": ms,
+                     "window_minus_sim": window_acc if window_sim is not None else None,
                      "relin": est.relinearisations - relin0,
                      "relin_skipped": est.relinearisations_skipped - skip0,
                      "left": upd.images_left_window, "reopened": upd.reopened,
@@ -107,12 +130,16 @@ def main() -> None:
     ap.add_argument("--profile", type=int, default=0)
     ap.add_argument("--json", type=Path)
     ap.add_argument("--steps", type=int, help="seqat.relinearise.FLIGHT_RELINEARISE_STEPS")
+    ap.add_argument("--window-accuracy", action="store_true",
+                    help="with --sim: the window's EOPs - Sim after every update")
     a = ap.parse_args()
     if a.steps is not None:
         import seqat.relinearise
 
         seqat.relinearise.FLIGHT_RELINEARISE_STEPS = a.steps
-    est, rows, finish_ms = replay(a.run_dir, a.flight_dir)
+    sim_eop = read_eop_csv(a.sim / "eop.csv") if a.sim is not None else None
+    est, rows, finish_ms = replay(a.run_dir, a.flight_dir,
+                                  window_sim=sim_eop if a.window_accuracy else None)
     seq = [r for r in rows if r["stage"] == "sequential"]
     ms = np.array([r["cpu_ms"] for r in seq])
     p50, p99 = np.percentile(ms, [50, 99])
@@ -150,6 +177,11 @@ def main() -> None:
         print(f"live (at its own update) - Sim: position rms {np.round(lp, 3)} m, "
               f"attitude rms {np.round(la, 3)} deg")
         out.update(live_minus_sim_pos_m=lp.tolist(), live_minus_sim_att_deg=la.tolist())
+        if a.window_accuracy:
+            acc = np.array([r["window_minus_sim"] for r in seq])
+            print(f"window - Sim after each update (3-D rms over the window): position "
+                  f"median {np.median(acc[:, 0]):.3f} / max {acc[:, 0].max():.3f} m, attitude "
+                  f"median {np.median(acc[:, 1]):.3f} / max {acc[:, 1].max():.3f} deg")
     if a.json is not None:
         a.json.write_text(json.dumps(out, indent=1, default=float))
     if a.profile:
