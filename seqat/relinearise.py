@@ -50,7 +50,8 @@ ASTRAY_MIN_RAYS = 4
 #: finish() re-linearises the window when its rows are this far off (pixels).
 FINAL_RELINEARISE_PX = 1e-3
 #: During the flight a re-linearisation takes at most this many Gauss-Newton steps (each
-#: one factorises the window: ~200 ms for Seneca's 5000-parameter window), then leaves the
+#: one assembles and factorises the window: ~30 ms CPU for Seneca's 8100-parameter window,
+#: plus ~40 ms once to find its pattern: seqat.assembly, 2026-12-03), then leaves the
 #: estimate at the last step's model minimum; if the rows still drift, the next update's
 #: check goes on. Real time needs bounded work per image: 9 steps made a 1.2 s update on
 #: Seneca (2026-12-02). finish() is not bounded (SequentialOptions.relinearise_iterations).
