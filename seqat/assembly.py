@@ -36,13 +36,15 @@ from seqat.information import (
     split_indices,
     window_matrix,
 )
-from seqat.types import GP_SIZE, FloatArray
+from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 
 
 def _runs(cols: np.ndarray) -> list[tuple[int, int]] | None:
     """``(first, length)`` of the runs of consecutive columns in each factor's image block
     (k, ce): the EOP's 6, the camera's; None unless every factor has the same runs."""
     gaps = np.flatnonzero(np.diff(cols[0]) != 1) + 1
+    if cols.shape[1] > EOP_SIZE:  # the EOP's and the camera's blocks, adjacent or not
+        gaps = np.union1d(gaps, [EOP_SIZE]).astype(np.int64)
     starts = np.concatenate([[0], gaps])
     lengths = np.diff(np.concatenate([starts, [cols.shape[1]]]))
     within = np.ones(cols.shape[1] - 1, dtype=bool)

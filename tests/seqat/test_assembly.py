@@ -78,18 +78,25 @@ def _assert_equal(asm: WindowAssembly, L, img, cols, gp, old, new) -> None:  # n
         np.testing.assert_array_equal(_dense(H), _dense(H).T)
 
 
-@pytest.mark.parametrize("ce", [6, 13])
-def test_pattern_assembly_equals_the_entry_by_entry_one(ce: int,
+@pytest.mark.parametrize(("ce", "last_first"), [(6, False), (13, False), (13, True)])
+def test_pattern_assembly_equals_the_entry_by_entry_one(ce: int, last_first: bool,
                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """``last_first``: the first factor's EOP block ends where the camera's begins."""
     import seqat.information as information
 
     monkeypatch.setattr(information, "DENSE_UP_TO", 0)  # L kept sparse, as a large window's
     L, img, cols, gp, old, jacobians = _window(ce)
+    if last_first:
+        order = np.argsort(-img, kind="stable")
+        img, cols = img[order], cols[order]
+        old = tuple(a[order] for a in old)
+        L = scipy.sparse.csr_array(L.toarray())  # (the same L: its factors are a set)
     asm = WindowAssembly(L, img, cols, gp, old)
     assert asm.fast
     _assert_equal(asm, L, img, cols, gp, old, old)
     for _ in range(2):  # the steps of a re-linearisation
-        _assert_equal(asm, L, img, cols, gp, old, jacobians())
+        Je, Jp, w = jacobians()
+        _assert_equal(asm, L, img, cols, gp, old, (Je, Jp, w))
     assert asm.fast
 
 
