@@ -105,7 +105,8 @@ class WindowAssembly:
     def _pattern(self) -> bool:
         """Find the positions (see the module's docstring); False: not this way."""
         L, cols, ce = self.L, self.cols, self.ce
-        if not scipy.sparse.issparse(L) or L.format != "csr" or self.img.size == 0:
+        if (not scipy.sparse.issparse(L) or L.format != "csr" or self.img.size == 0
+                or L.nnz == 0):
             return False
         runs = _runs(cols[:, :ce])
         if runs is None or np.any(np.diff(self.gp) <= 0):  # (the window's GPs are in order)
