@@ -236,23 +236,7 @@ def factor_entries(Je: FloatArray, Jp: FloatArray, w: FloatArray, img: np.ndarra
         z = np.zeros(0, dtype=np.int64)
         return z, z, np.zeros(0)
     uniq, first, inv = np.unique(img, return_index=True, return_inverse=True)
-
-    def blocks(Je: FloatArray, Jp: FloatArray, w: FloatArray,
-               ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        EE = np.einsum("kri,krj->kij", Je * w[:, None, None], Je).reshape(k, ce * ce)
-        flat = (inv[:, None] * (ce * ce) + np.arange(ce * ce)).ravel()
-        S = np.bincount(flat, weights=EE.ravel(), minlength=uniq.size * ce * ce).reshape(
-            uniq.size, ce, ce)
-        wJp = Jp * w[:, None, None]
-        return (S, np.einsum("kri,krj->kij", wJp, Je),  # PE: GP rows, image-block columns
-                np.einsum("kri,krj->kij", wJp, Jp))
-
-    S, PE, PP = blocks(Je, Jp, w)
-    if minus is not None:
-        S0, PE0, PP0 = blocks(*minus)
-        S, PE, PP = S - S0, PE - PE0, PP - PP0
-    S = 0.5 * (S + np.swapaxes(S, 1, 2))
-    PP = 0.5 * (PP + np.swapaxes(PP, 1, 2))
+    S, PE, PP = image_factor_blocks(Je, Jp, w, inv, uniq.size, minus)
     ecols = cols[first, :ce]
     gp_cols = cols[:, ce:]
     a = np.concatenate([
@@ -267,6 +251,40 @@ def factor_entries(Je: FloatArray, Jp: FloatArray, w: FloatArray, img: np.ndarra
         np.broadcast_to(gp_cols[:, None, :], PP.shape).ravel()])
     v = np.concatenate([S.ravel(), PE.ravel(), np.swapaxes(PE, 1, 2).ravel(), PP.ravel()])
     return a, b, v
+
+
+def image_factor_blocks(Je: FloatArray, Jp: FloatArray, w: FloatArray, inv: np.ndarray,
+                        nimg: int, minus: tuple[FloatArray, FloatArray, FloatArray] | None = None,
+                        flat: np.ndarray | None = None,
+                        ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The blocks of :func:`factor_entries`: image x image summed per image (``inv``: each
+    factor's image among ``nimg``) (nimg, ce, ce), GP x image (k, 3, ce) and GP x GP
+    (k, 3, 3), the square ones symmetric to the last bit; ``minus``: less the same factors'
+    blocks at another linearisation; ``flat``: :func:`image_sum_index` (made if None)."""
+    k, ce = Je.shape[0], Je.shape[2]
+    if flat is None:
+        flat = image_sum_index(inv, ce)
+
+    def blocks(Je: FloatArray, Jp: FloatArray, w: FloatArray,
+               ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        EE = np.einsum("kri,krj->kij", Je * w[:, None, None], Je).reshape(k, ce * ce)
+        S = np.bincount(flat, weights=EE.ravel(), minlength=nimg * ce * ce).reshape(
+            nimg, ce, ce)
+        wJp = Jp * w[:, None, None]
+        return (S, np.einsum("kri,krj->kij", wJp, Je),  # PE: GP rows, image-block columns
+                np.einsum("kri,krj->kij", wJp, Jp))
+
+    S, PE, PP = blocks(Je, Jp, w)
+    if minus is not None:
+        S0, PE0, PP0 = blocks(*minus)
+        S, PE, PP = S - S0, PE - PE0, PP - PP0
+    return 0.5 * (S + np.swapaxes(S, 1, 2)), PE, 0.5 * (PP + np.swapaxes(PP, 1, 2))
+
+
+def image_sum_index(inv: np.ndarray, ce: int) -> np.ndarray:
+    """Where each factor's image x image entries go in the per-image sums of
+    :func:`image_factor_blocks` (``inv``: each factor's image)."""
+    return (inv[:, None] * (ce * ce) + np.arange(ce * ce)).ravel()
 
 
 def factor_matvec(Je: FloatArray, Jp: FloatArray, w: FloatArray, cols: np.ndarray,

@@ -10,15 +10,13 @@ from collections.abc import Callable
 import numpy as np
 import scipy.sparse
 
+from seqat.assembly import WindowAssembly
 from seqat.geometry import depth, intersect_rays
 from seqat.information import (
     InformationFactor,
     RankDeficiency,
-    add_factor_parts,
     factor_information,
     factor_matvec,
-    gather_parts,
-    split_indices,
     window_matrix,
 )
 from seqat.robust import cauchy_weight, robust_cost, robust_weight
@@ -55,7 +53,8 @@ RESCUE_MAX_RAYS = 30
 #: finish() re-linearises the window when its rows are this far off (pixels).
 FINAL_RELINEARISE_PX = 1e-3
 #: During the flight a re-linearisation takes at most this many Gauss-Newton steps (each
-#: one factorises the window: ~200 ms for Seneca's 5000-parameter window), then leaves the
+#: one assembles and factorises the window: ~30 ms CPU for Seneca's 8100-parameter window,
+#: plus ~40 ms once to find its pattern: seqat.assembly, 2026-12-03), then leaves the
 #: estimate at the last step's model minimum; if the rows still drift, the next update's
 #: check goes on. Real time needs bounded work per image: 9 steps made a 1.2 s update on
 #: Seneca (2026-12-02). finish() is not bounded (SequentialOptions.relinearise_iterations).
@@ -199,33 +198,30 @@ class RelinearisationMixin:
         self.relinearisations += 1
         L = w.L if w.L is not None else window_matrix(np.linalg.inv(w.Q))
         cols = np.concatenate([e_idx, p_idx], axis=1)  # (k, 9) window columns per factor
-        # The kept information H_p = L - (the own rows at their old linearisation) is never
-        # formed (O(n) entries per step): products with it are L's minus the old rows', and
-        # its GP-eliminated blocks are L's minus theirs (docs/algorithm.md, *Re-linearising
-        # the window*). The inverse engine (small windows) forms it.
+        # The kept information H_p = L - (the own rows at their old linearisation): its
+        # values on L's pattern, and each iterate's rows scattered onto them (seqat.assembly;
+        # no sparse matrix built per step); where L's pattern does not allow it (a dense
+        # small window) H_p is not formed (O(n) entries per step): products with it are L's
+        # minus the old rows', its GP-eliminated blocks L's minus theirs (docs/algorithm.md,
+        # *Re-linearising the window*). The inverse engine (small windows) forms it.
         J_old = (f.Je, f.Jp, f.w)
         x_lin = np.concatenate([f.e_lin, f.p_lin], axis=1)
         rhs_old = f.r_lin + np.einsum("kri,ki->kr", np.concatenate([f.Je, f.Jp], axis=2), x_lin)
         eta_p = L @ x - gradient_from_factors(f.Je, f.Jp, rhs_old, f.w, cols, x.size)
         H_p_dense = (L - factor_information(*J_old, f.img, cols, x.size)
                      if self._inverse else None)
+        n = x.size
+        gp, kept = w.elimination()
+        assembly = None if self._inverse else WindowAssembly(L, f.img, cols, gp, J_old)
+        H_p = H_p_dense if assembly is None or assembly.kept is None else assembly.kept
 
         def H_p_times(z: FloatArray) -> FloatArray:
-            if H_p_dense is not None:
-                return H_p_dense @ z
+            if H_p is not None:
+                return H_p @ z
             return L @ z - factor_matvec(*J_old, cols, z)
 
         def prior(z: FloatArray, Hp_z: FloatArray) -> float:  # the kept information / 2
             return float(0.5 * z @ Hp_z - eta_p @ z)
-
-        n = x.size
-        if not self._inverse:
-            # the GP-eliminated blocks of H_p once; each step adds its rows' blocks to them
-            # (no n x n matrix per step: docs/algorithm.md, *Re-linearising the window*)
-            gp, kept = w.elimination()
-            r_idx, p_blk = split_indices(n, gp)
-            base = add_factor_parts(gather_parts(L, r_idx, p_blk), f.Je, f.Jp, -f.w, f.img,
-                                    cols, r_idx, p_blk, n)
 
         def solver_at(Je: FloatArray, Jp: FloatArray,
                       wf: FloatArray) -> Callable[[FloatArray], FloatArray]:
@@ -233,8 +229,8 @@ class RelinearisationMixin:
                 H = factor_information(Je, Jp, wf, f.img, cols, n) + H_p_dense
                 H = H.toarray() if scipy.sparse.issparse(H) else H
                 return lambda g: np.linalg.solve(H, g)
-            parts = add_factor_parts(base, Je, Jp, wf, f.img, cols, r_idx, p_blk, n)
-            factor = InformationFactor(None, gp, kept, parts=parts, n=n)
+            assert assembly is not None
+            factor = InformationFactor(None, gp, kept, parts=assembly.parts(Je, Jp, wf), n=n)
             last_factor[:] = [(Je, Jp, wf), factor]
             return factor.solve
 
@@ -320,7 +316,8 @@ class RelinearisationMixin:
             gauss_newton(0.0)
         # the window's information: L with the own rows' old blocks replaced by the new ones
         # (one sparse addition of their difference, exactly symmetric)
-        H = window_matrix(L + factor_information(Je, Jp, wf, f.img, cols, n, minus=J_old))
+        H = (assembly.matrix(Je, Jp, wf) if assembly is not None else
+             window_matrix(L + factor_information(Je, Jp, wf, f.img, cols, n, minus=J_old)))
         x_new = xk + step
         r_new = r - (np.einsum("kri,ki->kr", Je, step[e_idx])
                      + np.einsum("kri,ki->kr", Jp, step[p_idx]))  # rows as linearised
