@@ -275,3 +275,48 @@ def test_feed_of_a_bad_frame_field_is_exit_2(autzen_run: Path, tmp_path: Path) -
     assert result.exit_code == 2
     assert result.stderr.count("\n") == 1
     assert f"observations.csv:{k + 1}: field 'frame'" in result.stderr
+
+
+def test_a_resumed_watch_takes_late_observations_of_journaled_images(autzen_run: Path,
+                                                                      tmp_path: Path) -> None:
+    """Stopped after img_0004: the late rows that img_0006 and img_0007 carry of images 2-4
+    (journaled by the first watch) are taken by the resumed one."""
+    from pipeline.run.runner import run_flight
+
+    flight = _late_observations_flight(autzen_run, tmp_path)
+    ref = tmp_path / "run"
+    run_flight(flight, ref, progress=False)
+    fed, out = tmp_path / "fed", tmp_path / "out"
+    feeder = _feed_in_background(flight, fed)
+    stop = threading.Event()
+
+    def stop_after_4(live: ImageLive, update: ImageUpdate) -> None:
+        if update.index == 3:
+            stop.set()
+
+    first = watch_flight(fed, out, watch=QUICK, console=_quiet(), stop=stop,
+                         on_image=stop_after_4)
+    feeder.join()
+    assert first.n_images == 4
+    second = watch_flight(fed, out, watch=QUICK, console=_quiet(), resume=True)
+    assert second.replayed == 4 and second.n_images == 12
+    assert_same_results(ref, out)
+
+
+def test_watch_of_a_bad_frame_field_is_exit_2(autzen_run: Path, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+
+    flight = _late_observations_flight(autzen_run, tmp_path)
+    nav = (flight / "nav.csv").read_text().splitlines(keepends=True)
+    obs = (flight / "observations.csv").read_text().splitlines(keepends=True)
+    first = [line for line in obs[1:] if line.endswith(",img_0001\n")]
+    (flight / "nav.csv").write_text("".join(nav[:2]))
+    (flight / "observations.csv").write_text(
+        obs[0] + "".join(first) + "img_0001,t9999999,100.0,100.0,img 0002\n")
+    result = CliRunner().invoke(app, ["watch", str(flight), "--out", str(tmp_path / "o"),
+                                      "--idle-timeout-s", "1"])
+    assert result.exit_code == 2
+    assert result.stderr.count("\n") == 1
+    assert f"observations.csv:{len(first) + 2}: field 'frame'" in result.stderr
