@@ -201,7 +201,8 @@ class CsvTail:
 
     Each :meth:`poll` returns the rows whose line has been completed (ends with a newline)
     since the last call; a partial last line is left for the next call. Same rules as
-    :func:`read_csv`, one line per row (no quoted newlines). The file may not exist yet.
+    :func:`read_csv` (``optional`` columns as there), one line per row (no quoted newlines).
+    The file may not exist yet.
 
     Raises (from :meth:`poll`)
     ------
@@ -209,9 +210,11 @@ class CsvTail:
         Bad header or row, not UTF-8, or the file shrank (rewritten instead of appended to).
     """
 
-    def __init__(self, path: Path | str, columns: Sequence[str]) -> None:
+    def __init__(self, path: Path | str, columns: Sequence[str],
+                 optional: Sequence[str] = ()) -> None:
         self.path = Path(path)
         self.columns = tuple(columns)
+        self.optional = tuple(optional)
         self._offset = 0
         self._line = 0
         self._header: list[str] | None = None
@@ -243,7 +246,7 @@ class CsvTail:
                 raise InputDataError(f"{where}:{self._line}: malformed CSV: {err}") from err
             if self._header is None:
                 self._header = [h.strip() for h in fields]
-                check_header(where, self._header, self.columns)
+                check_header(where, self._header, self.columns, self.optional)
                 continue
             row = make_row(where, self._line, self._header, fields)
             if row is not None:

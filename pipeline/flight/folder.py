@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -57,6 +57,13 @@ from pipeline.flight.navigation import (
     resolve_projected_crs,
     resolve_working_crs,
 )
+from pipeline.flight.observation_rows import (
+    FrameRows,
+    ObservationGroup,
+    outside_tolerance_px,
+    outside_warning,
+    row_image_frame,
+)
 from pipeline.flight.schema import CameraConfig, FlightConfig, NavConfig, load_flight_config
 from seqat.calibration import SelfCalibration
 from seqat.errors import ConfigError, InputDataError
@@ -66,10 +73,6 @@ from seqat.types import FloatArray, Frame, PinholeCamera
 FULL_FRAME_DIAGONAL_MM = 43.2666
 #: Relative aspect-ratio difference still taken as "the same camera, resized".
 ASPECT_TOLERANCE = 2e-3
-#: Half a pixel: observed pixel centres lie in ``[-0.5, width - 0.5]`` (OpenCV convention).
-HALF_PIXEL = 0.5
-#: Observations up to this many sigma_image_px outside the image border are accepted.
-OUTSIDE_TOLERANCE_SIGMAS = 5.0
 #: A file with more than this share of its observations outside the image is refused.
 MAX_OUTSIDE_FRACTION = 0.5
 
@@ -526,20 +529,6 @@ class ObservationStats:
     warnings: tuple[str, ...] = ()
 
 
-@dataclass(frozen=True, kw_only=True, eq=False)
-class _Group:
-    """The contiguous observation rows of one frame: its image's, and the late observations
-    of earlier images that arrived with it (``frame`` column)."""
-
-    image_id: str
-    nav_row: int
-    point_ids: tuple[str, ...]
-    uv_px: FloatArray  # (k, 2) observed pixels
-    late_image_ids: tuple[str, ...] = ()
-    late_point_ids: tuple[str, ...] = ()
-    late_uv_px: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
-
-
 class FrameSource:
     """Lazy stream of :class:`Frame` objects in acquisition order.
 
@@ -613,134 +602,65 @@ class FrameSource:
                      nav_sigma=nav_sigma, point_ids=point_ids, uv_px=uv_px,
                      sigma_px=self._flight.config.sigma_image_px)
 
-    def _groups(self) -> Iterator[_Group]:
-        """Contiguous per-frame groups of ``observations.csv``, validated, in nav order.
+    def _groups(self) -> Iterator[ObservationGroup]:
+        """Contiguous per-frame groups of ``observations.csv``, validated, in nav order
+        (:class:`~pipeline.flight.observation_rows.FrameRows`).
 
         Without a ``frame`` column every row arrived with its own image (the frame = the
         image); with it, a row of an earlier image than its frame is a late observation."""
-        cam = self._flight.camera_config
-        done: dict[str, int] = {}  # finished frame -> last line of its rows
-        current: str | None = None
-        current_row = -1
-        point_line: dict[str, int] = {}
-        late_line: dict[str, dict[str, int]] = {}  # late image -> point -> line
-        uvs: list[tuple[float, float]] = []
-        late: list[tuple[str, str, float, float]] = []
-        last_line = 0
         nav_name = self._flight.config.nav.file
         left_out = {s.image for s in self._flight.skipped}  # nav.dropout: skip
         assert self._flight.observations_path is not None
-        tolerance = outside_tolerance_px(self._flight.config.sigma_image_px)
-        dropped, total, first = 0, 0, ""
+        outside: list[str] = []
+        current_row = [-1]
 
-        def group() -> _Group:
-            assert current is not None
-            return _Group(image_id=current, nav_row=current_row, point_ids=tuple(point_line),
-                          uv_px=np.asarray(uvs).reshape(-1, 2),
-                          late_image_ids=tuple(r[0] for r in late),
-                          late_point_ids=tuple(r[1] for r in late),
-                          late_uv_px=np.asarray([r[2:] for r in late]).reshape(-1, 2))
+        def open_frame(row: CsvRow, frame: str, image: str) -> int:
+            nav_row = self._nav_index.get(frame)
+            if nav_row is None:
+                field_name = "image" if frame == image else OBS_FRAME_COLUMN
+                raise row.error(f"field {field_name!r}: unknown image {frame!r} (not in "
+                                f"{nav_name})")
+            if nav_row < current_row[0]:
+                previous = self._flight.nav.image_ids[current_row[0]]
+                raise row.error(f"image {frame!r} comes after image {previous!r} but was "
+                                f"acquired before it ({nav_name}); rows must follow the "
+                                "acquisition order")
+            current_row[0] = nav_row
+            return nav_row
 
+        def check_late(row: CsvRow, image: str, frame: str, nav_row: int) -> None:
+            image_row = self._nav_index.get(image)
+            if image_row is None:
+                raise row.error(f"field 'image': unknown image {image!r} (not in {nav_name})")
+            if image_row >= nav_row:
+                raise row.error(f"late observation of image {image!r} in frame {frame!r}, "
+                                "which was not acquired after it (a row's frame is its image "
+                                "or a later one)")
+
+        rows = FrameRows(self._flight.camera_config,
+                         outside_tolerance_px(self._flight.config.sigma_image_px),
+                         open_frame=open_frame, check_late=check_late,
+                         on_outside=lambda err: outside.append(str(err)))
+        total = 0
         for row in read_csv(self._flight.observations_path, OBSERVATION_COLUMNS,
                             (OBS_FRAME_COLUMN,)):
             total += 1
-            image = row.ident("image")
-            frame = row.ident(OBS_FRAME_COLUMN) if OBS_FRAME_COLUMN in row.values else image
+            image, frame = row_image_frame(row)
             if (image in left_out and image not in self._nav_index) or (
                     frame in left_out and frame not in self._nav_index):
                 continue
-            if frame != current:
-                if current is not None:
-                    yield group()
-                    done[current] = last_line
-                if frame in done:
-                    raise row.error(f"rows of {'image' if frame == image else 'frame'} "
-                                    f"{frame!r} are not contiguous (its earlier rows end at "
-                                    f"line {done[frame]}); group rows by image (frame)")
-                nav_row = self._nav_index.get(frame)
-                if nav_row is None:
-                    field_name = "image" if frame == image else OBS_FRAME_COLUMN
-                    raise row.error(f"field {field_name!r}: unknown image {frame!r} (not in "
-                                    f"{nav_name})")
-                if nav_row < current_row:
-                    raise row.error(f"image {frame!r} comes after image {current!r} but was "
-                                    f"acquired before it ({nav_name}); rows must follow the "
-                                    "acquisition order")
-                current, current_row = frame, nav_row
-                point_line, uvs, late, late_line = {}, [], [], {}
-            last_line = row.line
-            if image != frame:  # a late observation of an earlier image
-                image_row = self._nav_index.get(image)
-                if image_row is None:
-                    raise row.error(f"field 'image': unknown image {image!r} (not in "
-                                    f"{nav_name})")
-                if image_row >= current_row:
-                    raise row.error(f"late observation of image {image!r} in frame {frame!r}, "
-                                    "which was not acquired after it (a row's frame is its "
-                                    "image or a later one)")
-            try:
-                point, u, v = observation_row(
-                    row, image, point_line if image == frame else late_line.setdefault(image, {}),
-                    cam, tolerance)
-            except PixelOutsideImage as err:
-                dropped += 1
-                first = first or str(err)
-                continue
-            if image == frame:
-                uvs.append((u, v))
-            else:
-                late.append((image, point, u, v))
+            group = rows.add(row)
+            if group is not None:
+                yield group
+        dropped, first = len(outside), (outside[0] if outside else "")
         self.outside = (dropped, total, first)
         if dropped > MAX_OUTSIDE_FRACTION * total:
             raise InputDataError(f"{self._flight.observations_path}: {dropped} of {total} "
                                  "observations lie outside the image (first: "
                                  f"{first}); the file does not fit the camera of the flight")
-        if current is not None:
-            yield group()
-
-
-class PixelOutsideImage(InputDataError):
-    """An observation further outside the image than the tolerance (:func:`observation_row`)."""
-
-
-def observation_row(row: CsvRow, image: str, point_line: dict[str, int],
-                    camera: CameraConfig, tolerance_px: float = 0.0) -> tuple[str, float, float]:
-    """Point id and pixel of an ``observations.csv`` row of ``image``, checked.
-
-    ``point_line`` (point -> line) holds the image's earlier rows; the row is added to it.
-    A pixel up to ``tolerance_px`` outside the image border is accepted as it is.
-
-    Raises
-    ------
-    InputDataError
-        A point observed twice in the image.
-    PixelOutsideImage
-        A pixel more than ``tolerance_px`` outside the image (the row is not added).
-    """
-    point = row.ident("point")
-    if point in point_line:
-        raise row.error(f"duplicate observation of point {point!r} in image {image!r} "
-                        f"(first at line {point_line[point]})")
-    u, v = row.number("x_px"), row.number("y_px")
-    lo = -HALF_PIXEL - tolerance_px
-    if not (lo <= u <= camera.width_px - lo and lo <= v <= camera.height_px - lo):
-        raise PixelOutsideImage(f"{row.path}:{row.line}: pixel ({u!r}, {v!r}) of point "
-                                f"{point!r} lies outside the {camera.width_px} x "
-                                f"{camera.height_px} px image")
-    point_line[point] = row.line
-    return point, u, v
-
-
-def outside_tolerance_px(sigma_image_px: float) -> float:
-    """How far outside the image border an observation is still accepted (5 sigma)."""
-    return OUTSIDE_TOLERANCE_SIGMAS * sigma_image_px
-
-
-def outside_warning(path: object, dropped: int, total: int, first: str) -> str:
-    """The warning of observations dropped for lying outside the image."""
-    return (f"{path}: {dropped} of {total} observation(s) lie more than "
-            f"{OUTSIDE_TOLERANCE_SIGMAS:g} sigma_image_px outside the image and were left out "
-            f"(first: {first})")
+        group = rows.close()
+        if group is not None:
+            yield group
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

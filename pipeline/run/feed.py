@@ -9,8 +9,10 @@ camera and its downlink would, with the
 partial-file convention of docs/formats.md (*Watched flights*):
 
 * the JPEG as ``images/<name>.part``, then renamed to ``images/<name>``;
-* an observations flight's rows of the image, then its ``nav.csv`` row, each appended as
-  whole lines (the text of the source files, unchanged) and flushed.
+* an observations flight's rows of the image's frame (its own observations, and the late
+  observations of earlier images that arrived with it: ``frame`` column), then its
+  ``nav.csv`` row, each appended as whole lines (the text of the source files, unchanged)
+  and flushed.
 """
 
 from __future__ import annotations
@@ -28,11 +30,13 @@ from pipeline.common.columns import (
     FLIGHT_YAML,
     IMAGES_DIR,
     NAV_GEODETIC_COLUMNS,
+    OBS_FRAME_COLUMN,
     TRUTH_DIR,
 )
-from pipeline.common.csvio import check_header
+from pipeline.common.csvio import CsvRow, decode_line, read_csv
 from pipeline.flight.folder import read_flight
 from pipeline.flight.nav_files import NAV_PROJECTED_COLUMNS, OBSERVATION_COLUMNS
+from pipeline.flight.observation_rows import row_image_frame
 from seqat.errors import ConfigError, InputDataError
 
 #: Images per second of ``seqat feed`` by default (the issue's real frame rate).
@@ -52,19 +56,27 @@ class FeedSummary:
     late_s: float  # largest delay behind the schedule
 
 
-def _lines_by_image(path: Path, columns: tuple[str, ...]) -> tuple[str, dict[str, list[str]]]:
-    """Header line and the data lines of each image (text as in the file, newline-ended)."""
-    text = path.read_text(encoding="utf-8")
-    lines = [line if line.endswith("\n") else line + "\n" for line in text.splitlines()]
-    if not lines:
-        raise InputDataError(f"{path}:1: empty file")
-    header = [h.strip() for h in lines[0].rstrip("\n").split(",")]
-    check_header(str(path), header, columns)
-    col = header.index("image")
+def _image_key(row: CsvRow) -> str:
+    return row.ident("image")
+
+
+def _frame_key(row: CsvRow) -> str:
+    return row_image_frame(row)[1]
+
+
+def _lines_by(path: Path, columns: tuple[str, ...], optional: tuple[str, ...] = (),
+              key: Callable[[CsvRow], str] = _image_key) -> tuple[str, dict[str, list[str]]]:
+    """Header line and the data lines of each image (``key``: an observations file's rows go
+    with their frame), text as in the file, newline-ended; rows read by :func:`read_csv`."""
+    try:
+        raw = path.read_bytes().splitlines(keepends=True)
+    except OSError as err:
+        raise InputDataError(f"{path}: cannot read: {err.strerror or err}") from err
+    lines = [decode_line(r, str(path), k).rstrip("\r\n") + "\n"
+             for k, r in enumerate(raw, start=1)]
     rows: dict[str, list[str]] = {}
-    for line in lines[1:]:
-        if line.strip():
-            rows.setdefault(line.split(",")[col].strip(), []).append(line)
+    for row in read_csv(path, columns, optional):
+        rows.setdefault(key(row), []).append(lines[row.line - 1])
     return lines[0], rows
 
 
@@ -121,12 +133,15 @@ def feed_flight(src_dir: Path | str, dst_dir: Path | str, *, rate_hz: float = DE
     if config.nav.source == "file":
         columns = NAV_PROJECTED_COLUMNS if config.nav.frame == "projected" else \
             NAV_GEODETIC_COLUMNS
-        header, nav_rows = _lines_by_image(src / config.nav.file, columns)
+        header, nav_rows = _lines_by(src / config.nav.file, columns)
         nav_dst.parent.mkdir(parents=True, exist_ok=True)
         nav_dst.write_text(header, encoding="utf-8")
     obs_dst = None
     if flight.observations_path is not None:
-        header, obs_rows = _lines_by_image(flight.observations_path, OBSERVATION_COLUMNS)
+        # a frame's rows (its late observations of earlier images with them) before its
+        # nav row, as the camera's downlink sends them
+        header, obs_rows = _lines_by(flight.observations_path, OBSERVATION_COLUMNS,
+                                     (OBS_FRAME_COLUMN,), _frame_key)
         obs_dst = dst / (config.observations or "observations.csv")
         obs_dst.write_text(header, encoding="utf-8")
     images_dst = dst / (config.images or IMAGES_DIR)

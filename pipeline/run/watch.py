@@ -38,8 +38,8 @@ import pyproj
 from rich.console import Console
 from rich.text import Text
 
-from pipeline.common.columns import FLIGHT_YAML, NAV_GEODETIC_COLUMNS
-from pipeline.common.csvio import CsvTail
+from pipeline.common.columns import FLIGHT_YAML, NAV_GEODETIC_COLUMNS, OBS_FRAME_COLUMN
+from pipeline.common.csvio import CsvRow, CsvTail
 from pipeline.common.outdir import claim_output_folder, output_errors, release_output_folder
 from pipeline.common.paths import file_problem
 from pipeline.common.strict_yaml import build_dataclass
@@ -47,12 +47,9 @@ from pipeline.common.tables import NavTable
 from pipeline.flight.camera import frame_camera
 from pipeline.flight.folder import (
     Flight,
-    PixelOutsideImage,
     camera_from_exif,
     check_image_size,
     geodetic_nav_eop,
-    observation_row,
-    outside_tolerance_px,
     read_truth,
 )
 from pipeline.flight.gcp import ODM_GCP_FILE
@@ -76,6 +73,12 @@ from pipeline.flight.navigation import (
     geodetic_to_eop,
     resolve_projected_crs,
     resolve_working_crs,
+)
+from pipeline.flight.observation_rows import (
+    FrameRows,
+    ObservationGroup,
+    outside_tolerance_px,
+    row_image_frame,
 )
 from pipeline.flight.schema import CameraConfig, FlightConfig, load_flight_config
 from pipeline.run.live_view import LiveEstimates
@@ -137,7 +140,9 @@ class WatchOptions:
 class Arrival:
     """One image whose input is complete, ready for its source's ``prepare``.
 
-    ``path`` for image flights; ``observed_px`` and ``point_ids`` for observations flights.
+    ``path`` for image flights; ``observed_px`` and ``point_ids`` for observations flights,
+    and the late observations of earlier images that arrived with the image (``frame``
+    column, docs/formats.md): ``late_image_ids``, ``late_point_ids``, ``late_observed_px``.
     ``ready_s`` is the wall-clock time the last of its inputs was complete.
     """
 
@@ -148,6 +153,9 @@ class Arrival:
     path: Path | None = None
     point_ids: tuple[str, ...] = ()
     observed_px: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((0, 2)))
+    late_image_ids: tuple[str, ...] = ()
+    late_point_ids: tuple[str, ...] = ()
+    late_observed_px: FloatArray = dataclasses.field(default_factory=lambda: np.zeros((0, 2)))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -273,10 +281,18 @@ class GrowingFlight:
         self._nav_checker = NavRowChecker(NAV_PROJECTED_COLUMNS if config.nav.frame ==
                                           "projected" else NAV_GEODETIC_COLUMNS)
         self._rows: list[_NavRow] = []
-        self._obs = (CsvTail(folder / config.observations, OBSERVATION_COLUMNS)
+        self._obs = (CsvTail(folder / config.observations, OBSERVATION_COLUMNS,
+                             (OBS_FRAME_COLUMN,))
                      if config.observations is not None else None)
-        self._groups: dict[str, tuple[dict[str, int], list[tuple[float, float]]]] = {}
-        self._current_group: str | None = None
+        # the same reader of the rows as seqat run's; a frame's group is complete at its
+        # nav row (closed then, or earlier by a row of the next frame: kept in _closed)
+        self._frame_rows = (FrameRows(self.camera, outside_tolerance_px(config.sigma_image_px),
+                                      open_frame=lambda row, frame, image: -1,
+                                      check_late=self._check_late,
+                                      on_outside=lambda err: self.warnings.append(
+                                          f"{err}; left out"))
+                            if self.camera is not None else None)
+        self._closed: dict[str, ObservationGroup] = {}
         self._images = (ImageWatcher(self.images_dir, set(done), wait_timeout_s)
                         if self.images_dir is not None and self.kind != "observations" else None)
         self._ready: dict[str, tuple[Path, float, float]] = {}  # image -> path, ready, seen
@@ -349,6 +365,7 @@ class GrowingFlight:
                 if self.crs is None:
                     self.crs = resolve_working_crs(self.config.crs, float(v[1]), float(v[0]),
                                                    source=self._source)
+                    self._make_flight()  # an observations flight: its camera is known
                 eop = geodetic_nav_eop(self.config, self.crs, v[None, :3], v[None, 3:])[0]
             else:
                 eop = np.concatenate([v[:3], np.radians(v[3:])])
@@ -357,28 +374,28 @@ class GrowingFlight:
         return True
 
     def _poll_observations(self) -> bool:
-        assert self._obs is not None and self.camera is not None
+        assert self._obs is not None and self._frame_rows is not None
         rows = self._obs.poll()
         for row in rows:
-            image = row.ident("image")
-            if image in self._journaled:
+            image, frame = row_image_frame(row)
+            if frame in self._journaled:
                 continue
-            if image != self._current_group:
-                if image in self._groups or image in self._done:
-                    raise row.error(f"rows of image {image!r} are not contiguous or arrive "
-                                    "after its nav row (an image's observation rows are "
-                                    "appended together, before its nav row)")
-                self._groups[image] = ({}, [])
-                self._current_group = image
-            point_line, uvs = self._groups[image]
-            try:
-                _, u, v = observation_row(row, image, point_line, self.camera,
-                                          outside_tolerance_px(self.config.sigma_image_px))
-            except PixelOutsideImage as err:  # left out (a streamed file: no share known)
-                self.warnings.append(f"{err}; left out")
-                continue
-            uvs.append((u, v))
+            if frame in self._done:
+                raise row.error(f"rows of {'image' if frame == image else 'frame'} {frame!r} "
+                                "are not contiguous or arrive after its nav row (a frame's "
+                                "observation rows, its late observations of earlier images "
+                                "included, are appended together, before its nav row)")
+            group = self._frame_rows.add(row)
+            if group is not None:
+                self._closed[group.image_id] = group
         return bool(rows)
+
+    def _check_late(self, row: CsvRow, image: str, frame: str, nav_row: int) -> None:
+        """A late row's image must have come before its frame: its nav row is in."""
+        if image not in self._done and all(r.image != image for r in self._rows):
+            raise row.error(f"field 'image': late observation of image {image!r} in frame "
+                            f"{frame!r}, whose nav row has not arrived before (a row's frame "
+                            "is its image or a later one)")
 
     def _ordered_arrivals(self, now: float) -> list[Arrival | SkippedImage]:
         """Nav-file order: each row's image (or observations), waiting for what is missing."""
@@ -386,12 +403,7 @@ class GrowingFlight:
         while self._rows:
             row = self._rows[0]
             if self.kind == "observations":
-                point_line, uvs = self._groups.pop(row.image, ({}, []))
-                if self._current_group == row.image:
-                    self._current_group = None
-                items.append(Arrival(image=row.image, time_s=row.time_s, nav_eop=row.eop,
-                                     ready_s=row.ready_s, point_ids=tuple(point_line),
-                                     observed_px=np.asarray(uvs, dtype=np.float64).reshape(-1, 2)))
+                items.append(self._observations_arrival(row))
             elif row.image in self._ready:
                 path, ready_s, _ = self._ready.pop(row.image)
                 items.append(self._image_arrival(row.image, path, max(ready_s, row.ready_s),
@@ -412,6 +424,19 @@ class GrowingFlight:
                 items.append(SkippedImage(image=image, reason=(
                     f"{path.name}: no row in {self.config.nav.file} after {self._wait:g} s")))
         return items
+
+    def _observations_arrival(self, row: _NavRow) -> Arrival:
+        """The image of nav row ``row`` with its frame's observation rows (none: no rows)."""
+        rows = self._frame_rows
+        assert rows is not None
+        group = rows.close() if rows.current == row.image else self._closed.pop(row.image, None)
+        if group is None:
+            return Arrival(image=row.image, time_s=row.time_s, nav_eop=row.eop,
+                           ready_s=row.ready_s)
+        return Arrival(image=row.image, time_s=row.time_s, nav_eop=row.eop,
+                       ready_s=row.ready_s, point_ids=group.point_ids, observed_px=group.uv_px,
+                       late_image_ids=group.late_image_ids,
+                       late_point_ids=group.late_point_ids, late_observed_px=group.late_uv_px)
 
     def _exif_arrivals(self) -> list[Arrival | SkippedImage]:
         """Nav in EXIF/XMP: each complete image in the order they completed."""
@@ -741,7 +766,10 @@ def _prepare(source: ObservationSource | ImageSource, item: Arrival,
         frame = Frame(image_id=item.image, nav_eop=item.nav_eop, nav_sigma=flight.nav_sigma,
                       point_ids=item.point_ids,
                       uv_px=flight.corrector.ideal_pixels(item.observed_px),
-                      sigma_px=flight.config.sigma_image_px)
-        return source.prepare(frame, item.observed_px, item.time_s, item.ready_s)
+                      sigma_px=flight.config.sigma_image_px,
+                      late_image_ids=item.late_image_ids, late_point_ids=item.late_point_ids,
+                      late_uv_px=flight.corrector.ideal_pixels(item.late_observed_px))
+        return source.prepare(frame, item.observed_px, item.time_s, item.ready_s,
+                              late_observed_px=item.late_observed_px)
     assert item.path is not None
     return source.prepare(item.image, item.path, item.nav_eop, item.time_s, item.ready_s)

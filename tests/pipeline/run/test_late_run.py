@@ -130,3 +130,29 @@ def test_a_version_1_journal_still_reads(autzen_run: Path, tmp_path: Path) -> No
     assert contents is not None and contents.images
     assert all(rec.frame.n_late == 0 and rec.late_observed_px.shape == (0, 2)
                for rec in contents.images)
+
+
+def test_late_observations_fit_the_true_cameras(autzen_run: Path) -> None:
+    """Each late ray is of its image and its point (the rendered flight's truth): every track
+    intersected from the true cameras, its late rays reproject as closely as its own ones
+    (docs/benchmarks.md, *Rendered check points after late observations*)."""
+    from pipeline.flight.camera import PixelCorrector, pinhole_camera
+    from pipeline.flight.folder import read_truth
+    from seqat.geometry import intersect_rays, project
+
+    flight = read_flight(AUTZEN)
+    truth = read_truth(AUTZEN)
+    assert truth is not None
+    eop = dict(zip(truth.eop.image_ids, truth.eop.eop, strict=True))
+    rows = _rows(autzen_run / "observations.csv")
+    points = {p: k for k, p in enumerate(dict.fromkeys(r["point"] for r in rows))}
+    pt = np.array([points[r["point"]] for r in rows])
+    ideal = PixelCorrector(camera=flight.camera_config).ideal_pixels(
+        np.array([[float(r["x_px"]), float(r["y_px"])] for r in rows]))
+    E = np.array([eop[r["image"]] for r in rows])
+    cam = pinhole_camera(flight.camera_config)
+    X, _ = intersect_rays(E, ideal, pt, len(points), cam)
+    residual = np.linalg.norm(project(E, X[pt], cam) - ideal, axis=1)
+    late = np.array([r["frame"] != r["image"] for r in rows])
+    assert late.sum() > 0 and np.isfinite(residual[late]).all()
+    assert np.median(residual[late]) < 0.3 and residual[late].max() < 2.0

@@ -207,3 +207,116 @@ def test_watch_without_flight_yaml_is_exit_2(tmp_path: Path) -> None:
     assert result.exit_code == 2
     assert result.stderr == (f"seqat: error: {tmp_path / FLIGHT_YAML}: no such file (seqat "
                              "watch needs flight.yaml from the start)\n")
+
+
+def _late_observations_flight(autzen_run: Path, tmp_path: Path) -> Path:
+    """The rendered flight as an observations flight: the tracked run's observations.csv,
+    whose ``frame`` column carries late observations of earlier images."""
+    flight = tmp_path / "late_flight"
+    flight.mkdir()
+    yaml = [line for line in (AUTZEN / FLIGHT_YAML).read_text().splitlines()
+            if not line.startswith(("images:", "lidar:", "checkpoints:"))]
+    (flight / FLIGHT_YAML).write_text("\n".join([*yaml, "observations: observations.csv"]) + "\n")
+    shutil.copy(AUTZEN / "nav.csv", flight / "nav.csv")
+    shutil.copy(autzen_run / "observations.csv", flight / "observations.csv")
+    return flight
+
+
+def test_watch_of_a_fed_flight_with_late_observations_equals_the_run(autzen_run: Path,
+                                                                     tmp_path: Path) -> None:
+    """seqat feed copies each frame's rows, its late ones included, before its nav row;
+    seqat watch reads the frame column as seqat run does: the same results."""
+    from pipeline.run.runner import run_flight
+
+    flight = _late_observations_flight(autzen_run, tmp_path)
+    ref = tmp_path / "run"
+    run_flight(flight, ref, progress=False)
+    late = json.loads((ref / "run.json").read_text())["totals"]["late"]["observations"]
+    assert late > 0
+    fed, out = tmp_path / "fed", tmp_path / "out"
+    feeder = _feed_in_background(flight, fed)
+    summary = watch_flight(fed, out, watch=QUICK, console=_quiet())
+    feeder.join()
+    assert summary.n_images == 12 and not summary.skipped
+    assert (fed / "observations.csv").read_bytes() == (flight / "observations.csv").read_bytes()
+    assert json.loads((out / "run.json").read_text())["totals"]["late"]["observations"] == late
+    assert_same_results(ref, out)
+
+
+def test_a_late_row_before_its_image_nav_row_is_an_error(autzen_run: Path,
+                                                          tmp_path: Path) -> None:
+    flight = _late_observations_flight(autzen_run, tmp_path)
+    nav = (flight / "nav.csv").read_text().splitlines(keepends=True)
+    obs = (flight / "observations.csv").read_text().splitlines(keepends=True)
+    # the first frame's rows, then a late row of img_0003 in frame img_0002 (not acquired yet)
+    first = [line for line in obs[1:] if line.endswith(",img_0001\n")]
+    late = "img_0003,t9999999,100.0,100.0,img_0002\n"
+    (flight / "nav.csv").write_text("".join(nav[:2]))
+    (flight / "observations.csv").write_text(obs[0] + "".join(first) + late)
+    grow = GrowingFlight(flight, load_flight_config(flight / FLIGHT_YAML), set(), 5.0)
+    with pytest.raises(InputDataError, match=r"^[^\n]*observations.csv:\d+: field 'image': "
+                       r"late observation of image 'img_0003' in frame 'img_0002'[^\n]*$"):
+        grow.poll(0.0)
+
+
+def test_feed_of_a_bad_frame_field_is_exit_2(autzen_run: Path, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+
+    flight = _late_observations_flight(autzen_run, tmp_path)
+    path = flight / "observations.csv"
+    lines = path.read_text().splitlines(keepends=True)
+    k = next(k for k, line in enumerate(lines) if line.endswith(",img_0002\n")
+             and line.startswith("img_0001,"))
+    lines[k] = lines[k].replace(",img_0002\n", ",img 0002\n")
+    path.write_text("".join(lines))
+    result = CliRunner().invoke(app, ["feed", str(flight), "--out", str(tmp_path / "fed")])
+    assert result.exit_code == 2
+    assert result.stderr.count("\n") == 1
+    assert f"observations.csv:{k + 1}: field 'frame'" in result.stderr
+
+
+def test_a_resumed_watch_takes_late_observations_of_journaled_images(autzen_run: Path,
+                                                                      tmp_path: Path) -> None:
+    """Stopped after img_0004: the late rows that img_0006 and img_0007 carry of images 2-4
+    (journaled by the first watch) are taken by the resumed one."""
+    from pipeline.run.runner import run_flight
+
+    flight = _late_observations_flight(autzen_run, tmp_path)
+    ref = tmp_path / "run"
+    run_flight(flight, ref, progress=False)
+    fed, out = tmp_path / "fed", tmp_path / "out"
+    feeder = _feed_in_background(flight, fed)
+    stop = threading.Event()
+
+    def stop_after_4(live: ImageLive, update: ImageUpdate) -> None:
+        if update.index == 3:
+            stop.set()
+
+    first = watch_flight(fed, out, watch=QUICK, console=_quiet(), stop=stop,
+                         on_image=stop_after_4)
+    feeder.join()
+    assert first.n_images == 4
+    second = watch_flight(fed, out, watch=QUICK, console=_quiet(), resume=True)
+    assert second.replayed == 4 and second.n_images == 12
+    assert_same_results(ref, out)
+
+
+def test_watch_of_a_bad_frame_field_is_exit_2(autzen_run: Path, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+
+    flight = _late_observations_flight(autzen_run, tmp_path)
+    nav = (flight / "nav.csv").read_text().splitlines(keepends=True)
+    obs = (flight / "observations.csv").read_text().splitlines(keepends=True)
+    first = [line for line in obs[1:] if line.endswith(",img_0001\n")]
+    (flight / "nav.csv").write_text("".join(nav[:2]))
+    (flight / "observations.csv").write_text(
+        obs[0] + "".join(first) + "img_0001,t9999999,100.0,100.0,img 0002\n")
+    result = CliRunner().invoke(app, ["watch", str(flight), "--out", str(tmp_path / "o"),
+                                      "--idle-timeout-s", "1"])
+    assert result.exit_code == 2
+    assert result.stderr.count("\n") == 1
+    assert f"observations.csv:{len(first) + 2}: field 'frame'" in result.stderr
