@@ -31,7 +31,6 @@ from pipeline.flight.dropout import PoseResection, resect_from_known
 from pipeline.flight.folder import Flight, ObservationStats
 from pipeline.flight.inputs import SkippedImage
 from pipeline.run.resection import Resection, resect_attitude
-from pipeline.tracking.detect import FeatureDetector, Features
 from pipeline.tracking.options import TrackerOptions
 from pipeline.tracking.tracker import Tracker, TrackerState, read_gray_image
 from seqat.errors import InputDataError
@@ -193,9 +192,7 @@ class PreparedFrame:
     rejected : int
         Observations left out because they contradict the resection.
     prep_ms : float
-        Reading, tracking and resection, milliseconds, in turn (a watch's read-ahead reads
-        and detects in another thread: then its ``tracking`` ``read_ms`` and ``detect_ms``
-        are not part of it).
+        Reading, tracking and resection, milliseconds.
     ready_s : float or None
         Wall-clock time (``time.time()``) at which the image's input was complete (watch
         mode: the file's modification time), for the end-to-end latency.
@@ -318,31 +315,6 @@ def read_tracker_image(path: Path, tracker: Tracker, width_px: int, height_px: i
     return image
 
 
-@dataclass(frozen=True, eq=False)
-class ReadImage:
-    """An image read (and its features detected) ahead of its turn: the gray image and the
-    milliseconds reading took, or the error that left it unreadable."""
-
-    gray: np.ndarray | None
-    read_ms: float
-    features: Features | None
-    error: InputDataError | None = None
-
-
-def read_and_detect(path: Path, tracker: Tracker, width_px: int, height_px: int,
-                    detector: FeatureDetector) -> ReadImage:
-    """:func:`read_tracker_image` and ``detector`` on it (the read-ahead's work)."""
-    t0 = time.perf_counter()
-    try:
-        gray = read_tracker_image(path, tracker, width_px, height_px)
-    except InputDataError as err:
-        return ReadImage(gray=None, read_ms=0.0, features=None, error=err)
-    read_ms = (time.perf_counter() - t0) * 1e3
-    if gray.dtype != np.uint8 or gray.ndim != 2:
-        return ReadImage(gray=gray, read_ms=read_ms, features=None)  # the tracker says why
-    return ReadImage(gray=gray, read_ms=read_ms, features=detector.detect(gray))
-
-
 class ImageSource(_InitialisedSource):
     """Frames of an image flight: read, track, emit the image's observations.
 
@@ -373,47 +345,25 @@ class ImageSource(_InitialisedSource):
                                float(nav.times_s[row]), nav_sigma=nav_sigma,
                                dropout=self._flight.is_dropout(row))
 
-    def read_ahead(self, path: Path, detector: FeatureDetector) -> ReadImage:
-        """Read ``path`` and detect its features with ``detector`` (one made by
-        :meth:`detector`, used by one thread): what :meth:`prepare` does first, given to it
-        as ``ahead``. Needs nothing of the tracker's state: a watch does it for the next
-        image in a thread while the current one is adjusted."""
-        cam = self._flight.camera_config
-        return read_and_detect(path, self._tracker, cam.width_px, cam.height_px, detector)
-
-    def detector(self) -> FeatureDetector:
-        """A new detector equal to the tracker's (for :meth:`read_ahead` in another thread)."""
-        return FeatureDetector(self.tracking_options, self._tracker.working_size_px)
-
     def prepare(self, image_id: str, path: Path, nav_eop: FloatArray, time_s: float,
                 ready_s: float | None = None, *, nav_sigma: FloatArray | None = None,
-                dropout: bool = False, ahead: ReadImage | None = None
-                ) -> PreparedFrame | SkippedImage:
+                dropout: bool = False) -> PreparedFrame | SkippedImage:
         """Read and track one image; resect its attitude and drop what contradicts it. A
         dropout (``dropout``; ``nav_sigma`` inf where the nav is missing) is resected in
-        6 DoF on the known points instead, or skipped. ``ahead``: the image already read
-        and its features detected (:meth:`read_ahead`)."""
+        6 DoF on the known points instead, or skipped."""
         flight = self._flight
         cam = flight.camera_config
         t0 = time.perf_counter()
-        if ahead is None:
-            try:
-                gray = read_tracker_image(path, self._tracker, cam.width_px, cam.height_px)
-            except InputDataError as err:  # corrupt image data: this image only is left out
-                skip = SkippedImage(image=image_id, reason=str(err))
-                self.skipped.append(skip)
-                return skip
-            read_ms, features = (time.perf_counter() - t0) * 1e3, None
-        elif ahead.error is not None or ahead.gray is None:
-            skip = SkippedImage(image=image_id, reason=str(ahead.error))
+        try:
+            gray = read_tracker_image(path, self._tracker, cam.width_px, cam.height_px)
+        except InputDataError as err:  # corrupt image data: this image only is left out
+            skip = SkippedImage(image=image_id, reason=str(err))
             self.skipped.append(skip)
             return skip
-        else:
-            gray, read_ms, features = ahead.gray, ahead.read_ms, ahead.features
+        read_ms = (time.perf_counter() - t0) * 1e3
         if nav_sigma is None:
             nav_sigma = flight.nav_sigma
-        tracked = self._tracker.add_image(image_id, gray, nav_eop, self._init.ground_z,
-                                          features)
+        tracked = self._tracker.add_image(image_id, gray, nav_eop, self._init.ground_z)
         observed: FloatArray = np.asarray(tracked.uv_px, dtype=np.float64).reshape(-1, 2)
         late_observed = np.asarray(tracked.late_uv_px, dtype=np.float64).reshape(-1, 2)
         frame = Frame(image_id=image_id, nav_eop=nav_eop, nav_sigma=nav_sigma,

@@ -82,7 +82,6 @@ from pipeline.flight.observation_rows import (
 )
 from pipeline.flight.schema import CameraConfig, FlightConfig, load_flight_config
 from pipeline.run.live_view import LiveEstimates
-from pipeline.run.readahead import ReadAhead
 from pipeline.run.runner import (
     EstimatorConfig,
     Method,
@@ -660,7 +659,6 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
     paths = ImagePaths(grow.images_dir)
     made: list[ImageListener] = []
     estimates: list[LiveEstimates] = []
-    ahead: ReadAhead | None = None
     try:
         if on_claimed is not None:
             on_claimed(out)
@@ -707,7 +705,7 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
                 items, activity = grow.poll(now)
                 if activity:
                     last_activity = now
-                for k, item in enumerate(items):
+                for item in items:
                     if stop.is_set():
                         break  # not adjusted, not skipped: a resumed watch takes them
                     if isinstance(item, SkippedImage):
@@ -719,14 +717,9 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
                     if session is None:
                         session, source = start()
                     assert source is not None
-                    if ahead is None and isinstance(source, ImageSource):
-                        ahead = ReadAhead(source)
                     if item.path is not None:
                         paths[item.image] = item.path
-                    if ahead is not None:  # this image and the next: read while adjusting
-                        ahead.schedule([a.path for a in items[k:] if isinstance(a, Arrival)
-                                        and a.path is not None])
-                    prepared = _prepare(source, item, grow, ahead)
+                    prepared = _prepare(source, item, grow)
                     if isinstance(prepared, SkippedImage):  # unreadable image data
                         journal.append_skip(prepared)
                         skipped.append(prepared)
@@ -751,8 +744,6 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
         solution = session.finish()
     finally:
         journal.close()
-        if ahead is not None:
-            ahead.close()
         for listener in (*made, *estimates):
             close = getattr(listener, "close", None)
             if close is not None:
@@ -767,8 +758,8 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
                        t_start=t_start, mode="watch", stopped=stopped)
 
 
-def _prepare(source: ObservationSource | ImageSource, item: Arrival, grow: GrowingFlight,
-             ahead: ReadAhead | None) -> PreparedFrame | SkippedImage:
+def _prepare(source: ObservationSource | ImageSource, item: Arrival,
+             grow: GrowingFlight) -> PreparedFrame | SkippedImage:
     flight = grow.flight
     assert flight is not None
     if isinstance(source, ObservationSource):
@@ -781,5 +772,4 @@ def _prepare(source: ObservationSource | ImageSource, item: Arrival, grow: Growi
         return source.prepare(frame, item.observed_px, item.time_s, item.ready_s,
                               late_observed_px=item.late_observed_px)
     assert item.path is not None
-    return source.prepare(item.image, item.path, item.nav_eop, item.time_s, item.ready_s,
-                          ahead=None if ahead is None else ahead.take(item.path))
+    return source.prepare(item.image, item.path, item.nav_eop, item.time_s, item.ready_s)

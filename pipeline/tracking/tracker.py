@@ -71,7 +71,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.tracking.decode import jpeg_scan_problem
-from pipeline.tracking.detect import FeatureDetector, Features
 from pipeline.tracking.late import emit_late, feature_sites, late_candidates, pair_ties
 from pipeline.tracking.matching import NewImageMatcher, ratio_matches
 from pipeline.tracking.options import MIN_MODEL_POINTS, TrackerOptions
@@ -92,6 +91,12 @@ MIN_RAY_DEPRESSION_RAD = math.radians(5.0)
 #: A footprint corner farther than this multiple of the height above the plane counts as
 #: horizon too (an oblique corner would otherwise span kilometres).
 MAX_FOOTPRINT_RANGE_FACTOR = 20.0
+#: OpenCV's SIFT defaults (Lowe 2004): layers per octave, edge threshold, base blur.
+SIFT_OCTAVE_LAYERS = 3
+SIFT_EDGE_THRESHOLD = 10.0
+SIFT_SIGMA = 1.6
+#: ORB pyramid scale factor (OpenCV's default).
+ORB_SCALE_FACTOR = 1.2
 #: Digits of the point id counter (``t0000001``).
 POINT_ID_DIGITS = 7
 #: Image sizes accepted: gray (H, W) or 3-channel BGR (H, W, 3).
@@ -274,7 +279,16 @@ class Tracker:
                           and camera.width_px // f >= w and camera.height_px // f >= h))
         #: Full / working scale along u and v.
         self.scale_uv = (camera.width_px / w, camera.height_px / h)
-        self._detector = FeatureDetector(options, self.working_size_px)
+        if options.detector == "sift":
+            # precise upscale: without it OpenCV's SIFT keypoints are 0.25 px (working
+            # resolution) right of and below the true position (its doubled first octave is
+            # resampled centre-aligned, then halved corner-aligned).
+            self._detector = cv2.SIFT_create(
+                options.max_features, SIFT_OCTAVE_LAYERS, options.sift_contrast_threshold,
+                SIFT_EDGE_THRESHOLD, SIFT_SIGMA, cv2.CV_8U, True)
+        else:
+            self._detector = cv2.ORB_create(nfeatures=options.max_features,
+                                            scaleFactor=ORB_SCALE_FACTOR)
         if options.opencv_threads > 0:
             cv2.setNumThreads(options.opencv_threads)
         self._held: list[HeldImage] = []
@@ -328,7 +342,7 @@ class Tracker:
 
     # ----------------------------------------------------------------------------------------
     def add_image(self, image_id: str, image: NDArray[np.uint8], nav_eop: FloatArray,
-                  ground_z_m: float | None, features: Features | None = None) -> TrackedImage:
+                  ground_z_m: float | None) -> TrackedImage:
         """Detect, match and track one new image.
 
         Parameters
@@ -345,9 +359,6 @@ class Tracker:
         ground_z_m : float or None
             Current terrain height estimate (world Z, metres); None before one exists, then
             ``Z - default_height_above_ground_m`` of this image is used.
-        features : Features, optional
-            ``image``'s features, detected ahead (:class:`FeatureDetector` with this
-            tracker's options and working size); None: detected here.
 
         Returns
         -------
@@ -359,10 +370,9 @@ class Tracker:
         InputDataError
             Wrong image size, type or channels; non-finite nav; an image id already held.
         """
+        t0 = time.perf_counter()
         nav = self._check_input(image_id, image, nav_eop)
-        if features is None:
-            features = self._detector.detect(image)
-        kp_work, desc, response = features.keypoints, features.descriptors, features.response
+        kp_work, desc, response = self._detect(image)
         n_detected = len(kp_work)
         t1 = time.perf_counter()
 
@@ -419,8 +429,7 @@ class Tracker:
             candidates=tuple(c.held.image_id for c in candidates),
             pairs_matched=n_pairs, matches=n_matches, inliers=n_inliers, new_tracks=n_new,
             extended_tracks=n_ext, split_conflicts=n_conflicts,
-            detect_ms=features.detect_ms, match_ms=1e3 * (t2 - t1),
-            total_ms=1e3 * (t3 - t1) + features.detect_ms,
+            detect_ms=1e3 * (t1 - t0), match_ms=1e3 * (t2 - t1), total_ms=1e3 * (t3 - t0),
             late=len(late_out))
         return TrackedImage(image_id=image_id, point_ids=ids, uv_px=uv_full, stats=stats,
                             late_image_ids=tuple(h for h, _, _ in late_out),
@@ -450,6 +459,25 @@ class Tracker:
         if any(h.image_id == image_id for h in self._held):
             raise InputDataError(f"image {image_id!r}: added twice")
         return nav
+
+    def _detect(self, image: NDArray[np.uint8]) -> tuple[NDArray[np.float32], NDArray[np.uint8],
+                                                         FloatArray]:
+        """Gray working copy -> keypoints (n, 2) float32, descriptors (n, d) uint8, responses."""
+        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        if self.working_size_px != (gray.shape[1], gray.shape[0]):
+            gray = cv2.resize(gray, self.working_size_px, interpolation=cv2.INTER_AREA)
+        keypoints, desc = self._detector.detectAndCompute(gray, None)
+        n_bytes = 128 if self.options.detector == "sift" else 32
+        if desc is None or len(keypoints) == 0:
+            return np.zeros((0, 2), np.float32), np.zeros((0, n_bytes), np.uint8), np.zeros(0)
+        kp = np.array([k.pt for k in keypoints], dtype=np.float64).reshape(-1, 2)
+        response = np.array([k.response for k in keypoints], dtype=np.float64)
+        if self.options.detector == "orb":
+            # ORB reports a level-l corner at x_l * s_l; the level was resampled centre-aligned
+            # (cv2.resize), so the pixel is (x_l + 0.5) s_l - 0.5: add 0.5 (s_l - 1).
+            level = np.array([k.octave for k in keypoints], dtype=np.float64)
+            kp += 0.5 * (ORB_SCALE_FACTOR**level - 1.0)[:, None]
+        return kp.astype(np.float32), np.ascontiguousarray(desc, dtype=np.uint8), response
 
     # ----------------------------------------------------------------------------------------
     def _footprint(self, nav: FloatArray, plane_z: float) -> NDArray[np.float32] | None:
