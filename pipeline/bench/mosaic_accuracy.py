@@ -94,7 +94,7 @@ def mosaic_shifts(mosaic_path: Path | str, point_ids: tuple[str, ...], xy_m: Flo
         t = src.transform
         pixel = float(t.a)
         for pid, (x, y) in zip(point_ids, xy, strict=True):
-            col, row = ~t * (x, y)
+            col, row = ~t @ (x, y)
             c0, r0 = int(math.floor(col)) - half, int(math.floor(row)) - half
             if c0 < 0 or r0 < 0 or c0 + window_cells > src.width or r0 + window_cells > src.height:
                 skipped.append(pid)
@@ -110,7 +110,7 @@ def mosaic_shifts(mosaic_path: Path | str, point_ids: tuple[str, ...], xy_m: Flo
             m = SEARCH_CELLS
             cc, rr = np.meshgrid(c0 - m + 0.5 + np.arange(window_cells + 2 * m),
                                  r0 - m + 0.5 + np.arange(window_cells + 2 * m))
-            gx, gy = t * (cc, rr)
+            gx, gy = t @ (cc, rr)
             tx, ty = texture.to_pixel(np.asarray(gx).ravel(), np.asarray(gy).ravel())
             ref = cv2.remap(texture.image, np.asarray(tx, np.float32).reshape(cc.shape),
                             np.asarray(ty, np.float32).reshape(cc.shape), cv2.INTER_LINEAR)
