@@ -416,6 +416,8 @@ class DepartureMixin:
             self._departures[r] = None
             r += 1
         self._first_record = r
+        # rescues that only records now finalised were made before (flat memory)
+        self._rescues = [(n, k) for n, k in self._rescues if n > r]
         if self._sink is not None:
             gone = {k[1] for k in old if k[0] == "p"}
             self._gp_order = [p for p in self._gp_order if p not in gone]
