@@ -33,6 +33,7 @@ from seqat.window import (
     Key,
     correlations_from_block,
     first_over_threshold,
+    key_offsets,
     key_size,
     keys_of,
 )
@@ -58,9 +59,7 @@ def leaving_conditional(L_ff: FloatArray, L_fs: FloatArray, leave_keys: list[Key
     instead of the O(|F|^3) of a dense inverse and the O(|F|^2 |S|) of the gain's product.
     A leaving block the elimination refuses (a point with next to no information) takes
     the dense inverse, which names it if it is not positive definite."""
-    sizes = np.array([key_size(k) for k in leave_keys], dtype=np.int64)
-    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-    gp = np.array([a for k, a in zip(leave_keys, starts, strict=True)
+    gp = np.array([a for k, a in zip(leave_keys, key_offsets(leave_keys), strict=True)
                    if k[0] == "p" and k not in coupled], dtype=np.int64)
     if gp.size:
         try:
@@ -88,11 +87,6 @@ class Departure:
     gain: FloatArray  # (|F|, |W|)
     conditional: FloatArray  # (|F|, |F|) Q_F|W = L_FF^-1
     at: int  # index of the image before which F left
-
-
-def dep_offsets(keys: tuple[Key, ...]) -> list[int]:
-    """Offset of each key in a record's stacked values."""
-    return [0, *np.cumsum([key_size(k) for k in keys])[:-1].tolist()]
 
 
 class DepartureMixin:
@@ -181,7 +175,7 @@ class DepartureMixin:
             if any(last_rescue.get(k, 0) > r for k in dep.staying):
                 x_w = np.concatenate([value[k] if last_rescue.get(k, 0) <= r else
                                       dep.x_staying[o : o + key_size(k)]
-                                      for k, o in zip(dep.staying, dep_offsets(dep.staying),
+                                      for k, o in zip(dep.staying, key_offsets(dep.staying),
                                                       strict=True)])
             else:
                 x_w = np.concatenate([value[k] for k in dep.staying])
@@ -608,8 +602,7 @@ class DepartureMixin:
         for rec, reopened in by_record.items():
             dep = self._departures[rec]
             sizes = {k: key_size(k) for k in dep.leaving}
-            starts = dict(zip(dep.leaving, np.cumsum([0] + list(sizes.values()))[:-1],
-                              strict=True))
+            starts = dict(zip(dep.leaving, key_offsets(dep.leaving), strict=True))
             chosen = set(reopened)
             rest = [k for k in dep.leaving if k not in chosen]
             r_idx = np.concatenate([starts[k] + np.arange(sizes[k]) for k in reopened])

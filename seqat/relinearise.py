@@ -165,10 +165,11 @@ class RelinearisationMixin:
                 if not np.all(np.isfinite(X[0])):
                     break
                 cand = X[0]
-            if robust_cost(u2(cand)[0], k) < robust_cost(u2(start)[0], k):
+            u2_cand = u2(cand)[0]
+            if robust_cost(u2_cand, k) < robust_cost(u2(start)[0], k):
                 rescues.append((len(self._departures), ("p", int(p))))
                 x[p_idx[rows[0]]] = cand
-                wf[rows] = f.w0[rows] * robust_weight(u2(cand)[0], k)
+                wf[rows] = f.w0[rows] * robust_weight(u2_cand, k)
                 self.rescued.append(self._point_ids[int(p)])
         return wf
 

@@ -12,7 +12,7 @@ cofactor) matrix with their block layout (docs/algorithm.md, *Engines*).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,6 +41,11 @@ _SIZES = {"e": EOP_SIZE, "p": GP_SIZE}
 def key_size(key: Key) -> int:
     """Number of parameters of a key's block."""
     return _SIZES.get(key[0], key[1])
+
+
+def key_offsets(keys: Sequence[Key]) -> list[int]:
+    """Offset of each key's block in the keys' stacked values."""
+    return [0, *np.cumsum([key_size(k) for k in keys])[:-1].tolist()]
 
 
 def eop_correlations(Q: FloatArray, eop_offsets: np.ndarray, last_offset: int) -> FloatArray:
