@@ -185,6 +185,24 @@ def parse_method(method: str) -> Method:
     return Method(choice("--method", method, (m.value for m in Method)))
 
 
+def parse_budget(value: str) -> float | str | None:
+    """``seqat watch --budget-ms``: ``keep-up``, ``off`` (None) or a number of ms > 0."""
+    from pipeline.run.runner import KEEP_UP
+    from seqat.errors import ConfigError
+
+    text = value.strip().lower()
+    if text in (KEEP_UP, "off"):
+        return None if text == "off" else KEEP_UP
+    try:
+        ms = float(text)
+    except ValueError:
+        ms = float("nan")
+    if not (ms > 0 and ms < float("inf")):
+        raise ConfigError(f"--budget-ms: expected keep-up, off or a number of ms > 0, "
+                          f"got {value!r}")
+    return ms
+
+
 @app.command()
 @guarded
 def watch(
@@ -195,7 +213,11 @@ def watch(
     threshold: ThresholdOption = None,
     initial_images: InitialImagesOption = None,
     options: EstimatorOptionsFile = None,
-    budget_ms: BudgetOption = None,
+    budget_ms: Annotated[str, typer.Option(
+        "--budget-ms", help="seq-r: processing budget per image (reading and tracking + "
+        "update): N ms; keep-up (default): the interval at which the images arrive, and no "
+        "backlog; off. Over it the window threshold tightens and the tracker detects fewer "
+        "features.")] = "keep-up",
     idle_timeout_s: Annotated[float | None, typer.Option(
         "--idle-timeout-s", "--idle-timeout", help="Stop after this many seconds without new "
         "input (default: until Ctrl-C).")] = None,
@@ -245,6 +267,7 @@ def watch(
     if stop_sigma_cm is not None and not (math.isfinite(stop_sigma_cm) and stop_sigma_cm > 0):
         raise ConfigError(f"--stop-sigma-cm: expected a number > 0, got {stop_sigma_cm!r}")
     how = parse_method(method)
+    budget = parse_budget(budget_ms)
     make_listeners = None
     if ortho:
         from pipeline.ortho.live import watch_ortho_factory
@@ -253,7 +276,7 @@ def watch(
     with watch_server(serve, host, serve_in) as on_claimed:
         summary = watch_flight(flight, out, method=how, options_path=options,
                                threshold=threshold, initial_images=initial_images,
-                               budget_ms=budget_ms, resume=resume,
+                               budget_ms=budget, resume=resume,
                                watch=WatchOptions(idle_timeout_s=idle_timeout_s,
                                                   wait_timeout_s=wait_timeout_s, poll_s=poll_s),
                                make_listeners=make_listeners, on_claimed=on_claimed,

@@ -322,17 +322,28 @@ def _live_section(live: LiveOperation) -> list[str]:
         rows.append(("end-to-end latency: input complete → estimate (ms)",
                      live.latency_ms_median, live.latency_ms_p95, live.latency_ms_max))
     parts.append(_table(["", "median", "p95", "max"], rows, digits=1))
-    if live.budget_ms is None:
+    if live.budget_mode is None:
         return parts
-    parts.append(f"<p>Latency budget {live.budget_ms:g} ms per image: "
-                 f"{live.images_over_budget} image(s) over it; final Seq-R threshold "
-                 f"{live.final_threshold:g}.</p>")
+    features = ("" if live.final_features is None
+                else f"; final tracker features {live.final_features}")
+    if live.budget_mode == "keep-up":
+        parts.append("<p>Latency budget: keep up with the arrivals"
+                     + ("" if live.budget_ms is None else
+                        f" (last interval {live.budget_ms:.0f} ms)")
+                     + f": {live.images_over_budget} image(s) over it; final Seq-R threshold "
+                     f"{live.final_threshold:g}{features}.</p>")
+    else:
+        parts.append(f"<p>Latency budget {live.budget_ms:g} ms per image: "
+                     f"{live.images_over_budget} image(s) over it; final Seq-R threshold "
+                     f"{live.final_threshold:g}{features}.</p>")
     if live.threshold_changes:
-        parts.append(_table(["after image", "threshold", "measured (ms)", "why"], [
+        parts.append(_table(["after image", "threshold", "features", "measured (ms)", "why"], [
             (e["image"], f"{e['old_threshold']:g} → {e['new_threshold']:g}",
+             "" if e.get("new_features") is None or e.get("new_features") == e.get(
+                 "old_features") else f"{e['old_features']} → {e['new_features']}",
              e["measured_ms"], e["reason"]) for e in live.threshold_changes], digits=1))
     else:
-        parts.append("<p>The threshold never changed.</p>")
+        parts.append("<p>The dials never changed.</p>")
     return parts
 
 

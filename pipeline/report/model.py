@@ -159,8 +159,9 @@ class LiveOperation:
     """How the main run kept up (``run.json`` ``mode``, ``images[].live``, ``latency_budget``).
 
     ``processing_ms_*``: tracking + update per image; ``latency_ms_*``: input complete ->
-    estimate (watch mode only, else None); ``threshold_changes``: the latency budget's events
-    (image, old and new threshold, measured ms, reason).
+    estimate (watch mode only, else None); ``budget_mode``: ``fixed``, ``keep-up`` or None (no
+    budget); ``threshold_changes``: the latency budget's events (image, old and new threshold
+    and features, measured ms, reason).
     """
 
     mode: str
@@ -171,9 +172,11 @@ class LiveOperation:
     latency_ms_median: float | None
     latency_ms_p95: float | None
     latency_ms_max: float | None
+    budget_mode: str | None
     budget_ms: float | None
     images_over_budget: int | None
     final_threshold: float | None
+    final_features: int | None
     threshold_changes: tuple[Mapping[str, object], ...]
 
 
@@ -443,7 +446,9 @@ def live_operation(record: Mapping[str, object]) -> LiveOperation | None:
         processing_ms_p95=float(np.percentile(proc, 95)), processing_ms_max=float(proc.max()),
         latency_ms_median=stat(lat, 50), latency_ms_p95=stat(lat, 95),
         latency_ms_max=stat(lat, None),
+        budget_mode=str(budget.get("mode", "fixed")) if isinstance(budget, dict) else None,
         budget_ms=budget["budget_ms"] if isinstance(budget, dict) else None,
+        final_features=budget.get("final_features") if isinstance(budget, dict) else None,
         images_over_budget=budget["images_over_budget"] if isinstance(budget, dict) else None,
         final_threshold=budget["final_threshold"] if isinstance(budget, dict) else None,
         threshold_changes=tuple(budget["events"]) if isinstance(budget, dict) else ())

@@ -232,22 +232,33 @@ def _progress(console: Console, enabled: bool) -> Progress:
                     transient=True, disable=not (enabled and console.is_terminal))
 
 
-def make_budget(budget_ms: float | None, method: Method,
+#: ``budget_ms`` of :func:`make_budget`: keep up with the arrivals (``seqat watch``'s default).
+KEEP_UP = "keep-up"
+
+
+def make_budget(budget_ms: float | str | None, method: Method,
                 options: SequentialOptions | SimOptions) -> LatencyBudget | None:
-    """The latency budget of ``--budget-ms`` (Seq-R only), or None.
+    """The latency budget (:mod:`pipeline.run.budget`): ``--budget-ms`` N (Seq-R only),
+    :data:`KEEP_UP` (Seq-R; other methods have no dial to turn: none), or None.
 
     Raises
     ------
     ConfigError
-        ``--budget-ms`` with another method than seq-r, or not positive.
+        ``--budget-ms`` N with another method than seq-r, or not positive.
     """
     if budget_ms is None:
         return None
-    if method is not Method.SEQ_R or not isinstance(options, SequentialOptions):
+    seq_r = method is Method.SEQ_R and isinstance(options, SequentialOptions)
+    if budget_ms == KEEP_UP:
+        if not seq_r:
+            return None
+        budget_ms = None
+    elif not seq_r:
         raise ConfigError(f"--budget-ms applies to --method seq-r (it tightens the window "
                           f"threshold), not --method {method.value}")
-    assert options.correlation_threshold is not None
-    return LatencyBudget(budget_ms, options.correlation_threshold)
+    assert isinstance(options, SequentialOptions) and options.correlation_threshold is not None
+    return LatencyBudget(None if budget_ms is None else float(budget_ms),
+                         options.correlation_threshold)
 
 
 def run_fingerprint(flight_dir: Path, method: Method, options: SequentialOptions | SimOptions,

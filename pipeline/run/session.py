@@ -65,6 +65,8 @@ class FrameFeedback(Protocol):
 
     def tracker_state(self) -> TrackerState | None: ...
 
+    def set_max_features(self, features: int) -> None: ...
+
 
 @dataclass(frozen=True, kw_only=True)
 class ImageLive:
@@ -152,6 +154,8 @@ class RunSession:
         self.on_image = on_image
         if budget is not None:
             _set_threshold(estimator, budget.threshold)
+            opts = source.tracking_options
+            budget.track_features(None if opts is None else opts.max_features)
         self.updates: list[ImageUpdate] = []
         self.live: list[ImageLive] = []
         self.tracking: list[Mapping[str, object]] = []
@@ -175,15 +179,17 @@ class RunSession:
         frame = prepared.frame
         threshold = _threshold(self.estimator)
         update = self._update(frame)
-        event: BudgetEvent | None = None
-        if self.budget is not None:
-            event = self.budget.after_image(frame.image_id, update.stage,
-                                            prepared.prep_ms + update.update_ms)
-            if event is not None:
-                _set_threshold(self.estimator, event.new_threshold)
-        processing_ms = prepared.prep_ms + (time.perf_counter() - t0) * 1e3
         latency = (None if prepared.ready_s is None
                    else (time.time() - prepared.ready_s) * 1e3)
+        event: BudgetEvent | None = None
+        if self.budget is not None:
+            self.budget.arrived(prepared.ready_s)
+            event = self.budget.after_image(frame.image_id, update.stage,
+                                            prepared.prep_ms + update.update_ms,
+                                            tracking_ms=prepared.prep_ms, latency_ms=latency)
+            if event is not None:
+                self._apply(event)
+        processing_ms = prepared.prep_ms + (time.perf_counter() - t0) * 1e3
         live = ImageLive(
             image=frame.image_id, prep_ms=prepared.prep_ms, update_ms=update.update_ms,
             processing_ms=processing_ms, latency_ms=latency, threshold=threshold,
@@ -222,12 +228,18 @@ class RunSession:
             if record.budget_event is not None:
                 event = BudgetEvent(**record.budget_event)  # type: ignore[arg-type]
                 self.budget.apply(event)
-                _set_threshold(self.estimator, event.new_threshold)
+                self._apply(event)
         live = ImageLive(**{**record.live,  # type: ignore[arg-type]
                             "sigma_position_m": tuple(record.live["sigma_position_m"])})  # type: ignore[call-overload]
         self._keep(update, live, record.tracking, record.time_s, record.observed_px, frame,
                    record.late_observed_px)
         self.replayed += 1
+
+    def _apply(self, event: BudgetEvent) -> None:
+        """The budget's new dials: the estimator's threshold, the tracker's features."""
+        _set_threshold(self.estimator, event.new_threshold)
+        if event.new_features is not None and event.new_features != event.old_features:
+            self.source.set_max_features(event.new_features)
 
     def _update(self, frame: Frame) -> ImageUpdate:
         update = self.estimator.add_frame(frame)

@@ -248,6 +248,9 @@ class _InitialisedSource:
         """The tracker after the last image (``None``: no tracker)."""
         return None
 
+    def set_max_features(self, features: int) -> None:
+        """The latency budget's feature dial (:mod:`pipeline.run.budget`): no tracker here."""
+
 
 class ObservationSource(_InitialisedSource):
     """Frames of an observations flight (validate in one streaming pass first)."""
@@ -410,6 +413,11 @@ class ImageSource(_InitialisedSource):
     def tracker_state(self) -> TrackerState | None:
         """The tracker after the last image (journaled after every image)."""
         return self._tracker.state()
+
+    def set_max_features(self, features: int) -> None:
+        """Detect at most ``features`` per image from the next image on (the latency
+        budget's feature dial, :mod:`pipeline.run.budget`)."""
+        self._tracker.set_max_features(features)
 
     def restore_tracker(self, state: TrackerState) -> None:
         """Continue tracking from a journaled state (``--resume``)."""

@@ -83,6 +83,7 @@ from pipeline.flight.observation_rows import (
 from pipeline.flight.schema import CameraConfig, FlightConfig, load_flight_config
 from pipeline.run.live_view import LiveEstimates
 from pipeline.run.runner import (
+    KEEP_UP,
     EstimatorConfig,
     Method,
     RunSummary,
@@ -568,7 +569,7 @@ ListenerFactory = Callable[[Flight, Mapping[str, Path]], Sequence[ImageListener]
 def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
                  method: Method = Method.SEQ_R, options_path: Path | str | None = None,
                  threshold: float | None = None, initial_images: int | None = None,
-                 budget_ms: float | None = None, resume: bool = False,
+                 budget_ms: float | str | None = KEEP_UP, resume: bool = False,
                  watch: WatchOptions = WatchOptions(), listeners: Sequence[ImageListener] = (),
                  console: Console | None = None, stop: threading.Event | None = None,
                  on_image: Callable[[ImageLive, ImageUpdate], None] | None = None,
@@ -583,8 +584,11 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
         Flight folder with ``flight.yaml`` (module docstring).
     out_dir : Path or str
         Run folder, as ``seqat run`` writes it (``OUT/journal/`` after every image).
-    method, options_path, threshold, initial_images, budget_ms, resume, listeners
+    method, options_path, threshold, initial_images, resume, listeners
         As :func:`pipeline.run.runner.run_flight`.
+    budget_ms : float, ``"keep-up"`` or None
+        The latency budget (:mod:`pipeline.run.budget`): N ms per image, keep up with the
+        arrivals (the default), or none.
     watch : WatchOptions
     console : Console or None
         Where the per-image lines go (default: stderr).
@@ -664,8 +668,8 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
             on_claimed(out)
         session: RunSession | None = None
         source: ObservationSource | ImageSource | None = None
-        show = on_image or (lambda live, _: console.print(live_line(live, budget_ms),
-                                                             soft_wrap=True))
+        show = on_image or (lambda live, _: console.print(
+            live_line(live, None if budget is None else budget.limit_ms), soft_wrap=True))
 
         def printer(live: ImageLive, update: ImageUpdate) -> None:
             for e in estimates:

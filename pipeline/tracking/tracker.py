@@ -279,16 +279,7 @@ class Tracker:
                           and camera.width_px // f >= w and camera.height_px // f >= h))
         #: Full / working scale along u and v.
         self.scale_uv = (camera.width_px / w, camera.height_px / h)
-        if options.detector == "sift":
-            # precise upscale: without it OpenCV's SIFT keypoints are 0.25 px (working
-            # resolution) right of and below the true position (its doubled first octave is
-            # resampled centre-aligned, then halved corner-aligned).
-            self._detector = cv2.SIFT_create(
-                options.max_features, SIFT_OCTAVE_LAYERS, options.sift_contrast_threshold,
-                SIFT_EDGE_THRESHOLD, SIFT_SIGMA, cv2.CV_8U, True)
-        else:
-            self._detector = cv2.ORB_create(nfeatures=options.max_features,
-                                            scaleFactor=ORB_SCALE_FACTOR)
+        self._detector = self._make_detector(options.max_features)
         if options.opencv_threads > 0:
             cv2.setNumThreads(options.opencv_threads)
         self._held: list[HeldImage] = []
@@ -299,6 +290,20 @@ class Tracker:
         self._origin_xy: FloatArray | None = None
 
     # ----------------------------------------------------------------------------------------
+    def _make_detector(self, features: int) -> cv2.Feature2D:
+        if self.options.detector == "orb":
+            return cv2.ORB_create(nfeatures=features, scaleFactor=ORB_SCALE_FACTOR)
+        # precise upscale: without it OpenCV's SIFT keypoints are 0.25 px (working resolution)
+        # right of and below the true position (its doubled first octave is resampled
+        # centre-aligned, then halved corner-aligned).
+        return cv2.SIFT_create(features, SIFT_OCTAVE_LAYERS, self.options.sift_contrast_threshold,
+                               SIFT_EDGE_THRESHOLD, SIFT_SIGMA, cv2.CV_8U, True)
+
+    def set_max_features(self, features: int) -> None:
+        """Detect at most ``features`` per image from the next one on (the latency budget's
+        dial, :mod:`pipeline.run.budget`); the held images keep theirs."""
+        self._detector = self._make_detector(max(1, int(features)))
+
     @property
     def held_images(self) -> int:
         """Number of images whose features are kept for matching (bounded)."""

@@ -350,3 +350,17 @@ def test_unknown_option_and_bad_image_are_rejected() -> None:
         tracker.add_image("x", np.zeros((10, 10), np.uint8), np.zeros(6), None)
     with pytest.raises(InputDataError, match="image 'y': nav_eop must be 6 finite numbers"):
         tracker.add_image("y", np.zeros((HEIGHT_PX, WIDTH_PX), np.uint8), np.zeros(5), None)
+
+
+def test_the_budget_feature_dial_caps_the_next_images_features(texture: np.ndarray) -> None:
+    eops = strip_eops(3, np.random.default_rng(SEED))
+    tracker = Tracker(TrackerOptions(working_width_px=600, emit_per_image=None), CAMERA)
+    first = tracker.add_image("img0", render(texture, eops[0]), eops[0], 0.0)
+    assert first.stats.features > 300
+    tracker.set_max_features(300)
+    second = tracker.add_image("img1", render(texture, eops[1]), eops[1], 0.0)
+    assert 0 < second.stats.features <= 300
+    assert second.stats.pairs_matched == 1  # still matched with the held image's features
+    tracker.set_max_features(first.stats.features + 1000)
+    third = tracker.add_image("img2", render(texture, eops[2]), eops[2], 0.0)
+    assert third.stats.features > 300
