@@ -347,6 +347,9 @@ def one_run(flight: Path, work: Path, *, clients: int, rate_hz: float, dsm: Path
         "clients": clients, "serve_in": serve_in, "page": page, "images": len(lives),
         "load_1m_start": load0,
         "load_1m_end": load_average(),
+        "latency_budget": _budget_summary(run.get("latency_budget")),
+        "threshold_first_last_quarter": _quarters([float(x["threshold"]) for x in lives
+                                                   if x.get("threshold") is not None]),
         "tracking_ms": _stats(track_ms), "at_update_ms": _stats(at_ms),
         "latency_ms": _stats(latency_ms), "ortho_latency_ms": _stats(ortho_ms),
         "latency_first_last_quarter_ms": q_lat, "ortho_first_last_quarter_ms": q_ortho,
@@ -384,6 +387,18 @@ class LiveMapBench:
     machine: Machine
     date: str
     runs: tuple[dict[str, object], ...]
+
+
+def _budget_summary(budget: object) -> dict[str, object] | None:
+    """The watch's latency budget in brief (``run.json`` ``latency_budget``)."""
+    if not isinstance(budget, dict):
+        return None
+    events = budget.get("events") or []
+    return {k: budget.get(k) for k in ("mode", "budget_ms", "final_threshold",
+                                       "final_features", "images_over_budget")} | {
+        "events": len(events),
+        "feature_changes": sum(1 for e in events if e.get("new_features") != e.get(
+            "old_features"))}
 
 
 def run_live_map_bench(flight: Path, out: Path, *, clients: Sequence[str] = ("0", "2"),

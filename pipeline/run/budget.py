@@ -17,11 +17,14 @@ values (the threshold by ``RELAX_FACTOR``, the features by ``1 / FEATURE_FACTOR`
 
 The budget is either **fixed** (``--budget-ms N``: processing, reading and tracking + the
 update, over N) or **keep-up** (``seqat watch``'s default): the budget is the interval at
-which the inputs arrive (the median of the last :data:`PERIOD_IMAGES` intervals between the
-times each image's input was complete), and an image is also over it when its end-to-end
+which the inputs arrive (the mean interval over the last :data:`PERIOD_IMAGES` images' times
+of input complete: a mean over a span, not a median of intervals, because rows a poll finds
+together share their file's time), and an image is also over it when its end-to-end
 latency exceeds :data:`BACKLOG_PERIODS` intervals (images queue: the watch falls behind,
 whatever the reason). Inputs arriving faster than every :data:`MIN_PERIOD_MS` are a batch
-(a folder copied at once): there is no rate to keep up with, and nothing changes.
+(a folder copied at once): there is no rate to keep up with, and nothing changes; once a
+rate was seen, such a burst (a watch behind finds several inputs in one poll, and the rows
+of a growing CSV share its file's time) leaves the last rate in place.
 
 Each change is an event (image, old and new threshold and features, the measured
 milliseconds), journaled (a resumed run replays it) and kept in ``run.json``
@@ -32,8 +35,6 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-
-import numpy as np
 
 from seqat.errors import ConfigError
 
@@ -55,8 +56,8 @@ FEATURE_FACTOR = 0.75
 #: Never fewer features than this (verification needs matches: 1000 SIFT features still
 #: give ~1800 verified matches over 5 pairs of the rendered Autzen images).
 MIN_FEATURES = 1000
-#: Keep-up budget: the arrival interval is the median of the last this many intervals.
-PERIOD_IMAGES = 10
+#: Keep-up budget: the arrival interval is the mean over the last this many arrivals.
+PERIOD_IMAGES = 20
 #: Keep-up budget: arrivals closer than this (ms) are a batch, not a rate to keep up with.
 MIN_PERIOD_MS = 100.0
 #: Keep-up budget: a latency of more than this many intervals is a backlog (over budget).
@@ -148,8 +149,8 @@ class LatencyBudget:
         self.events: list[BudgetEvent] = []
         self.images_over = 0
         self._calm = 0  # consecutive calm images
-        self._last_ready_s: float | None = None
-        self._intervals: deque[float] = deque(maxlen=PERIOD_IMAGES)
+        self._arrivals: deque[float] = deque(maxlen=PERIOD_IMAGES)
+        self._period: float | None = None  # the last arrival interval seen (ms)
 
     def track_features(self, features: int | None) -> None:
         """The tracker's configured feature count (None: no tracker): the second dial."""
@@ -157,19 +158,20 @@ class LatencyBudget:
 
     @property
     def period_ms(self) -> float | None:
-        """Keep-up: the arrival interval (None before two arrivals, or for a batch)."""
-        if not self._intervals:
-            return None
-        period = float(np.median(self._intervals))
-        return period if period >= MIN_PERIOD_MS else None
+        """Keep-up: the arrival interval (None before three arrivals, or for a batch)."""
+        return self._period
 
     def arrived(self, ready_s: float | None) -> None:
         """Keep-up: the time (seconds) the next image's input was complete."""
         if ready_s is None:
             return
-        if self._last_ready_s is not None:
-            self._intervals.append(max(0.0, ready_s - self._last_ready_s) * 1e3)
-        self._last_ready_s = ready_s
+        self._arrivals.append(max(ready_s, self._arrivals[-1]) if self._arrivals else ready_s)
+        if len(self._arrivals) >= 3:
+            period = (self._arrivals[-1] - self._arrivals[0]) / (len(self._arrivals) - 1) * 1e3
+            if period >= MIN_PERIOD_MS:
+                self._period = period
+            # else a burst: the watch fell behind and found several inputs at once (or a
+            # batch, when no rate was ever seen): the last rate stands
 
     @property
     def limit_ms(self) -> float | None:

@@ -95,3 +95,13 @@ def test_make_budget_and_the_watch_option() -> None:
     for bad in ("0", "-3", "soon", "inf", "nan"):
         with pytest.raises(ConfigError, match="--budget-ms: expected keep-up, off or a number"):
             parse_budget(bad)
+
+
+def test_a_burst_after_a_rate_keeps_the_rate() -> None:
+    """A watch behind finds many rows in one poll (they share the CSV's time): still 500 ms."""
+    budget = _keep_up(0.5)
+    for _ in range(30):
+        budget.arrived(102.0)
+    assert budget.period_ms == pytest.approx(500.0)
+    event = budget.after_image("a", SEQ, 300.0, tracking_ms=100.0, latency_ms=5000.0)
+    assert event is not None and event.reason == "backlog"

@@ -320,3 +320,35 @@ def test_watch_of_a_bad_frame_field_is_exit_2(autzen_run: Path, tmp_path: Path) 
     assert result.exit_code == 2
     assert result.stderr.count("\n") == 1
     assert f"observations.csv:{len(first) + 2}: field 'frame'" in result.stderr
+
+
+class _SlowListener:
+    """A listener that takes ``seconds`` per sequential image (a slow machine)."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+
+    def on_image(self, frame: object, update: ImageUpdate, estimator: object) -> None:
+        if update.stage == "sequential":
+            threading.Event().wait(self.seconds)
+
+    def on_finish(self, solution: object) -> None:
+        pass
+
+
+def test_a_watch_that_falls_behind_tightens_the_window_to_keep_up(tmp_path: Path) -> None:
+    """Keep-up (the default budget): images every 125 ms, each sequential image takes
+    longer; the backlog tightens the threshold, named in run.json as keep-up events."""
+    flight, out = tmp_path / "flight", tmp_path / "out"
+    feeder = _feed_in_background(STRIP, flight, rate_hz=8.0)
+    watch_flight(flight, out, watch=QUICK, console=_quiet(), listeners=[_SlowListener(0.2)])
+    feeder.join()
+    doc = json.loads((out / "run.json").read_text())
+    budget = doc["latency_budget"]
+    assert budget["mode"] == "keep-up" and 90.0 < budget["budget_ms"] < 250.0
+    assert budget["base_features"] is None  # an observations flight: no tracker
+    assert budget["events"] and budget["events"][0]["reason"] in ("over budget", "backlog")
+    thresholds = [im["live"]["threshold"] for im in doc["images"]]
+    assert max(thresholds) > thresholds[0] == 0.1
+    assert budget["final_threshold"] == thresholds[-1] or budget["events"][-1]["image"] == \
+        doc["images"][-1]["image_id"]
