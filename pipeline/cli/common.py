@@ -192,9 +192,11 @@ def run_rows(summary: RunSummary, final_only: bool = False) -> list[tuple[str, s
         rows.append(("latency ms median / p95 / max", stats_ms(summary.latency_ms)))
     b = summary.budget
     if b is not None:
-        rows.append(("budget / over / threshold changes",
-                     f"{b.budget_ms:g} ms / {b.images_over_budget} images / "
-                     f"{len(b.events)} (final threshold {b.final_threshold:g})"))
+        limit = "batch" if b.budget_ms is None else f"{b.budget_ms:.0f} ms"
+        features = "" if b.final_features is None else f", features {b.final_features}"
+        rows.append((f"budget ({b.mode}) / over / changes",
+                     f"{limit} / {b.images_over_budget} images / "
+                     f"{len(b.events)} (final threshold {b.final_threshold:g}{features})"))
     if summary.replayed:
         rows.append(("replayed from the journal", f"{summary.replayed} images"))
     if summary.skipped:

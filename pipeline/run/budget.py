@@ -17,9 +17,9 @@ values (the threshold by ``RELAX_FACTOR``, the features by ``1 / FEATURE_FACTOR`
 
 The budget is either **fixed** (``--budget-ms N``: processing, reading and tracking + the
 update, over N) or **keep-up** (``seqat watch``'s default): the budget is the interval at
-which the inputs arrive (the mean interval over the last :data:`PERIOD_IMAGES` images' times
-of input complete: a mean over a span, not a median of intervals, because rows a poll finds
-together share their file's time), and an image is also over it when its end-to-end
+which the inputs arrive (over the last :data:`PERIOD_IMAGES` images' times of input complete:
+the span over the count of inputs after its start, not a median of intervals, because rows
+a poll finds together share their file's time), and an image is also over it when its end-to-end
 latency exceeds :data:`BACKLOG_PERIODS` intervals (images queue: the watch falls behind,
 whatever the reason). Inputs arriving faster than every :data:`MIN_PERIOD_MS` are a batch
 (a folder copied at once): there is no rate to keep up with, and nothing changes; once a
@@ -166,8 +166,12 @@ class LatencyBudget:
         if ready_s is None:
             return
         self._arrivals.append(max(ready_s, self._arrivals[-1]) if self._arrivals else ready_s)
-        if len(self._arrivals) >= 3:
-            period = (self._arrivals[-1] - self._arrivals[0]) / (len(self._arrivals) - 1) * 1e3
+        # the inputs after the oldest time came in (t_first, t_last]: rows found together
+        # share one time, so count them, not the intervals between them
+        t_first = self._arrivals[0]
+        later = sum(1 for t in self._arrivals if t > t_first)
+        if later >= 2:
+            period = (self._arrivals[-1] - t_first) / later * 1e3
             if period >= MIN_PERIOD_MS:
                 self._period = period
             # else a burst: the watch fell behind and found several inputs at once (or a

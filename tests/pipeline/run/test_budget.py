@@ -97,11 +97,11 @@ def test_make_budget_and_the_watch_option() -> None:
             parse_budget(bad)
 
 
-def test_a_burst_after_a_rate_keeps_the_rate() -> None:
-    """A watch behind finds many rows in one poll (they share the CSV's time): still 500 ms."""
-    budget = _keep_up(0.5)
-    for _ in range(30):
-        budget.arrived(102.0)
+def test_rows_found_in_bursts_give_the_rate_they_were_written_at() -> None:
+    budget = LatencyBudget(None, 0.1)
+    for burst in range(6):  # 5 rows every 2.5 s: one every 500 ms, found 5 at a time
+        for _ in range(5):
+            budget.arrived(10.0 + 2.5 * burst)
     assert budget.period_ms == pytest.approx(500.0)
     event = budget.after_image("a", SEQ, 300.0, tracking_ms=100.0, latency_ms=5000.0)
     assert event is not None and event.reason == "backlog"

@@ -352,3 +352,29 @@ def test_a_watch_that_falls_behind_tightens_the_window_to_keep_up(tmp_path: Path
     assert max(thresholds) > thresholds[0] == 0.1
     assert budget["final_threshold"] == thresholds[-1] or budget["events"][-1]["image"] == \
         doc["images"][-1]["image_id"]
+
+
+@pytest.mark.parametrize("budget", [None, "off", "400"])
+def test_watch_cli_summary_names_the_budget(tmp_path: Path, budget: str | None) -> None:
+    """A folder written before the watch is a batch: keep-up has no rate and changes nothing;
+    ``off`` has no budget; a fixed one is named with its milliseconds."""
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+
+    flight = tmp_path / "flight"
+    feed_flight(STRIP, flight, rate_hz=FAST_RATE_HZ)
+    args = ["watch", str(flight), "--out", str(tmp_path / "o"), "--idle-timeout-s", "0.5",
+            "--poll-s", "0.01", *([] if budget is None else ["--budget-ms", budget])]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    budget_doc = json.loads((tmp_path / "o" / "run.json").read_text())["latency_budget"]
+    if budget == "off":
+        assert budget_doc is None and "budget" not in result.stdout
+    elif budget is None:
+        assert budget_doc["mode"] == "keep-up" and budget_doc["budget_ms"] is None
+        assert "budget (keep-up)" in result.stdout and "batch" in result.stdout
+        assert not budget_doc["events"] and budget_doc["images_over_budget"] == 0
+    else:
+        assert budget_doc["mode"] == "fixed" and budget_doc["budget_ms"] == 400.0
+        assert "budget (fixed)" in result.stdout and "400 ms" in result.stdout
