@@ -233,6 +233,9 @@ class DepartureMixin:
             if np.any(rho_r >= thr):
                 break
         start = first_over_threshold(rho, thr)
+        cap = self.options.max_window_images
+        if cap is not None:  # the new image joins: cap - 1 stay
+            start = max(start, len(offs) + 1 - cap)
         start = self._hold_pending_rays(start, frame_points)
         if start == 0:
             return 0

@@ -113,6 +113,10 @@ class SequentialOptions:
     """Options of the sequential estimator."""
 
     correlation_threshold: float | None = 0.1  # None: Seq-F (no window cut)
+    # Seq-R: at most this many images in the window after an update, whatever their
+    # correlations (the latency budget's last dial: on blocks the previous strip keeps the
+    # window long at any threshold); None: the paper's rule alone.
+    max_window_images: int | None = None
     initial_images: int = 10  # images adjusted simultaneously before the sequential stage
     min_rays: int = 2  # a tie point is born once seen in this many window images
     min_ray_angle_deg: float = 8.0  # ... and its rays spread at least this much (docs/algorithm.md)
@@ -164,22 +168,21 @@ class SequentialOptions:
             raise ConfigError(f"engine: expected one of {', '.join(ENGINES)}, "
                               f"got {self.engine!r}")
         if self.correlation_threshold is not None and not 0 <= self.correlation_threshold <= 1:
-            raise ConfigError(
-                f"correlation_threshold: expected a value in [0, 1] or null, "
-                f"got {self.correlation_threshold!r}"
-            )
+            raise ConfigError(f"correlation_threshold: expected a value in [0, 1] or null, "
+                              f"got {self.correlation_threshold!r}")
+        if self.max_window_images is not None and self.max_window_images < 2:
+            raise ConfigError(f"max_window_images: expected >= 2 or null, "
+                              f"got {self.max_window_images}")
         if self.initial_images < 1:
             raise ConfigError(f"initial_images: expected >= 1, got {self.initial_images}")
         if self.min_rays < 2:
             raise ConfigError(f"min_rays: expected >= 2, got {self.min_rays}")
         if self.max_update_iterations < 1:
-            raise ConfigError(
-                f"max_update_iterations: expected >= 1, got {self.max_update_iterations}"
-            )
+            raise ConfigError(f"max_update_iterations: expected >= 1, "
+                              f"got {self.max_update_iterations}")
         if self.relinearise_px is not None and not self.relinearise_px > 0:
-            raise ConfigError(
-                f"relinearise_px: expected a positive number or null, got {self.relinearise_px!r}"
-            )
+            raise ConfigError(f"relinearise_px: expected a positive number or null, "
+                              f"got {self.relinearise_px!r}")
         if self.snooping_critical is not None and not self.snooping_critical > 0:
             raise ConfigError(f"snooping_critical: expected a positive number or null, "
                               f"got {self.snooping_critical!r}")
@@ -193,9 +196,8 @@ class SequentialOptions:
             raise ConfigError("drift_check_every: expected >= 1 (and relinearise_px set), "
                               f"got {self.drift_check_every}")
         if self.relinearise_iterations < 1:
-            raise ConfigError(
-                f"relinearise_iterations: expected >= 1, got {self.relinearise_iterations}"
-            )
+            raise ConfigError(f"relinearise_iterations: expected >= 1, "
+                              f"got {self.relinearise_iterations}")
 
 
 class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin,

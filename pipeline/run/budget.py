@@ -10,21 +10,27 @@ does it on line, after each image of the sequential stage, with two dials:
   image's reading and tracking alone took more than :data:`TRACKING_SHARE` of the budget,
   the next images detect ``features × FEATURE_FACTOR`` (down to :data:`MIN_FEATURES`). A
   window cut shorter cannot make tracking cheaper (docs/benchmarks.md, *Watch mode at the
-  real frame rate*).
+  real frame rate*);
+* the **window cap** (Seq-R ``max_window_images``): when the update is over its share with
+  the threshold already at ``max_threshold``, the window keeps at most
+  ``window × WINDOW_FACTOR`` images (down to :data:`MIN_WINDOW_CAP`). On blocks the image of
+  the previous strip under the new one correlates over any threshold, and the window spans
+  the strip between them (30-70 images on the 196-image block at ρ ≥ 0.8).
 
-After ``relax_after_images`` consecutive calm images both relax towards their configured
-values (the threshold by ``RELAX_FACTOR``, the features by ``1 / FEATURE_FACTOR``).
+After ``relax_after_images`` consecutive calm images they relax, one per step and in the
+reverse order, towards their configured values (the cap by ``1 / WINDOW_FACTOR``, gone above
+:data:`MAX_WINDOW_CAP`; the threshold by ``RELAX_FACTOR``; the features by
+``1 / FEATURE_FACTOR``).
 
 The budget is either **fixed** (``--budget-ms N``: processing, reading and tracking + the
 update, over N) or **keep-up** (``seqat watch``'s default): the budget is the interval at
-which the inputs arrive (over the last :data:`PERIOD_IMAGES` images' times of input complete:
-the span over the count of inputs after its start, not a median of intervals, because rows
-a poll finds together share their file's time), and an image is also over it when its end-to-end
-latency exceeds :data:`BACKLOG_PERIODS` intervals (images queue: the watch falls behind,
-whatever the reason). Inputs arriving faster than every :data:`MIN_PERIOD_MS` are a batch
-(a folder copied at once): there is no rate to keep up with, and nothing changes; once a
-rate was seen, such a burst (a watch behind finds several inputs in one poll, and the rows
-of a growing CSV share its file's time) leaves the last rate in place.
+which the inputs arrive, over the last :data:`PERIOD_IMAGES` images' times of input complete
+(the span over the count of inputs after its start, not a median of intervals: rows one poll
+finds share their file's time). An image is also over it when its end-to-end latency exceeds
+:data:`BACKLOG_PERIODS` intervals and is not smaller than the last image's (images queue and
+the queue does not drain, whatever the reason). Inputs arriving faster than every
+:data:`MIN_PERIOD_MS` are a batch (a folder copied at once): there is no rate to keep up
+with, and nothing changes; once a rate was seen, such a burst leaves it in place.
 
 Each change is an event (image, old and new threshold and features, the measured
 milliseconds), journaled (a resumed run replays it) and kept in ``run.json``
@@ -56,6 +62,12 @@ FEATURE_FACTOR = 0.75
 #: Never fewer features than this (verification needs matches: 1000 SIFT features still
 #: give ~1800 verified matches over 5 pairs of the rendered Autzen images).
 MIN_FEATURES = 1000
+#: Window cap multiplier (of the last update's window) when tightening; its inverse relaxes.
+WINDOW_FACTOR = 0.75
+#: Never a cap below this many images (two strips' neighbours and the new image).
+MIN_WINDOW_CAP = 4
+#: A cap relaxed above this many images is lifted.
+MAX_WINDOW_CAP = 50
 #: Keep-up budget: the arrival interval is the mean over the last this many arrivals.
 PERIOD_IMAGES = 20
 #: Keep-up budget: arrivals closer than this (ms) are a batch, not a rate to keep up with.
@@ -86,6 +98,8 @@ class BudgetEvent:
         before the feature dial).
     budget_ms : float or None
         The budget the image was measured against (keep-up: the arrival interval).
+    old_window_cap, new_window_cap : int or None
+        Seq-R ``max_window_images`` before and after (None: no cap).
     """
 
     image: str
@@ -96,6 +110,8 @@ class BudgetEvent:
     old_features: int | None = None
     new_features: int | None = None
     budget_ms: float | None = None
+    old_window_cap: int | None = None
+    new_window_cap: int | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -109,6 +125,7 @@ class BudgetReport:
     final_threshold: float
     base_features: int | None
     final_features: int | None
+    final_window_cap: int | None
     images_over_budget: int
     events: tuple[BudgetEvent, ...]
 
@@ -146,11 +163,13 @@ class LatencyBudget:
         #: The tracker's configured and current feature counts (:meth:`track_features`).
         self.base_features: int | None = None
         self.features: int | None = None
+        self.window_cap: int | None = None  # Seq-R max_window_images (None: none)
         self.events: list[BudgetEvent] = []
         self.images_over = 0
         self._calm = 0  # consecutive calm images
         self._arrivals: deque[float] = deque(maxlen=PERIOD_IMAGES)
         self._period: float | None = None  # the last arrival interval seen (ms)
+        self._last_latency: float | None = None
 
     def track_features(self, features: int | None) -> None:
         """The tracker's configured feature count (None: no tracker): the second dial."""
@@ -184,17 +203,18 @@ class LatencyBudget:
 
     def after_image(self, image: str, stage: str, measured_ms: float,
                     tracking_ms: float = 0.0, latency_ms: float | None = None,
-                    ) -> BudgetEvent | None:
+                    window_images: int | None = None) -> BudgetEvent | None:
         """Account one image; returns the change for the next image, if any.
 
         ``measured_ms``: reading and tracking + update; ``tracking_ms``: reading and
-        tracking alone; ``latency_ms``: input complete -> estimate (keep-up's backlog)."""
+        tracking alone; ``latency_ms``: input complete -> estimate (keep-up's backlog);
+        ``window_images``: the update's window (the cap's reference)."""
         budget = self.limit_ms
         over, reason = self._verdict(stage, measured_ms, latency_ms, budget)
         if stage != SEQUENTIAL_STAGE or budget is None:
             return None
-        old, old_f = self.threshold, self.features
-        new, new_f = old, old_f
+        old, old_f, old_c = self.threshold, self.features, self.window_cap
+        new, new_f, new_c = old, old_f, old_c
         if over:
             tracking_over = (old_f is not None and old_f > MIN_FEATURES
                              and tracking_ms > TRACKING_SHARE * budget)
@@ -202,18 +222,25 @@ class LatencyBudget:
                 new_f = max(MIN_FEATURES, round(old_f * FEATURE_FACTOR))  # type: ignore[operator]
             if not tracking_over or measured_ms - tracking_ms > (1 - TRACKING_SHARE) * budget:
                 new = min(self.max_threshold, old * TIGHTEN_FACTOR)
+                if new == old and window_images is not None:  # the threshold is at its cap
+                    ref = window_images if old_c is None else min(old_c, window_images)
+                    new_c = max(MIN_WINDOW_CAP, round(ref * WINDOW_FACTOR))
         elif self._calm >= self.relax_after_images:
             reason = f"under {self.relax_fraction:g} x budget for {self._calm} images"
-            if old > self.base_threshold:
+            if old_c is not None:
+                new_c = round(old_c / WINDOW_FACTOR)
+                new_c = None if new_c > MAX_WINDOW_CAP else new_c
+            elif old > self.base_threshold:
                 new = max(self.base_threshold, old / RELAX_FACTOR)
             elif old_f is not None and self.base_features is not None \
                     and old_f < self.base_features:
                 new_f = min(self.base_features, round(old_f / FEATURE_FACTOR))
-        if new == old and new_f == old_f:
+        if new == old and new_f == old_f and new_c == old_c:
             return None
         event = BudgetEvent(image=image, old_threshold=old, new_threshold=new,
                             measured_ms=measured_ms, reason=reason, old_features=old_f,
-                            new_features=new_f, budget_ms=budget)
+                            new_features=new_f, budget_ms=budget, old_window_cap=old_c,
+                            new_window_cap=new_c)
         self.apply(event)
         return event
 
@@ -223,8 +250,12 @@ class LatencyBudget:
         if budget is None:
             return False, ""
         over, reason = measured_ms > budget, "over budget"
+        # a backlog that drains (each image's latency smaller than the last: the processing
+        # is under the interval) needs no tighter dial; one that does not, does
         backlog = (self.keep_up and latency_ms is not None
-                   and latency_ms > BACKLOG_PERIODS * budget)
+                   and latency_ms > BACKLOG_PERIODS * budget
+                   and (self._last_latency is None or latency_ms >= self._last_latency))
+        self._last_latency = latency_ms
         if backlog and not over:
             over, reason = True, "backlog"
         self.images_over += int(over)
@@ -245,6 +276,7 @@ class LatencyBudget:
         self.threshold = event.new_threshold
         if event.new_features is not None:
             self.features = event.new_features
+        self.window_cap = event.new_window_cap
         self.events.append(event)
         self._calm = 0
 
@@ -253,4 +285,5 @@ class LatencyBudget:
                             budget_ms=self.limit_ms, base_threshold=self.base_threshold,
                             max_threshold=self.max_threshold, final_threshold=self.threshold,
                             base_features=self.base_features, final_features=self.features,
+                            final_window_cap=self.window_cap,
                             images_over_budget=self.images_over, events=tuple(self.events))

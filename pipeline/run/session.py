@@ -186,7 +186,8 @@ class RunSession:
             self.budget.arrived(prepared.ready_s)
             event = self.budget.after_image(frame.image_id, update.stage,
                                             prepared.prep_ms + update.update_ms,
-                                            tracking_ms=prepared.prep_ms, latency_ms=latency)
+                                            tracking_ms=prepared.prep_ms, latency_ms=latency,
+                                            window_images=update.window_images)
             if event is not None:
                 self._apply(event)
         processing_ms = prepared.prep_ms + (time.perf_counter() - t0) * 1e3
@@ -236,8 +237,13 @@ class RunSession:
         self.replayed += 1
 
     def _apply(self, event: BudgetEvent) -> None:
-        """The budget's new dials: the estimator's threshold, the tracker's features."""
+        """The budget's new dials: the estimator's threshold and window cap, the tracker's
+        features."""
         _set_threshold(self.estimator, event.new_threshold)
+        options = getattr(self.estimator, "options", None)
+        if getattr(options, "max_window_images", event.new_window_cap) != event.new_window_cap:
+            self.estimator.options = dataclasses.replace(  # type: ignore[attr-defined]
+                options, max_window_images=event.new_window_cap)
         if event.new_features is not None and event.new_features != event.old_features:
             self.source.set_max_features(event.new_features)
 

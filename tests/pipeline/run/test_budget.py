@@ -105,3 +105,34 @@ def test_rows_found_in_bursts_give_the_rate_they_were_written_at() -> None:
     assert budget.period_ms == pytest.approx(500.0)
     event = budget.after_image("a", SEQ, 300.0, tracking_ms=100.0, latency_ms=5000.0)
     assert event is not None and event.reason == "backlog"
+
+
+def test_a_draining_backlog_changes_nothing() -> None:
+    budget = _keep_up(0.5)
+    assert budget.after_image("a", SEQ, 300.0, tracking_ms=200.0, latency_ms=4000.0)
+    # the processing is under the interval: the latency falls image by image
+    for k, latency in enumerate((3800.0, 3600.0, 3400.0)):
+        assert budget.after_image(f"b{k}", SEQ, 300.0, tracking_ms=200.0,
+                                  latency_ms=latency) is None
+    event = budget.after_image("c", SEQ, 300.0, tracking_ms=200.0, latency_ms=3500.0)
+    assert event is not None and event.reason == "backlog"  # growing again
+
+
+def test_the_window_cap_comes_after_the_threshold_and_goes_first() -> None:
+    budget = _keep_up(0.5, features=None)
+    steps = []
+    for k in range(6):  # the update alone over the interval, a 40-image window
+        e = budget.after_image(f"a{k}", SEQ, 900.0, tracking_ms=100.0, latency_ms=900.0,
+                               window_images=40)
+        assert e is not None
+        steps.append((e.new_threshold, e.new_window_cap))
+    assert steps[:3] == [(0.2, None), (0.4, None), (0.8, None)]
+    assert [c for _, c in steps[3:]] == [30, 22, 16]  # 0.75 x min(cap, window)
+    assert budget.report().final_window_cap == 16
+    relaxed = []
+    for k in range(2 * DEFAULT_RELAX_AFTER_IMAGES):
+        e = budget.after_image(f"b{k}", SEQ, 100.0, tracking_ms=80.0, latency_ms=110.0,
+                               window_images=16)
+        if e is not None:
+            relaxed.append((e.new_threshold, e.new_window_cap))
+    assert relaxed == [(0.8, 21), (0.8, 28)]  # the cap relaxes first, the threshold waits
