@@ -310,6 +310,14 @@ def _appendix(report: Report, extras: Mapping[str, object]) -> list[str]:
     return parts
 
 
+def _change(event: Mapping[str, object], dial: str) -> str:
+    """``old → new`` of a budget event's dial, or empty when it did not change."""
+    old, new = event.get(f"old_{dial}"), event.get(f"new_{dial}")
+    if old == new:
+        return ""
+    return f"{'none' if old is None else old} → {'none' if new is None else new}"
+
+
 def _live_section(live: LiveOperation) -> list[str]:
     """Processing and end-to-end latency, and the latency budget's threshold changes."""
     parts = ["<h3>Live operation</h3>"]
@@ -337,11 +345,11 @@ def _live_section(live: LiveOperation) -> list[str]:
                      f"{live.images_over_budget} image(s) over it; final Seq-R threshold "
                      f"{live.final_threshold:g}{features}.</p>")
     if live.threshold_changes:
-        parts.append(_table(["after image", "threshold", "features", "measured (ms)", "why"], [
-            (e["image"], f"{e['old_threshold']:g} → {e['new_threshold']:g}",
-             "" if e.get("new_features") is None or e.get("new_features") == e.get(
-                 "old_features") else f"{e['old_features']} → {e['new_features']}",
-             e["measured_ms"], e["reason"]) for e in live.threshold_changes], digits=1))
+        parts.append(_table(
+            ["after image", "threshold", "features", "window cap", "measured (ms)", "why"], [
+                (e["image"], f"{e['old_threshold']:g} → {e['new_threshold']:g}",
+                 _change(e, "features"), _change(e, "window_cap"), e["measured_ms"],
+                 e["reason"]) for e in live.threshold_changes], digits=1))
     else:
         parts.append("<p>The dials never changed.</p>")
     return parts
