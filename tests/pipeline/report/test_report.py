@@ -19,6 +19,7 @@ from pipeline.reference.stage import run_reference
 from pipeline.report.asprs import ASPRS_MIN_CHECKPOINTS, asprs_table
 from pipeline.report.model import REPORT_HTML, REPORT_JSON, precision_plateau
 from pipeline.report.stage import make_report
+from pipeline.run.budget import MIN_WINDOW_CAP
 from pipeline.run.runner import Method, run_flight
 from pipeline.run.store import read_eop_csv, read_run
 from seqat.geometry import depth, project
@@ -206,9 +207,15 @@ def test_report_shows_the_latency_budget_changes(small_sim_dir: Path, tmp_path: 
     assert live["images_over_budget"] == 24 and live["final_threshold"] == 0.8
     changes = [(c["image"], c["old_threshold"], c["new_threshold"])
                for c in live["threshold_changes"]]
-    assert changes == [("img_0011", 0.1, 0.2), ("img_0012", 0.2, 0.4), ("img_0013", 0.4, 0.8)]
+    assert changes[:3] == [("img_0011", 0.1, 0.2), ("img_0012", 0.2, 0.4),
+                           ("img_0013", 0.4, 0.8)]
+    # then, the threshold at its cap, the window is capped: 0.75 x the window, down to 4
+    caps = [c["new_window_cap"] for c in live["threshold_changes"][3:]]
+    assert caps and caps == sorted(caps, reverse=True) and caps[-1] == MIN_WINDOW_CAP
+    assert all(c["new_threshold"] == 0.8 for c in live["threshold_changes"][3:])
     html_text = (out / "report.html").read_text()
     assert "<h3>Live operation</h3>" in html_text and "0.1 → 0.2" in html_text
+    assert f"none → {caps[0]}" in html_text
 def test_latency_table_adds_the_live_ortho_to_the_end_to_end_time() -> None:
     from pipeline.run.latency import latency_table
 
