@@ -2,8 +2,7 @@
 
 :class:`LiveOrtho` is an :class:`pipeline.run.runner.ImageListener`. After each AT update it hands
 the image and its EOP of that moment (``update.eop``) to one worker thread, which reads the
-image, orthorectifies it (:class:`pipeline.ortho.orthorectifier.Orthorectifier`,
-``ortho/<image>.tif``) and
+image, orthorectifies it (:class:`pipeline.ortho.orthorectifier.Orthorectifier`) and
 pastes it into the tiles of the growing mosaic it touches (:class:`pipeline.ortho.mosaic.
 MosaicBuilder`), while the runner goes on with the next image's tracking and update. At the
 end (``on_finish``, with the final solution):
@@ -20,7 +19,10 @@ end (``on_finish``, with the final solution):
    kept with their live EOP are orthorectified again for this, without writing their COG),
    so the mosaic is the one a post-run ``seqat ortho`` builds from the EOPs each image was
    kept with. With no image re-orthorectified the live mosaic is final as it is.
-3. The mosaic COG, ``cameras.gpkg`` (final EOPs) and ``ortho.json`` are written as
+3. **Per-image COGs** ``ortho/<image>.tif`` are written now, each once, with the EOP its
+   image is kept with (the live one or the final one): written live, nine in ten were
+   written again here (the 196-image block), and a COG costs more CPU than its ortho.
+4. The mosaic COG, ``cameras.gpkg`` (final EOPs) and ``ortho.json`` are written as
    :func:`pipeline.ortho.stage.orthorectify_run` writes them (:func:`pipeline.ortho.stage.
    finish_ortho`), with the live statistics (``live``).
 
@@ -384,8 +386,10 @@ class LiveOrtho:
             t_start = time.perf_counter()
             assert self._ortho is not None
             try:
+                # no COG yet: most images move before the end and are written then
+                # (_finish), and a COG costs more CPU than the ortho (docs/architecture.md)
                 record, result, update = ortho_image(self._ortho, self._mosaic, image_id,
-                                                     self.images.get(image_id), eop)
+                                                     self.images.get(image_id), eop, write=False)
             except InputDataError as err:
                 self._skipped[image_id] = f"skipped: {err}"
                 return
@@ -467,9 +471,16 @@ class LiveOrtho:
             kept = self._kept.get(image_id)
             if image_id in moved:
                 self._reortho(image_id, eop, frozen, kept)
-            elif kept is not None and kept.tiles & frozen:
-                ortho_image(ortho, self._mosaic, image_id, self.images.get(image_id), kept.eop,
-                            write=False, tiles=frozen)
+            elif kept is not None:  # its COG, with the EOP it is kept with (and its frozen tiles)
+                try:
+                    record, _, _ = ortho_image(ortho, self._mosaic, image_id,
+                                               self.images.get(image_id), kept.eop, tiles=frozen)
+                except InputDataError as err:  # its file went away since
+                    self._skipped[image_id] = f"skipped: {err}"
+                    self._kept.pop(image_id)
+                    continue
+                self._kept[image_id].record = replace(kept.record, path=record.path,
+                                                      write_ms=record.write_ms)
         ortho.flush()  # every COG complete before the mosaic, the warp and ortho.json
         records = [self._kept[i].record for i in final if i in self._kept]
         skipped = [i for i in final if i not in self._kept]
@@ -523,8 +534,6 @@ class LiveOrtho:
                                                  self.images.get(image_id), eop, tiles=tiles)
         except InputDataError as err:
             self._skipped[image_id] = f"skipped: {err}"
-            if kept is not None and kept.record.path is not None:
-                Path(kept.record.path).unlink(missing_ok=True)  # made with the live EOP
             self._kept.pop(image_id, None)
             return
         reortho_ms = (time.perf_counter() - t0) * 1e3

@@ -68,11 +68,13 @@ def cog_options(dtype: str) -> dict[str, str | int]:
 
 
 @contextlib.contextmanager
-def atomic_path(path: Path, suffix: str = ".tif") -> Iterator[Path]:
+def atomic_path(path: Path, suffix: str = ".tif", *, durable: bool = True) -> Iterator[Path]:
     """A temporary path beside ``path``, renamed onto it when the block succeeds.
 
     On failure the temporary file is removed and ``path`` is left as it was. Errors of the
     file system (read-only folder, ``path`` a folder) are InputDataErrors naming ``path``.
+    ``durable``: fsync the folder after the rename (not for a live cache replaced at the end:
+    readers still see the old file or the new one, never part of one).
     """
     if path.is_dir():
         raise InputDataError(f"{path}: is a folder; give the name of the file to write")
@@ -90,7 +92,8 @@ def atomic_path(path: Path, suffix: str = ".tif") -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         raise
-    fsync_dir(path.parent)
+    if durable:
+        fsync_dir(path.parent)
 
 
 def _file_mode() -> int:
@@ -154,13 +157,14 @@ def write_cog(path: Path | str, data: np.ndarray, *, transform: Affine, crs: pyp
 def write_tiled_tiff(path: Path, data: np.ndarray, *, transform: Affine, crs: pyproj.CRS,
                      alpha: bool = False) -> Path:
     """Write a small north-up raster as a tiled (256 px), uncompressed GeoTIFF without
-    overviews, atomically: the live mosaic's tiles (:mod:`pipeline.ortho.live_tiles`), where
+    overviews, atomically (not fsynced: a live cache, replaced by the mosaic COG at the end):
+    the live mosaic's tiles (:mod:`pipeline.ortho.live_tiles`), where
     the write time matters more than the size."""
     count, rows, cols = data.shape
     profile = {"driver": "GTiff", "width": cols, "height": rows, "count": count,
                "dtype": data.dtype.name, "crs": rasterio.crs.CRS.from_wkt(crs.to_wkt()),
                "transform": transform, "tiled": True, "blockxsize": 256, "blockysize": 256}
-    with atomic_path(path) as tmp, rasterio.open(tmp, "w", **profile) as dst:
+    with atomic_path(path, durable=False) as tmp, rasterio.open(tmp, "w", **profile) as dst:
         dst.colorinterp = colorinterp_for(count, alpha)
         dst.write(data)
     return path
