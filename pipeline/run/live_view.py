@@ -154,6 +154,9 @@ class LiveEstimates:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.images = images
         self._quicklooks: dict[str, str | None] = {}  # image -> file in live/ (None: none)
+        #: image -> (its _Camera, its rounded row): departed cameras do not change, so only the
+        #: window's are rounded again (the writer holds the GIL: O(window), not O(flight))
+        self._rows: dict[str, tuple[_Camera, dict[str, object]]] = {}
         if images is not None:
             (self.path.parent / LIVE_QUICKLOOK_DIR).mkdir(exist_ok=True)
         self.crs_wkt = crs_wkt
@@ -275,12 +278,19 @@ class LiveEstimates:
         cams = []
         for image in order:
             c = cameras[image]
-            cams.append({
-                "image": image, "eop": _round(c.eop[:3], 4) + _round(c.eop[3:], 8),
-                "sigma": _round(c.sigma[:3], 5) + _round(c.sigma[3:], 8),
-                "in_window": image in window, "at_unix_s": round(c.at_unix_s, 3),
-                "footprint": None if c.footprint is None else _round(c.footprint, 2),
-                "quicklook": self._quicklooks.get(image)})
+            cached = self._rows.get(image)
+            if cached is None or cached[0] is not c:  # entries are replaced, never changed
+                row = {
+                    "image": image, "eop": _round(c.eop[:3], 4) + _round(c.eop[3:], 8),
+                    "sigma": _round(c.sigma[:3], 5) + _round(c.sigma[3:], 8),
+                    "in_window": None, "at_unix_s": round(c.at_unix_s, 3),
+                    "footprint": None if c.footprint is None else _round(c.footprint, 2),
+                    "quicklook": None}
+                self._rows[image] = cached = (c, row)
+            row = cached[1]
+            row["in_window"] = image in window
+            row["quicklook"] = self._quicklooks.get(image)
+            cams.append(row)
         ids = list(points)
         xyz = np.array([points[i][0] for i in ids]).reshape(-1, 3)
         sig = np.array([points[i][1] for i in ids]).reshape(-1, 3)

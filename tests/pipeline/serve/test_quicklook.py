@@ -114,3 +114,40 @@ def test_quicklooks_served_with_footprints(live_run: Path, tmp_path: Path) -> No
     (out / "ortho.json").write_text(json.dumps({"images": [{"image": first}]}))
     marked = [f["properties"]["in_mosaic"] for f in RunView(out).footprints()["features"]]
     assert marked == [True] + [False] * 5
+
+
+def test_live_estimates_rows_follow_every_change(tmp_path: Path) -> None:
+    """Rows of cameras that did not change are reused (O(window) per write); a camera
+    estimated again, or leaving the window, is written with its new values."""
+    camera = PinholeCamera(f_px=800.0, cx_px=400.0, cy_px=300.0, width_px=800,
+                           height_px=600)
+    est = LiveEstimates(tmp_path / "out", crs_wkt="LOCAL_CS[\"m\"]", camera=camera,
+                        min_interval_s=0.0)
+
+    def update(*cams: tuple[str, float]) -> dict[str, dict[str, object]]:
+        eops = [SimpleNamespace(image_id=i, eop=np.array([x, 0, 500, 0, 0, 0]),
+                                sigma=np.full(6, 0.01)) for i, x in cams]
+        window = SimpleNamespace(eops=eops, points=())
+        est.on_image(None, SimpleNamespace(eop=eops[-1], sigma0=1.0, stage="sequential"),
+                     SimpleNamespace(window_solution=lambda: window))  # type: ignore[arg-type]
+        doc = est._document(*_state(est))  # what the writer does (not woken: no on_live)
+        return {c["image"]: c for c in doc["cameras"]}  # type: ignore[index,union-attr]
+
+    try:
+        first = update(("a", 1.0), ("b", 2.0))
+        assert first["a"]["eop"][0] == 1.0 and first["a"]["in_window"]
+        second = update(("b", 2.5), ("c", 3.0))  # a left the window, b moved
+        assert second["a"]["eop"][0] == 1.0 and not second["a"]["in_window"]
+        assert second["b"]["eop"][0] == 2.5 and second["c"]["in_window"]
+        est.on_live(None)  # the writer's file: the same rows
+    finally:
+        est.close()
+    doc = json.loads((tmp_path / "out" / "live" / "estimates.json").read_text())
+    rows = {c["image"]: c for c in doc["cameras"]}
+    assert rows["b"]["eop"][0] == 2.5 and not rows["a"]["in_window"]
+
+
+def _state(est: LiveEstimates) -> tuple[object, ...]:
+    with est._lock:
+        return (list(est._order), dict(est._cameras), set(est._window), dict(est._points),
+                est._sigma0, est._stage, dict(est._latency))
