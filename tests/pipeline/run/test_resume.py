@@ -144,7 +144,14 @@ def test_budget_thresholds_are_journaled_and_replayed(tmp_path: Path) -> None:
     assert_same_results(ref, out)
     budget = json.loads((out / "run.json").read_text())["latency_budget"]
     steps = [(e["old_threshold"], e["new_threshold"]) for e in budget["events"]]
-    assert steps == [(0.1, 0.2), (0.2, 0.4), (0.4, 0.8)]  # x2 per image up to the cap
+    assert steps[:3] == [(0.1, 0.2), (0.2, 0.4), (0.4, 0.8)]  # x2 per image up to the cap
+    # then the window cap, 0.75 x per image down to its floor; the resumed run (killed at
+    # image 13, between the two dials) replays and continues the same decisions
+    caps = [e["new_window_cap"] for e in budget["events"][3:]]
+    assert caps and caps[-1] == 4 and caps == sorted(caps, reverse=True)
+    ref_budget = json.loads((ref / "run.json").read_text())["latency_budget"]
+    assert [(e["image"], e["new_threshold"], e["new_window_cap"]) for e in budget["events"]] \
+        == [(e["image"], e["new_threshold"], e["new_window_cap"]) for e in ref_budget["events"]]
     assert budget["events"][0]["image"] == "img_0011"  # the first sequential image
     assert budget["events"][0]["reason"] == "over budget"
     assert budget == json.loads((ref / "run.json").read_text())["latency_budget"] | {
