@@ -467,11 +467,13 @@ class LiveOrtho:
             affected |= new_tiles[image_id] | (kept.tiles if kept is not None else frozenset())
         self._mosaic.clear(affected)
         frozen = frozenset(affected)
+        writes = ortho.out_dir is not None and ortho.options.write_images
         for image_id, eop in final.items():
             kept = self._kept.get(image_id)
             if image_id in moved:
                 self._reortho(image_id, eop, frozen, kept)
-            elif kept is not None:  # its COG, with the EOP it is kept with (and its frozen tiles)
+            elif kept is not None and (writes or kept.tiles & frozen):
+                # its COG, with the EOP it is kept with, and its part of the frozen tiles
                 try:
                     record, _, _ = ortho_image(ortho, self._mosaic, image_id,
                                                self.images.get(image_id), kept.eop, tiles=frozen)

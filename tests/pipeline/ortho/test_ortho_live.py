@@ -232,3 +232,29 @@ def test_the_worker_thread_runs_nicer_than_the_at_loop() -> None:
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == main
     with pytest.raises(ConfigError, match="worker_nice"):
         LiveOrthoOptions(worker_nice=25)
+
+
+def test_per_image_cogs_are_written_once_at_the_end(tmp_path: Path) -> None:
+    """No per-image COG while the flight goes on (most are redone with the final EOP, and a
+    COG costs more CPU than its ortho); at the end each image's COG equals ``seqat ortho``'s
+    with the EOP it is kept with."""
+    out = write_run(tmp_path / "live")
+    dsm = write_scene_dsm(tmp_path / "dsm.tif")
+    solution = _solution(out)
+    with _live(out, dsm, background=False) as live:
+        for k, est in enumerate(solution.eops):
+            update = SimpleNamespace(eop=est, n_points_total=len(solution.points) if k else 0)
+            live.on_image(SimpleNamespace(image_id=est.image_id), update, None)  # type: ignore[arg-type]
+        assert not list((out / "ortho").glob("*.tif"))  # every image orthorectified, no COG
+        live.on_finish(solution)
+    post = orthorectify_run(_copy_run(write_run(tmp_path / "post_run"), tmp_path / "post"),
+                            dsm_path=dsm, options=OrthoOptions(pixel_m=PIXEL_M), progress=False)
+    doc = json.loads((out / "ortho.json").read_text())
+    assert [r["eop"] for r in doc["images"]] == ["live"] * 3
+    for record in doc["images"]:
+        ours = Path(record["path"])
+        assert ours.parent == out / "ortho" and ours.is_file()
+        theirs = post.mosaic.parent / "ortho" / ours.name
+        with rasterio.open(ours) as a, rasterio.open(theirs) as b:
+            assert a.transform == b.transform
+            np.testing.assert_array_equal(a.read(), b.read())
