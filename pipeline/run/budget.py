@@ -2,7 +2,7 @@
 
 The paper selects the correlation threshold "for the speed requirement" (seed 000 §2.3): a
 higher threshold cuts the window shorter, and an update costs less. :class:`LatencyBudget`
-does it on line, after each image of the sequential stage, with two dials:
+does it on line, after each image of the sequential stage, with three dials:
 
 * the **Seq-R threshold** (the update's cost): over the budget, the next images use
   ``threshold × TIGHTEN_FACTOR`` (up to ``max_threshold``);
@@ -32,7 +32,7 @@ the queue does not drain, whatever the reason). Inputs arriving faster than ever
 :data:`MIN_PERIOD_MS` are a batch (a folder copied at once): there is no rate to keep up
 with, and nothing changes; once a rate was seen, such a burst leaves it in place.
 
-Each change is an event (image, old and new threshold and features, the measured
+Each change is an event (image, old and new threshold, features and cap, the measured
 milliseconds), journaled (a resumed run replays it) and kept in ``run.json``
 ``latency_budget``; the report shows them.
 """
