@@ -454,14 +454,15 @@ class InformationFactor:
                 f"reduced normal matrix ({r}x{r}) is singular or ill-conditioned "
                 f"(eigenvalues of the scaled matrix from {ev[0]:.3g} to {ev[-1]:.3g})",
                 self.r_idx[top], on)
-        # S = diag(d) Ss diag(d) = (U diag(d))^T (U diag(d))
-        self.U = U / scale[None, :]
+        # S = diag(d) Ss diag(d) = (U diag(d))^T (U diag(d)); U^T kept Fortran-ordered (LAPACK)
+        Lt /= scale[:, None]
+        self.U = Lt.T
 
     # ------------------------------------------------------------------ solves
     def _solve_S(self, b: FloatArray) -> FloatArray:
         if self.U.shape[0] == 0:
             return b
-        x, info = _POTRS(self.U, b, lower=0)  # U^-1 U^-T b: the two triangular solves
+        x, info = _POTRS(self.U.T, b, lower=1)  # U^-1 U^-T b: the two triangular solves
         if info != 0:  # pragma: no cover - only for a malformed argument
             raise EstimationError(f"LAPACK potrs failed on the reduced system ({info})")
         return x
