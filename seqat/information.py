@@ -431,14 +431,13 @@ class InformationFactor:
             return
         d = np.sqrt(np.abs(np.diagonal(S)))
         ok = d > 0
-        scale = np.where(ok, 1.0 / np.where(ok, d, 1.0), 1.0)
-        Ss = S * scale[:, None]
-        Ss *= scale[None, :]  # unit diagonal: conditioning, not units
-        # LAPACK potrf in place on the Fortran view of Ss (its lower triangle is Ss's upper
-        # one): U = L^T, no copy; a NaN leaves a NaN rcond (not > tolerance)
-        Lt, info = _POTRF(Ss.T, lower=1, clean=1, overwrite_a=1)
-        U = Lt.T
-        diag_u = np.diagonal(U)
+        scale = np.where(ok, 1.0 / np.where(ok, d, 1.0), 1.0)  # to a unit diagonal
+        # LAPACK potrf on the Fortran view of S (its lower triangle is S's upper one): U = L^T.
+        # The conditioning is judged on the unit-diagonal diag(scale) S diag(scale), whose
+        # factor is U diag(scale): Cholesky's backward error does not depend on a diagonal
+        # scaling, so S itself is factorised (not a scaled copy). A NaN gives a NaN rcond.
+        Lt, info = _POTRF(S.T, lower=1, clean=1)
+        diag_u = np.diagonal(Lt) * scale
         rcond = (diag_u.min() / diag_u.max()) ** 2 if info == 0 else 0.0
         if not rcond > RANK_TOLERANCE:
             Ss = S * scale[:, None] * scale[None, :]
@@ -454,9 +453,7 @@ class InformationFactor:
                 f"reduced normal matrix ({r}x{r}) is singular or ill-conditioned "
                 f"(eigenvalues of the scaled matrix from {ev[0]:.3g} to {ev[-1]:.3g})",
                 self.r_idx[top], on)
-        # S = diag(d) Ss diag(d) = (U diag(d))^T (U diag(d)); U^T kept Fortran-ordered (LAPACK)
-        Lt /= scale[:, None]
-        self.U = Lt.T
+        self.U = Lt.T  # U^T kept Fortran-ordered: LAPACK reads it without a copy
 
     # ------------------------------------------------------------------ solves
     def _solve_S(self, b: FloatArray) -> FloatArray:
