@@ -33,6 +33,7 @@ import scipy.sparse
 
 from seqat.errors import EstimationError
 from seqat.types import GP_SIZE, FloatArray
+from seqat.update import lower_inverse
 
 #: A GP block or reduced system whose smallest eigenvalue is below this fraction of its
 #: largest is treated as singular (relative to double precision: 1e-12 leaves four digits).
@@ -90,7 +91,6 @@ WindowMatrix = FloatArray | SparseMatrix
 #: calls cost twice scipy's argument checking, a measurable share of a small window's update).
 _POTRS = scipy.linalg.lapack.dpotrs
 _POTRF = scipy.linalg.lapack.dpotrf
-_TRTRI = scipy.linalg.lapack.dtrtri
 _LAUUM = scipy.linalg.lapack.dlauum
 
 
@@ -488,23 +488,19 @@ class InformationFactor:
 
     # ------------------------------------------------------------------ marginals
     def _v(self) -> FloatArray:
-        """``V = U^-1`` (r x r, upper triangular; LAPACK ``trtri``): ``Q_RR = S^-1 = V V^T``.
+        """``V = U^-1`` (r x r, upper triangular): ``Q_RR = S^-1 = V V^T``.
 
         An update reads the diagonal of ``Q_RR`` and a few of its blocks, never all of it:
         ``diag(Q_RR)`` is the squared norms of ``V``'s rows, ``Q_RR[a, b] = V[a] V[b]^T``
-        and ``B^T Q_RR B = (V^T B)^T (V^T B)``. ``trtri`` is the first half of ``potri``
-        (``U^-1``, then ``V V^T``): the second half and the symmetrising pass of a dense
-        ``Q_RR`` are not paid (~0.6 of a ~5 ms update on the paper strip, r ~ 190,
-        measured 2026-12-03)."""
+        and ``B^T Q_RR B = (V^T B)^T (V^T B)``. ``U^-1`` is the first half of LAPACK
+        ``potri`` (then ``V V^T``): the second half and the symmetrising pass of a dense
+        ``Q_RR`` are not paid (with ``U^-1`` by :func:`seqat.update.lower_inverse`: ~0.8 of a
+        ~5 ms update on the paper strip, r ~ 190, measured 2026-12-03)."""
         if self._V is None:
             if self.U.shape[0] == 0:
                 self._V = np.zeros((0, 0))
-            else:
-                # on the Fortran view (the lower factor U^T): V^T comes back Fortran-ordered
-                Vt, info = _TRTRI(self.U.T, lower=1)
-                if info != 0:  # cannot happen for the factor _chol accepted
-                    raise EstimationError(f"LAPACK trtri failed on the reduced system ({info})")
-                self._V = Vt.T
+            else:  # on the Fortran-ordered lower factor U^T: V^T, Fortran-ordered
+                self._V = lower_inverse(self.U.T).T
         return self._V
 
     def _q_rr(self) -> FloatArray:
