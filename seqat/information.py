@@ -173,8 +173,10 @@ def gather_parts(L: FloatArray | SparseMatrix, r_idx: np.ndarray, p_idx: np.ndar
     if not scipy.sparse.issparse(L):
         L = np.asarray(L)
         D = L[p_idx[:, :, None], p_idx[:, None, :]]
-        rows_r = L.take(r_idx, axis=0)  # row gathers, then columns: faster than np.ix_
-        return D, rows_r.take(r_idx, axis=1), rows_r.take(p_idx.ravel(), axis=1)
+        # row gathers, then columns by indexing (take on axis 1 copies element by element, at
+        # half the speed): faster than np.ix_
+        rows_r = L.take(r_idx, axis=0)
+        return D, rows_r[:, r_idx], rows_r[:, p_idx.ravel()]
     p_flat = p_idx.ravel()
     npt = p_idx.shape[0]
     rows_r = L[r_idx]
@@ -709,7 +711,7 @@ class InformationFactor:
         if not jp.size:
             return QRR
         q = ppos[idx[jp]]  # positions in P of the eliminated entries asked for
-        Bq = np.asarray(self.B).take(q, axis=1)
+        Bq = np.asarray(self.B)[:, q]
         W = V.T @ Bq  # (r, |jp|): Q_RR B_q = V W
         PP = W.T @ W
         blk, comp = q // GP_SIZE, q % GP_SIZE
@@ -723,7 +725,7 @@ class InformationFactor:
         out[nr:, :nr] = QRP.T
         out[nr:, nr:] = 0.5 * (PP + PP.T)
         order = np.argsort(np.concatenate([jr, jp]))
-        return out.take(order, axis=0).take(order, axis=1)
+        return out.take(order, axis=0)[:, order]
 
     @staticmethod
     def _columns_of(M: FloatArray | SparseMatrix, cols: np.ndarray) -> FloatArray:
@@ -747,7 +749,7 @@ class InformationFactor:
         Qpp = 0.5 * (Qpp + Qpp.T)
         blocked = np.block([[Qrr, Qrp], [Qrp.T, Qpp]])  # R first, then P
         order = np.argsort(np.concatenate([self.r_idx, self.p_idx.ravel()]))
-        return blocked.take(order, axis=0).take(order, axis=1)
+        return blocked.take(order, axis=0)[:, order]
 
 
 class MarginalFactor:
