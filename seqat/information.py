@@ -496,7 +496,7 @@ class InformationFactor:
         ``diag(Q_RR)`` is the squared norms of ``V``'s rows, ``Q_RR[a, b] = V[a] V[b]^T``
         and ``B^T Q_RR B = (V^T B)^T (V^T B)``. ``U^-1`` is the first half of LAPACK
         ``potri`` (then ``V V^T``): the second half and the symmetrising pass of a dense
-        ``Q_RR`` are not paid (with ``U^-1`` by :func:`seqat.update.lower_inverse`: ~0.8 of a
+        ``Q_RR`` are not paid (with ``U^-1`` by :func:`seqat.update.lower_inverse`: ~0.5 ms of a
         ~5 ms update on the paper strip, r ~ 190, measured 2026-12-03)."""
         if self._V is None:
             if self.U.shape[0] == 0:
