@@ -57,15 +57,13 @@ class BirthMixin:
         born into a singular, far-off solution."""
         if not born:
             return []
-        E, I = [], []
-        for j, b, _, _ in y12:
-            c = col_of[("e", j)]
-            E.append(x1t[c : c + EOP_SIZE])
-            I.append(b)
-        for b, _, _ in y22:
-            E.append(x2[:EOP_SIZE])
-            I.append(b)
-        E_a, I_a = np.asarray(E).reshape(-1, EOP_SIZE), np.asarray(I, dtype=np.int64)
+        # one gather of the y12 rays' EOPs (a birth's few dozen rays; called per iterate)
+        cols = np.fromiter((col_of[("e", j)] for j, _, _, _ in y12), dtype=np.int64,
+                           count=len(y12))
+        E_a = np.concatenate([x1t[cols[:, None] + np.arange(EOP_SIZE)],
+                              np.broadcast_to(x2[:EOP_SIZE], (len(y22), EOP_SIZE))])
+        I_a = np.fromiter([b for _, b, _, _ in y12] + [b for b, _, _ in y22], dtype=np.int64,
+                          count=len(y12) + len(y22))
         X = x2[EOP_SIZE:].reshape(-1, GP_SIZE)
         with np.errstate(all="ignore"):
             axis = viewing_axes(E_a)  # one rotation for both depths

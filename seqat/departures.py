@@ -294,9 +294,9 @@ class DepartureMixin:
                 L_ff = dense_block(w.L, leave, leave)
             else:  # one gather of the leaving rows (dense window)
                 rows_f = w.L.take(leave, axis=0)
-                L_fw = rows_f.take(keep, axis=1)
+                L_fw = rows_f[:, keep]
                 support = np.flatnonzero(np.any(L_fw != 0.0, axis=0))
-                L_fs, L_ff = L_fw.take(support, axis=1), rows_f.take(leave, axis=1)
+                L_fs, L_ff = L_fw[:, support], rows_f[:, leave]
             cond, gain_s = leaving_conditional(L_ff, L_fs, leave_keys, w.coupled)
             gain = np.zeros((leave.size, keep.size))
             gain[:, support] = gain_s
@@ -305,7 +305,7 @@ class DepartureMixin:
             if scipy.sparse.issparse(w.L):
                 L = window_matrix(add_block(submatrix(w.L, keep, keep), support, fill))
             else:
-                L = w.L.take(keep, axis=0).take(keep, axis=1)  # a copy
+                L = w.L.take(keep, axis=0).take(keep, axis=1)  # a C-ordered copy
                 L[np.ix_(support, support)] += fill
                 L = window_matrix(L)
             # GPs the marginal prior now ties to other GPs are no longer eliminable alone

@@ -348,13 +348,14 @@ def intersect_rays(
     d = rays_world(eop, uv_px, camera)
     C = eop[:, :3]
     proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-    A = np.zeros((n_points, 3, 3))
-    b = np.zeros((n_points, 3))
-    np.add.at(A, idx, proj)
-    np.add.at(b, idx, np.einsum("kij,kj->ki", proj, C))
+    # the per-point sums of the normal equations and of the rays in one scatter (a birth
+    # intersects a few points from a few dozen rays: numpy's per-call cost dominates)
+    sums = np.zeros((n_points, 15))
+    np.add.at(sums, idx, np.concatenate([proj.reshape(-1, 9),
+                                         np.einsum("kij,kj->ki", proj, C), d], axis=1))
+    A, b = sums[:, :9].reshape(n_points, 3, 3), sums[:, 9:12]
     # Largest ray angle per point: angle of each ray to the point's mean ray, doubled bound.
-    mean_dir = np.zeros((n_points, 3))
-    np.add.at(mean_dir, idx, d)
+    mean_dir = sums[:, 12:]
     norm = np.linalg.norm(mean_dir, axis=1, keepdims=True)
     mean_dir = np.divide(mean_dir, norm, out=np.zeros_like(mean_dir), where=norm > 0)
     ang = np.arccos(np.clip(np.einsum("ki,ki->k", d, mean_dir[idx]), -1.0, 1.0))

@@ -33,6 +33,7 @@ import scipy.sparse
 
 from seqat.errors import EstimationError
 from seqat.types import GP_SIZE, FloatArray
+from seqat.update import lower_inverse
 
 #: A GP block or reduced system whose smallest eigenvalue is below this fraction of its
 #: largest is treated as singular (relative to double precision: 1e-12 leaves four digits).
@@ -90,6 +91,7 @@ WindowMatrix = FloatArray | SparseMatrix
 #: calls cost twice scipy's argument checking, a measurable share of a small window's update).
 _POTRS = scipy.linalg.lapack.dpotrs
 _POTRF = scipy.linalg.lapack.dpotrf
+_LAUUM = scipy.linalg.lapack.dlauum
 
 
 def sparse_information(L: WindowMatrix) -> SparseMatrix:
@@ -171,8 +173,10 @@ def gather_parts(L: FloatArray | SparseMatrix, r_idx: np.ndarray, p_idx: np.ndar
     if not scipy.sparse.issparse(L):
         L = np.asarray(L)
         D = L[p_idx[:, :, None], p_idx[:, None, :]]
-        rows_r = L.take(r_idx, axis=0)  # row gathers, then columns: faster than np.ix_
-        return D, rows_r.take(r_idx, axis=1), rows_r.take(p_idx.ravel(), axis=1)
+        # row gathers, then columns by indexing (take on axis 1 copies element by element, at
+        # half the speed): faster than np.ix_
+        rows_r = L.take(r_idx, axis=0)
+        return D, rows_r[:, r_idx], rows_r[:, p_idx.ravel()]
     p_flat = p_idx.ravel()
     npt = p_idx.shape[0]
     rows_r = L[r_idx]
@@ -423,19 +427,19 @@ class InformationFactor:
     def _chol(self, S: FloatArray) -> None:
         r = S.shape[0]
         self._Qrr: FloatArray | None = None
+        self._V: FloatArray | None = None
         if r == 0:
             self.U = np.zeros((0, 0))
             return
         d = np.sqrt(np.abs(np.diagonal(S)))
         ok = d > 0
-        scale = np.where(ok, 1.0 / np.where(ok, d, 1.0), 1.0)
-        Ss = S * scale[:, None]
-        Ss *= scale[None, :]  # unit diagonal: conditioning, not units
-        # LAPACK potrf in place on the Fortran view of Ss (its lower triangle is Ss's upper
-        # one): U = L^T, no copy; a NaN leaves a NaN rcond (not > tolerance)
-        Lt, info = _POTRF(Ss.T, lower=1, clean=1, overwrite_a=1)
-        U = Lt.T
-        diag_u = np.diagonal(U)
+        scale = np.where(ok, 1.0 / np.where(ok, d, 1.0), 1.0)  # to a unit diagonal
+        # LAPACK potrf on the Fortran view of S (its lower triangle is S's upper one): U = L^T.
+        # The conditioning is judged on the unit-diagonal diag(scale) S diag(scale), whose
+        # factor is U diag(scale): Cholesky's backward error does not depend on a diagonal
+        # scaling, so S itself is factorised (not a scaled copy). A NaN gives a NaN rcond.
+        Lt, info = _POTRF(S.T, lower=1, clean=1)
+        diag_u = np.diagonal(Lt) * scale
         rcond = (diag_u.min() / diag_u.max()) ** 2 if info == 0 else 0.0
         if not rcond > RANK_TOLERANCE:
             Ss = S * scale[:, None] * scale[None, :]
@@ -451,14 +455,13 @@ class InformationFactor:
                 f"reduced normal matrix ({r}x{r}) is singular or ill-conditioned "
                 f"(eigenvalues of the scaled matrix from {ev[0]:.3g} to {ev[-1]:.3g})",
                 self.r_idx[top], on)
-        # S = diag(d) Ss diag(d) = (U diag(d))^T (U diag(d))
-        self.U = U / scale[None, :]
+        self.U = Lt.T  # U^T kept Fortran-ordered: LAPACK reads it without a copy
 
     # ------------------------------------------------------------------ solves
     def _solve_S(self, b: FloatArray) -> FloatArray:
         if self.U.shape[0] == 0:
             return b
-        x, info = _POTRS(self.U, b, lower=0)  # U^-1 U^-T b: the two triangular solves
+        x, info = _POTRS(self.U.T, b, lower=1)  # U^-1 U^-T b: the two triangular solves
         if info != 0:  # pragma: no cover - only for a malformed argument
             raise EstimationError(f"LAPACK potrs failed on the reduced system ({info})")
         return x
@@ -486,19 +489,39 @@ class InformationFactor:
         return self.solve(E)
 
     # ------------------------------------------------------------------ marginals
+    def _v(self) -> FloatArray:
+        """``V = U^-1`` (r x r, upper triangular): ``Q_RR = S^-1 = V V^T``.
+
+        An update reads the diagonal of ``Q_RR`` and a few of its blocks, never all of it:
+        ``diag(Q_RR)`` is the squared norms of ``V``'s rows, ``Q_RR[a, b] = V[a] V[b]^T``
+        and ``B^T Q_RR B = (V^T B)^T (V^T B)``. ``U^-1`` is the first half of LAPACK
+        ``potri`` (then ``V V^T``): the second half and the symmetrising pass of a dense
+        ``Q_RR`` are not paid (with ``U^-1`` by :func:`seqat.update.lower_inverse`: ~0.5 ms of a
+        ~5 ms update on the paper strip, r ~ 190, measured 2026-12-03)."""
+        if self._V is None:
+            if self.U.shape[0] == 0:
+                self._V = np.zeros((0, 0))
+            else:  # on the Fortran-ordered lower factor U^T: V^T, Fortran-ordered
+                self._V = lower_inverse(self.U.T).T
+        return self._V
+
     def _q_rr(self) -> FloatArray:
-        """``Q_RR = S^-1`` from the factor (LAPACK ``potri``: ``U^-1 U^-T``), dense r x r."""
+        """``Q_RR = S^-1 = V V^T``, dense, exactly symmetric (LAPACK ``lauum``: ``potri``'s
+        second half): for :meth:`dense` and a large window's :meth:`_point_extra` only."""
         if self._Qrr is None:
-            r = self.U.shape[0]
-            if r == 0:
-                self._Qrr = np.zeros((0, 0))
-            else:
-                inv, info = scipy.linalg.lapack.dpotri(self.U, lower=0)
-                if info != 0:  # cannot happen for the factor _chol accepted
-                    raise EstimationError(f"LAPACK potri failed on the reduced system ({info})")
-                Q = np.triu(inv)
-                self._Qrr = Q + np.triu(Q, 1).T
+            V = self._v()
+            low, info = _LAUUM(V.T, lower=1) if V.size else (V, 0)  # V V^T, lower triangle
+            if info != 0:  # pragma: no cover - only for a malformed argument
+                raise EstimationError(f"LAPACK lauum failed on the reduced system ({info})")
+            Q = np.triu(low.T)
+            self._Qrr = Q + np.triu(Q, 1).T
         return self._Qrr
+
+    def _q_rr_block(self, rows: np.ndarray) -> FloatArray:
+        """``Q_RR[rows, rows]`` from :meth:`_v`, exactly symmetric."""
+        Vr = self._v().take(rows, axis=0)
+        M = Vr @ Vr.T
+        return 0.5 * (M + M.T)
 
     def diagonal(self) -> FloatArray:
         """``diag(Q)``: every marginal variance (cofactor units), all > 0."""
@@ -510,8 +533,10 @@ class InformationFactor:
         return out
 
     def reduced_diagonal(self) -> FloatArray:
-        """``diag(Q_RR)``: marginal variances of the kept (not eliminated) parameters."""
-        return np.diagonal(self._q_rr()).copy()
+        """``diag(Q_RR)``: marginal variances of the kept (not eliminated) parameters, the
+        squared norms of :meth:`_v`'s rows (> 0: ``V`` is regular)."""
+        V = self._v()
+        return np.einsum("ij,ij->i", V, V)
 
     def _point_extra(self) -> FloatArray:
         """``diag(B_p^T Q_RR B_p)`` (np, 3): what the kept parameters add to each eliminated
@@ -520,13 +545,13 @@ class InformationFactor:
         ``B_p`` is non-zero only on the rows of the images (and camera) that see the point:
         each point reads its own m x m block of ``Q_RR`` (m = 6 per ray), O(sum m^2) in all,
         instead of the O(nnz(B) r) of ``U^-T B`` (docs/algorithm.md, *Engines*)."""
-        Q = self._q_rr()
         r, npt = self.r_idx.size, self.p_idx.shape[0]
         if r == 0:
             return np.zeros((npt, GP_SIZE))
-        if not scipy.sparse.issparse(self.B):
-            B = np.asarray(self.B)
-            return np.einsum("ij,ij->j", B, Q @ B).reshape(npt, GP_SIZE)
+        if not scipy.sparse.issparse(self.B):  # the column norms of V^T B
+            W = self._v().T @ np.asarray(self.B)
+            return np.einsum("ij,ij->j", W, W).reshape(npt, GP_SIZE)
+        Q = self._q_rr()
         C = scipy.sparse.csc_array(self.B)
         C.sum_duplicates()  # canonical: sorted rows per column, no duplicates
         ptr, rows, vals = C.indptr, C.indices, C.data
@@ -602,27 +627,27 @@ class InformationFactor:
         (O(k^2) of them for k parameters; a departure of 40 images and their points asked
         for 2500 x 2500 to keep 3 x 3 and 6 x 6 blocks).
 
-        A group of kept parameters reads ``Q_RR``; an eliminated point's is
-        ``D_p^-1 + B_p^T Q_RR B_p`` (``B_p = L_Rp D_p^-1``), one product ``Q_RR B`` on the
+        A group of kept parameters reads ``Q_RR`` (from :meth:`_v`); an eliminated point's
+        is ``D_p^-1 + B_p^T Q_RR B_p`` (``B_p = L_Rp D_p^-1``), one product ``V^T B`` on the
         columns of the points asked for."""
         idx = np.asarray(idx, dtype=np.int64)
         sizes = np.asarray(sizes, dtype=np.int64)
         starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
         rpos, ppos = self._positions()
-        Q = self.q_rr()
+        V = self._v()
         out: list[FloatArray] = [np.zeros((0, 0))] * sizes.size
         elim: list[int] = []  # groups that are one eliminated point, whole
         for g, (a, m) in enumerate(zip(starts, sizes, strict=True)):
             gi = idx[a:a + m]
             r = rpos[gi]
             if np.all(r >= 0):
-                out[g] = Q[np.ix_(r, r)].copy()
+                out[g] = self._q_rr_block(r)
             elif (m == GP_SIZE and np.all(ppos[gi] >= 0) and ppos[gi[0]] % GP_SIZE == 0
                   and np.array_equal(ppos[gi], ppos[gi[0]] + np.arange(GP_SIZE))):
                 elim.append(g)
             else:  # a group across R and P (no key is): the general block
                 out[g] = self.block(gi)
-        r = Q.shape[0]
+        r = V.shape[0]
         # in chunks of bounded memory (r x 3 columns per point, twice)
         for part in np.array_split(np.asarray(elim, dtype=np.int64),
                                    max(1, r * GP_SIZE * len(elim) // 4_000_000)):
@@ -633,8 +658,8 @@ class InformationFactor:
             if r:
                 cols = (blk[:, None] * GP_SIZE + np.arange(GP_SIZE)).ravel()
                 Bc = self._columns_of(self.B, cols).reshape(r, blk.size, GP_SIZE)
-                QB = np.tensordot(Q, Bc, axes=(1, 0))  # (r, points, 3)
-                Qpp += np.einsum("rpi,rpj->pij", Bc, QB)
+                VB = np.tensordot(V, Bc, axes=(0, 0))  # V^T B: (r, points, 3)
+                Qpp += np.einsum("rpi,rpj->pij", VB, VB)
             Qpp = 0.5 * (Qpp + np.swapaxes(Qpp, 1, 2))
             for g, q in zip(part, Qpp, strict=True):
                 out[g] = q
@@ -642,7 +667,7 @@ class InformationFactor:
 
     def entries(self, rows: np.ndarray, cols: np.ndarray) -> FloatArray:
         """``Q[rows, cols]`` (outer). Kept (not eliminated) rows and columns, the EOPs
-        among them, come from ``Q_RR = S^-1``: read from :meth:`q_rr` in a small window, one
+        among them, come from ``Q_RR = S^-1``: rows of :meth:`_v` in a small window, one
         LAPACK ``potrs`` on the columns asked for in a large one; no back-substitution of the
         eliminated GPs. Otherwise from :meth:`columns`."""
         rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
@@ -651,7 +676,8 @@ class InformationFactor:
         if rows.size and cols.size and (rr.min() < 0 or rc.min() < 0):
             return self.columns(cols)[rows]
         if self._small():
-            return self.q_rr()[np.ix_(rr, rc)]
+            V = self._v()
+            return V.take(rr, axis=0) @ V.take(rc, axis=0).T
         E = np.zeros((self.r_idx.size, cols.size))
         E[rc, np.arange(cols.size)] = 1.0
         return self._solve_S(E)[rr]
@@ -669,33 +695,29 @@ class InformationFactor:
 
     def _small(self) -> bool:
         """A window whose ``L`` is dense (:data:`DENSE_UP_TO`): its cofactor blocks come
-        from ``Q_RR`` formed once (:meth:`q_rr`), cheaper there than a solve per request."""
+        from ``V = U^-1`` formed once (:meth:`_v`), cheaper there than a solve per request."""
         return self.n <= DENSE_UP_TO and not scipy.sparse.issparse(self.B)
-
-    def q_rr(self) -> FloatArray:
-        """``Q_RR = S^-1`` (r, r) of the kept parameters, dense: the one the marginals form
-        (:meth:`_q_rr`, once per factorisation), shared by the window rule and the update."""
-        return self._q_rr()
 
     def _block_from_q_rr(self, idx: np.ndarray, rpos: np.ndarray,
                          ppos: np.ndarray) -> FloatArray:
-        """:meth:`block` from ``Q_RR``: ``Q_Rp = -Q_RR B_p``, ``Q_pp' = D_p^-1 [p = p'] +
-        B_p^T Q_RR B_p'`` (``B = L_RP D^-1``) on the eliminated entries asked for."""
-        Q = self.q_rr()
+        """:meth:`block` from ``Q_RR = V V^T`` (:meth:`_v`): ``Q_Rp = -Q_RR B_p``,
+        ``Q_pp' = D_p^-1 [p = p'] + B_p^T Q_RR B_p'`` (``B = L_RP D^-1``) on the eliminated
+        entries asked for."""
+        V = self._v()
         in_r = rpos[idx] >= 0
         jr, jp = np.flatnonzero(in_r), np.flatnonzero(~in_r)
         R = rpos[idx[jr]]
-        QRR = Q.take(R, axis=0).take(R, axis=1)
+        QRR = self._q_rr_block(R)
         if not jp.size:
             return QRR
         q = ppos[idx[jp]]  # positions in P of the eliminated entries asked for
-        Bq = np.asarray(self.B).take(q, axis=1)
-        QB = Q @ Bq  # (r, |jp|)
-        PP = Bq.T @ QB
+        Bq = np.asarray(self.B)[:, q]
+        W = V.T @ Bq  # (r, |jp|): Q_RR B_q = V W
+        PP = W.T @ W
         blk, comp = q // GP_SIZE, q % GP_SIZE
         a, b = np.nonzero(blk[:, None] == blk[None, :])  # the same point's entries
         PP[a, b] += self.Dinv[blk[a], comp[a], comp[b]]
-        QRP = -QB.take(R, axis=0)
+        QRP = -(V.take(R, axis=0) @ W)
         nr = jr.size  # kept entries first, then the eliminated ones; idx's order after
         out = np.empty((idx.size, idx.size))
         out[:nr, :nr] = QRR
@@ -703,7 +725,7 @@ class InformationFactor:
         out[nr:, :nr] = QRP.T
         out[nr:, nr:] = 0.5 * (PP + PP.T)
         order = np.argsort(np.concatenate([jr, jp]))
-        return out.take(order, axis=0).take(order, axis=1)
+        return out.take(order, axis=0)[:, order]
 
     @staticmethod
     def _columns_of(M: FloatArray | SparseMatrix, cols: np.ndarray) -> FloatArray:
@@ -717,7 +739,7 @@ class InformationFactor:
         ``Q_RP = -Q_RR B``, ``Q_PP = D^-1 + B^T Q_RR B`` (``D^-1`` per point), O(r^2 p +
         r p^2) for p eliminated parameters, not the O(n^3) of a dense inverse (a departure's
         conditional, :func:`seqat.departures.leaving_conditional`)."""
-        Qrr = self.q_rr()
+        Qrr = self._q_rr()
         npt = self.p_idx.shape[0]
         B = self.B.toarray() if scipy.sparse.issparse(self.B) else np.asarray(self.B)
         Qrp = -(Qrr @ B)  # dense BLAS: a sparse B times many columns is slower
@@ -727,7 +749,7 @@ class InformationFactor:
         Qpp = 0.5 * (Qpp + Qpp.T)
         blocked = np.block([[Qrr, Qrp], [Qrp.T, Qpp]])  # R first, then P
         order = np.argsort(np.concatenate([self.r_idx, self.p_idx.ravel()]))
-        return blocked.take(order, axis=0).take(order, axis=1)
+        return blocked.take(order, axis=0)[:, order]
 
 
 class MarginalFactor:

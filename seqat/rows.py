@@ -311,10 +311,12 @@ class FactorSet:
             e, p = self.offsets
         else:
             e, p = w.offsets_of("e", self.img), w.offsets_of("p", self.pt)
+        e_cols = e[:, None] + np.arange(EOP_SIZE)
         cam = [k for k in w.keys if k[0] == "c"]
-        cam_cols = w.indices(cam)
-        e_cols = np.concatenate([e[:, None] + np.arange(EOP_SIZE),
-                                 np.broadcast_to(cam_cols, (e.size, cam_cols.size))], axis=1)
+        if cam:  # self-calibration: the camera's columns join every image block
+            cam_cols = w.indices(cam)
+            e_cols = np.concatenate([e_cols, np.broadcast_to(cam_cols, (e.size, cam_cols.size))],
+                                    axis=1)
         return e_cols, p[:, None] + np.arange(GP_SIZE)
 
     def predicted(self, e: FloatArray, p: FloatArray) -> FloatArray:

@@ -58,7 +58,9 @@ class PinholeCamera:
 
     @property
     def has_distortion(self) -> bool:
-        return any(getattr(self, n) != 0.0 for n in ("k1", "k2", "p1", "p2", "k3"))
+        # written out: every projection asks (a generator of getattr cost more than the check)
+        return (self.k1 != 0.0 or self.k2 != 0.0 or self.p1 != 0.0 or self.p2 != 0.0
+                or self.k3 != 0.0)
 
     def with_intrinsics(self, values: FloatArray) -> PinholeCamera:
         """The same camera with the :data:`INTRINSICS` ``values`` (8,)."""

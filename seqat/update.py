@@ -41,6 +41,10 @@ SPARSE_ROWS_FROM = 50_000
 _POTRF = scipy.linalg.lapack.dpotrf
 _POTRI = scipy.linalg.lapack.dpotri
 _GESV = scipy.linalg.lapack.dgesv
+_TRTRI = scipy.linalg.lapack.dtrtri
+_TRMM = scipy.linalg.blas.dtrmm
+#: :func:`lower_inverse` splits triangles from this order on (below it one ``trtri`` call).
+SPLIT_TRIANGLE_FROM = 128
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -126,6 +130,31 @@ def spd_inverse(M: FloatArray, what: str) -> FloatArray:
     # potri writes the upper triangle; below it stand U's zeros (clean): mirror it
     out = inv + inv.T
     out.flat[:: M.shape[0] + 1] = np.diagonal(inv)
+    return out
+
+
+def lower_inverse(L: FloatArray) -> FloatArray:
+    """``L^-1`` of a regular lower triangular ``L`` (Fortran-ordered, zeros above the
+    diagonal: a ``potrf`` factor with ``clean``), lower triangular and Fortran-ordered, by
+    halves::
+
+        [[A, 0], [B, C]]^-1 = [[A^-1, 0], [-C^-1 B A^-1, C^-1]]
+
+    LAPACK ``trtri`` on the two halves, BLAS ``trmm`` for the corner: OpenBLAS's ``trtri``
+    runs at half the rate of ``potrf`` at the paper strip's r ~ 190 (0.37-0.43 ms against
+    0.27-0.30 ms by halves, measured 2026-12-03), ``trmm`` at the full rate."""
+    n = L.shape[0]
+    h = n // 2 if n >= SPLIT_TRIANGLE_FROM else n
+    out = np.zeros((n, n), order="F")
+    for a, b in ((0, h), (h, n)):
+        if b > a:
+            inv, info = _TRTRI(L[a:b, a:b], lower=1)
+            if info != 0:
+                raise EstimationError(f"LAPACK trtri: a singular triangle ({info})")
+            out[a:b, a:b] = inv
+    if h < n:  # -C^-1 B A^-1
+        out[h:, :h] = _TRMM(1.0, out[:h, :h], _TRMM(-1.0, out[h:, h:], L[h:, :h], lower=1),
+                            lower=1, side=1)
     return out
 
 

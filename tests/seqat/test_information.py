@@ -220,3 +220,49 @@ def test_factor_parts_summed_per_image_equal_the_block_scatter(ce: int) -> None:
     got = add_factor_parts(base, Je, Jp, w, img, cols, r_idx, p_idx, n)
     for x, y in zip(got, ref, strict=True):
         np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-10)
+
+
+def test_marginals_from_the_inverse_factor_equal_the_dense_inverse_of_the_reduced_system(
+        ) -> None:
+    """A small window's marginals come from ``V = U^-1`` (rows of V, ``V^T B``), not from a
+    dense ``Q_RR``: equal to ``inv(S)`` of the reduced system formed here independently, on a
+    window-sized system (25 images, 13 coupled GPs: r = 189 as on the paper strip) with
+    EOP parameters in units eight decades apart; every variance positive, every block
+    exactly symmetric."""
+    rng = np.random.default_rng(21)
+    L, gp = _window_like(rng, n_e=25, n_p=40, coupled=13)
+    n = L.shape[0]
+    units = np.ones(n)
+    units[:150] = 10.0 ** rng.uniform(-4, 4, 150)
+    L = L * units[:, None] * units[None, :]
+    f = InformationFactor(L, gp)
+    r_idx, p = f.r_idx, f.p_idx.ravel()
+    assert r_idx.size == 189 and isinstance(f.B, np.ndarray)  # the small window's path
+    S = L[np.ix_(r_idx, r_idx)] - L[np.ix_(r_idx, p)] @ np.linalg.solve(
+        L[np.ix_(p, p)], L[np.ix_(p, r_idx)])
+    Qrr = np.linalg.inv(S)
+    Q = np.linalg.inv(L)
+    V = f._v()
+    np.testing.assert_array_equal(np.tril(V, -1), 0.0)
+    np.testing.assert_allclose(f.reduced_diagonal(), np.diagonal(Qrr), rtol=1e-8)
+    np.testing.assert_allclose(f._q_rr(), Qrr, rtol=1e-7, atol=1e-9 * np.abs(Qrr).max())
+    d = f.diagonal()
+    assert np.all(d > 0)
+    np.testing.assert_allclose(d, np.diagonal(Q), rtol=1e-8)
+    # an update's touched block: a kept point, two images, eliminated points, in any order
+    idx = np.r_[p[9:12], 6:12, 150 + np.arange(3), 54:60, p[30:33], 0]
+    got = f.block(idx)
+    np.testing.assert_array_equal(got, got.T)
+    want = Q[np.ix_(idx, idx)]
+    np.testing.assert_allclose(got, want, rtol=1e-7,
+                               atol=1e-9 * np.sqrt(np.outer(np.diagonal(want),
+                                                            np.diagonal(want))).max())
+    eops = np.arange(150)
+    np.testing.assert_allclose(f.entries(eops, np.arange(144, 150)),
+                               Q[np.ix_(eops, np.arange(144, 150))], rtol=1e-7,
+                               atol=1e-9 * np.abs(Q[:150, :150]).max())
+    groups = [np.arange(6, 12), 150 + np.arange(3), p[:3], p[-3:]]
+    got_blocks = f.diagonal_blocks(np.concatenate(groups), np.array([6, 3, 3, 3]))
+    for g, b in zip(groups, got_blocks, strict=True):
+        np.testing.assert_array_equal(b, b.T)
+        np.testing.assert_allclose(b, Q[np.ix_(g, g)], rtol=1e-7)

@@ -145,3 +145,26 @@ def test_large_update_forms_its_products_sparse_with_the_same_numbers(
         np.testing.assert_allclose(getattr(sparse, name), getattr(dense, name),
                                    rtol=1e-9, atol=1e-12, err_msg=name)
     assert sparse.ssr_increment == pytest.approx(dense.ssr_increment, rel=1e-10)
+
+
+@pytest.mark.parametrize("n", [1, 7, 127, 128, 201])
+def test_lower_inverse_by_halves_equals_the_dense_inverse(n: int) -> None:
+    """The triangle's inverse by halves (trtri on each, trmm for the corner) from the split's
+    order on, one trtri below it: equal to ``inv``, triangular, on a factor with rows ten
+    decades apart; a singular triangle raises."""
+    from seqat.errors import EstimationError
+    from seqat.update import lower_inverse
+
+    rng = np.random.default_rng(n)
+    A = rng.standard_normal((2 * n, n))
+    units = 10.0 ** rng.uniform(-5, 5, n)
+    L = np.linalg.cholesky((A.T @ A + np.eye(n)) * units[:, None] * units[None, :])
+    got = lower_inverse(np.asfortranarray(L))
+    assert got.flags.f_contiguous
+    np.testing.assert_array_equal(np.triu(got, 1), 0.0)
+    want = np.linalg.inv(L)
+    np.testing.assert_allclose(got @ L, np.eye(n), atol=1e-9)
+    np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-10 * np.abs(want).max())
+    L[n // 2, n // 2] = 0.0
+    with pytest.raises(EstimationError):
+        lower_inverse(np.asfortranarray(L))
