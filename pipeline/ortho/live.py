@@ -16,7 +16,7 @@ end (``on_finish``, with the final solution):
    orthorectified live are tried again with their final EOP.
 2. **Mosaic.** The tiles a re-orthorectified image touches (with its live and its final EOP)
    are emptied and recomposed from every image touching them, in acquisition order (images
-   kept with their live EOP are orthorectified again for this, without writing their COG),
+   kept with their live EOP are orthorectified again for this, which writes their COG),
    so the mosaic is the one a post-run ``seqat ortho`` builds from the EOPs each image was
    kept with. With no image re-orthorectified the live mosaic is final as it is.
 3. **Per-image COGs** ``ortho/<image>.tif`` are written now, each once, with the EOP its
