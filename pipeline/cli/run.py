@@ -290,7 +290,7 @@ def watch(
 def watch_server(port: int | None, host: str,
                   where: str = "process") -> Iterator[Callable[[Path], None] | None]:
     """``--serve PORT``: the socket is bound now (a busy port fails before the watch starts);
-    the server starts on OUT once the watch has claimed it, niced as the live ortho's worker
+    the server starts on OUT once the watch has claimed it, niced below the live ortho's worker
     (the AT loop first), in a child process (``where``; or a thread of the watch), and stops
     when the watch has published its results."""
     if port is None:

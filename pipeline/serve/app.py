@@ -74,8 +74,11 @@ STATIC_DIR = Path(__file__).resolve().parent / "static"
 NO_CACHE = {"Cache-Control": "no-cache"}
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
-#: ``seqat watch --serve``: the request threads run this much nicer than the AT loop.
-WATCH_SERVE_NICE = 10
+#: ``seqat watch --serve``: the request threads run this much nicer than the AT loop, and
+#: nicer than the live ortho's worker (10): browsers must not slow the AT or the ortho
+#: (docs/benchmarks.md, *Keeping up on the 196-image block*: at 10, two clients made the
+#: ortho latency +88 %; at 15, +3 %).
+WATCH_SERVE_NICE = 15
 #: Where a tile came from (``mosaic``: mosaic.tif; ``cache``, ``memory``, ``rendered``,
 #: ``empty``: the live mosaic, :meth:`LiveMosaic.tile_from`), for benchmarks and the curious.
 TILE_SOURCE_HEADER = "X-Seqat-Tile"
