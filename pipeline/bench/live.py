@@ -6,9 +6,10 @@ serves the map, and ``clients`` page-like HTTP clients (threads of this process)
 the page does: ``--page sse`` (the default, the page since the live map's second pass)
 listens to ``/events`` (server-sent events: ``status.json`` when its version changes),
 ``--page poll`` (the page before) polls ``/status.json`` every second; on a new ``version``
-either fetches the cameras, ellipses, footprints, points, coverage and the mosaic's tiles at
-the zoom where at most 24 tiles cover it, 6 at a time (niced to 19: real browsers run on
-their own devices).
+either fetches the cameras, ellipses, footprints, points and coverage (revalidated with their
+ETags, as the page does since the live map's third pass) and, of the mosaic's tiles at the
+zoom where at most 24 tiles cover it, those the new revision changed (``mosaic.changes``)
+or newly in view, 6 at a time (niced to 19: real browsers run on their own devices).
 Runs with different client counts are interleaved (``--clients 0 2 --repeat 3``: 0, 2, 0, 2,
 0, 2) so the load of the shared machine falls on both alike; ``N:thread`` runs the server in
 a thread of the watch instead of its child process (``--serve-in``).
@@ -42,6 +43,8 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.error
+import urllib.parse
 import urllib.request
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -88,6 +91,11 @@ class Client:
     reconnects: int = 0  # event streams that ended or failed after the first event
     #: live tile request times (ms) by the server's X-Seqat-Tile (where the tile came from)
     tile_sources: dict[str, list[float]] = field(default_factory=dict)
+    #: the page's state: the layers' ETags and bodies (revalidated, as ``fetch`` with
+    #: ``cache: "no-cache"``), the mosaic shown and the tiles loaded of it
+    etags: dict[str, tuple[str, bytes]] = field(default_factory=dict)
+    mosaic_shown: dict[str, object] | None = None
+    tiles_shown: set[tuple[int, int, int]] = field(default_factory=set)
 
 
 def _get(url: str) -> tuple[bytes, float]:
@@ -102,6 +110,51 @@ def _get_from(url: str) -> tuple[bytes, float, str]:
         body = r.read()
         source = r.headers.get("X-Seqat-Tile", "")
     return body, (time.perf_counter() - t0) * 1e3, source
+
+
+def _get_layer(url: str, rec: Client) -> bytes:
+    """A layer as the page fetches it: revalidated with its ETag (a 304 reuses the body)."""
+    req = urllib.request.Request(url)
+    kept = rec.etags.get(url)
+    if kept is not None:
+        req.add_header("If-None-Match", kept[0])
+    try:
+        with urllib.request.urlopen(req, timeout=30) as r:
+            body = r.read()
+            tag = r.headers.get("ETag")
+    except urllib.error.HTTPError as err:
+        if err.code == 304 and kept is not None:
+            return kept[1]
+        raise
+    if tag:
+        rec.etags[url] = (tag, body)
+    return body
+
+
+def changed_boxes(shown: dict[str, object] | None,
+                  cur: dict[str, object]) -> list[list[float]] | None:
+    """The WGS 84 boxes the live mosaic changed from the ``shown`` revision to ``cur``'s
+    (``status.mosaic.changes``), None when they do not reach back to it: the page's
+    ``changedBoxes`` (pipeline/serve/static/serve.js)."""
+    if shown is None:
+        return None
+    if shown.get("version") == cur.get("version"):
+        return []
+    rev, changes = shown.get("revision"), cur.get("changes")
+    if rev is None or cur.get("revision") is None or not changes:
+        return None
+    if shown.get("maxzoom") != cur.get("maxzoom"):
+        return None
+    later = [c for c in changes if c[1] > rev]  # type: ignore[union-attr,index,operator]
+    if not later or later[0][0] != rev:
+        return None
+    return [box for c in later for box in c[2]]
+
+
+def _reaches(tile: morecantile.Tile, boxes: list[list[float]]) -> bool:
+    b = TMS.bounds(tile)
+    return any(b.left < e and b.right > w and b.bottom < n and b.top > so
+               for w, so, e, n in boxes)
 
 
 def _tiles_for(bounds: Sequence[float], maxzoom: int) -> list[morecantile.Tile]:
@@ -119,15 +172,14 @@ def _reload(url: str, status: dict[str, object], rec: Client,
     """What the page does on a new version: the cameras (then seen), the other layers, and
     the tiles, :data:`BROWSER_CONNECTIONS` at a time as a browser loads them (the mosaic is
     seen once they are all loaded)."""
-    version = status.get("version")
-    cams = json.loads(_get(url + "cameras.geojson")[0])
+    cams = json.loads(_get_layer(url + "cameras.geojson", rec))
     now = time.time()
     for f in cams.get("features", []):
         if f["properties"].get("position") != "nav":
             rec.seen_cameras.setdefault(f["properties"]["image"], now)
-    footprints = json.loads(_get(url + "footprints.geojson")[0])
+    footprints = json.loads(_get_layer(url + "footprints.geojson", rec))
     for path in ("ellipses.geojson", "points.geojson", "coverage.geojson"):
-        _get(url + path)
+        _get_layer(url + path, rec)
     rec.requests += 5
     # the images themselves: a quick-look, loaded as the page does, or the mosaic
     looks = []
@@ -145,8 +197,16 @@ def _reload(url: str, status: dict[str, object], rec: Client,
         rec.quicklook_ms.append(ms)
     rec.requests += len(looks)
     mosaic = status.get("mosaic")
-    if mosaic:
-        tiles = _tiles_for(mosaic["bounds_wgs84"], int(mosaic["maxzoom"]))  # type: ignore[index]
+    if isinstance(mosaic, dict):
+        # the page's refreshTiles: the tiles the new revision changed, and the tiles newly
+        # in view (the map follows the data)
+        boxes = changed_boxes(rec.mosaic_shown, mosaic)
+        shown = set() if boxes is None else rec.tiles_shown
+        rec.mosaic_shown = mosaic
+        tiles = _tiles_for(mosaic["bounds_wgs84"], int(mosaic["maxzoom"]))
+        rec.tiles_shown = {(t.z, t.x, t.y) for t in tiles}
+        tiles = [t for t in tiles if (t.z, t.x, t.y) not in shown or _reaches(t, boxes or [])]
+        version = urllib.parse.quote(str(mosaic.get("version")))
         urls = [f"{url}tiles/{t.z}/{t.x}/{t.y}.png?v={version}" for t in tiles]
         got = list(pool.map(_get_from, urls))
         times = [ms for _, ms, _ in got]

@@ -6,7 +6,10 @@ the index it would have written. The renderer renders the web tiles over those b
 zoom of the live mosaic, from the published GeoTIFFs (:mod:`pipeline.common.webtiles`) into
 ``OUT/live/xyz/``, and only then writes the index, so a revision is announced with its tiles
 ready (the cache is complete). Jobs waiting when it is free are rendered as one (the union of
-their bounds, the newest index).
+their bounds, the newest index). The index also keeps the bounds each of the last
+:data:`CHANGES_KEPT` renderings changed (``xyz.changes``: ``[from revision, to revision,
+[[west, south, east, north], ...]]``), so a page reloads only the web tiles a new revision
+changed (``seqat serve``'s ``status.json``, ``mosaic.changes``).
 
 A process, not a thread of the watch: rendering is Python around GDAL, and a niced thread
 holding the GIL while descheduled stalls the AT loop (the server moved to a child process for
@@ -29,7 +32,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from pathlib import Path
 
 import rasterio
@@ -42,6 +45,9 @@ from pipeline.common.columns import LIVE_MOSAIC_INDEX
 STOP_WAIT_S = 10.0
 #: Work tiles the renderer keeps read (1 MB each at 512 x 512 RGBA).
 PARTS_KEPT = 64
+#: Renderings whose changed bounds the index keeps (``xyz.changes``): a page that showed one
+#: of the last this many revisions reloads only the web tiles they changed.
+CHANGES_KEPT = 64
 
 
 class TileRenderer:
@@ -55,6 +61,8 @@ class TileRenderer:
         self._digests: dict[tuple[int, int, int], bytes] = {}
         self._published: dict[str, float] = {}
         self._parts: OrderedDict[tuple[Path, object], webtiles.WorkTile] = OrderedDict()
+        self._changes: deque[list[object]] = deque(maxlen=CHANGES_KEPT)
+        self._revision: object = None  # of the index written last
 
     def _part(self, path: Path, version: object) -> webtiles.WorkTile:
         """A published work tile, read once per version (:data:`PARTS_KEPT` kept)."""
@@ -101,9 +109,14 @@ class TileRenderer:
         for image in index.get("images", []):  # type: ignore[union-attr]
             image["published_unix_s"] = self._published.setdefault(image["image"], now)
         index["updated_unix_s"] = now
+        revision = index.get("revision")
+        if revision != self._revision:
+            self._changes.append([self._revision, revision,
+                                  [[round(b, 9) for b in box] for box in changed]])
+        self._revision = revision
         index["xyz"] = None if self.zooms is None else {
             "dir": webtiles.CACHE_DIR, "minzoom": self.zooms[0], "maxzoom": self.zooms[1],
-            "complete": True}
+            "complete": True, "changes": list(self._changes)}
         atomic_write_text(self.folder / LIVE_MOSAIC_INDEX, json.dumps(index,
                                                                      separators=(",", ":")))
         return written

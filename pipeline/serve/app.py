@@ -70,8 +70,11 @@ from pipeline.serve.tiles import (
 from seqat.errors import InputDataError
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
-#: Never cached by the browser: the run folder changes under a live run.
+#: Never used by the browser without asking: the run folder changes under a live run.
 NO_CACHE = {"Cache-Control": "no-cache"}
+GEOJSON = "application/geo+json"
+#: Answers (``status.json`` and the layers, per stop criterion) kept for the files' state.
+ANSWERS_KEPT = 32
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
 #: ``seqat watch --serve``: the request threads run this much nicer than the AT loop, and
@@ -145,10 +148,7 @@ def build_app(out: Path, nice: int = 0) -> Starlette:
             return Response(status_code=304, headers=headers)
         return Response(png, media_type="image/png", headers=headers)
 
-    def status(request: Request) -> Response:
-        return JSONResponse(view.status(*mosaic_info(), stop_sigma_cm=stop_param(request)),
-                            headers=NO_CACHE)
-
+    # every answer is made of these files: one state of them, one answer (cached below)
     watched = [out / n for n in (RUN_FILE, EOP_FILE, POINTS_FILE, ORTHO_JSON, MOSAIC_FILE)] + [
         out / LIVE_DIR / LIVE_ESTIMATES_FILE, out / LIVE_DIR / LIVE_MOSAIC_INDEX,
         out / JOURNAL_DIR / JOURNAL_FILE]
@@ -163,9 +163,30 @@ def build_app(out: Path, nice: int = 0) -> Starlette:
                 keys.append(None)
         return tuple(keys)
 
+    statuses: dict[float | None, tuple[object, dict[str, object]]] = {}
+    bodies: dict[object, tuple[object, bytes, str]] = {}
+    cache_lock = threading.Lock()
+
+    def status_doc(stop: float | None) -> dict[str, object]:
+        """``status.json`` for a stop criterion, made once per state of the files."""
+        key = files_key()
+        with cache_lock:
+            hit = statuses.get(stop)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        doc = view.status(*mosaic_info(), stop_sigma_cm=stop)
+        with cache_lock:
+            if len(statuses) >= ANSWERS_KEPT:  # criteria typed into pages
+                statuses.clear()
+            statuses[stop] = (key, doc)
+        return doc
+
+    def status(request: Request) -> Response:
+        return JSONResponse(status_doc(stop_param(request)), headers=NO_CACHE)
+
     def niced_status(stop: float | None) -> dict[str, object]:
         lower_thread_priority_once(nice)
-        return view.status(*mosaic_info(), stop_sigma_cm=stop)
+        return status_doc(stop)
 
     async def events(request: Request) -> Response:
         stop = stop_param(request)
@@ -192,25 +213,44 @@ def build_app(out: Path, nice: int = 0) -> Starlette:
         return StreamingResponse(stream(), media_type="text/event-stream",
                                  headers={**NO_CACHE, "X-Accel-Buffering": "no"})
 
-    def geojson(doc: dict[str, object]) -> Response:
-        return JSONResponse(doc, media_type="application/geo+json", headers=NO_CACHE)
+    def encoded(request: Request, name: object, build: Callable[[], object],
+                media_type: str = GEOJSON) -> Response:
+        """``build()`` as JSON, encoded once per state of the run folder's files (every page
+        asks for the same layers after a change) with an ETag of its bytes
+        (``If-None-Match`` answered 304)."""
+        key = files_key()
+        with cache_lock:
+            hit = bodies.get(name)
+        if hit is not None and hit[0] == key:
+            body, tag = hit[1], hit[2]
+        else:
+            body = json.dumps(build(), ensure_ascii=False, allow_nan=False,
+                              separators=(",", ":")).encode()
+            tag = etag(body)
+            with cache_lock:
+                if len(bodies) >= ANSWERS_KEPT:
+                    bodies.clear()
+                bodies[name] = (key, body, tag)
+        headers = {**NO_CACHE, "ETag": tag}
+        if tag in (t.strip() for t in request.headers.get("if-none-match", "").split(",")):
+            return Response(status_code=304, headers=headers)
+        return Response(body, media_type=media_type, headers=headers)
 
     def cameras(request: Request) -> Response:
-        return JSONResponse(view.cameras(), media_type="application/geo+json",
-                            headers=NO_CACHE)
+        return encoded(request, "cameras", view.cameras)
 
     def points(request: Request) -> Response:
-        return JSONResponse(view.points(), media_type="application/geo+json",
-                            headers=NO_CACHE)
+        return encoded(request, "points", view.points)
 
     def ellipses(request: Request) -> Response:
-        return geojson(view.ellipses())
+        return encoded(request, "ellipses", view.ellipses)
 
     def footprints(request: Request) -> Response:
-        return geojson(view.footprints())
+        return encoded(request, "footprints", view.footprints)
 
     def coverage(request: Request) -> Response:
-        return geojson(view.coverage(stop_param(request)))
+        stop = stop_param(request)
+        return encoded(request, ("coverage", stop), lambda: view.coverage(stop))
 
     def quicklook(request: Request) -> Response:
         path = out / LIVE_DIR / LIVE_QUICKLOOK_DIR / quicklook_name(request.path_params["n"])

@@ -57,6 +57,12 @@ class MosaicInfo:
     bounds_wgs84: tuple[float, float, float, float]
     minzoom: int
     maxzoom: int
+    #: The live mosaic's revision, and the WGS 84 boxes each of its last renderings changed
+    #: (``[from revision, to revision, [[west, south, east, north], ...]]``, oldest first,
+    #: :mod:`pipeline.ortho.live_render`): a page that shows ``from`` reloads only the tiles
+    #: over the boxes up to ``to``. None for ``mosaic.tif`` and a live mosaic without them.
+    revision: int | None = None
+    changes: tuple[object, ...] | None = None
 
 
 class MosaicUnreadable(Exception):
@@ -207,9 +213,13 @@ class LiveMosaic:
             south = min(b[1] for _, b, _ in tiles)
             east = max(b[2] for _, b, _ in tiles)
             north = max(b[3] for _, b, _ in tiles)
-            self._info = MosaicInfo(version=f"live-{doc.get('revision')}",
+            revision = doc.get("revision")
+            changes = xyz.get("changes") if isinstance(xyz, dict) else None
+            self._info = MosaicInfo(version=f"live-{revision}",
                                     bounds_wgs84=(west, south, east, north),
-                                    minzoom=max(0, self._zooms[0] - 2), maxzoom=self._zooms[1])
+                                    minzoom=max(0, self._zooms[0] - 2), maxzoom=self._zooms[1],
+                                    revision=revision if isinstance(revision, int) else None,
+                                    changes=tuple(changes) if isinstance(changes, list) else None)
 
     def info(self) -> MosaicInfo | None:
         """Bounds and zooms of the published tiles; None without any."""

@@ -1,8 +1,9 @@
 // seqat serve: the run folder as a web map. Listens to /events (server-sent events: status.json
 // each time its version changes); where the stream is not open (no EventSource, server
 // unreachable) it polls /status.json every second instead. When the version changes (a new
-// image, a new live mosaic, the published results) the tiles, cameras, error ellipses,
-// footprints, tie points and coverage are fetched again, without reloading the page. Each
+// image, a new live mosaic, the published results) the cameras, error ellipses, footprints,
+// tie points and coverage are fetched again, and the mosaic's tiles that changed, without
+// reloading the page. Each
 // georeferenced image is shown at once as its quick-look on its footprint, until the mosaic
 // has it.
 "use strict";
@@ -15,9 +16,14 @@ let version = null;
 let userMoved = false;  // the map follows the data until the user pans or zooms it
 let stopCm = null;       // the page's stop criterion (the field), null: the run's
 let stopShown = null;    // the criterion the shown layers were coloured with
-const tiles = L.tileLayer("/tiles/{z}/{x}/{y}.png?v=0", {
+// The tiles carry the mosaic's version (?v=), not the page's: a new camera or estimate that
+// leaves the mosaic as it was reloads no tile, and a new revision of the live mosaic reloads
+// only the tiles over the boxes it changed (refreshTiles).
+let tileVersion = "0";
+let mosaicShown = null;  // the status's mosaic whose tiles are shown
+const tiles = L.tileLayer("/tiles/{z}/{x}/{y}.png?v={v}", {
   tileSize: 256, maxZoom: 24, maxNativeZoom: 19, minZoom: 0,
-  attribution: "mosaic · seqat",
+  attribution: "mosaic · seqat", v: () => encodeURIComponent(tileVersion),
 }).addTo(map);
 // cameras above everything, ellipses and tie points above footprints and coverage, the
 // quick-looks just above the mosaic, under everything else (Leaflet's overlay pane is 400)
@@ -180,8 +186,9 @@ function showQuicklooks(fp) {
   }
 }
 
+// revalidated: a layer that did not change is a 304 (the server's ETag) and the copy kept
 async function getJson(url) {
-  const r = await fetch(url, { cache: "no-store" });
+  const r = await fetch(url, { cache: "no-cache" });
   if (!r.ok) throw new Error(url + ": HTTP " + r.status);
   return r.json();
 }
@@ -300,6 +307,40 @@ function showStatus(s) {
     "updated " + new Date().toLocaleTimeString();
 }
 
+// The WGS 84 boxes [west, south, east, north] the live mosaic changed from the shown revision
+// to cur's (status.mosaic.changes: [from, to, boxes], oldest first), or null when they do not
+// reach back to it (the first mosaic, mosaic.tif replacing the live one, a page that fell
+// more than the kept renderings behind): then every tile is reloaded.
+function changedBoxes(shown, cur) {
+  if (!shown || shown.version === cur.version) return shown ? [] : null;
+  if (shown.revision == null || cur.revision == null || !cur.changes) return null;
+  if (shown.maxzoom !== cur.maxzoom) return null;
+  const later = cur.changes.filter(c => c[1] > shown.revision);
+  if (!later.length || later[0][0] !== shown.revision) return null;
+  return later.flatMap(c => c[2]);
+}
+
+// Show cur's mosaic: reload the tiles shown that it changed (all, without its changes).
+function refreshTiles(cur) {
+  const boxes = changedBoxes(mosaicShown, cur);
+  tileVersion = cur.version;
+  mosaicShown = cur;
+  tiles.options.maxNativeZoom = cur.maxzoom;
+  if (boxes === null) {
+    tiles.redraw();
+    return;
+  }
+  // Leaflet 1.9's (vendored) tiles on the map: a new src shows the old image until it loads
+  for (const key in tiles._tiles) {
+    const t = tiles._tiles[key];
+    const b = tiles._tileCoordsToBounds(t.coords);
+    if (boxes.some(([w, so, e, n]) => b.getWest() < e && b.getEast() > w &&
+                   b.getSouth() < n && b.getNorth() > so)) {
+      t.el.src = tiles.getTileUrl(t.coords);
+    }
+  }
+}
+
 function fit(s, features) {
   if (userMoved) return;
   let bounds = null;
@@ -339,8 +380,7 @@ async function update(s) {
       if (cur.version !== version || stop !== stopShown) {
         version = cur.version;
         stopShown = stop;
-        if (cur.mosaic) tiles.options.maxNativeZoom = cur.mosaic.maxzoom;
-        tiles.setUrl("/tiles/{z}/{x}/{y}.png?v=" + encodeURIComponent(cur.version));
+        if (cur.mosaic) refreshTiles(cur.mosaic);
         const [features, camRange, scale] = await loadCameras();
         const ptRange = await loadPoints(stop);
         await loadCoverage();

@@ -4,6 +4,7 @@ when chromium or chromedriver is absent (``.ci/run`` installs both)."""
 
 from __future__ import annotations
 
+import json
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -162,3 +163,67 @@ def _check_quicklooks(browser: Any, wait: Any, n: int) -> None:
     west, east = colour(0.15), colour(0.85)  # under the coverage cells' 30 % tint
     assert west[0] > west[2] + 60, west
     assert east[2] > east[0] + 60, east
+
+
+def test_page_reloads_only_the_tiles_a_new_revision_changed(browser: Any,
+                                                            tmp_path: Path) -> None:
+    """A live mosaic grows by one image while the page shows it (the map held still): the
+    page reloads the tiles over the boxes the revision changed (``mosaic.changes``), at the
+    new revision, and no other."""
+    import time
+
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    from pipeline.common import webtiles
+    from pipeline.ortho.live_tiles import LiveTiles, seen_bounds
+    from pipeline.ortho.mosaic import MosaicBuilder
+    from tests.pipeline.serve.test_live_cache import COL0, CRS, ROW0, ortho
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / ".seqat-run").write_text("")
+    mosaic = MosaicBuilder(out / "mosaic.tif", CRS)
+    live = LiveTiles(out, mosaic, CRS)
+
+    def add(k: int) -> None:
+        result = ortho(f"img_{k}", COL0 + 150 * k, ROW0 + 40 * k, 500, 700, seed=k)
+        live.touched(mosaic.add(result).tiles, result.image_id, 10.0, time.time(),
+                     seen_bounds(result.raster))
+        live.publish()
+        assert live.wait_rendered(120)
+
+    shown = ("return typeof mosaicShown !== 'undefined' && mosaicShown && !tiles.isLoading()"
+             " ? mosaicShown.revision : null;")
+    tile_urls = ("return performance.getEntriesByType('resource').map(e => e.name)"
+                 ".filter(n => n.includes('/tiles/'));")
+    try:
+        add(0)
+        add(1)
+        with serving(out) as served:
+            browser.get(served.url)
+            browser.execute_script("performance.setResourceTimingBufferSize(10000);")
+            wait = WebDriverWait(browser, 30, poll_frequency=0.05)
+            rev = json.loads((out / "live" / "mosaic.json").read_text())["revision"]
+            wait.until(lambda d: d.execute_script(shown) == rev)
+            browser.execute_script("userMoved = true;")  # the map stays where it is
+            time.sleep(0.5)
+            wait.until(lambda d: d.execute_script(shown) == rev)
+            before = len(browser.execute_script(tile_urls))
+            on_map = browser.execute_script("return Object.keys(tiles._tiles).length;")
+            add(2)
+            doc = json.loads((out / "live" / "mosaic.json").read_text())
+            wait.until(lambda d: d.execute_script(shown) == doc["revision"])
+            frm, to, boxes = doc["xyz"]["changes"][-1]
+            assert (frm, to) == (rev, doc["revision"])
+            reloaded = browser.execute_script(tile_urls)[before:]
+            assert reloaded and len(reloaded) < on_map
+            for url in reloaded:
+                path, _, query = url.split("/tiles/", 1)[1].partition("?")
+                z, x, y = (int(v) for v in path.removesuffix(".png").split("/"))
+                assert query == f"v=live-{doc['revision']}"
+                assert any(webtiles.reaches(b, webtiles.tile_bounds_wgs84(z, x, y))
+                           for b in boxes)
+            logs = [e for e in browser.get_log("browser") if e.get("level") == "SEVERE"]
+            assert logs == []
+    finally:
+        live.stop_renderer()

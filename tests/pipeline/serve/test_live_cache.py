@@ -236,3 +236,84 @@ def test_events_push_a_new_version(mosaic_run: Path, tmp_path: Path) -> None:
     finally:
         if conn is not None:
             conn.close()
+
+
+def cache_bytes(live: Path) -> dict[tuple[int, int, int], bytes]:
+    cache = live / "xyz"
+    return {tuple(int(v) for v in p.with_suffix("").relative_to(cache).parts):  # type: ignore[misc]
+            p.read_bytes() for p in cache.rglob("*.png")}
+
+
+def test_changes_name_every_web_tile_a_revision_changed(tmp_path: Path) -> None:
+    """After each publication the index's ``xyz.changes`` ends with ``[previous revision,
+    revision, boxes]``, the entries chain, and every cached tile whose bytes changed (or that
+    appeared) lies over one of the new entry's boxes: a page that reloads only those shows
+    the new revision exactly. ``status.json`` passes them on."""
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / ".seqat-run").write_text("")
+    mosaic = MosaicBuilder(out / "mosaic.tif", CRS)
+    live = LiveTiles(out, mosaic, CRS)
+    before: dict[tuple[int, int, int], bytes] = {}
+    revisions: list[object] = [None]
+    reloaded = kept = 0
+    try:
+        for k in range(4):
+            result = ortho(f"img_{k}", COL0 + 150 * k, ROW0 + 40 * k, 500, 700, seed=k)
+            update = mosaic.add(result)
+            live.touched(update.tiles, result.image_id, 10.0, time.time(),
+                         seen_bounds(result.raster))
+            live.publish()
+            assert live.wait_rendered(120)
+            doc = json.loads((out / "live" / "mosaic.json").read_text())
+            changes = doc["xyz"]["changes"]
+            assert [c[1] for c in changes] == [r for r in revisions[1:]] + [doc["revision"]]
+            assert all(c[0] == p[1] for p, c in zip(changes, changes[1:], strict=False))
+            frm, to, boxes = changes[-1]
+            assert frm == revisions[-1] and to == doc["revision"] and boxes
+            after = cache_bytes(out / "live")
+            changed = {t for t, b in after.items() if before.get(t) != b}
+            assert changed and not set(before) - set(after)
+            for z, x, y in after:
+                over = any(webtiles.reaches(box, webtiles.tile_bounds_wgs84(z, x, y))
+                           for box in boxes)
+                assert over or (z, x, y) not in changed
+                reloaded += over
+                kept += not over
+            before = after
+            revisions.append(doc["revision"])
+        with serving(out) as served:
+            status = json.loads(get(served, "/status.json")[2])
+        mosaic_doc = status["mosaic"]
+        assert mosaic_doc["revision"] == revisions[-1]
+        assert [c[1] for c in mosaic_doc["changes"]] == revisions[1:]
+        assert kept > 0  # a revision leaves most of a growing mosaic's tiles as they were
+    finally:
+        live.stop_renderer()
+
+
+def test_layers_are_encoded_once_and_revalidated(mosaic_run: Path, tmp_path: Path) -> None:
+    """The layers carry an ETag of their bytes: the same files give the same bytes (a 304 to
+    a page that has them), a change of the files a new answer."""
+    out = tmp_path / "run"
+    shutil.copytree(mosaic_run, out)
+    with serving(out) as served:
+        for path in ("/cameras.geojson", "/points.geojson", "/ellipses.geojson",
+                     "/footprints.geojson", "/coverage.geojson?stop_sigma_cm=5"):
+            status, headers, body = get(served, path)
+            assert status == 200 and headers["Cache-Control"] == "no-cache"
+            assert json.loads(body)["type"] == "FeatureCollection"
+            tag = headers["ETag"]
+            again = get(served, path)
+            assert again[2] == body and again[1]["ETag"] == tag
+            status, headers, body = get(served, path, {"If-None-Match": tag})
+            assert status == 304 and body == b"" and headers["ETag"] == tag
+        status, headers, body = get(served, "/cameras.geojson")
+        tag, n = headers["ETag"], len(json.loads(body)["features"])
+        assert n > 1
+        eop = out / "eop.csv"
+        lines = eop.read_text().splitlines(keepends=True)
+        eop.write_text("".join(lines[:-1]))  # one camera fewer
+        status, headers, body = get(served, "/cameras.geojson", {"If-None-Match": tag})
+        assert status == 200 and headers["ETag"] != tag
+        assert len(json.loads(body)["features"]) == n - 1
