@@ -122,8 +122,10 @@ def region(tiles: Sequence[WorkTile], crs: rasterio.crs.CRS,
     for t in tiles:
         c0, r0 = round((t.transform.c - west) / p), round((north - t.transform.f) / p)
         data[:, r0:r0 + t.data.shape[1], c0:c0 + t.data.shape[2]] = t.data
+    # band interleaved, as the array: GDAL copies it (pixel interleaved: 4-5x the time)
     profile = {"driver": "GTiff", "width": cols, "height": rows, "count": bands,
-               "dtype": dtype, "crs": crs, "transform": Affine(p, 0.0, west, 0.0, -p, north)}
+               "dtype": dtype, "crs": crs, "transform": Affine(p, 0.0, west, 0.0, -p, north),
+               "interleave": "band"}
     with MemoryFile() as mem:
         with mem.open(**profile) as dst:
             dst.colorinterp = _INTERP[bands]

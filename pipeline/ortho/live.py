@@ -58,7 +58,7 @@ from pipeline.flight.folder import Flight, read_flight
 from pipeline.flight.schema import CameraConfig
 from pipeline.ortho.base import OrthoOptions
 from pipeline.ortho.dsm import Dsm, DsmOptions
-from pipeline.ortho.live_tiles import LiveTiles, seen_bounds
+from pipeline.ortho.live_tiles import LiveTiles, seen_boxes
 from pipeline.ortho.mosaic import FEATHER_PX, MosaicBuilder, tiles_of_bounds
 from pipeline.ortho.orthorectifier import Orthorectifier
 from pipeline.ortho.stage import (
@@ -401,7 +401,7 @@ class LiveOrtho:
             if self._live_tiles is not None:
                 self._live_tiles.touched(update.tiles, image_id, record.latency_ms,
                                          time.time() - (time.perf_counter() - t_submit),
-                                         seen_bounds(result.raster))
+                                         seen_boxes(result.raster))
         except BaseException as err:  # re-raised in the AT loop (on_image / on_finish)
             with self._lock:
                 self._worker_error = self._worker_error or err

@@ -47,7 +47,7 @@ STOP_WAIT_S = 10.0
 PARTS_KEPT = 64
 #: Renderings whose changed bounds the index keeps (``xyz.changes``): a page that showed one
 #: of the last this many revisions reloads only the web tiles they changed.
-CHANGES_KEPT = 64
+CHANGES_KEPT = 32
 
 
 class TileRenderer:

@@ -50,16 +50,31 @@ def tile_name(key: tuple[int, int]) -> str:
     return f"c{key[0]}_r{key[1]}.tif"
 
 
-def seen_bounds(raster: OrthoRaster) -> tuple[float, float, float, float] | None:
-    """``(west, south, east, north)`` of the cells an ortho sees (what it can change in the
-    mosaic), in the mosaic's CRS; None when it sees none."""
-    rows = np.flatnonzero(raster.seen.any(axis=1))
-    cols = np.flatnonzero(raster.seen.any(axis=0))
-    if not len(rows):
-        return None
+#: Rows of mosaic cells per band of :func:`seen_boxes`.
+BAND_CELLS = 256
+
+
+def seen_boxes(raster: OrthoRaster, band_cells: int = BAND_CELLS,
+               ) -> list[tuple[float, float, float, float]]:
+    """The cells an ortho sees (what it can change in the mosaic) as ``(west, south, east,
+    north)`` boxes in the mosaic's CRS: one per band of ``band_cells`` rows of the mosaic's
+    grid, the bounding box of the cells seen in it (a rotated footprint is a few bands, not
+    its bounding box: fewer web tiles rendered and reloaded); none when it sees none."""
+    seen_rows = raster.seen.any(axis=1)
     p = raster.pixel_m
-    return ((raster.col0 + int(cols[0])) * p, -(raster.row0 + int(rows[-1]) + 1) * p,
-            (raster.col0 + int(cols[-1]) + 1) * p, -(raster.row0 + int(rows[0])) * p)
+    boxes = []
+    first = raster.row0 - raster.row0 % band_cells  # bands on the global grid
+    for top in range(first, raster.row0 + len(seen_rows), band_cells):
+        r0, r1 = max(0, top - raster.row0), min(len(seen_rows), top + band_cells - raster.row0)
+        rows = np.flatnonzero(seen_rows[r0:r1])
+        if not len(rows):
+            continue
+        cols = np.flatnonzero(raster.seen[r0 + rows[0]:r0 + rows[-1] + 1].any(axis=0))
+        boxes.append(((raster.col0 + int(cols[0])) * p,
+                      -(raster.row0 + r0 + int(rows[-1]) + 1) * p,
+                      (raster.col0 + int(cols[-1]) + 1) * p,
+                      -(raster.row0 + r0 + int(rows[0])) * p))
+    return boxes
 
 
 class LiveTiles:
@@ -103,12 +118,12 @@ class LiveTiles:
 
     def touched(self, tiles: Iterable[tuple[int, int]], image: str, ortho_ms: float,
                 at_unix_s: float | None = None,
-                changed: tuple[float, float, float, float] | None = None) -> None:
+                changed: Iterable[tuple[float, float, float, float]] = ()) -> None:
         """An image went into these tiles (published by the next :meth:`publish`);
-        ``changed``: the bounds of the cells it changed in the mosaic's CRS
-        (:func:`seen_bounds`), whose web tiles the publication renders."""
-        if changed is not None:
-            self._changed.append(self._to_wgs84.transform_bounds(*changed, densify_pts=5))
+        ``changed``: boxes of the cells it changed in the mosaic's CRS (:func:`seen_boxes`),
+        whose web tiles the publication renders."""
+        for box in changed:
+            self._changed.append(self._to_wgs84.transform_bounds(*box, densify_pts=5))
         self._pending.update(tiles)
         self._waiting_images.append({"image": image, "ortho_ms": round(ortho_ms, 1),
                                      "at_unix_s": at_unix_s})

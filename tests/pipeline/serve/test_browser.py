@@ -175,7 +175,7 @@ def test_page_reloads_only_the_tiles_a_new_revision_changed(browser: Any,
     from selenium.webdriver.support.ui import WebDriverWait
 
     from pipeline.common import webtiles
-    from pipeline.ortho.live_tiles import LiveTiles, seen_bounds
+    from pipeline.ortho.live_tiles import LiveTiles, seen_boxes
     from pipeline.ortho.mosaic import MosaicBuilder
     from tests.pipeline.serve.test_live_cache import COL0, CRS, ROW0, ortho
 
@@ -188,7 +188,7 @@ def test_page_reloads_only_the_tiles_a_new_revision_changed(browser: Any,
     def add(k: int) -> None:
         result = ortho(f"img_{k}", COL0 + 150 * k, ROW0 + 40 * k, 500, 700, seed=k)
         live.touched(mosaic.add(result).tiles, result.image_id, 10.0, time.time(),
-                     seen_bounds(result.raster))
+                     seen_boxes(result.raster))
         live.publish()
         assert live.wait_rendered(120)
 

@@ -26,7 +26,7 @@ from rio_tiler.mosaic import mosaic_reader
 
 from pipeline.common import webtiles
 from pipeline.ortho.base import OrthoRaster, OrthoResult
-from pipeline.ortho.live_tiles import LiveTiles, seen_bounds
+from pipeline.ortho.live_tiles import LiveTiles, seen_boxes
 from pipeline.ortho.mosaic import MosaicBuilder
 from pipeline.serve.app import Served, serving
 
@@ -57,7 +57,7 @@ def publish_images(out: Path, n: int) -> LiveTiles:
     for k in range(n):
         result = ortho(f"img_{k}", COL0 + 150 * k, ROW0 + 40 * k, 500, 700, seed=k)
         update = mosaic.add(result)
-        live.touched(update.tiles, result.image_id, 10.0, time.time(), seen_bounds(result.raster))
+        live.touched(update.tiles, result.image_id, 10.0, time.time(), seen_boxes(result.raster))
         live.publish()
     assert live.wait_rendered(120)
     live.stop_renderer()
@@ -262,7 +262,7 @@ def test_changes_name_every_web_tile_a_revision_changed(tmp_path: Path) -> None:
             result = ortho(f"img_{k}", COL0 + 150 * k, ROW0 + 40 * k, 500, 700, seed=k)
             update = mosaic.add(result)
             live.touched(update.tiles, result.image_id, 10.0, time.time(),
-                         seen_bounds(result.raster))
+                         seen_boxes(result.raster))
             live.publish()
             assert live.wait_rendered(120)
             doc = json.loads((out / "live" / "mosaic.json").read_text())
@@ -317,3 +317,29 @@ def test_layers_are_encoded_once_and_revalidated(mosaic_run: Path, tmp_path: Pat
         status, headers, body = get(served, "/cameras.geojson", {"If-None-Match": tag})
         assert status == 200 and headers["ETag"] != tag
         assert len(json.loads(body)["features"]) == n - 1
+
+
+def test_seen_boxes_cover_the_seen_cells_band_by_band() -> None:
+    """A diagonal footprint: one box per 256-row band of the global grid it reaches, every
+    seen cell inside a box of its band, far less area than the footprint's bounding box."""
+    rows, cols = 900, 900
+    r, c = np.mgrid[0:rows, 0:cols]
+    seen = np.abs(r - c) < 120  # a diagonal strip
+    raster = OrthoRaster(image_id="d", col0=1000, row0=-1000 + 37, pixel_m=0.5,
+                         pixels=np.zeros((rows, cols, 3), np.uint8), seen=seen,
+                         off_nadir=np.zeros((rows, cols), np.float32), height_agl_m=100.0)
+    boxes = seen_boxes(raster)
+    bands = {(raster.row0 + i) // 256 for i in range(rows)}
+    assert len(boxes) == len(bands)
+    p = raster.pixel_m
+    i, j = np.nonzero(seen)
+    x, y = (raster.col0 + j + 0.5) * p, -(raster.row0 + i + 0.5) * p
+    b = np.asarray(boxes)[:, :, None]
+    inside = (b[:, 0] < x) & (x < b[:, 2]) & (b[:, 1] < y) & (y < b[:, 3])
+    assert (inside.sum(axis=0) == 1).all()  # in one box: bands do not overlap
+    area = sum((b[2] - b[0]) * (b[3] - b[1]) for b in boxes)
+    assert area < 0.6 * (rows * p) * (cols * p)
+    blank = OrthoRaster(image_id="b", col0=0, row0=0, pixel_m=0.5,
+                        pixels=np.zeros((4, 4, 3), np.uint8), seen=np.zeros((4, 4), bool),
+                        off_nadir=np.zeros((4, 4), np.float32), height_agl_m=100.0)
+    assert seen_boxes(blank) == []
