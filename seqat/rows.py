@@ -25,7 +25,7 @@ from seqat.information import (
     padded,
     window_matrix,
 )
-from seqat.robust import cauchy_weight
+from seqat.robust import cauchy_weight, nav_weight, nav_within_core
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 from seqat.update import LinearRows, UpdateSolution
 
@@ -138,6 +138,12 @@ class RowBuilder:
     robust_scale : float or None
         Robust loss scale of the image rows in sigma (:mod:`seqat.robust`): their weights
         are re-computed from the residuals at every linearisation (IRLS).
+    nav_robust_scale : float or None
+        Robust loss scale of the GPS/INS groups (sigmas per degree of freedom): their weights
+        likewise, from ``nav - estimate`` at every linearisation.
+    robust : bool
+        Whether the robust losses are applied (the caller sets it per iteration: the first
+        one is least squares); ``within_core`` tells whether that mattered.
     control : list of (col, xyz, weight)
         Ground control among the new points: the column in ``z`` of the point, its surveyed
         coordinates and their weights (0: free); three linear rows each (``A = I``), after
@@ -153,12 +159,15 @@ class RowBuilder:
         nav: FloatArray,
         nav_sigma: FloatArray,
         robust_scale: float | None = None,
+        nav_robust_scale: float | None = None,
         cam_col: int = 0,
         control: Sequence[tuple[int, FloatArray, FloatArray]] = (),
     ) -> None:
         self.cam, self.t, self.n2 = cam, t, n2
         self.robust_scale = robust_scale
-        self.nav = nav
+        self.nav_robust_scale = nav_robust_scale
+        self.robust = True
+        self.nav, self.nav_sigma = nav, nav_sigma
         y2 = [o for o in obs if o[4]]
         y3 = [o for o in obs if not o[4]]
         ordered = y2 + y3
@@ -206,15 +215,16 @@ class RowBuilder:
             res = (self.obs - uv.ravel()).reshape(k, 2)
             ell[: 2 * k] = res.ravel()
             self._lin = (ze, zp, Je, Jp, res)
-            if self.robust_scale is not None:
-                self.w[: 2 * k] = self.w0[: 2 * k] * np.repeat(
-                    cauchy_weight(res, self.sigmas, self.robust_scale), 2)
+            self.w[: 2 * k] = self.w0[: 2 * k] * np.repeat(
+                cauchy_weight(res, self.sigmas, self.robust_scale if self.robust else None), 2)
         # GPS/INS constraint of the new EOP (linear, A = I): nav - e_new, angles wrapped.
         A.flat[self.flat_nav] = 1.0
         dz = self.nav - z[t : t + EOP_SIZE]
         dz[3:] = wrap_angle(dz[3:])
         nav_end = 2 * k + EOP_SIZE
         ell[2 * k : nav_end] = dz
+        self.w[2 * k : nav_end] = self.w0[2 * k : nav_end] * nav_weight(
+            dz, self.nav_sigma, self.nav_robust_scale if self.robust else None)[0]
         # ground control: surveyed - current coordinates of each new control point (A = I)
         for q, (col, xyz, _) in enumerate(self.control):
             r = nav_end + GP_SIZE * q + np.arange(GP_SIZE)
@@ -253,21 +263,37 @@ class RowBuilder:
         """Largest difference (px) between the image points projected at ``(d1t, d2)`` and the
         last linearised rows' prediction there; 0 without image rows."""
         k = self.k
+        z = np.concatenate([x1t + d1t, x2_0 + d2])
+        self._nav_res = self.nav - z[self.t : self.t + EOP_SIZE]
+        self._nav_res[3:] = wrap_angle(self._nav_res[3:])
         if k == 0:
             self._true = np.zeros(0)
             return 0.0
-        z = np.concatenate([x1t + d1t, x2_0 + d2])
         true_resid = self.obs - self.cam.project(z[self.eidx], z[self.pidx]).ravel()
         self._true = true_resid
         lin_resid = self._ell[: 2 * k] - self._A[: 2 * k] @ np.concatenate([d1t, d2])
         return float(np.max(np.abs(true_resid - lin_resid)))
 
-    def within_core(self, scale: float) -> bool:
-        """Every image point at the estimate of the last :meth:`linearisation_error` lies
-        within the robust loss's least-squares core (``u² <= k²``): its robust weight there
-        is 1, so the least-squares solution of these rows is already the robust one."""
+    def within_core(self) -> bool:
+        """Every image point and the GPS/INS groups at the estimate of the last
+        :meth:`linearisation_error` lie within their robust loss's least-squares core
+        (``u² <= k²``; ``k² d`` for a group): their robust weight there is 1, so the
+        least-squares solution of these rows is already the robust one (True without
+        robust losses)."""
+        if not nav_within_core(self._nav_res, self.nav_sigma, self.nav_robust_scale):
+            return False
+        if self.robust_scale is None:
+            return True
         u2 = np.sum(self._true.reshape(-1, 2) ** 2, axis=1) / self.sigmas**2
-        return bool(np.all(u2 <= scale**2))
+        return bool(np.all(u2 <= self.robust_scale**2))
+
+    def nav_group_weights(self) -> FloatArray:
+        """(2,) weight factor of the GPS/INS position and attitude group in the last
+        linearised rows (1: least squares)."""
+        nav = slice(2 * self.k, 2 * self.k + EOP_SIZE)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            f = self.w[nav] / self.w0[nav]
+        return np.where(np.isfinite(f), f, 1.0)[::3]
 
 
 
