@@ -115,6 +115,11 @@ def add_information(L: WindowMatrix, touched: np.ndarray, rows: LinearRows) -> W
     return window_matrix(add_block(padded(L, n1 + n2), cols, M))
 
 
+#: A sequential update iterates until its GPS/INS groups' robust weights change less than
+#: this (IRLS; bounded by SequentialOptions.max_update_iterations).
+NAV_WEIGHT_TOLERANCE = 1e-3
+
+
 class RowBuilder:
     """Linearises one image's new rows around the current iterate (corrections form).
 
@@ -286,6 +291,19 @@ class RowBuilder:
             return True
         u2 = np.sum(self._true.reshape(-1, 2) ** 2, axis=1) / self.sigmas**2
         return bool(np.all(u2 <= self.robust_scale**2))
+
+    def settled(self) -> bool:
+        """The robust weights of the last rows need no other iteration: least-squares rows
+        (the first iterate) whose estimate lies :meth:`within_core`, or robust rows whose
+        GPS/INS weights are those at the estimate (within :data:`NAV_WEIGHT_TOLERANCE`:
+        the GPS/INS rows are linear, their linearisation error says nothing of their
+        weights; the image rows' settle with the estimate, as before)."""
+        if not self.robust:
+            return self.within_core()
+        nav = slice(2 * self.k, 2 * self.k + EOP_SIZE)
+        used = self.w[nav] / self.w0[nav]
+        now = nav_weight(self._nav_res, self.nav_sigma, self.nav_robust_scale)[0]
+        return bool(np.max(np.abs(now - used)) < NAV_WEIGHT_TOLERANCE)
 
     def nav_group_weights(self) -> FloatArray:
         """(2,) weight factor of the GPS/INS position and attitude group in the last

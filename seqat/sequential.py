@@ -63,9 +63,9 @@ from seqat.errors import EstimationError
 from seqat.geometry import wrap_angle
 from seqat.information import window_matrix
 from seqat.late import LateMixin
-from seqat.relinearise import FINAL_RELINEARISE_PX, RelinearisationMixin
+from seqat.relinearise import RelinearisationMixin
 from seqat.reports import RecordedRows, ReportMixin
-from seqat.robust import NAV_ROBUST_SCALE, ROBUST_SCALE, check_scale, nav_report
+from seqat.robust import NAV_ROBUST_SCALE, ROBUST_SCALE, check_scale
 from seqat.rows import (
     Factors,
     RowBuilder,
@@ -299,12 +299,12 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self._w.on_singular = self._drop_undetermined
         #: Observations removed by data snooping: (image id, point id, w-test value).
         self.rejections: list[tuple[str, str, float]] = []
-        #: GPS/INS groups down-weighted by data snooping: (image id, "position"/"attitude"),
+        #: GPS/INS groups down-weighted by data snooping: (image id, "position"/"attitude");
+        #: by the robust loss: nav_robust (relinearise.py)
         self.nav_downweighted: list[tuple[str, str]] = []
-        self.nav_robust: list[tuple[str, str, float]] = []  # ... by the robust loss (weight)
         self._forced: set[int] = set()  # pending points already held back once (never twice)
-        self._ssr = 0.0
-        self._redundancy = 0
+        self._ssr, self._redundancy = 0.0, 0
+        self._nav_rows: dict[int, FloatArray] = {}  # GPS/INS rows in L: relinearise.py
         self._factors = Factors()
         self.relinearisations = 0  # window re-linearisations so far
         self.relinearisations_skipped = 0  # ... given up on a singular system
@@ -316,9 +316,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
     @property
     def sigma0(self) -> float:
         """A posteriori standard error of unit weight."""
-        return (
-            float(np.sqrt(self._ssr / self._redundancy)) if self._redundancy > 0 else float("nan")
-        )
+        r = self._redundancy
+        return float(np.sqrt(self._ssr / r)) if r > 0 else float("nan")
 
     def set_correlation_threshold(self, threshold: float) -> None:
         """Seq-R: the window threshold of the next updates (the latency budget tightens it,
@@ -346,7 +345,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                 if self.options.relinearise_px is not None:
                     if self.options.smoothing and self.options.final_reopen:
                         self._reopen_departed()
-                    self._relinearise_if_needed(FINAL_RELINEARISE_PX, force=True)
+                    self._final_relinearise()
                 self._hold_undetermined_camera()
 
     def solution(self, *, smoothed: bool | None = None) -> Solution:
@@ -529,7 +528,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                                      in zip(st.selected, res.undetermined, strict=True) if bad])
         self.rejections.extend(sim.rejections)
         self.nav_downweighted.extend(sim.nav_downweighted)
-        self.nav_robust.extend(sim.nav_robust)
+        self._keep_nav_rows(np.arange(n), st.nav, res.nav_weight)
         self._initial = None
 
     # ------------------------------------------------------------------ sequential stage
@@ -692,7 +691,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                 if iterations >= opts.max_update_iterations or (
                     builder.linearisation_error(x1t, x2_0, d1t, d2)
                     < opts.iteration_tolerance_px
-                    and (iterations > 1 or builder.within_core())
+                    and builder.settled()
                 ):
                     break
             if degenerate:
@@ -757,7 +756,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self.rejections.extend(
             (self._image_ids[j], self._point_ids[p], wq) for j, p, wq in rejected)
         self.nav_downweighted.extend((frame.image_id, g) for g in downweighted)
-        self.nav_robust.extend(nav_report([frame.image_id], builder.nav_group_weights()[None]))
+        self._keep_nav_rows([i], (nav, nav_sigma), builder.nav_group_weights())
         for p in y21_pts:
             self._gp_count[p] += 1
             self._gp_nobs[p] += 1

@@ -144,8 +144,7 @@ class SimResult:
     #: the EOPs and the GPs.
     camera: PinholeCamera | None = None
     camera_cofactor: FloatArray | None = None
-    #: (n, 2) robust weight factor of each image's GPS/INS position and attitude group at
-    #: the solution (1: least squares; :mod:`seqat.robust`).
+    #: (n, 2) robust weight factor of each image's GPS/INS position and attitude groups.
     nav_weight: FloatArray | None = None
 
 
@@ -201,8 +200,7 @@ def adjust_block(
     damping = 0.0
     was_damped = False
     robust = options.robust_scale
-    # The GPS/INS groups are least squares until Gauss-Newton has converged (they carry the
-    # datum: a bad start must not down-weight them), then robust if any is beyond the core.
+    # GPS/INS least squares until converged (the datum), then robust if any is off (robust.py)
     nav_robust: float | None = None
     cost = weighted_ssr(cam, data, eop, gp, robust, calib)
     limit = options.max_iterations
@@ -382,6 +380,7 @@ class SimState:
     #: The self-calibration of ``result`` (its free parameters sit between the EOPs and the
     #: GPs of the full matrices); None: the camera was fixed.
     calibration: SelfCalibration | None = None
+    nav: tuple[FloatArray, FloatArray] | None = None  # GPS/INS (n, 6; local), its sigmas
 
 
 class SimultaneousAT:
@@ -541,7 +540,7 @@ class SimultaneousAT:
             obs_sigma_px=sg,
             result=res,
             calibration=self._calibration if res.camera_cofactor is not None else None,
-        )
+            nav=(np.asarray(cat.nav_eop), np.asarray(cat.nav_sigma)))
 
     def _solve(self, covariance: Covariance) -> SimResult:
         critical = self.options.snooping_critical
