@@ -172,6 +172,7 @@ class RowBuilder:
         self.robust_scale = robust_scale
         self.nav_robust_scale = nav_robust_scale
         self.robust = True
+        self.nav_on = False  # the GPS/INS loss: on once the rows have converged without it
         self.nav, self.nav_sigma = nav, nav_sigma
         y2 = [o for o in obs if o[4]]
         y3 = [o for o in obs if not o[4]]
@@ -229,7 +230,7 @@ class RowBuilder:
         nav_end = 2 * k + EOP_SIZE
         ell[2 * k : nav_end] = dz
         self.w[2 * k : nav_end] = self.w0[2 * k : nav_end] * nav_weight(
-            dz, self.nav_sigma, self.nav_robust_scale if self.robust else None)[0]
+            dz, self.nav_sigma, self.nav_robust_scale if self.robust and self.nav_on else None)[0]
         # ground control: surveyed - current coordinates of each new control point (A = I)
         for q, (col, xyz, _) in enumerate(self.control):
             r = nav_end + GP_SIZE * q + np.arange(GP_SIZE)
@@ -293,13 +294,22 @@ class RowBuilder:
         return bool(np.all(u2 <= self.robust_scale**2))
 
     def settled(self) -> bool:
-        """The robust weights of the last rows need no other iteration: least-squares rows
-        (the first iterate) whose estimate lies :meth:`within_core`, or robust rows whose
-        GPS/INS weights are those at the estimate (within :data:`NAV_WEIGHT_TOLERANCE`:
-        the GPS/INS rows are linear, their linearisation error says nothing of their
-        weights; the image rows' settle with the estimate, as before)."""
+        """Called once the rows predict the estimate: their robust weights need no other
+        iteration. Least-squares rows (the first iterate): when the estimate lies
+        :meth:`within_core`. Robust rows with least-squares GPS/INS: when the GPS/INS
+        groups lie in their core; else the GPS/INS loss is turned on (as Sim does: the image
+        rows' loss first, the GPS/INS loss once converged — with 20 % blunders an early
+        GPS/INS loss let the first, least-squares iterate's pull down-weight good GPS/INS).
+        Then: when the GPS/INS weights are those at the estimate (within
+        :data:`NAV_WEIGHT_TOLERANCE`; the rows are linear, their linearisation error says
+        nothing of their weights)."""
         if not self.robust:
             return self.within_core()
+        if not self.nav_on:
+            if nav_within_core(self._nav_res, self.nav_sigma, self.nav_robust_scale):
+                return True
+            self.nav_on = True
+            return False
         nav = slice(2 * self.k, 2 * self.k + EOP_SIZE)
         used = self.w[nav] / self.w0[nav]
         now = nav_weight(self._nav_res, self.nav_sigma, self.nav_robust_scale)[0]
