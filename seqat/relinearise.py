@@ -19,7 +19,15 @@ from seqat.information import (
     factor_matvec,
     window_matrix,
 )
-from seqat.robust import cauchy_weight, nav_report, nav_weight, robust_cost, robust_weight
+from seqat.robust import (
+    cauchy_weight,
+    nav_components,
+    nav_groups_of,
+    nav_report,
+    nav_weight,
+    robust_cost,
+    robust_weight,
+)
 from seqat.rows import FactorSet, gradient_from_factors
 from seqat.types import EOP_SIZE, FloatArray
 from seqat.window import Key
@@ -76,12 +84,12 @@ class RelinearisationMixin:
                        nav: tuple[FloatArray, FloatArray] | None, weights: FloatArray) -> None:
         """Record the GPS/INS rows ``L`` holds for ``images``: observation and sigmas
         (``nav``: (k, 6) each, local) and the robust weight factor of their groups
-        (``weights``, (k, 2))."""
+        (``weights``, (k, g))."""
         assert nav is not None
         obs, sigma = (np.asarray(a, dtype=np.float64).reshape(-1, EOP_SIZE) for a in nav)
-        wg = np.asarray(weights, dtype=np.float64).reshape(-1, 2)
+        wc = nav_components(weights)
         for q, i in enumerate(images):
-            self._nav_rows[int(i)] = np.concatenate([obs[q], sigma[q], np.repeat(wg[q], 3)])
+            self._nav_rows[int(i)] = np.concatenate([obs[q], sigma[q], wc[q]])
 
     @property
     def nav_robust(self) -> list[tuple[str, str, float]]:
@@ -89,8 +97,8 @@ class RelinearisationMixin:
         below :data:`seqat.robust.NAV_REPORT_WEIGHT`, as ``L`` holds them now (after
         finish(): the final weights)."""
         ids = sorted(self._nav_rows)
-        wg = np.array([self._nav_rows[i][12::3] for i in ids]).reshape(-1, 2)
-        return nav_report([self._image_ids[i] for i in ids], wg)
+        wc = np.array([self._nav_rows[i][12:] for i in ids]).reshape(-1, EOP_SIZE)
+        return nav_report([self._image_ids[i] for i in ids], nav_groups_of(wc))
 
     def _reweight_nav(self) -> bool:
         """finish(): the robust weights of the window images' GPS/INS groups at the window's

@@ -89,8 +89,13 @@ def cauchy_cost(res_px: FloatArray, sigma_px: FloatArray, scale: float | None) -
     return robust_cost(_u2(res_px, sigma_px), scale)
 
 
+def nav_dof() -> np.ndarray:
+    """Degrees of freedom of each :data:`NAV_GROUPS` group."""
+    return np.array([sl.stop - sl.start for _, sl in NAV_GROUPS])
+
+
 def nav_u2(res: FloatArray, sigma: FloatArray) -> FloatArray:
-    """Squared Mahalanobis norm of each image's GPS/INS groups, (n, 2): position, attitude,
+    """Squared Mahalanobis norm of each image's GPS/INS groups (:data:`NAV_GROUPS`), (n, g),
     from residuals ``res`` and sigmas ``sigma`` (n, 6; diagonal covariance)."""
     z2 = (np.asarray(res, dtype=np.float64).reshape(-1, 6)
           / np.asarray(sigma, dtype=np.float64).reshape(-1, 6)) ** 2
@@ -106,10 +111,31 @@ def nav_group_weight(u2: FloatArray, scale: float | None, dof: int = 3) -> Float
     return robust_weight(u2.ravel() / dof, scale).reshape(u2.shape)
 
 
-def nav_weight(res: FloatArray, sigma: FloatArray, scale: float | None) -> FloatArray:
-    """IRLS weight factor of every GPS/INS component (n, 6): its group's, in (0, 1]."""
-    wg = nav_group_weight(nav_u2(res, sigma), scale)
-    return np.repeat(wg, 3, axis=1)
+def nav_components(group_weights: FloatArray) -> FloatArray:
+    """Group weights (n, g) as weights of the 6 GPS/INS components (n, 6)."""
+    wg = np.asarray(group_weights, dtype=np.float64).reshape(-1, len(NAV_GROUPS))
+    out = np.empty((wg.shape[0], 6))
+    for g, (_, sl) in enumerate(NAV_GROUPS):
+        out[:, sl] = wg[:, g : g + 1]
+    return out
+
+
+def nav_groups_of(component_weights: FloatArray) -> FloatArray:
+    """Component weights (n, 6) as group weights (n, g) (each group's first component)."""
+    w = np.asarray(component_weights, dtype=np.float64).reshape(-1, 6)
+    return w[:, [sl.start for _, sl in NAV_GROUPS]]
+
+
+def nav_weight(res: FloatArray, sigma: FloatArray, scale: float | None,
+               on: np.ndarray | None = None) -> FloatArray:
+    """IRLS weight factor of every GPS/INS component (n, 6): its group's, in (0, 1]
+    (``on``: (g,) bool, the groups the loss applies to; default all)."""
+    u2 = nav_u2(res, sigma)
+    if scale is None:
+        return np.ones((u2.shape[0], 6))
+    wg = np.stack([nav_group_weight(u2[:, g], scale, d) for g, d in enumerate(nav_dof())],
+                  axis=1)
+    return nav_components(wg if on is None else np.where(on, wg, 1.0))
 
 
 def nav_cost(res: FloatArray, sigma: FloatArray, scale: float | None) -> float:
@@ -117,13 +143,20 @@ def nav_cost(res: FloatArray, sigma: FloatArray, scale: float | None) -> float:
     u2 = nav_u2(res, sigma)
     if scale is None:
         return float(np.sum(u2))
-    return 3.0 * robust_cost(u2.ravel() / 3.0, scale)
+    return float(sum(d * robust_cost(u2[:, g] / d, scale) for g, d in enumerate(nav_dof())))
+
+
+def nav_outside(res: FloatArray, sigma: FloatArray, scale: float | None) -> np.ndarray:
+    """(n, g) bool: the GPS/INS groups beyond the loss's least-squares core (none without
+    a scale)."""
+    u2 = nav_u2(res, sigma)
+    return np.zeros(u2.shape, dtype=bool) if scale is None else u2 > nav_dof() * scale**2
 
 
 def nav_within_core(res: FloatArray, sigma: FloatArray, scale: float | None) -> bool:
     """Every GPS/INS group within the loss's least-squares core (weight 1): the
     least-squares solution is the robust one."""
-    return scale is None or bool(np.all(nav_u2(res, sigma) <= 3.0 * scale**2))
+    return not nav_outside(res, sigma, scale).any()
 
 
 def nav_report(image_ids: list[str] | tuple[str, ...],

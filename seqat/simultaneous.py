@@ -144,7 +144,7 @@ class SimResult:
     #: the EOPs and the GPs.
     camera: PinholeCamera | None = None
     camera_cofactor: FloatArray | None = None
-    #: (n, 2) robust weight factor of each image's GPS/INS position and attitude groups.
+    #: (n, g) robust weight factor of each image's GPS/INS groups (seqat.robust.NAV_GROUPS).
     nav_weight: FloatArray | None = None
 
 
@@ -315,7 +315,7 @@ def adjust_block(
         undetermined=und,
         camera=cam,
         camera_cofactor=cam_cof,
-        nav_weight=rloss.nav_weight(res_nav, data.nav_sigma, nav_robust)[:, ::3],
+        nav_weight=rloss.nav_groups_of(rloss.nav_weight(res_nav, data.nav_sigma, nav_robust)),
     )
 
 
