@@ -15,8 +15,7 @@ least squares, unchanged), then ``k² / u²``-like: a point 40σ off keeps 0.6 %
 and pulls on the solution by less than ``k`` σ. Sim re-weights every Gauss-Newton iteration;
 Seq-F / Seq-R weight each new image's rows in every update iteration (the first one least
 squares: its start values may be 20° off) and the window re-linearisation keeps those
-weights. GPS/INS rows stay least squares (their faults are the data snooping's,
-docs/algorithm.md, *Blunders*). Why it is the default: docs/algorithm.md.
+weights. Why it is the default: docs/algorithm.md.
 
 The GPS/INS prior of each image is two groups, position and attitude (3 DoF each, diagonal
 σ). Each group's squared Mahalanobis norm ``u² = Σ (r / σ)²`` (``r = nav − estimate``)
@@ -25,8 +24,10 @@ enters through the same ρ with the core scaled by the group's degrees of freedo
 least squares within ``u² <= 27``, χ²₃ beyond it has probability 6e-6): a 5 m GNSS jump at
 σ = 0.3 m (``u² ≈ 280``) keeps ~10 % of its weight and pulls like a 1.6σ residual instead of
 a 17σ one. Sim turns it on once Gauss-Newton has converged with least-squares GPS/INS (the
-priors carry the datum: a bad start must not down-weight them); a sequential update from
-its second iteration, as its image rows (docs/algorithm.md, *Robust loss*).
+priors carry the datum: a bad start must not down-weight them); a sequential update once
+its rows have converged with the image loss alone, one group at a time (position first);
+finish() re-weights the window's GPS/INS rows until they settle (Seq-F == Sim). Data
+snooping still tests the groups when on (docs/algorithm.md, *Robust loss*).
 """
 
 from __future__ import annotations
