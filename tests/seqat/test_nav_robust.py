@@ -14,6 +14,7 @@ from seqat.robust import (
     check_scale,
     nav_cost,
     nav_group_weight,
+    nav_outside,
     nav_u2,
     nav_weight,
     nav_within_core,
@@ -37,6 +38,10 @@ def test_nav_weight_known_answers() -> None:
     np.testing.assert_allclose(nav_weight(res, SIGMA, 3.0),
                                [[27 / 2500] * 3 + [1.0] * 3], rtol=1e-12)
     assert not nav_within_core(res, SIGMA, 3.0) and nav_within_core(res, SIGMA, 50.0)
+    np.testing.assert_array_equal(nav_outside(res, SIGMA, 3.0), [[True, False]])
+    # the loss on the attitude group alone (a sequential update turns them on one by one)
+    np.testing.assert_array_equal(nav_weight(res, SIGMA, 3.0, np.array([False, True])),
+                                  np.ones((1, 6)))
     assert nav_within_core(res, SIGMA, None)
     # the real flight's largest normalised position residual, 3.9 (u² = 15.2): full weight
     clean = np.array([[3.9 * 0.1 / np.sqrt(3)] * 3 + [0.0] * 3])
