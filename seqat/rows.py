@@ -153,13 +153,14 @@ class RowBuilder:
     nav_robust_scale : float or None
         Robust loss scale of the GPS/INS groups (sigmas per degree of freedom): their weights
         likewise, from ``nav - estimate`` at every linearisation.
-    robust : bool
-        Whether the robust losses are applied (the caller sets it per iteration: the first
-        one is least squares); ``within_core`` tells whether that mattered.
     control : list of (col, xyz, weight)
         Ground control among the new points: the column in ``z`` of the point, its surveyed
         coordinates and their weights (0: free); three linear rows each (``A = I``), after
         the GPS/INS rows.
+
+    The attribute ``robust`` (set by the caller per iteration: the first one is least
+    squares) switches the robust losses; ``nav_on`` holds the GPS/INS groups whose loss
+    :meth:`settled` has turned on.
     """
 
     def __init__(
