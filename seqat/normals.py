@@ -18,7 +18,7 @@ import scipy.sparse.linalg as spla
 
 from seqat.errors import EstimationError
 from seqat.geometry import depth, project, project_with_jacobians, wrap_angle
-from seqat.robust import cauchy_cost, cauchy_weight
+from seqat.robust import cauchy_cost, cauchy_weight, nav_cost, nav_weight
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray, PinholeCamera
 
 #: Columns of the reduced inverse solved at once when extracting cofactor blocks.
@@ -115,13 +115,14 @@ def eop_residual(nav_eop: FloatArray, eop: FloatArray) -> FloatArray:
 def linearise(
     camera: PinholeCamera, data: BlockData, eop: FloatArray, gp: FloatArray,
     damping: float = 0.0, robust_scale: float | None = None,
-    calib: CameraBlock | None = None,
+    calib: CameraBlock | None = None, nav_robust_scale: float | None = None,
 ) -> tuple[Normals, FloatArray, FloatArray]:
     """Build and factorise the reduced normal equations at ``(eop, gp, camera)``.
 
     ``damping`` > 0 adds Marquardt's ``damping * diag(N)`` to the normal matrix (a
     Levenberg-Marquardt step); 0 is the Gauss-Newton system. ``calib``: the camera's free
     interior parameters are unknowns too (columns ``6 n ...`` of the reduced system).
+    ``nav_robust_scale``: the GPS/INS groups weighted by their robust loss at ``eop``.
 
     Returns the factorisation and the reduced right-hand side, plus the image residuals.
     """
@@ -159,11 +160,13 @@ def linearise(
     # per image, camera x camera with its prior), summed per image before scattering
     Nee = np.zeros((n, EOP_SIZE, EOP_SIZE))
     np.add.at(Nee, img, np.einsum("kri,krj->kij", wJR[:, :, :EOP_SIZE], JR[:, :, :EOP_SIZE]))
-    Nee[:, np.arange(EOP_SIZE), np.arange(EOP_SIZE)] += 1.0 / data.nav_sigma**2
+    res_nav = eop_residual(data.nav_eop, eop)
+    w_nav = nav_weight(res_nav, data.nav_sigma, nav_robust_scale) / data.nav_sigma**2
+    Nee[:, np.arange(EOP_SIZE), np.arange(EOP_SIZE)] += w_nav
     b_R = np.zeros(r)
     be = np.zeros((n, EOP_SIZE))
     np.add.at(be, img, np.einsum("kri,kr->ki", wJR[:, :, :EOP_SIZE], ell))
-    b_R[: EOP_SIZE * n] = (be + eop_residual(data.nav_eop, eop) / data.nav_sigma**2).ravel()
+    b_R[: EOP_SIZE * n] = (be + w_nav * res_nav).ravel()
     N_RR = sp.bsr_matrix((Nee, np.arange(n), np.arange(n + 1)),
                          shape=(EOP_SIZE * n, EOP_SIZE * n)).tocsr()
     if c:
@@ -228,15 +231,17 @@ def _block_diagonal(blocks: FloatArray) -> sp.csr_matrix:
 
 def weighted_ssr(camera: PinholeCamera, data: BlockData, eop: FloatArray,
                   gp: FloatArray, robust_scale: float | None = None,
-                  calib: CameraBlock | None = None) -> float:
+                  calib: CameraBlock | None = None,
+                  nav_robust_scale: float | None = None) -> float:
     """Weighted sum of squared residuals (image points, nav, control, camera prior) at ``(eop, gp,
-    camera)``; with a ``robust_scale`` the image points' Cauchy cost (:mod:`seqat.robust`)."""
+    camera)``; with a ``robust_scale`` the image points' Cauchy cost, with a
+    ``nav_robust_scale`` the GPS/INS groups' (:mod:`seqat.robust`)."""
     img, pt = data.obs_image, data.obs_point
     if np.any(depth(eop[img], gp[pt]) <= 0.0):
         return math.inf  # a point behind a camera that sees it: not a solution
     res = data.obs_uv - project(eop[img], gp[pt], camera)
     ssr = cauchy_cost(res, data.obs_sigma_px, robust_scale)
-    ssr += float(np.sum(eop_residual(data.nav_eop, eop) ** 2 / data.nav_sigma**2))
+    ssr += nav_cost(eop_residual(data.nav_eop, eop), data.nav_sigma, nav_robust_scale)
     ssr += data.control_ssr(gp)
     if calib is not None:
         ssr += float(np.sum((calib.residual(camera) / calib.sigma) ** 2))

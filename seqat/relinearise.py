@@ -5,13 +5,13 @@ Mixed into :class:`seqat.sequential.SequentialAT` (its state lives there).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import scipy.sparse
 
 from seqat.assembly import WindowAssembly
-from seqat.geometry import depth, intersect_rays
+from seqat.geometry import depth, intersect_rays, wrap_angle
 from seqat.information import (
     InformationFactor,
     RankDeficiency,
@@ -19,7 +19,15 @@ from seqat.information import (
     factor_matvec,
     window_matrix,
 )
-from seqat.robust import cauchy_weight, robust_cost, robust_weight
+from seqat.robust import (
+    cauchy_weight,
+    nav_components,
+    nav_groups_of,
+    nav_report,
+    nav_weight,
+    robust_cost,
+    robust_weight,
+)
 from seqat.rows import FactorSet, gradient_from_factors
 from seqat.types import EOP_SIZE, FloatArray
 from seqat.window import Key
@@ -62,10 +70,87 @@ FINAL_RELINEARISE_PX = 1e-3
 #: check goes on. Real time needs bounded work per image: 9 steps made a 1.2 s update on
 #: Seneca (2026-12-02). finish() is not bounded (SequentialOptions.relinearise_iterations).
 FLIGHT_RELINEARISE_STEPS = 3
+#: finish(): the GPS/INS groups' robust weights are re-computed at the window's estimate
+#: (each time one factorisation of the window) until no weight factor changes by more than
+#: this, then the window is re-linearised again at them; at most this many times each.
+FINAL_NAV_WEIGHT_TOLERANCE = 1e-6
+FINAL_NAV_ROUNDS = 50
 
 
 class RelinearisationMixin:
     """Window re-linearisation of :class:`SequentialAT`."""
+
+    def _keep_nav_rows(self, images: Sequence[int] | np.ndarray,
+                       nav: tuple[FloatArray, FloatArray] | None, weights: FloatArray) -> None:
+        """Record the GPS/INS rows ``L`` holds for ``images``: observation and sigmas
+        (``nav``: (k, 6) each, local) and the robust weight factor of their groups
+        (``weights``, (k, g))."""
+        assert nav is not None
+        obs, sigma = (np.asarray(a, dtype=np.float64).reshape(-1, EOP_SIZE) for a in nav)
+        wc = nav_components(weights)
+        for q, i in enumerate(images):
+            self._nav_rows[int(i)] = np.concatenate([obs[q], sigma[q], wc[q]])
+
+    @property
+    def nav_robust(self) -> list[tuple[str, str, float]]:
+        """GPS/INS groups the robust loss down-weights: (image id, group, weight factor)
+        below :data:`seqat.robust.NAV_REPORT_WEIGHT`, as ``L`` holds them now (after
+        finish(): the final weights)."""
+        ids = sorted(self._nav_rows)
+        wc = np.array([self._nav_rows[i][12:] for i in ids]).reshape(-1, EOP_SIZE)
+        return nav_report([self._image_ids[i] for i in ids], nav_groups_of(wc))
+
+    def _reweight_nav(self) -> bool:
+        """finish(): the robust weights of the window images' GPS/INS groups at the window's
+        estimate. The rows are linear (``A = I`` on the image's EOP): a weight change ``d``
+        adds ``diag(d / σ²)`` to ``L`` and the estimate moves to the minimum of the changed
+        model, ``x + (L + D)^-1 D r`` (``r = nav - x``), with σ0's sum of squares. Returns
+        whether a weight changed by more than :data:`FINAL_NAV_WEIGHT_TOLERANCE`."""
+        k, w = self.options.nav_robust_scale, self._w
+        keys = [key for key in w.keys if key[0] == "e" and key[1] in self._nav_rows]
+        if k is None or not keys:
+            return False
+        rows = np.stack([self._nav_rows[key[1]] for key in keys])  # (m, 18)
+        nav, sigma, old = rows[:, :6], rows[:, 6:12], rows[:, 12:]
+        idx = w.indices(keys).reshape(-1, EOP_SIZE)
+        r = nav - w.x[idx]
+        r[:, 3:] = wrap_angle(r[:, 3:])
+        new = nav_weight(r, sigma, k)
+        if not np.max(np.abs(new - old)) > FINAL_NAV_WEIGHT_TOLERANCE:
+            return False
+        d = (new - old) / sigma**2
+        diag = scipy.sparse.csr_array((d.ravel(), (idx.ravel(), idx.ravel())),
+                                      shape=(w.x.size, w.x.size))
+        L = w.L if w.L is not None else window_matrix(np.linalg.inv(w.Q))
+        H = window_matrix(L + (diag.toarray() if not scipy.sparse.issparse(L) else diag))
+        if w.L is not None:
+            w.L = H
+        if self._inverse:
+            Q = np.linalg.inv(H.toarray() if scipy.sparse.issparse(H) else H)
+            w.Q = 0.5 * (Q + Q.T)
+        w.changed()
+        g = (d * r).ravel()
+        dx = w.q_apply(idx.ravel(), g)
+        self._ssr = max(self._ssr + float(np.sum(d * r**2)) - float(g @ dx[idx.ravel()]), 0.0)
+        w.x = w.x + dx
+        for key, row in zip(keys, new, strict=True):
+            self._nav_rows[key[1]][12:] = row
+        return True
+
+    def _final_relinearise(self) -> None:
+        """finish()'s re-linearisation; with the GPS/INS robust loss, alternated with
+        :meth:`_reweight_nav` until the weights settle (Sim's IRLS reaches the same
+        minimum: Seq-F == Sim). Clean GPS/INS (every group in the core): no extra work."""
+        self._relinearise_if_needed(FINAL_RELINEARISE_PX, force=True)
+        for _ in range(FINAL_NAV_ROUNDS):
+            changed = False
+            for _ in range(FINAL_NAV_ROUNDS):
+                if not self._reweight_nav():
+                    break
+                changed = True
+            if not changed:
+                break
+            self._relinearise_if_needed(FINAL_RELINEARISE_PX, force=True)
 
     def _relinearise_if_needed(self, threshold_px: float | None = None,
                                force: bool = False) -> None:

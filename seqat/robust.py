@@ -15,8 +15,19 @@ least squares, unchanged), then ``k² / u²``-like: a point 40σ off keeps 0.6 %
 and pulls on the solution by less than ``k`` σ. Sim re-weights every Gauss-Newton iteration;
 Seq-F / Seq-R weight each new image's rows in every update iteration (the first one least
 squares: its start values may be 20° off) and the window re-linearisation keeps those
-weights. GPS/INS rows stay least squares (their faults are the data snooping's,
-docs/algorithm.md, *Blunders*). Why it is the default: docs/algorithm.md.
+weights. Why it is the default: docs/algorithm.md.
+
+The GPS/INS prior of each image is two groups, position and attitude (3 DoF each, diagonal
+σ). Each group's squared Mahalanobis norm ``u² = Σ (r / σ)²`` (``r = nav − estimate``)
+enters through the same ρ with the core scaled by the group's degrees of freedom ``d``,
+``k² d`` (``nav_robust_scale`` = ``k``, default :data:`NAV_ROBUST_SCALE` = 3: a group is
+least squares within ``u² <= 27``, χ²₃ beyond it has probability 6e-6): a 5 m GNSS jump at
+σ = 0.3 m (``u² ≈ 280``) keeps ~10 % of its weight and pulls like a 1.6σ residual instead of
+a 17σ one. Sim turns it on once Gauss-Newton has converged with least-squares GPS/INS (the
+priors carry the datum: a bad start must not down-weight them); a sequential update once
+its rows have converged with the image loss alone, one group at a time (position first);
+finish() re-weights the window's GPS/INS rows until they settle (Seq-F == Sim). Data
+snooping still tests the groups when on (docs/algorithm.md, *Robust loss*).
 """
 
 from __future__ import annotations
@@ -27,6 +38,22 @@ from seqat.types import FloatArray
 
 #: Default robust scale (sigmas) of SimOptions and SequentialOptions.
 ROBUST_SCALE = 3.0
+#: Default robust scale of the GPS/INS groups (sigmas per degree of freedom).
+NAV_ROBUST_SCALE = 3.0
+#: The GPS/INS groups of an image: name and components of its 6-vector.
+NAV_GROUPS = (("position", slice(0, 3)), ("attitude", slice(3, 6)))
+#: A group whose weight factor is below this is reported as down-weighted (run.json).
+NAV_REPORT_WEIGHT = 0.9
+
+
+def check_scale(name: str, value: float | None) -> None:
+    """A robust scale option: a positive number or None (off); else :class:`ConfigError`."""
+    from seqat.errors import ConfigError
+
+    if value is not None and not (isinstance(value, int | float) and value > 0
+                                  and np.isfinite(value)):
+        raise ConfigError(f"{name}: expected a positive number (sigmas) or null, "
+                          f"got {value!r}")
 
 
 def _u2(res_px: FloatArray, sigma_px: FloatArray) -> FloatArray:
@@ -61,3 +88,81 @@ def cauchy_weight(res_px: FloatArray, sigma_px: FloatArray, scale: float | None)
 def cauchy_cost(res_px: FloatArray, sigma_px: FloatArray, scale: float | None) -> float:
     """``Σ ρ(u²)`` of the image points (``Σ u²`` without a scale: least squares)."""
     return robust_cost(_u2(res_px, sigma_px), scale)
+
+
+def nav_dof() -> np.ndarray:
+    """Degrees of freedom of each :data:`NAV_GROUPS` group."""
+    return np.array([sl.stop - sl.start for _, sl in NAV_GROUPS])
+
+
+def nav_u2(res: FloatArray, sigma: FloatArray) -> FloatArray:
+    """Squared Mahalanobis norm of each image's GPS/INS groups (:data:`NAV_GROUPS`), (n, g),
+    from residuals ``res`` and sigmas ``sigma`` (n, 6; diagonal covariance)."""
+    z2 = (np.asarray(res, dtype=np.float64).reshape(-1, 6)
+          / np.asarray(sigma, dtype=np.float64).reshape(-1, 6)) ** 2
+    return np.stack([np.sum(z2[:, sl], axis=1) for _, sl in NAV_GROUPS], axis=1)
+
+
+def nav_group_weight(u2: FloatArray, scale: float | None, dof: int = 3) -> FloatArray:
+    """``ρ'`` of groups with ``dof`` degrees of freedom and squared norms ``u2``: 1 within
+    ``u² <= k² dof``, ``k² dof / u²``-like beyond; all ones without a scale."""
+    u2 = np.asarray(u2, dtype=np.float64)
+    if scale is None:
+        return np.ones(u2.shape)
+    return robust_weight(u2.ravel() / dof, scale).reshape(u2.shape)
+
+
+def nav_components(group_weights: FloatArray) -> FloatArray:
+    """Group weights (n, g) as weights of the 6 GPS/INS components (n, 6)."""
+    wg = np.asarray(group_weights, dtype=np.float64).reshape(-1, len(NAV_GROUPS))
+    out = np.empty((wg.shape[0], 6))
+    for g, (_, sl) in enumerate(NAV_GROUPS):
+        out[:, sl] = wg[:, g : g + 1]
+    return out
+
+
+def nav_groups_of(component_weights: FloatArray) -> FloatArray:
+    """Component weights (n, 6) as group weights (n, g) (each group's first component)."""
+    w = np.asarray(component_weights, dtype=np.float64).reshape(-1, 6)
+    return w[:, [sl.start for _, sl in NAV_GROUPS]]
+
+
+def nav_weight(res: FloatArray, sigma: FloatArray, scale: float | None,
+               on: np.ndarray | None = None) -> FloatArray:
+    """IRLS weight factor of every GPS/INS component (n, 6): its group's, in (0, 1]
+    (``on``: (g,) bool, the groups the loss applies to; default all)."""
+    u2 = nav_u2(res, sigma)
+    if scale is None:
+        return np.ones((u2.shape[0], 6))
+    wg = np.stack([nav_group_weight(u2[:, g], scale, d) for g, d in enumerate(nav_dof())],
+                  axis=1)
+    return nav_components(wg if on is None else np.where(on, wg, 1.0))
+
+
+def nav_cost(res: FloatArray, sigma: FloatArray, scale: float | None) -> float:
+    """``Σ d ρ(u² / d)`` of the GPS/INS groups (``Σ (r / σ)²`` without a scale)."""
+    u2 = nav_u2(res, sigma)
+    if scale is None:
+        return float(np.sum(u2))
+    return float(sum(d * robust_cost(u2[:, g] / d, scale) for g, d in enumerate(nav_dof())))
+
+
+def nav_outside(res: FloatArray, sigma: FloatArray, scale: float | None) -> np.ndarray:
+    """(n, g) bool: the GPS/INS groups beyond the loss's least-squares core (none without
+    a scale)."""
+    u2 = nav_u2(res, sigma)
+    return np.zeros(u2.shape, dtype=bool) if scale is None else u2 > nav_dof() * scale**2
+
+
+def nav_within_core(res: FloatArray, sigma: FloatArray, scale: float | None) -> bool:
+    """Every GPS/INS group within the loss's least-squares core (weight 1): the
+    least-squares solution is the robust one."""
+    return not nav_outside(res, sigma, scale).any()
+
+
+def nav_report(image_ids: list[str] | tuple[str, ...],
+               weights: FloatArray) -> list[tuple[str, str, float]]:
+    """``(image id, group, weight)`` of the groups (weights (n, 2)) below
+    :data:`NAV_REPORT_WEIGHT`."""
+    return [(image_ids[i], NAV_GROUPS[g][0], round(float(weights[i, g]), 4))
+            for i, g in zip(*np.nonzero(weights < NAV_REPORT_WEIGHT), strict=True)]

@@ -25,7 +25,14 @@ from seqat.information import (
     padded,
     window_matrix,
 )
-from seqat.robust import cauchy_weight
+from seqat.robust import (
+    NAV_GROUPS,
+    cauchy_weight,
+    nav_groups_of,
+    nav_outside,
+    nav_weight,
+    nav_within_core,
+)
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 from seqat.update import LinearRows, UpdateSolution
 
@@ -115,6 +122,11 @@ def add_information(L: WindowMatrix, touched: np.ndarray, rows: LinearRows) -> W
     return window_matrix(add_block(padded(L, n1 + n2), cols, M))
 
 
+#: A sequential update iterates until its GPS/INS groups' robust weights change less than
+#: this (IRLS; bounded by SequentialOptions.max_update_iterations).
+NAV_WEIGHT_TOLERANCE = 1e-3
+
+
 class RowBuilder:
     """Linearises one image's new rows around the current iterate (corrections form).
 
@@ -138,10 +150,17 @@ class RowBuilder:
     robust_scale : float or None
         Robust loss scale of the image rows in sigma (:mod:`seqat.robust`): their weights
         are re-computed from the residuals at every linearisation (IRLS).
+    nav_robust_scale : float or None
+        Robust loss scale of the GPS/INS groups (sigmas per degree of freedom): their weights
+        likewise, from ``nav - estimate`` at every linearisation.
     control : list of (col, xyz, weight)
         Ground control among the new points: the column in ``z`` of the point, its surveyed
         coordinates and their weights (0: free); three linear rows each (``A = I``), after
         the GPS/INS rows.
+
+    The attribute ``robust`` (set by the caller per iteration: the first one is least
+    squares) switches the robust losses; ``nav_on`` holds the GPS/INS groups whose loss
+    :meth:`settled` has turned on.
     """
 
     def __init__(
@@ -153,12 +172,17 @@ class RowBuilder:
         nav: FloatArray,
         nav_sigma: FloatArray,
         robust_scale: float | None = None,
+        nav_robust_scale: float | None = None,
         cam_col: int = 0,
         control: Sequence[tuple[int, FloatArray, FloatArray]] = (),
     ) -> None:
         self.cam, self.t, self.n2 = cam, t, n2
         self.robust_scale = robust_scale
-        self.nav = nav
+        self.nav_robust_scale = nav_robust_scale
+        self.robust = True
+        # the GPS/INS loss per group: on once the rows have converged without it (settled)
+        self.nav_on = np.zeros(len(NAV_GROUPS), dtype=bool)
+        self.nav, self.nav_sigma = nav, nav_sigma
         y2 = [o for o in obs if o[4]]
         y3 = [o for o in obs if not o[4]]
         ordered = y2 + y3
@@ -206,15 +230,16 @@ class RowBuilder:
             res = (self.obs - uv.ravel()).reshape(k, 2)
             ell[: 2 * k] = res.ravel()
             self._lin = (ze, zp, Je, Jp, res)
-            if self.robust_scale is not None:
-                self.w[: 2 * k] = self.w0[: 2 * k] * np.repeat(
-                    cauchy_weight(res, self.sigmas, self.robust_scale), 2)
+            self.w[: 2 * k] = self.w0[: 2 * k] * np.repeat(
+                cauchy_weight(res, self.sigmas, self.robust_scale if self.robust else None), 2)
         # GPS/INS constraint of the new EOP (linear, A = I): nav - e_new, angles wrapped.
         A.flat[self.flat_nav] = 1.0
         dz = self.nav - z[t : t + EOP_SIZE]
         dz[3:] = wrap_angle(dz[3:])
         nav_end = 2 * k + EOP_SIZE
         ell[2 * k : nav_end] = dz
+        self.w[2 * k : nav_end] = self.w0[2 * k : nav_end] * nav_weight(
+            dz, self.nav_sigma, self.nav_robust_scale if self.robust else None, self.nav_on)[0]
         # ground control: surveyed - current coordinates of each new control point (A = I)
         for q, (col, xyz, _) in enumerate(self.control):
             r = nav_end + GP_SIZE * q + np.arange(GP_SIZE)
@@ -253,21 +278,63 @@ class RowBuilder:
         """Largest difference (px) between the image points projected at ``(d1t, d2)`` and the
         last linearised rows' prediction there; 0 without image rows."""
         k = self.k
+        z = np.concatenate([x1t + d1t, x2_0 + d2])
+        self._nav_res = self.nav - z[self.t : self.t + EOP_SIZE]
+        self._nav_res[3:] = wrap_angle(self._nav_res[3:])
         if k == 0:
             self._true = np.zeros(0)
             return 0.0
-        z = np.concatenate([x1t + d1t, x2_0 + d2])
         true_resid = self.obs - self.cam.project(z[self.eidx], z[self.pidx]).ravel()
         self._true = true_resid
         lin_resid = self._ell[: 2 * k] - self._A[: 2 * k] @ np.concatenate([d1t, d2])
         return float(np.max(np.abs(true_resid - lin_resid)))
 
-    def within_core(self, scale: float) -> bool:
-        """Every image point at the estimate of the last :meth:`linearisation_error` lies
-        within the robust loss's least-squares core (``u² <= k²``): its robust weight there
-        is 1, so the least-squares solution of these rows is already the robust one."""
+    def within_core(self) -> bool:
+        """Every image point and the GPS/INS groups at the estimate of the last
+        :meth:`linearisation_error` lie within their robust loss's least-squares core
+        (``u² <= k²``; ``k² d`` for a group): their robust weight there is 1, so the
+        least-squares solution of these rows is already the robust one (True without
+        robust losses)."""
+        if not nav_within_core(self._nav_res, self.nav_sigma, self.nav_robust_scale):
+            return False
+        if self.robust_scale is None:
+            return True
         u2 = np.sum(self._true.reshape(-1, 2) ** 2, axis=1) / self.sigmas**2
-        return bool(np.all(u2 <= scale**2))
+        return bool(np.all(u2 <= self.robust_scale**2))
+
+    def settled(self) -> bool:
+        """Called once the rows predict the estimate: their robust weights need no other
+        iteration. Least-squares rows (the first iterate): when the estimate lies
+        :meth:`within_core`. Robust rows: when their GPS/INS weights are those at the
+        estimate (within :data:`NAV_WEIGHT_TOLERANCE`; the rows are linear, their
+        linearisation error says nothing of their weights) and no group is beyond the core
+        with its loss off. The GPS/INS loss is turned on once the rows have converged
+        without it (as Sim: with 20 % blunders an early GPS/INS loss let the least-squares
+        iterate's pull down-weight good GPS/INS), one group at a time in
+        :data:`seqat.robust.NAV_GROUPS` order — the GNSS position first: an update sees
+        only the window's data, and a 5 m jump split between position and attitude
+        (u² 40 and 47, strip seed 2) otherwise made the attitude the outlier.
+        """
+        if not self.robust:
+            return self.within_core()
+        nav = slice(2 * self.k, 2 * self.k + EOP_SIZE)
+        used = self.w[nav] / self.w0[nav]
+        now = nav_weight(self._nav_res, self.nav_sigma, self.nav_robust_scale, self.nav_on)[0]
+        if not np.max(np.abs(now - used)) < NAV_WEIGHT_TOLERANCE:
+            return False
+        off = nav_outside(self._nav_res, self.nav_sigma, self.nav_robust_scale)[0] & ~self.nav_on
+        if off.any():
+            self.nav_on[int(np.argmax(off))] = True
+            return False
+        return True
+
+    def nav_group_weights(self) -> FloatArray:
+        """(g,) weight factor of each GPS/INS group in the last
+        linearised rows (1: least squares)."""
+        nav = slice(2 * self.k, 2 * self.k + EOP_SIZE)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            f = self.w[nav] / self.w0[nav]
+        return nav_groups_of(np.where(np.isfinite(f), f, 1.0))[0]
 
 
 

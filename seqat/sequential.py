@@ -63,9 +63,9 @@ from seqat.errors import EstimationError
 from seqat.geometry import wrap_angle
 from seqat.information import window_matrix
 from seqat.late import LateMixin
-from seqat.relinearise import FINAL_RELINEARISE_PX, RelinearisationMixin
+from seqat.relinearise import RelinearisationMixin
 from seqat.reports import RecordedRows, ReportMixin
-from seqat.robust import ROBUST_SCALE
+from seqat.robust import NAV_ROBUST_SCALE, ROBUST_SCALE, check_scale
 from seqat.rows import (
     Factors,
     RowBuilder,
@@ -148,6 +148,7 @@ class SequentialOptions:
     # paper's estimator). On by default: one wrong tie point must not move the solution.
     # docs/algorithm.md, *Robust loss*.
     robust_scale: float | None = ROBUST_SCALE
+    nav_robust_scale: float | None = NAV_ROBUST_SCALE  # ... of the GPS/INS groups (σ per DoF)
     # finish() re-opens the departed images and GPs (within reopen_max_age) and re-linearises
     # them with the window: the final values are the nonlinear smoother's (real-time values:
     # solution(smoothed=False)). Needs smoothing. docs/algorithm.md, *What the window costs*.
@@ -161,9 +162,8 @@ class SequentialOptions:
     def __post_init__(self) -> None:
         from seqat.errors import ConfigError
 
-        if self.robust_scale is not None and not self.robust_scale > 0:
-            raise ConfigError(f"robust_scale: expected a positive number (sigmas) or null, "
-                              f"got {self.robust_scale!r}")
+        check_scale("robust_scale", self.robust_scale)
+        check_scale("nav_robust_scale", self.nav_robust_scale)
         if self.engine not in ENGINES:
             raise ConfigError(f"engine: expected one of {', '.join(ENGINES)}, "
                               f"got {self.engine!r}")
@@ -239,6 +239,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         sim_opts = dataclasses.replace(options.sim, min_rays=options.min_rays,
                                        snooping_critical=options.snooping_critical,
                                        robust_scale=options.robust_scale,
+                                       nav_robust_scale=options.nav_robust_scale,
                                        calibration=calibration)
         if options.snooping_critical is not None:  # the initial block's points as births
             sim_opts = dataclasses.replace(sim_opts, min_ray_angle_deg=options.min_ray_angle_deg)
@@ -298,11 +299,12 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self._w.on_singular = self._drop_undetermined
         #: Observations removed by data snooping: (image id, point id, w-test value).
         self.rejections: list[tuple[str, str, float]] = []
-        #: GPS/INS groups down-weighted by data snooping: (image id, "position"/"attitude").
+        #: GPS/INS groups down-weighted by data snooping: (image id, "position"/"attitude");
+        #: by the robust loss: nav_robust (relinearise.py)
         self.nav_downweighted: list[tuple[str, str]] = []
         self._forced: set[int] = set()  # pending points already held back once (never twice)
-        self._ssr = 0.0
-        self._redundancy = 0
+        self._ssr, self._redundancy = 0.0, 0
+        self._nav_rows: dict[int, FloatArray] = {}  # GPS/INS rows in L: relinearise.py
         self._factors = Factors()
         self.relinearisations = 0  # window re-linearisations so far
         self.relinearisations_skipped = 0  # ... given up on a singular system
@@ -314,9 +316,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
     @property
     def sigma0(self) -> float:
         """A posteriori standard error of unit weight."""
-        return (
-            float(np.sqrt(self._ssr / self._redundancy)) if self._redundancy > 0 else float("nan")
-        )
+        r = self._redundancy
+        return float(np.sqrt(self._ssr / r)) if r > 0 else float("nan")
 
     def set_correlation_threshold(self, threshold: float) -> None:
         """Seq-R: the window threshold of the next updates (the latency budget tightens it,
@@ -344,7 +345,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                 if self.options.relinearise_px is not None:
                     if self.options.smoothing and self.options.final_reopen:
                         self._reopen_departed()
-                    self._relinearise_if_needed(FINAL_RELINEARISE_PX, force=True)
+                    self._final_relinearise()
                 self._hold_undetermined_camera()
 
     def solution(self, *, smoothed: bool | None = None) -> Solution:
@@ -527,6 +528,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                                      in zip(st.selected, res.undetermined, strict=True) if bad])
         self.rejections.extend(sim.rejections)
         self.nav_downweighted.extend(sim.nav_downweighted)
+        self._keep_nav_rows(np.arange(n), st.nav, res.nav_weight)
         self._initial = None
 
     # ------------------------------------------------------------------ sequential stage
@@ -656,7 +658,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             obs += [(t, t + EOP_SIZE + GP_SIZE * b, uv, s, self._cam_key is not None,
                      (i, born[b])) for (b, uv, s) in y22]
             builder = RowBuilder(self._cam, t, n2, obs, nav, nav_sigma, opts.robust_scale,
-                                 cam_col=0, control=self._control_rows(born, t))
+                                 opts.nav_robust_scale, control=self._control_rows(born, t))
             x1t = w.x[touched]
             d1t = np.zeros(touched.size)
             d2 = np.zeros(n2)
@@ -664,10 +666,9 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             degenerate: list[int] = []
             while True:
                 iterations += 1
-                # the first iterate is linearised at the start values (an INS 20 deg off):
-                # least squares there, the robust loss from the second on, so that a bad start
-                # does not make every ray an outlier
-                builder.robust_scale = None if iterations == 1 else opts.robust_scale
+                # the first iterate (at the start values: an INS 20 deg off) is least squares,
+                # the robust losses (rays, GPS/INS) from the second on: a bad start is no outlier
+                builder.robust = iterations > 1
                 rows = builder.rows(x1t, x2_0, d1t, d2)
                 try:
                     sol = solve_update(Qtt, touched, rows, block=True)
@@ -690,8 +691,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                 if iterations >= opts.max_update_iterations or (
                     builder.linearisation_error(x1t, x2_0, d1t, d2)
                     < opts.iteration_tolerance_px
-                    and (opts.robust_scale is None or iterations > 1
-                         or builder.within_core(opts.robust_scale))
+                    and builder.settled()
                 ):
                     break
             if degenerate:
@@ -756,6 +756,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self.rejections.extend(
             (self._image_ids[j], self._point_ids[p], wq) for j, p, wq in rejected)
         self.nav_downweighted.extend((frame.image_id, g) for g in downweighted)
+        self._keep_nav_rows([i], (nav, nav_sigma), builder.nav_group_weights())
         for p in y21_pts:
             self._gp_count[p] += 1
             self._gp_nobs[p] += 1

@@ -19,6 +19,7 @@ from enum import Enum
 
 import numpy as np
 
+from seqat import robust as rloss
 from seqat import snooping
 from seqat.calibration import FreeCamera, SelfCalibration, correlation, to_hold
 from seqat.catalogue import Catalogue
@@ -102,16 +103,17 @@ class SimOptions:
     # Robust loss of the image points: least squares within this many sigma, a Cauchy tail
     # beyond (seqat/robust.py; on by default); None: least squares (the paper's estimator).
     robust_scale: float | None = ROBUST_SCALE
+    # Robust loss of the GPS/INS groups (position, attitude: 3 DoF each): least squares
+    # within this many sigma per degree of freedom (u² <= 3 k²), a Cauchy tail beyond; on
+    # once Gauss-Newton has converged with least-squares GPS/INS. None: least squares.
+    nav_robust_scale: float | None = rloss.NAV_ROBUST_SCALE
     # Self-calibration: the camera's interior parameters it sets free are estimated too,
     # with the camera as their prior (seqat/calibration.py); None: the camera is fixed.
     calibration: SelfCalibration | None = None
 
     def __post_init__(self) -> None:
-        from seqat.errors import ConfigError
-
-        if self.robust_scale is not None and not self.robust_scale > 0:
-            raise ConfigError(f"robust_scale: expected a positive number (sigmas) or null, "
-                              f"got {self.robust_scale!r}")
+        rloss.check_scale("robust_scale", self.robust_scale)
+        rloss.check_scale("nav_robust_scale", self.nav_robust_scale)
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -142,6 +144,8 @@ class SimResult:
     #: the EOPs and the GPs.
     camera: PinholeCamera | None = None
     camera_cofactor: FloatArray | None = None
+    #: (n, g) robust weight factor of each image's GPS/INS groups (seqat.robust.NAV_GROUPS).
+    nav_weight: FloatArray | None = None
 
 
 def adjust_block(
@@ -196,14 +200,19 @@ def adjust_block(
     damping = 0.0
     was_damped = False
     robust = options.robust_scale
+    # GPS/INS least squares until converged (the datum), then robust if any is off (robust.py)
+    nav_robust: float | None = None
     cost = weighted_ssr(cam, data, eop, gp, robust, calib)
-    for iterations in range(1, options.max_iterations + 1):
+    limit = options.max_iterations
+    iterations = 0
+    while iterations < limit:
+        iterations += 1
         # Gauss-Newton while it lowers the cost, shortened by a line search when the full
         # step overshoots, Levenberg-Marquardt damping when no shortened step helps (bad
         # initial values of real flights). Near the minimum the full Gauss-Newton step is
         # taken, so the solution is Gauss-Newton's wherever Gauss-Newton converges.
         while True:
-            nrm, rhs, _ = linearise(cam, data, eop, gp, damping, robust, calib)
+            nrm, rhs, _ = linearise(cam, data, eop, gp, damping, robust, calib, nav_robust)
             delta_r = nrm.lu.solve(rhs)
             if not np.all(np.isfinite(delta_r)):
                 raise EstimationError(
@@ -216,7 +225,7 @@ def adjust_block(
             new_cost, step = math.inf, 1.0
             for step in LINE_SEARCH_STEPS:
                 new_cost = weighted_ssr(camera_at(cam_x + step * dc), data, eop + step * de,
-                                        gp + step * delta_p, robust, calib)
+                                        gp + step * delta_p, robust, calib, nav_robust)
                 if new_cost <= cost * (1.0 + COST_TOLERANCE):
                     break
             if new_cost <= cost * (1.0 + COST_TOLERANCE) or damping >= MAX_DAMPING:
@@ -239,10 +248,17 @@ def adjust_block(
         max_cam = np.max(np.abs(dc) / calib.sigma, initial=0.0) if c else 0.0  # type: ignore[union-attr]
         if (not was_damped and max_pos < options.position_tolerance_m
                 and max_ang < options.angle_tolerance_rad and max_cam < CAMERA_TOLERANCE):
+            if nav_robust is None and not rloss.nav_within_core(
+                    eop_residual(data.nav_eop, eop), data.nav_sigma, options.nav_robust_scale):
+                nav_robust = options.nav_robust_scale
+                cost = weighted_ssr(cam, data, eop, gp, robust, calib, nav_robust)
+                limit = iterations + options.max_iterations
+                continue
             converged = True
             break
     if was_damped:
-        nrm, _, _ = linearise(cam, data, eop, gp, 0.0, robust, calib)  # the undamped system
+        nrm, _, _ = linearise(cam, data, eop, gp, 0.0, robust, calib,
+                              nav_robust)  # the undamped system
     assert nrm is not None
     img, pt = data.obs_image, data.obs_point
     res_img = data.obs_uv - project(eop[img], gp[pt], cam)
@@ -252,7 +268,8 @@ def adjust_block(
     weight = np.where(und[pt], 0.0, weight)
     ssr = float(
         np.sum(weight[:, None] * res_img**2 / data.obs_sigma_px[:, None] ** 2)
-        + np.sum(res_nav**2 / data.nav_sigma**2)
+        + np.sum(rloss.nav_weight(res_nav, data.nav_sigma, nav_robust) * res_nav**2
+                 / data.nav_sigma**2)
     )
     ssr += data.control_ssr(gp)
     if calib is not None:
@@ -298,6 +315,7 @@ def adjust_block(
         undetermined=und,
         camera=cam,
         camera_cofactor=cam_cof,
+        nav_weight=rloss.nav_groups_of(rloss.nav_weight(res_nav, data.nav_sigma, nav_robust)),
     )
 
 
@@ -362,6 +380,7 @@ class SimState:
     #: The self-calibration of ``result`` (its free parameters sit between the EOPs and the
     #: GPs of the full matrices); None: the camera was fixed.
     calibration: SelfCalibration | None = None
+    nav: tuple[FloatArray, FloatArray] | None = None  # GPS/INS (n, 6; local), its sigmas
 
 
 class SimultaneousAT:
@@ -404,6 +423,13 @@ class SimultaneousAT:
         self.rejections: list[tuple[str, str, float]] = []
         #: GPS/INS groups down-weighted by data snooping: (image id, "position"/"attitude").
         self.nav_downweighted: list[tuple[str, str]] = []
+
+    @property
+    def nav_robust(self) -> list[tuple[str, str, float]]:
+        """GPS/INS groups the robust loss down-weighted in the last solution: (image id,
+        group, weight factor) below :data:`seqat.robust.NAV_REPORT_WEIGHT`."""
+        w = self._result.nav_weight if self._result is not None else None
+        return [] if w is None else rloss.nav_report(self._cat.image_ids, w)
 
     def add_frame(self, frame: Frame) -> ImageUpdate:
         """Add one image; refit everything when ``refit_every_frame``."""
@@ -514,7 +540,7 @@ class SimultaneousAT:
             obs_sigma_px=sg,
             result=res,
             calibration=self._calibration if res.camera_cofactor is not None else None,
-        )
+            nav=(np.asarray(cat.nav_eop), np.asarray(cat.nav_sigma)))
 
     def _solve(self, covariance: Covariance) -> SimResult:
         critical = self.options.snooping_critical

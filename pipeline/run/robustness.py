@@ -1,7 +1,8 @@
 """What a run did about bad data: data snooping and GNSS dropouts (``run.json`` ``robustness``).
 
 The estimators keep the observations data snooping removed (``rejections``) and the GPS/INS
-groups it down-weighted (``nav_downweighted``), over the whole run including the initial
+groups it down-weighted (``nav_downweighted``; the GPS/INS groups the robust loss
+down-weights: ``nav_robust``), over the whole run including the initial
 simultaneous stage and the ray screening at a point's birth (docs/algorithm.md, *Blunders and
 GNSS faults*); the frame sources list the dropout images they bridged or left out. This
 module turns them into one typed record for ``run.json`` and reads it back for the report.
@@ -29,6 +30,16 @@ class NavDownweight:
 
     image: str
     group: str
+
+
+@dataclass(frozen=True, kw_only=True)
+class NavRobust:
+    """A GPS/INS group (``position`` or ``attitude``) of an image that the robust loss
+    down-weights in the final solution: its weight factor (below 0.9; 1 = least squares)."""
+
+    image: str
+    group: str
+    weight: float
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -62,6 +73,12 @@ class RobustnessRecord:
     final_reopen_skipped : int
         Seq-R: departed parameters that the final smoothing pass did not re-open for being
         too many (their RTS-smoothed values stand; 0: every one re-opened, or none departed).
+    nav_robust_scale : float or None
+        Robust loss of the GPS/INS groups (sigmas per degree of freedom; ``None``: least
+        squares).
+    nav_robust : tuple[NavRobust, ...]
+        The GPS/INS groups it down-weights (weight factor below
+        :data:`seqat.robust.NAV_REPORT_WEIGHT`; a GNSS jump).
     """
 
     snooping_critical: float | None
@@ -75,6 +92,8 @@ class RobustnessRecord:
     diverged_images: tuple[str, ...] = ()
     rescued_points: tuple[str, ...] = ()
     final_reopen_skipped: int = 0
+    nav_robust_scale: float | None = None
+    nav_robust: tuple[NavRobust, ...] = ()
 
 
 def robustness_record(estimator: object, options: object, *, bridged: Sequence[str] = (),
@@ -104,7 +123,10 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
                             rescued_points=tuple(dict.fromkeys(getattr(estimator, "rescued",
                                                                        ()))),
                             final_reopen_skipped=int(getattr(estimator, "final_reopen_skipped",
-                                                             0)))
+                                                             0)),
+                            nav_robust_scale=getattr(options, "nav_robust_scale", None),
+                            nav_robust=tuple(NavRobust(image=i, group=g, weight=w) for i, g, w
+                                             in getattr(estimator, "nav_robust", ())))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -118,6 +140,7 @@ class RobustnessSummary:
     nav_downweighted: tuple[str, ...]  # "image: group"
     dropout_bridged: int
     dropout_skipped: tuple[str, ...]
+    nav_robust: tuple[str, ...] = ()  # "image: group (weight)"
 
 
 def summarise(record: Mapping[str, object]) -> RobustnessSummary | None:
@@ -138,7 +161,9 @@ def summarise(record: Mapping[str, object]) -> RobustnessSummary | None:
         images_with_rejections=len({r["image"] for r in rejections}),
         nav_downweighted=tuple(f"{n['image']}: {n['group']}" for n in nav),
         dropout_bridged=len(rob.get("dropout_bridged") or ()),  # type: ignore[arg-type]
-        dropout_skipped=tuple(rob.get("dropout_skipped") or ()))  # type: ignore[arg-type]
+        dropout_skipped=tuple(rob.get("dropout_skipped") or ()),  # type: ignore[arg-type]
+        nav_robust=tuple(f"{n['image']}: {n['group']} ({n['weight']:.2g})"
+                         for n in rob.get("nav_robust") or ()))  # type: ignore[union-attr]
 
 
 def robustness_rows(summary: RobustnessSummary) -> list[tuple[str, str]]:
@@ -150,6 +175,8 @@ def robustness_rows(summary: RobustnessSummary) -> list[tuple[str, str]]:
          f"{summary.observations_rejected} ({summary.observations_rejected_in_updates}) / "
          f"{summary.images_with_rejections}"),
         ("GPS/INS groups down-weighted", ", ".join(summary.nav_downweighted) or "none"),
+        ("GPS/INS groups down-weighted by the robust loss (weight)",
+         ", ".join(summary.nav_robust) or "none"),
         ("GNSS dropout images bridged / skipped",
          f"{summary.dropout_bridged} / {len(summary.dropout_skipped)}"
          + (f" ({', '.join(summary.dropout_skipped)})" if summary.dropout_skipped else "")),

@@ -80,9 +80,10 @@ def _eop_rmse(f: SimulatedFlight, est: SequentialAT) -> np.ndarray:
 
 
 def _run(frames: list[Frame], f: SimulatedFlight, **kw: object) -> SequentialAT:
-    # data snooping alone (least squares): the robust loss would absorb what it tests
+    # data snooping alone (least squares): the robust losses (image points, GPS/INS) would
+    # absorb what it tests
     est = SequentialAT(f.camera, SequentialOptions(min_rays=3, robust_scale=None,  # type: ignore[arg-type]
-                                                   **kw))
+                                                   nav_robust_scale=None, **kw))
     for fr in frames:
         est.add_frame(fr)
     est.finish()

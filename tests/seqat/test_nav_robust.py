@@ -1,0 +1,144 @@
+"""The robust loss of the GPS/INS groups (seqat.robust): its weights, and one GNSS jump in
+Sim and the sequential estimator (every default)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from seqat.errors import ConfigError
+from seqat.robust import (
+    NAV_ROBUST_SCALE,
+    check_scale,
+    nav_cost,
+    nav_group_weight,
+    nav_outside,
+    nav_u2,
+    nav_weight,
+    nav_within_core,
+)
+from seqat.sequential import SequentialAT, SequentialOptions
+from seqat.simulate import SimulatedFlight
+from seqat.simultaneous import SimOptions, SimultaneousAT
+
+SIGMA = np.array([0.1, 0.1, 0.1, 1e-3, 1e-3, 1e-3])
+
+
+def test_nav_weight_known_answers() -> None:
+    """Core u² <= k² dof = 27 (k = 3, 3 DoF): weight 1; beyond, 1 / (1 + (u² - 27) / 27)."""
+    u2 = np.array([0.0, 15.2, 27.0, 54.0, 270.0, 2700.0])
+    np.testing.assert_allclose(nav_group_weight(u2, 3.0),
+                               [1.0, 1.0, 1.0, 0.5, 0.1, 0.01], rtol=1e-12)
+    np.testing.assert_array_equal(nav_group_weight(u2, None), np.ones(6))
+    # a 5 m jump at 0.1 m: u² = 2500 -> 27 / 2500; the attitude group untouched
+    res = np.array([[3.0, 4.0, 0.0, 1e-3, 0.0, 0.0]])
+    np.testing.assert_allclose(nav_u2(res, SIGMA), [[2500.0, 1.0]])
+    np.testing.assert_allclose(nav_weight(res, SIGMA, 3.0),
+                               [[27 / 2500] * 3 + [1.0] * 3], rtol=1e-12)
+    assert not nav_within_core(res, SIGMA, 3.0) and nav_within_core(res, SIGMA, 50.0)
+    np.testing.assert_array_equal(nav_outside(res, SIGMA, 3.0), [[True, False]])
+    # the loss on the attitude group alone (a sequential update turns them on one by one)
+    np.testing.assert_array_equal(nav_weight(res, SIGMA, 3.0, np.array([False, True])),
+                                  np.ones((1, 6)))
+    assert nav_within_core(res, SIGMA, None)
+    # the real flight's largest normalised position residual, 3.9 (u² = 15.2): full weight
+    clean = np.array([[3.9 * 0.1 / np.sqrt(3)] * 3 + [0.0] * 3])
+    assert nav_weight(clean, SIGMA, NAV_ROBUST_SCALE)[0, 0] == 1.0
+
+
+def test_nav_weight_is_the_derivative_of_the_cost() -> None:
+    rng = np.random.default_rng(1)
+    for length in (0.05, 0.5, 0.6, 2.0, 50.0):
+        d = rng.normal(size=6) * SIGMA
+        d[:3] *= length / np.linalg.norm(d[:3])  # 0.05-50 m: core and tail
+        u2 = nav_u2(d[None], SIGMA)[0, 0]
+        h = 1e-6 * max(u2, 1.0)
+        up, dn = (nav_cost(np.r_[d[:3] * np.sqrt((u2 + s) / u2), d[3:]][None], SIGMA, 3.0)
+                  for s in (h, -h))
+        w = nav_weight(d[None], SIGMA, 3.0)[0, 0]
+        assert (up - dn) / (2 * h) == pytest.approx(w, rel=1e-5)
+    assert nav_cost(d[None], SIGMA, None) == pytest.approx(float(np.sum((d / SIGMA) ** 2)))
+
+
+@pytest.mark.parametrize("value", [0.0, -1.0, float("nan"), float("inf"), "3"])
+def test_nav_robust_scale_must_be_positive_or_null(value: object) -> None:
+    for options in (SimOptions, SequentialOptions):
+        with pytest.raises(ConfigError, match="nav_robust_scale"):
+            options(nav_robust_scale=value)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="robust_scale"):
+        check_scale("robust_scale", value)  # type: ignore[arg-type]
+    SequentialOptions(nav_robust_scale=None)
+
+
+def _jump(f: SimulatedFlight, image: int, seed: int) -> SimulatedFlight:
+    """One nav.csv row's position 5 m off (random 3D direction)."""
+    d = np.random.default_rng(seed).normal(size=3)
+    nav = f.nav_eop.copy()
+    nav[image, :3] += 5.0 * d / np.linalg.norm(d)
+    return dataclasses.replace(f, nav_eop=nav)
+
+
+def _run(f: SimulatedFlight, method: str, **kw: object) -> tuple[np.ndarray, object]:
+    est: SimultaneousAT | SequentialAT
+    if method == "sim":
+        est = SimultaneousAT(f.camera, SimOptions(**kw), refit_every_frame=False)  # type: ignore[arg-type]
+    else:
+        est = SequentialAT(f.camera, SequentialOptions(**kw))  # type: ignore[arg-type]
+    for fr in f.frames():
+        est.add_frame(fr)
+    if method != "sim":
+        est.finish()  # type: ignore[union-attr]
+    return np.array([e.eop for e in est.solution().eops]), est
+
+
+def _rmse(eops: np.ndarray, truth: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((eops[:, :3] - truth[:, :3]) ** 2, axis=1))))
+
+
+@pytest.mark.parametrize("method", ["sim", "seq-r"])
+def test_one_gnss_jump_keeps_the_solution_near_the_clean_run(short_strip: SimulatedFlight,
+                                                             method: str) -> None:
+    """Every default: one 5 m GNSS position jump (in the initial Sim block, mid-strip, the
+    last image) leaves the EOP RMSE within 10 % of the clean run's; the jump's group is the
+    one reported down-weighted. Least-squares GPS/INS: 1.3-1.5 times the clean RMSE
+    (measured), so the test can fail."""
+    f = short_strip
+    clean = _rmse(_run(f, method)[0], f.truth_eop)
+    for image, seed in ((3, 1), (30, 2), (59, 3)):
+        bad = _jump(f, image, seed)
+        eop, est = _run(bad, method)
+        assert _rmse(eop, f.truth_eop) <= 1.10 * clean, (image, _rmse(eop, f.truth_eop), clean)
+        assert [(i, g) for i, g, _ in est.nav_robust] == [  # type: ignore[attr-defined]
+            (f.image_ids[image], "position")]
+        plain = _rmse(_run(bad, method, nav_robust_scale=None)[0], f.truth_eop)
+        assert plain > 1.2 * clean
+
+
+@pytest.mark.parametrize("method", ["sim", "seq-r"])
+def test_clean_gps_ins_is_solved_as_least_squares(short_strip: SimulatedFlight,
+                                                  method: str) -> None:
+    """Without a jump every group lies in the core: the run equals the one with the GPS/INS
+    loss off (measured: identical to the last bit) and nothing is reported."""
+    on, est = _run(short_strip, method)
+    off, _ = _run(short_strip, method, nav_robust_scale=None)
+    assert np.max(np.abs(on - off)) <= 1e-12
+    assert est.nav_robust == []  # type: ignore[attr-defined]
+
+
+def test_finished_seq_f_reaches_sims_robust_minimum_with_a_jump(
+        short_strip: SimulatedFlight) -> None:
+    """finish() re-weights the window's GPS/INS rows until the weights settle: the finished
+    Seq-F is Sim's robust minimum (the update-time weight of the jump image alone left it
+    7 cm off), with the same σ0 and the same weight."""
+    bad = _jump(short_strip, 30, 4)
+    ref, sim = _run(bad, "sim", max_iterations=200)
+    got, seq = _run(bad, "seq-f", correlation_threshold=None)
+    np.testing.assert_allclose(got[:, :3], ref[:, :3], atol=2e-5)
+    np.testing.assert_allclose(got[:, 3:], ref[:, 3:], atol=1e-6)
+    assert seq.sigma0 == pytest.approx(sim.solution().sigma0, rel=1e-4)  # type: ignore[attr-defined]
+    (i, g, w_seq), = seq.nav_robust  # type: ignore[attr-defined]
+    (_, _, w_sim), = sim.nav_robust  # type: ignore[attr-defined]
+    assert (i, g) == (short_strip.image_ids[30], "position")
+    assert w_seq == pytest.approx(w_sim, abs=2e-4)
