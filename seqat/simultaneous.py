@@ -266,10 +266,10 @@ def adjust_block(
     weight = cauchy_weight(res_img, data.obs_sigma_px, robust)
     und = nrm.undetermined
     weight = np.where(und[pt], 0.0, weight)
+    w_nav = rloss.nav_weight(res_nav, data.nav_sigma, nav_robust)
     ssr = float(
         np.sum(weight[:, None] * res_img**2 / data.obs_sigma_px[:, None] ** 2)
-        + np.sum(rloss.nav_weight(res_nav, data.nav_sigma, nav_robust) * res_nav**2
-                 / data.nav_sigma**2)
+        + np.sum(w_nav * res_nav**2 / data.nav_sigma**2)
     )
     ssr += data.control_ssr(gp)
     if calib is not None:
@@ -315,7 +315,7 @@ def adjust_block(
         undetermined=und,
         camera=cam,
         camera_cofactor=cam_cof,
-        nav_weight=rloss.nav_groups_of(rloss.nav_weight(res_nav, data.nav_sigma, nav_robust)),
+        nav_weight=rloss.nav_groups_of(w_nav),
     )
 
 

@@ -17,7 +17,8 @@ Each publication also hands the bounds of the cells the new images saw to the re
 ``OUT/live/xyz/{z}/{x}/{y}.png`` and then writes the index, so ``seqat serve`` answers tiles
 with a file read rather than rendering them from the growing mosaic, under CPU contention,
 when a browser asks. What an image changes lies inside its cells seen (the blend writes
-nothing else), so the web tiles over their bounding box are the ones to render again.
+nothing else), so the web tiles over their boxes (:func:`seen_boxes`) are the ones to render
+again.
 
 When the run's ``mosaic.tif`` is published, :meth:`LiveTiles.remove` deletes the tiles, the
 cache and the index (``seqat serve`` shows ``mosaic.tif`` from then on).

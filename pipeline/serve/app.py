@@ -37,6 +37,7 @@ import threading
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
+from typing import TypeVar
 
 import uvicorn
 from starlette.applications import Starlette
@@ -69,6 +70,7 @@ from pipeline.serve.tiles import (
 )
 from seqat.errors import InputDataError
 
+T = TypeVar("T")
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 #: Never used by the browser without asking: the run folder changes under a live run.
 NO_CACHE = {"Cache-Control": "no-cache"}
@@ -93,6 +95,11 @@ EVENT_KEEPALIVE_S = 15.0
 EVENT_RETRY_MS = 1000
 #: Seconds uvicorn waits for open connections (event streams) when it stops.
 GRACEFUL_SHUTDOWN_S = 1
+
+
+def not_modified(request: Request, tag: str) -> bool:
+    """The request's ``If-None-Match`` names ``tag`` (answer 304)."""
+    return tag in (t.strip() for t in request.headers.get("if-none-match", "").split(","))
 
 
 def build_app(out: Path, nice: int = 0) -> Starlette:
@@ -144,7 +151,7 @@ def build_app(out: Path, nice: int = 0) -> Starlette:
                             headers=NO_CACHE)
         tag = etag(png)
         headers = {**NO_CACHE, "ETag": tag, TILE_SOURCE_HEADER: source}
-        if tag in (t.strip() for t in request.headers.get("if-none-match", "").split(",")):
+        if not_modified(request, tag):
             return Response(status_code=304, headers=headers)
         return Response(png, media_type="image/png", headers=headers)
 
@@ -163,23 +170,28 @@ def build_app(out: Path, nice: int = 0) -> Starlette:
                 keys.append(None)
         return tuple(keys)
 
-    statuses: dict[float | None, tuple[object, dict[str, object]]] = {}
-    bodies: dict[object, tuple[object, bytes, str]] = {}
-    cache_lock = threading.Lock()
+    answers: dict[object, tuple[object, object]] = {}
+    answers_lock = threading.Lock()
+
+    def answer(name: object, build: Callable[[], T]) -> T:
+        """``build()``, made once per state of the files (every page asks for the same
+        answers after a change); at most :data:`ANSWERS_KEPT` kept (criteria typed into
+        pages)."""
+        key = files_key()
+        with answers_lock:
+            hit = answers.get(name)
+        if hit is not None and hit[0] == key:
+            return hit[1]  # type: ignore[return-value]
+        value = build()
+        with answers_lock:
+            if len(answers) >= ANSWERS_KEPT:
+                answers.clear()
+            answers[name] = (key, value)
+        return value
 
     def status_doc(stop: float | None) -> dict[str, object]:
-        """``status.json`` for a stop criterion, made once per state of the files."""
-        key = files_key()
-        with cache_lock:
-            hit = statuses.get(stop)
-        if hit is not None and hit[0] == key:
-            return hit[1]
-        doc = view.status(*mosaic_info(), stop_sigma_cm=stop)
-        with cache_lock:
-            if len(statuses) >= ANSWERS_KEPT:  # criteria typed into pages
-                statuses.clear()
-            statuses[stop] = (key, doc)
-        return doc
+        """``status.json`` for a stop criterion."""
+        return answer(("status", stop), lambda: view.status(*mosaic_info(), stop_sigma_cm=stop))
 
     def status(request: Request) -> Response:
         return JSONResponse(status_doc(stop_param(request)), headers=NO_CACHE)
@@ -215,24 +227,17 @@ def build_app(out: Path, nice: int = 0) -> Starlette:
 
     def encoded(request: Request, name: object, build: Callable[[], object],
                 media_type: str = GEOJSON) -> Response:
-        """``build()`` as JSON, encoded once per state of the run folder's files (every page
-        asks for the same layers after a change) with an ETag of its bytes
-        (``If-None-Match`` answered 304)."""
-        key = files_key()
-        with cache_lock:
-            hit = bodies.get(name)
-        if hit is not None and hit[0] == key:
-            body, tag = hit[1], hit[2]
-        else:
+        """``build()`` as JSON (:func:`answer`: encoded once per state of the files) with an
+        ETag of its bytes (``If-None-Match`` answered 304)."""
+
+        def encode() -> tuple[bytes, str]:
             body = json.dumps(build(), ensure_ascii=False, allow_nan=False,
                               separators=(",", ":")).encode()
-            tag = etag(body)
-            with cache_lock:
-                if len(bodies) >= ANSWERS_KEPT:
-                    bodies.clear()
-                bodies[name] = (key, body, tag)
+            return body, etag(body)
+
+        body, tag = answer(name, encode)
         headers = {**NO_CACHE, "ETag": tag}
-        if tag in (t.strip() for t in request.headers.get("if-none-match", "").split(",")):
+        if not_modified(request, tag):
             return Response(status_code=304, headers=headers)
         return Response(body, media_type=media_type, headers=headers)
 
