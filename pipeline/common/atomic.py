@@ -53,8 +53,9 @@ def fsync_dir(folder: Path) -> None:
             os.close(fd)
 
 
-def atomic_write_text(path: Path | str, text: str) -> None:
-    """Replace ``path`` by ``text`` atomically (temp file in the same folder, fsync, rename).
+def atomic_write_text(path: Path | str, text: str | bytes) -> None:
+    """Replace ``path`` by ``text`` (str as UTF-8, or bytes) atomically (temp file in the
+    same folder, fsync, rename).
 
     File system errors are InputDataErrors naming ``path`` (:func:`output_errors`).
     """
@@ -63,7 +64,7 @@ def atomic_write_text(path: Path | str, text: str) -> None:
         _atomic_write_text(path, text)
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
+def _atomic_write_text(path: Path, text: str | bytes) -> None:
     if path.is_dir():
         raise InputDataError(f"{path}: is a folder; cannot write a file there")
     tmp = _write_temp(path.parent, path.name, text)

@@ -23,7 +23,6 @@ orthorectified mosaic has it (docs/formats.md, *Live run files*).
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import os
 import tempfile
@@ -36,6 +35,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipeline.common import jsonio
 from pipeline.common.atomic import atomic_write_text
 from pipeline.common.columns import LIVE_DIR, LIVE_ESTIMATES_FILE, LIVE_QUICKLOOK_DIR
 from seqat.geometry import rays_world
@@ -247,8 +247,7 @@ class LiveEstimates:
                              dict(self._latency))
                 self._write_quicklooks(state[0])
                 doc = self._document(*state)
-                text = json.dumps(doc, separators=(",", ":"), allow_nan=False)
-                atomic_write_text(self.path, text)
+                atomic_write_text(self.path, jsonio.dumps(doc))
                 self.write_ms.append((time.perf_counter() - t0) * 1e3)
             except BaseException as err:  # noqa: BLE001 - kept; the run goes on without it
                 self._error = err

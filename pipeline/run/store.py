@@ -33,6 +33,7 @@ import numpy as np
 import pyproj
 from pyproj.exceptions import CRSError
 
+from pipeline.common import jsonio
 from pipeline.common.atomic import atomic_write_text, write_files_atomically
 from pipeline.common.columns import (
     EOP_COLUMNS,
@@ -518,8 +519,8 @@ def read_json_object(path: Path) -> dict[str, object]:
         Unreadable, not JSON, or not an object.
     """
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        doc = jsonio.loads(path.read_bytes())
+    except (OSError, jsonio.JSONDecodeError) as err:
         raise InputDataError(f"{path}: cannot read {path.name}: {err}") from err
     if not isinstance(doc, dict):
         raise InputDataError(f"{path}: expected a JSON object")

@@ -27,7 +27,6 @@ import asyncio
 import contextlib
 import dataclasses
 import errno
-import json
 import math
 import os
 import socket
@@ -47,6 +46,7 @@ from starlette.responses import FileResponse, JSONResponse, Response, StreamingR
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
+from pipeline.common import jsonio
 from pipeline.common.columns import (
     EOP_FILE,
     LIVE_DIR,
@@ -171,6 +171,10 @@ def build_app(out: Path, nice: int = 0) -> Starlette:
         return tuple(keys)
 
     answers: dict[object, tuple[object, object]] = {}
+    #: The last encoding of each layer, with the object encoded: :class:`RunView` returns
+    #: the same object while the file it comes from is unchanged, so a change of another
+    #: file (the mosaic's index, the journal) costs an identity check, not an encoding.
+    encodings: dict[object, tuple[object, bytes, str]] = {}
     answers_lock = threading.Lock()
 
     def answer(name: object, build: Callable[[], T]) -> T:
@@ -216,7 +220,7 @@ def build_app(out: Path, nice: int = 0) -> Starlette:
                     if doc["version"] != version:
                         version = doc["version"]
                         sent = time.monotonic()
-                        yield f"event: status\ndata: {json.dumps(doc)}\n\n"
+                        yield f"event: status\ndata: {jsonio.dumps(doc).decode()}\n\n"
                 if time.monotonic() - sent >= EVENT_KEEPALIVE_S:
                     sent = time.monotonic()
                     yield ": keep-alive\n\n"
@@ -231,9 +235,18 @@ def build_app(out: Path, nice: int = 0) -> Starlette:
         ETag of its bytes (``If-None-Match`` answered 304)."""
 
         def encode() -> tuple[bytes, str]:
-            body = json.dumps(build(), ensure_ascii=False, allow_nan=False,
-                              separators=(",", ":")).encode()
-            return body, etag(body)
+            doc = build()
+            with answers_lock:
+                hit = encodings.get(name)
+            if hit is not None and hit[0] is doc:  # RunView's cached layer: same bytes
+                return hit[1], hit[2]
+            body = jsonio.dumps(doc)
+            tag = etag(body)
+            with answers_lock:
+                if len(encodings) >= ANSWERS_KEPT:
+                    encodings.clear()
+                encodings[name] = (doc, body, tag)
+            return body, tag
 
         body, tag = answer(name, encode)
         headers = {**NO_CACHE, "ETag": tag}

@@ -77,19 +77,24 @@ def ellipses(transformer: pyproj.Transformer, images: Sequence[str], xy: np.ndar
     """Error ellipses of the camera positions (module docstring)."""
     scale = ellipse_scale(xy, sigma_en)
     t = np.linspace(0.0, 2.0 * np.pi, ELLIPSE_VERTICES, endpoint=False)
+    ok = np.flatnonzero(np.all(np.isfinite(sigma_en), axis=1) & np.all(np.isfinite(xy), axis=1))
+    # every ring in one transformation: (cameras, vertices) eastings and northings
+    east = xy[ok, :1] + scale * sigma_en[ok, :1] * np.cos(t)
+    north = xy[ok, 1:2] + scale * sigma_en[ok, 1:2] * np.sin(t)
+    lon, lat = (np.asarray(v).reshape(east.shape)
+                for v in transformer.transform(east.ravel(), north.ravel()))
+    rings = np.stack([lon, lat], axis=2)
+    rings = np.concatenate([rings, rings[:, :1]], axis=1)  # closed
+    valid = np.all(np.isfinite(rings), axis=(1, 2)).tolist()
     features = []
-    for i, image in enumerate(images):
-        se, sn = sigma_en[i]
-        if not (math.isfinite(se) and math.isfinite(sn) and np.all(np.isfinite(xy[i]))):
-            continue
-        ring = _ring(transformer, np.column_stack([xy[i, 0] + scale * se * np.cos(t),
-                                                   xy[i, 1] + scale * sn * np.sin(t)]))
-        if ring is None:
+    for k, (i, ring) in enumerate(zip(ok.tolist(), rings.tolist(), strict=True)):
+        if not valid[k]:
             continue
         features.append({"type": "Feature", "geometry": {"type": "Polygon",
                                                          "coordinates": [ring]},
-                         "properties": {"image": image, "sigma_e_m": float(se),
-                                        "sigma_n_m": float(sn), "scale": scale}})
+                         "properties": {"image": images[i],
+                                        "sigma_e_m": float(sigma_en[i, 0]),
+                                        "sigma_n_m": float(sigma_en[i, 1]), "scale": scale}})
     return _collection(features, scale=scale)
 
 

@@ -80,8 +80,16 @@ def _finite(value: object) -> float | None:
 
 def _sigma_norm(sigma: np.ndarray) -> list[float | None]:
     """√(σx² + σy² + σz²) per row, None where a σ is missing."""
-    norm = np.sqrt(np.sum(np.square(sigma), axis=1))
-    return [float(v) if np.isfinite(v) else None for v in norm]
+    with np.errstate(invalid="ignore"):
+        return _nullable(np.sqrt(np.sum(np.square(sigma), axis=1)))
+
+
+def _nullable(values: np.ndarray) -> list[float | None]:
+    """``values`` as a list, None where not finite."""
+    finite = np.isfinite(values)
+    if finite.all():
+        return values.tolist()  # type: ignore[no-any-return]
+    return np.where(finite, values, None).tolist()  # type: ignore[no-any-return]
 
 
 def _opt(value: float) -> float | None:
@@ -119,8 +127,8 @@ def _parse_estimates(doc: dict[str, object], key: object) -> LiveEstimatesView:
     assert isinstance(cams, list)
 
     def arr(rows: object, width: int) -> np.ndarray:
-        return np.array([[np.nan if v is None else v for v in r] for r in rows],  # type: ignore[union-attr]
-                        dtype=np.float64).reshape(-1, width)
+        # numpy reads JSON's null as NaN; ragged or non-numeric rows raise ValueError
+        return np.array(rows, dtype=np.float64).reshape(-1, width)
 
     cameras = Table(ids=[str(c["image"]) for c in cams], values=arr([c["eop"] for c in cams], 6),
                     sigma=arr([c["sigma"] for c in cams], 6), crs_wkt=crs,
@@ -156,15 +164,24 @@ class RunView:
         self.out = out
         self._lock = threading.Lock()
         self._cache: dict[str, tuple[object, object]] = {}
+        self._loading: dict[str, threading.RLock] = {}
 
     def _cached(self, name: str, key: object, load: Callable[[], T]) -> T:
+        """``load()``'s value for this version ``key`` of its source; one thread loads it
+        while the others asking for it wait (pages ask together after a change)."""
         with self._lock:
             hit = self._cache.get(name)
             if hit is not None and hit[0] == key:
                 return hit[1]  # type: ignore[return-value]
-        value = load()
-        with self._lock:
-            self._cache[name] = (key, value)
+            loading = self._loading.setdefault(name, threading.RLock())
+        with loading:
+            with self._lock:
+                hit = self._cache.get(name)
+                if hit is not None and hit[0] == key:
+                    return hit[1]  # type: ignore[return-value]
+            value = load()
+            with self._lock:
+                self._cache[name] = (key, value)
         return value
 
     def _json(self, name: str) -> tuple[dict[str, object] | None, str | None]:
@@ -558,19 +575,23 @@ class RunView:
             keep = np.unique(np.linspace(0, total - 1, min(total, MAX_POINTS)).astype(int)) \
                 if total else np.zeros(0, int)
             lon, lat = transformer.transform(table.values[keep, 0], table.values[keep, 1])
-            sigma = _sigma_norm(table.sigma[keep])
-            worst = shapes.point_sigma(table.sigma[keep])
+            sig = table.sigma[keep]
+            # plain lists (NaN read as None): no numpy scalar per property
+            columns = [_nullable(sig[:, 0]), _nullable(sig[:, 1]), _nullable(sig[:, 2]),
+                       _sigma_norm(sig), _nullable(shapes.point_sigma(sig))]
+            z = table.values[keep, 2].tolist()
+            finite = (np.isfinite(lon) & np.isfinite(lat)).tolist()
+            lon, lat = np.asarray(lon).tolist(), np.asarray(lat).tolist()
             features = []
-            for k, i in enumerate(keep):
-                if not (np.isfinite(lon[k]) and np.isfinite(lat[k])):
+            for k, i in enumerate(keep.tolist()):
+                if not finite[k]:
                     continue
                 features.append({"type": "Feature", "geometry": {
-                    "type": "Point", "coordinates": [float(lon[k]), float(lat[k])]},
+                    "type": "Point", "coordinates": [lon[k], lat[k]]},
                     "properties": {
-                        "point": table.ids[i], "z_m": float(table.values[i, 2]),
-                        "sx_m": _opt(table.sigma[i, 0]), "sy_m": _opt(table.sigma[i, 1]),
-                        "sz_m": _opt(table.sigma[i, 2]), "sigma_m": sigma[k],
-                        "sigma_max_m": _opt(worst[k]), **table.extra[i]}})
+                        "point": table.ids[i], "z_m": z[k], "sx_m": columns[0][k],
+                        "sy_m": columns[1][k], "sz_m": columns[2][k], "sigma_m": columns[3][k],
+                        "sigma_max_m": columns[4][k], **table.extra[i]}})
             return {"type": "FeatureCollection", "features": features, "total": total,
                     "shown": len(features)}
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import http.client
 import io
 import json
+import os
 import shutil
 import time
 import urllib.error
@@ -343,3 +344,68 @@ def test_seen_boxes_cover_the_seen_cells_band_by_band() -> None:
                         pixels=np.zeros((4, 4, 3), np.uint8), seen=np.zeros((4, 4), bool),
                         off_nadir=np.zeros((4, 4), np.float32), height_agl_m=100.0)
     assert seen_boxes(blank) == []
+
+
+def test_a_layer_is_encoded_again_only_when_its_own_file_changed(
+        live_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A live watch changes one file of the run folder after another (journal, mosaic
+    index, estimates): the points layer is encoded again only when ``live/estimates.json``
+    changed, with the same bytes and ETag otherwise."""
+    from pipeline.serve import app as app_module
+
+    out = tmp_path / "live"
+    shutil.copytree(live_run, out)
+    encodes: list[int] = []
+    dumps = app_module.jsonio.dumps
+
+    def counting(doc: object) -> bytes:
+        encodes.append(1)
+        return dumps(doc)
+
+    monkeypatch.setattr(app_module.jsonio, "dumps", counting)
+    with serving(out) as served:
+        _, headers, body = get(served, "/points.geojson")
+        tag, first = headers["ETag"], len(encodes)
+        assert first == 1
+        journal = out / "journal" / "journal.log"
+        stamp = time.time() + 5
+        os.utime(journal, (stamp, stamp))  # another file of the folder changed
+        _, headers, again = get(served, "/points.geojson")
+        assert again == body and headers["ETag"] == tag and len(encodes) == first
+        est = out / "live" / "estimates.json"
+        doc = json.loads(est.read_text())
+        doc["points"]["sigma_m"][0] = [0.5, 0.5, 0.5]
+        est.write_text(json.dumps(doc))
+        _, headers, changed = get(served, "/points.geojson")
+        assert headers["ETag"] != tag and len(encodes) == first + 1
+        assert json.loads(changed)["features"][0]["properties"]["sx_m"] == 0.5
+
+
+def test_pages_asking_together_parse_a_changed_file_once(tmp_path: Path) -> None:
+    """Several request threads asking for one changed file: one parses it, the others wait
+    for its value (not one parse per page)."""
+    import threading
+
+    from pipeline.serve.runview import RunView
+
+    view = RunView(tmp_path)
+    loads: list[int] = []
+    barrier = threading.Barrier(4)
+
+    def load() -> str:
+        loads.append(1)
+        time.sleep(0.2)
+        return "parsed"
+
+    def ask(results: list[str]) -> None:
+        barrier.wait()
+        results.append(view._cached("estimates", ("ino", 1), load))
+
+    results: list[str] = []
+    threads = [threading.Thread(target=ask, args=(results,)) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(10)
+    assert results == ["parsed"] * 4 and len(loads) == 1
+    assert view._cached("estimates", ("ino", 2), lambda: "again") == "again"
