@@ -383,6 +383,7 @@ class DepartureMixin:
         value = self._smoothed_departed() if self._records else {}
         origin = self._origin
         assert origin is not None
+        self._retire_nav_rows(k[1] for k in old if k[0] == "e")
         for k in old:
             del self._departed[k]
             self._frozen_cof.pop(k, None)

@@ -5,7 +5,7 @@ Mixed into :class:`seqat.sequential.SequentialAT` (its state lives there).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 import scipy.sparse
@@ -20,6 +20,8 @@ from seqat.information import (
     window_matrix,
 )
 from seqat.robust import (
+    NAV_GROUPS,
+    NAV_REPORT_WEIGHT,
     cauchy_weight,
     nav_components,
     nav_groups_of,
@@ -91,14 +93,27 @@ class RelinearisationMixin:
         for q, i in enumerate(images):
             self._nav_rows[int(i)] = np.concatenate([obs[q], sigma[q], wc[q]])
 
+    def _retire_nav_rows(self, images: Iterable[int]) -> None:
+        """``images`` can no longer re-enter the window (``smoothing_lag``: finalised), so
+        ``finish()`` will not re-weight their GPS/INS rows and only :attr:`nav_robust` reads
+        them: a down-weighted image keeps its group weights, the others nothing (memory
+        flat along the flight)."""
+        for i in images:
+            row = self._nav_rows.pop(int(i), None)
+            groups = None if row is None else nav_groups_of(row[12:])[0]
+            if groups is not None and np.any(groups < NAV_REPORT_WEIGHT):
+                self._nav_retired[int(i)] = groups
+
     @property
     def nav_robust(self) -> list[tuple[str, str, float]]:
         """GPS/INS groups the robust loss down-weights: (image id, group, weight factor)
         below :data:`seqat.robust.NAV_REPORT_WEIGHT`, as ``L`` holds them now (after
-        finish(): the final weights)."""
-        ids = sorted(self._nav_rows)
-        wc = np.array([self._nav_rows[i][12:] for i in ids]).reshape(-1, EOP_SIZE)
-        return nav_report([self._image_ids[i] for i in ids], nav_groups_of(wc))
+        finish(): the final weights; finalised images: as they left)."""
+        groups = {i: nav_groups_of(row[12:])[0] for i, row in self._nav_rows.items()}
+        groups.update(self._nav_retired)
+        ids = sorted(groups)
+        weights = np.array([groups[i] for i in ids]).reshape(-1, len(NAV_GROUPS))
+        return nav_report([self._image_ids[i] for i in ids], weights)
 
     def _reweight_nav(self) -> bool:
         """finish(): the robust weights of the window images' GPS/INS groups at the window's

@@ -299,12 +299,12 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self._w.on_singular = self._drop_undetermined
         #: Observations removed by data snooping: (image id, point id, w-test value).
         self.rejections: list[tuple[str, str, float]] = []
-        #: GPS/INS groups down-weighted by data snooping: (image id, "position"/"attitude");
-        #: by the robust loss: nav_robust (relinearise.py)
-        self.nav_downweighted: list[tuple[str, str]] = []
+        #: GPS/INS groups down-weighted by data snooping (by the loss: nav_robust)
+        self.nav_downweighted: list[tuple[str, str]] = []  # (image id, position/attitude)
         self._forced: set[int] = set()  # pending points already held back once (never twice)
         self._ssr, self._redundancy = 0.0, 0
         self._nav_rows: dict[int, FloatArray] = {}  # GPS/INS rows in L: relinearise.py
+        self._nav_retired: dict[int, FloatArray] = {}  # ... their group weights once finalised
         self._factors = Factors()
         self.relinearisations = 0  # window re-linearisations so far
         self.relinearisations_skipped = 0  # ... given up on a singular system

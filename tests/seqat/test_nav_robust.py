@@ -116,6 +116,24 @@ def test_one_gnss_jump_keeps_the_solution_near_the_clean_run(short_strip: Simula
         assert plain > 1.2 * clean
 
 
+def test_finalised_images_keep_only_down_weighted_nav_groups(short_strip: SimulatedFlight,
+                                                               ) -> None:
+    """With ``smoothing_lag`` an image finalised long ago cannot re-enter the window: its
+    GPS/INS rows are let go (memory flat along the flight), except the weights of a group the
+    loss down-weighted, which the report still names, as without the lag."""
+    f = _jump(short_strip, 3, 1)
+    n = len(f.image_ids)
+    _, est = _run(f, "seq-r", smoothing_lag=10)
+    kept = est._nav_rows  # type: ignore[attr-defined]
+    assert len(kept) < n - 20 and 3 not in kept
+    assert [(i, g) for i, g, _ in est.nav_robust] == [  # type: ignore[attr-defined]
+        (f.image_ids[3], "position")]
+    _, whole = _run(f, "seq-r")
+    assert len(whole._nav_rows) == n  # type: ignore[attr-defined]
+    # the same group; its weight as it left, not re-weighted by finish() (0.11 / 0.12)
+    assert [g[:2] for g in est.nav_robust] == [g[:2] for g in whole.nav_robust]  # type: ignore[attr-defined]
+
+
 @pytest.mark.parametrize("method", ["sim", "seq-r"])
 def test_clean_gps_ins_is_solved_as_least_squares(short_strip: SimulatedFlight,
                                                   method: str) -> None:
