@@ -294,6 +294,8 @@ class GrowingFlight:
                                           f"{err}; left out"))
                             if self.camera is not None else None)
         self._closed: dict[str, ObservationGroup] = {}
+        #: Late rows whose image's nav row was not read yet (:meth:`_check_late`).
+        self._unchecked_late: list[tuple[CsvRow, str, str]] = []
         self._images = (ImageWatcher(self.images_dir, set(done), wait_timeout_s)
                         if self.images_dir is not None and self.kind != "observations" else None)
         self._ready: dict[str, tuple[Path, float, float]] = {}  # image -> path, ready, seen
@@ -334,6 +336,7 @@ class GrowingFlight:
         """
         items: list[Arrival | SkippedImage] = []
         activity = self._poll_nav(now)
+        self._check_unchecked_late()
         if self._obs is not None:
             activity |= self._poll_observations()
         if self._images is not None:
@@ -392,11 +395,26 @@ class GrowingFlight:
         return bool(rows)
 
     def _check_late(self, row: CsvRow, image: str, frame: str, nav_row: int) -> None:
-        """A late row's image must have come before its frame: its nav row is in."""
-        if image not in self._done and all(r.image != image for r in self._rows):
-            raise row.error(f"field 'image': late observation of image {image!r} in frame "
-                            f"{frame!r}, whose nav row has not arrived before (a row's frame "
-                            "is its image or a later one)")
+        """A late row's image must have come before its frame: its nav row is in. nav.csv
+        is read before observations.csv (a frame's rows are then read with its nav row), so
+        a fast writer may have appended the image's nav row, then the row, in between: the
+        row waits for the next reading of nav.csv (:meth:`_check_unchecked_late`). Its frame
+        cannot arrive before: the frame's nav row comes after the row."""
+        if not self._known(image):
+            self._unchecked_late.append((row, image, frame))
+
+    def _known(self, image: str) -> bool:
+        return image in self._done or any(r.image == image for r in self._rows)
+
+    def _check_unchecked_late(self) -> None:
+        """The late rows read before this reading of nav.csv: their images' nav rows are in
+        now, or the rows came before them (an error)."""
+        for row, image, frame in self._unchecked_late:
+            if not self._known(image):
+                raise row.error(f"field 'image': late observation of image {image!r} in "
+                                f"frame {frame!r}, whose nav row has not arrived before (a "
+                                "row's frame is its image or a later one)")
+        self._unchecked_late.clear()
 
     def _ordered_arrivals(self, now: float) -> list[Arrival | SkippedImage]:
         """Nav-file order: each row's image (or observations), waiting for what is missing."""

@@ -260,9 +260,54 @@ def test_a_late_row_before_its_image_nav_row_is_an_error(autzen_run: Path,
     (flight / "nav.csv").write_text("".join(nav[:2]))
     (flight / "observations.csv").write_text(obs[0] + "".join(first) + late)
     grow = GrowingFlight(flight, load_flight_config(flight / FLIGHT_YAML), set(), 5.0)
+    grow.poll(0.0)  # the row waits for the next reading of nav.csv (a writer may be between)
     with pytest.raises(InputDataError, match=r"^[^\n]*observations.csv:\d+: field 'image': "
                        r"late observation of image 'img_0003' in frame 'img_0002'[^\n]*$"):
-        grow.poll(0.0)
+        grow.poll(1.0)
+
+
+def test_rows_written_between_the_two_files_reads_are_taken_in_order(
+        autzen_run: Path, tmp_path: Path) -> None:
+    """A fast feeder writes the next frames (rows, then nav row, each) while the watch is
+    between reading nav.csv and observations.csv: a late row of img_0002 in frame img_0003
+    is checked against the nav rows read after it (img_0002's was written first), and each
+    frame still arrives with its rows. Checked at once, it failed here on a loaded machine
+    (CI, 2026-12-03)."""
+    flight = _late_observations_flight(autzen_run, tmp_path)
+    nav = (flight / "nav.csv").read_text().splitlines(keepends=True)
+    obs = (flight / "observations.csv").read_text().splitlines(keepends=True)
+
+    def frame(name: str) -> list[str]:
+        return [line for line in obs[1:] if line.endswith(f",{name}\n")]
+
+    (flight / "nav.csv").write_text("".join(nav[:2]))
+    (flight / "observations.csv").write_text(obs[0] + "".join(frame("img_0001")))
+    grow = GrowingFlight(flight, load_flight_config(flight / FLIGHT_YAML), set(), 5.0)
+    tail = grow._nav
+    assert tail is not None
+    read = tail.poll
+    fed: list[bool] = []
+
+    def read_then_feed() -> object:
+        rows = read()
+        if not fed:  # the feeder, right after this read: frame 2, nav 2, frame 3, nav 3
+            fed.append(True)
+            late = "img_0002,t9999998,100.0,100.0,img_0003\n"
+            with (flight / "observations.csv").open("a") as f:
+                f.write("".join(frame("img_0002")))
+            with (flight / "nav.csv").open("a") as f:
+                f.write(nav[2])
+            with (flight / "observations.csv").open("a") as f:
+                f.write("".join(frame("img_0003")) + late)
+            with (flight / "nav.csv").open("a") as f:
+                f.write(nav[3])
+        return rows
+
+    tail.poll = read_then_feed  # type: ignore[method-assign]
+    arrived = [a for t in (0.0, 1.0, 2.0) for a in grow.poll(t)[0] if isinstance(a, Arrival)]
+    assert [a.image for a in arrived] == ["img_0001", "img_0002", "img_0003"]
+    assert all(len(a.point_ids) > 0 for a in arrived)  # each frame with its rows
+    assert "img_0002" in arrived[2].late_image_ids
 
 
 def test_feed_of_a_bad_frame_field_is_exit_2(autzen_run: Path, tmp_path: Path) -> None:
