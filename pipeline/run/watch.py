@@ -230,6 +230,12 @@ def _mtime(path: Path) -> float:
         return time.time()
 
 
+def _late_before_nav(row: CsvRow, image: str, frame: str) -> InputDataError:
+    return row.error(f"field 'image': late observation of image {image!r} in frame {frame!r}, "
+                     "whose nav row has not arrived before (a row's frame is its image or a "
+                     "later one)")
+
+
 class GrowingFlight:
     """The inputs of a flight folder that is being written, as complete images (:meth:`poll`).
 
@@ -398,10 +404,14 @@ class GrowingFlight:
         """A late row's image must have come before its frame: its nav row is in. nav.csv
         is read before observations.csv (a frame's rows are then read with its nav row), so
         a fast writer may have appended the image's nav row, then the row, in between: the
-        row waits for the next reading of nav.csv (:meth:`_check_unchecked_late`). Its frame
-        cannot arrive before: the frame's nav row comes after the row."""
-        if not self._known(image):
-            self._unchecked_late.append((row, image, frame))
+        row waits for the next reading of nav.csv (:meth:`_check_unchecked_late`), which
+        comes before its frame's arrival (the frame's nav row comes after the row). With
+        the frame's nav row already read, the image's would be too: an error now."""
+        if self._known(image):
+            return
+        if self._known(frame):
+            raise _late_before_nav(row, image, frame)
+        self._unchecked_late.append((row, image, frame))
 
     def _known(self, image: str) -> bool:
         return image in self._done or any(r.image == image for r in self._rows)
@@ -411,9 +421,7 @@ class GrowingFlight:
         now, or the rows came before them (an error)."""
         for row, image, frame in self._unchecked_late:
             if not self._known(image):
-                raise row.error(f"field 'image': late observation of image {image!r} in "
-                                f"frame {frame!r}, whose nav row has not arrived before (a "
-                                "row's frame is its image or a later one)")
+                raise _late_before_nav(row, image, frame)
         self._unchecked_late.clear()
 
     def _ordered_arrivals(self, now: float) -> list[Arrival | SkippedImage]:

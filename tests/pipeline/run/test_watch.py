@@ -249,18 +249,22 @@ def test_watch_of_a_fed_flight_with_late_observations_equals_the_run(autzen_run:
     assert_same_results(ref, out)
 
 
-def test_a_late_row_before_its_image_nav_row_is_an_error(autzen_run: Path,
-                                                          tmp_path: Path) -> None:
+@pytest.mark.parametrize("frame_nav_in", [False, True])
+def test_a_late_row_before_its_image_nav_row_is_an_error(autzen_run: Path, tmp_path: Path,
+                                                          frame_nav_in: bool) -> None:
+    """A late row of img_0003 in frame img_0002 (not acquired yet). Without the frame's nav
+    row the row waits for the next reading of nav.csv (a writer may be between the reads);
+    with it (a file written at once) the error comes before the frame can arrive."""
     flight = _late_observations_flight(autzen_run, tmp_path)
     nav = (flight / "nav.csv").read_text().splitlines(keepends=True)
     obs = (flight / "observations.csv").read_text().splitlines(keepends=True)
-    # the first frame's rows, then a late row of img_0003 in frame img_0002 (not acquired yet)
     first = [line for line in obs[1:] if line.endswith(",img_0001\n")]
     late = "img_0003,t9999999,100.0,100.0,img_0002\n"
-    (flight / "nav.csv").write_text("".join(nav[:2]))
+    (flight / "nav.csv").write_text("".join(nav[:3 if frame_nav_in else 2]))
     (flight / "observations.csv").write_text(obs[0] + "".join(first) + late)
     grow = GrowingFlight(flight, load_flight_config(flight / FLIGHT_YAML), set(), 5.0)
-    grow.poll(0.0)  # the row waits for the next reading of nav.csv (a writer may be between)
+    if not frame_nav_in:
+        assert grow.poll(0.0)[0][0].image == "img_0001"  # type: ignore[union-attr]
     with pytest.raises(InputDataError, match=r"^[^\n]*observations.csv:\d+: field 'image': "
                        r"late observation of image 'img_0003' in frame 'img_0002'[^\n]*$"):
         grow.poll(1.0)
