@@ -300,8 +300,7 @@ class GrowingFlight:
                                           f"{err}; left out"))
                             if self.camera is not None else None)
         self._closed: dict[str, ObservationGroup] = {}
-        #: Late rows whose image's nav row was not read yet (:meth:`_check_late`).
-        self._unchecked_late: list[tuple[CsvRow, str, str]] = []
+        self._unchecked_late: list[tuple[CsvRow, str, str]] = []  # :meth:`_check_late`
         self._images = (ImageWatcher(self.images_dir, set(done), wait_timeout_s)
                         if self.images_dir is not None and self.kind != "observations" else None)
         self._ready: dict[str, tuple[Path, float, float]] = {}  # image -> path, ready, seen
@@ -401,12 +400,9 @@ class GrowingFlight:
         return bool(rows)
 
     def _check_late(self, row: CsvRow, image: str, frame: str, nav_row: int) -> None:
-        """A late row's image must have come before its frame: its nav row is in. nav.csv
-        is read before observations.csv (a frame's rows are then read with its nav row), so
-        a fast writer may have appended the image's nav row, then the row, in between: the
-        row waits for the next reading of nav.csv (:meth:`_check_unchecked_late`), which
-        comes before its frame's arrival (the frame's nav row comes after the row). With
-        the frame's nav row already read, the image's would be too: an error now."""
+        """A late row's image must have come before its frame (docs/formats.md, *Watch
+        mode*): unknown, the row waits for the next reading of nav.csv, before its frame can
+        arrive; with the frame's nav row read, the image's would be too: an error now."""
         if self._known(image):
             return
         if self._known(frame):
@@ -417,8 +413,7 @@ class GrowingFlight:
         return image in self._done or any(r.image == image for r in self._rows)
 
     def _check_unchecked_late(self) -> None:
-        """The late rows read before this reading of nav.csv: their images' nav rows are in
-        now, or the rows came before them (an error)."""
+        """Late rows read before this reading of nav.csv: their images are in now, or error."""
         for row, image, frame in self._unchecked_late:
             if not self._known(image):
                 raise _late_before_nav(row, image, frame)
