@@ -400,9 +400,9 @@ class GrowingFlight:
         return bool(rows)
 
     def _check_late(self, row: CsvRow, image: str, frame: str, nav_row: int) -> None:
-        """A late row's image must have come before its frame (docs/formats.md, *Watch
-        mode*): unknown, the row waits for the next reading of nav.csv, before its frame can
-        arrive; with the frame's nav row read, the image's would be too: an error now."""
+        """A late row's image must have come before its frame (docs/formats.md, *Watched
+        flights*): unknown, the row waits for the next reading of nav.csv, before its frame
+        can arrive; with the frame's nav row read, the image's would be too: an error now."""
         if self._known(image):
             return
         if self._known(frame):
