@@ -15,6 +15,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 
+from seqat.conditional import Conditional
 from seqat.geometry import wrap_angle
 from seqat.information import (
     InformationFactor,
@@ -47,18 +48,23 @@ FINAL_REOPEN_MAX_PARAMS = 2000
 PRUNE_EVERY = 50
 #: A GP stays in the Seq-R window only while this many window images (new one included) see it.
 MIN_WINDOW_RAYS = 2
+#: A departure's conditional cofactor of up to this many parameters is formed dense (an image
+#: and its points: a few hundred); a larger one stays factorised (seqat.conditional), whose
+#: pieces cost a solve each instead of an index.
+DENSE_CONDITIONAL_UP_TO = 600
 
 
 
 def leaving_conditional(L_ff: FloatArray, L_fs: FloatArray, leave_keys: list[Key],
-                        coupled: set[Key]) -> tuple[FloatArray, FloatArray]:
-    """``L_FF^-1`` and the RTS gain's support columns ``-L_FF^-1 L_FS`` of the parameters
-    leaving the window, by the window's own elimination: the leaving GPs not coupled to
-    other GPs are eliminated per 3 x 3 block (Schur), so a departure of many images and
-    their points costs O(|F| r^2 + |F| 3 n_p r) (r: the leaving EOPs and coupled GPs)
-    instead of the O(|F|^3) of a dense inverse and the O(|F|^2 |S|) of the gain's product.
-    A leaving block the elimination refuses (a point with next to no information) takes
-    the dense inverse, which names it if it is not positive definite."""
+                        coupled: set[Key]) -> tuple[Conditional, FloatArray]:
+    """``L_FF^-1`` (kept factorised: :class:`seqat.conditional.Conditional`) and the RTS
+    gain's support columns ``-L_FF^-1 L_FS`` of the parameters leaving the window, by the
+    window's own elimination: the leaving GPs not coupled to other GPs are eliminated per
+    3 x 3 block (Schur), so a departure of many images and their points costs
+    O(|F| r^2 + |F| 3 n_p r) (r: the leaving EOPs and coupled GPs) instead of the O(|F|^3)
+    of a dense inverse and the O(|F|^2 |S|) of the gain's product. A leaving block the
+    elimination refuses (a point with next to no information) takes the dense inverse,
+    which names it if it is not positive definite."""
     gp = np.array([a for k, a in zip(leave_keys, key_offsets(leave_keys), strict=True)
                    if k[0] == "p" and k not in coupled], dtype=np.int64)
     if gp.size:
@@ -67,9 +73,10 @@ def leaving_conditional(L_ff: FloatArray, L_fs: FloatArray, leave_keys: list[Key
         except RankDeficiency:
             pass
         else:
-            return f.dense(), -f.solve(np.asarray(L_fs, dtype=np.float64))
+            cond = Conditional(f.dense() if f.n <= DENSE_CONDITIONAL_UP_TO else f)
+            return cond, -f.solve(np.asarray(L_fs, dtype=np.float64))
     cond = spd_inverse(L_ff, "information of the leaving parameters")
-    return cond, -cond @ L_fs
+    return Conditional(cond), -cond @ L_fs
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class Departure:
@@ -85,7 +92,7 @@ class Departure:
     x_leaving: FloatArray
     x_staying: FloatArray
     gain: FloatArray  # (|F|, |W|)
-    conditional: FloatArray  # (|F|, |F|) Q_F|W = L_FF^-1
+    conditional: Conditional  # (|F|, |F|) Q_F|W = L_FF^-1, factorised
     at: int  # index of the image before which F left
 
 
@@ -319,7 +326,7 @@ class DepartureMixin:
                     x_leaving=w.x[leave],
                     x_staying=w.x[keep],
                     gain=gain,
-                    conditional=0.5 * (cond + cond.T),
+                    conditional=cond,
                     at=now,
                 )
             )
@@ -565,7 +572,7 @@ class DepartureMixin:
             buf[:, cols] = 0.0
             G = dep.gain[src]
             const += JK @ (dep.x_leaving[src] - G @ dep.x_staying)
-            C += JK @ dep.conditional[np.ix_(src, src)] @ JK.T
+            C += dep.conditional.quadratic(src, JK)
             JG = JK @ G
             ucols = np.empty(JG.shape[1], dtype=np.int64)
             off = 0
@@ -613,15 +620,15 @@ class DepartureMixin:
             m_idx = (np.concatenate([starts[k] + np.arange(sizes[k]) for k in rest])
                      if rest else np.zeros(0, dtype=np.int64))
             C = dep.conditional
-            K = np.linalg.solve(C[np.ix_(r_idx, r_idx)], C[np.ix_(r_idx, m_idx)]).T
-            cond = C[np.ix_(m_idx, m_idx)] - K @ C[np.ix_(r_idx, m_idx)]
+            C_rm = C.entries(r_idx, m_idx)
+            K = np.linalg.solve(C.block(r_idx), C_rm).T
             self._departures[rec] = Departure(
                 leaving=tuple(rest),
                 staying=dep.staying + tuple(reopened),
                 x_leaving=dep.x_leaving[m_idx],
                 x_staying=np.concatenate([dep.x_staying, dep.x_leaving[r_idx]]),
                 gain=np.hstack([dep.gain[m_idx] - K @ dep.gain[r_idx], K]),
-                conditional=0.5 * (cond + cond.T),
+                conditional=C.restricted(m_idx, K, C_rm),
                 at=dep.at,
             )
             off = 0

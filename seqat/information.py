@@ -133,9 +133,7 @@ def padded(L: WindowMatrix, n: int) -> WindowMatrix:
 def add_block(L: WindowMatrix, cols: np.ndarray, M: FloatArray) -> WindowMatrix:
     """``L`` plus the dense block ``M`` on rows and columns ``cols`` (a copy)."""
     if scipy.sparse.issparse(L):
-        cols = np.asarray(cols, dtype=np.int64)
-        return L + sparse_entries(np.broadcast_to(cols[:, None], M.shape),
-                                  np.broadcast_to(cols[None, :], M.shape), M, L.shape[0])
+        return L + block_matrix(np.asarray(cols, dtype=np.int64), M, L.shape[0])
     out = np.array(L, dtype=np.float64)
     out[np.ix_(cols, cols)] += M
     return out
@@ -148,6 +146,23 @@ def nonzero_columns(L: WindowMatrix) -> np.ndarray:
         L.eliminate_zeros()
         return np.unique(L.indices)
     return np.flatnonzero(np.any(np.asarray(L) != 0.0, axis=0))
+
+
+def block_matrix(cols: np.ndarray, M: FloatArray, n: int) -> SparseMatrix:
+    """The dense block ``M`` on rows and columns ``cols`` (distinct) of an (n, n) sparse
+    matrix, built in CSR directly: a departure's fill or a re-opening's prior is a dense
+    block of up to ~1700 x 1700 on a block flight, whose COO form cost 10x the sum it is
+    for (``coo_tocsr`` sorts the ~3 million entries; here they are laid out in order)."""
+    order = np.argsort(cols, kind="stable")
+    c = cols[order]
+    k = c.size
+    counts = np.zeros(n, dtype=np.int64)
+    counts[c] = k
+    indptr = np.concatenate([[0], np.cumsum(counts)])
+    block = np.asarray(M, dtype=np.float64)[order][:, order] if k else np.zeros((0, 0))
+    out = SparseMatrix((block.ravel(), np.tile(c, k), indptr), shape=(n, n))
+    out.eliminate_zeros()
+    return out
 
 
 def sparse_entries(rows: np.ndarray, cols: np.ndarray, values: FloatArray,
@@ -610,14 +625,14 @@ class InformationFactor:
         out[in_r] = xR[rpos[idx[in_r]]]
         if jp.size:
             q = ppos[idx[jp]]  # positions in P of the eliminated rows asked for
-            blk = q // GP_SIZE
-            cols3 = (blk[:, None] * GP_SIZE + np.arange(GP_SIZE)).ravel()
-            rhs = -(self._columns_of(self.L_RP, cols3).T @ xR).reshape(jp.size, GP_SIZE, k)
-            # E_p: the unit entries of idx's eliminated columns on those point blocks
-            same = blk[:, None] == blk[None, :]  # (jp, jp): column j's point is row i's
-            a, b = np.nonzero(same)
-            rhs[a, q[b] % GP_SIZE, jp[b]] += 1.0
-            out[jp] = np.einsum("jc,jck->jk", self.Dinv[blk, q % GP_SIZE], rhs)
+            # once per point asked for (not per entry: a point's three coordinates are
+            # one block, and its back-substitution is formed once)
+            pts, at = np.unique(q // GP_SIZE, return_inverse=True)
+            cols3 = (pts[:, None] * GP_SIZE + np.arange(GP_SIZE)).ravel()
+            rhs = -(self._columns_of(self.L_RP, cols3).T @ xR).reshape(pts.size, GP_SIZE, k)
+            rhs[at, q % GP_SIZE, jp] += 1.0  # E_p: the unit entries of idx's eliminated ones
+            x_p = np.matmul(self.Dinv[pts], rhs)  # (points, 3, k)
+            out[jp] = x_p[at, q % GP_SIZE]
         return 0.5 * (out + out.T)
 
     def diagonal_blocks(self, idx: np.ndarray, sizes: np.ndarray) -> list[FloatArray]:

@@ -23,10 +23,24 @@ def _cut_by_hand(est: SequentialAT, keys: list[tuple[str, int]], now: int) -> No
     est._depart(set(keys), now)
 
 
-def test_reopened_parameters_equal_seq_f_through_a_chain_of_departures() -> None:
+@pytest.mark.parametrize("one_first", [False, True])
+@pytest.mark.parametrize("factorised", [False, True])
+def test_reopened_parameters_equal_seq_f_through_a_chain_of_departures(
+        factorised: bool, one_first: bool, monkeypatch: pytest.MonkeyPatch) -> None:
     """Parameters cut out, later images, more parameters cut (those the first ones were
     conditioned on), then re-opened: estimates and joint cofactor equal Seq-F's, which never
-    cut anything (same rows, no re-linearisation)."""
+    cut anything (same rows, no re-linearisation). With the records' conditionals dense
+    (small departures) and kept factorised (large ones, seqat.conditional); all at once, or
+    one point first (a prior through the chain: a few rows of a larger record).
+
+    Known and left (docs/algorithm.md, *Re-opening*): re-opening the rest *after* that one
+    point gives the right estimates but a cofactor off by ~7e-5 relative. The point's prior
+    came through the later record, which re-opening does not condition on it; so only the
+    estimates are compared then."""
+    import seqat.departures
+
+    if factorised:
+        monkeypatch.setattr(seqat.departures, "DENSE_CONDITIONAL_UP_TO", 0)
     f = simulate_strip(StripSimConfig(n_images=40, n_points=60), seed=2)
     frames = list(f.frames())
     opts = SequentialOptions(correlation_threshold=None, relinearise_px=None)
@@ -41,15 +55,27 @@ def test_reopened_parameters_equal_seq_f_through_a_chain_of_departures() -> None
     for fr in frames[25:31]:
         full.add_frame(fr)
         cut.add_frame(fr)
-    _cut_by_hand(cut, [("e", 5), ("e", 6)], 31)  # part of what the first cut depended on
-    cut._reopen(gone)
+    # part of what the first cut depended on: two images and four of the oldest points the
+    # first cut's prior does not couple (eliminated per point: a factorised record)
+    pts = [k for k in cut._w.keys if k[0] == "p" and k not in cut._w.coupled][:4]
+    _cut_by_hand(cut, [("e", 5), ("e", 6), *pts], 31)
+    if one_first:  # its record is split (the rest conditioned on it); a chained one is not
+        _reopen_and_compare(cut, full, gone[:1])
+        gone = gone[1:]
+    _reopen_and_compare(cut, full, gone, cofactor=not one_first)
+    assert cut.reopened == len(gone) + one_first
+
+
+def _reopen_and_compare(cut: SequentialAT, full: SequentialAT, keys: list[tuple[str, int]],
+                        *, cofactor: bool = True) -> None:
+    cut._reopen(keys)
     keys = list(cut._w.keys)
     a, b = full._w.indices(keys), cut._w.indices(keys)
     np.testing.assert_allclose(cut._w.x[b], full._w.x[a], rtol=0, atol=1e-9)
-    scale = np.abs(full._w.Q).max()
-    np.testing.assert_allclose(cut._w.Q[np.ix_(b, b)], full._w.Q[np.ix_(a, a)],
-                               rtol=0, atol=1e-9 * scale)
-    assert cut.reopened == len(gone)
+    if cofactor:
+        scale = np.abs(full._w.Q).max()
+        np.testing.assert_allclose(cut._w.Q[np.ix_(b, b)], full._w.Q[np.ix_(a, a)],
+                                   rtol=0, atol=1e-9 * scale)
 
 
 def _normalised_differences(est: SequentialAT, sim: Solution) -> tuple[float, int]:
@@ -117,12 +143,13 @@ def test_smoothing_does_not_pass_a_rescue_jump_to_images_that_left_before_it() -
     rescued before it, or another GP, passes its change as usual."""
     from types import SimpleNamespace
 
+    from seqat.conditional import Conditional
     from seqat.departures import Departure, DepartureMixin
 
     gain = np.arange(6 * 6, dtype=float).reshape(6, 6) / 100.0  # (|F| = 6, |W| = 2 GPs)
     dep = Departure(leaving=(("e", 0),), staying=(("p", 1), ("p", 2)),
                     x_leaving=np.ones(6), x_staying=np.zeros(6), gain=gain,
-                    conditional=np.eye(6), at=1)
+                    conditional=Conditional(np.eye(6)), at=1)
     now = np.array([100.0, -50.0, 30.0, 0.1, 0.2, 0.3])  # GP 1 jumped, GP 2 moved a little
     window = SimpleNamespace(keys=[("p", 1), ("p", 2)], x=now,
                              index=lambda k: np.arange(3) + 3 * (k[1] - 1))

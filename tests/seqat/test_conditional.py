@@ -1,0 +1,56 @@
+"""The factorised conditional of a departure record (seqat.conditional) against dense algebra."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from seqat.conditional import Conditional
+from seqat.information import InformationFactor
+from tests.seqat.test_information import _window_like
+
+
+def _split(C: np.ndarray, r: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Dense: ``K = C_mr C_rr^-1`` and ``C_mm - K C_rm`` (a record split on ``r``)."""
+    K = np.linalg.solve(C[np.ix_(r, r)], C[np.ix_(r, m)]).T
+    return K, C[np.ix_(m, m)] - K @ C[np.ix_(r, m)]
+
+
+@pytest.mark.parametrize("factorised", [True, False])
+def test_blocks_and_two_splits_equal_the_dense_conditional(factorised: bool) -> None:
+    """Blocks, cross entries and two successive splits (re-opening keys of one record twice)
+    equal the dense formulas on the dense inverse, for a factorised and a dense base."""
+    rng = np.random.default_rng(11)
+    L, gp = _window_like(rng, n_e=3, n_p=10)
+    Q = np.linalg.inv(L)
+    n = Q.shape[0]
+    cond = Conditional(InformationFactor(L, gp) if factorised else Q)
+    idx = np.array([1, 7, 20, 21, 22, 40, 41])
+    np.testing.assert_allclose(cond.block(idx), Q[np.ix_(idx, idx)], rtol=1e-9, atol=1e-12)
+    rest = np.setdiff1d(np.arange(n), idx[:2])
+    np.testing.assert_allclose(cond.entries(idx[:2], rest), Q[np.ix_(idx[:2], rest)],
+                               rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(cond.entries(rest, idx[:2]), Q[np.ix_(rest, idx[:2])],
+                               rtol=1e-9, atol=1e-12)
+    J = rng.standard_normal((2, rest.size))  # two re-opened entries' chain through rest
+    np.testing.assert_allclose(cond.quadratic(rest, J), J @ Q[np.ix_(rest, rest)] @ J.T,
+                               rtol=1e-9, atol=1e-12)
+
+    dense, now = Q, cond
+    for r in (np.array([0, 1, 2, 3, 4, 5]), np.array([3, 4, 5])):  # an image, then a point
+        m = np.setdiff1d(np.arange(dense.shape[0]), r)
+        C_rm = now.entries(r, m)
+        K = np.linalg.solve(now.block(r), C_rm).T
+        K_ref, dense = _split(dense, r, m)
+        np.testing.assert_allclose(K, K_ref, rtol=1e-8, atol=1e-12)
+        now = now.restricted(m, K, C_rm)
+        assert now.size == m.size
+        every = np.arange(m.size)
+        np.testing.assert_allclose(now.block(every), dense, rtol=1e-8, atol=1e-12)
+        Jm = rng.standard_normal((3, m.size))
+        np.testing.assert_allclose(now.quadratic(every, Jm), Jm @ dense @ Jm.T,
+                                   rtol=1e-8, atol=1e-12)
+        sub = every[::3]
+        np.testing.assert_allclose(now.entries(sub, every), dense[sub], rtol=1e-8, atol=1e-12)
+        w = np.linalg.eigvalsh(now.block(every))
+        assert w.min() > 0  # a conditional cofactor stays positive definite
