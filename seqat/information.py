@@ -149,18 +149,14 @@ def nonzero_columns(L: WindowMatrix) -> np.ndarray:
 
 
 def block_matrix(cols: np.ndarray, M: FloatArray, n: int) -> SparseMatrix:
-    """The dense block ``M`` on rows and columns ``cols`` (distinct) of an (n, n) sparse
-    matrix, built in CSR directly: a departure's fill or a re-opening's prior is a dense
-    block of up to ~1700 x 1700 on a block flight, whose COO form cost 10x the sum it is
-    for (``coo_tocsr`` sorts the ~3 million entries; here they are laid out in order)."""
+    """``M`` on rows and columns ``cols`` (distinct) of an (n, n) CSR matrix, laid out in order
+    (a block flight's ~1700 x 1700 departure fill: half the time of COO, which sorts it)."""
     order = np.argsort(cols, kind="stable")
-    c = cols[order]
-    k = c.size
+    c, k = cols[order], cols.size
     counts = np.zeros(n, dtype=np.int64)
-    counts[c] = k
-    indptr = np.concatenate([[0], np.cumsum(counts)])
-    block = np.asarray(M, dtype=np.float64)[order][:, order] if k else np.zeros((0, 0))
-    out = SparseMatrix((block.ravel(), np.tile(c, k), indptr), shape=(n, n))
+    counts[c] = k  # a row per column asked for, each with all of them, in order
+    out = SparseMatrix((np.asarray(M, dtype=np.float64)[np.ix_(order, order)].ravel(),
+                        np.tile(c, k), np.concatenate([[0], np.cumsum(counts)])), shape=(n, n))
     out.eliminate_zeros()
     return out
 
@@ -368,13 +364,11 @@ class InformationFactor:
                  parts: tuple[FloatArray, FloatArray, FloatArray] | None = None,
                  n: int | None = None) -> None:
         n = L.shape[0] if L is not None else int(n)  # type: ignore[arg-type]
-        self._kept_gp = (np.zeros(0, dtype=np.int64) if kept_gp is None
-                         else np.asarray(kept_gp, dtype=np.int64))
+        self._kept_gp = np.asarray([] if kept_gp is None else kept_gp, dtype=np.int64)
         self.n = n
         self._pos: tuple[np.ndarray, np.ndarray] | None = None  # _positions(), on request
         eliminate = np.asarray(eliminate, dtype=np.int64)
-        r_idx, p_idx = split_indices(n, eliminate)
-        self.r_idx, self.p_idx = r_idx, p_idx
+        self.r_idx, self.p_idx = r_idx, p_idx = split_indices(n, eliminate)
         npt = p_idx.shape[0]
         if parts is None:
             assert L is not None
@@ -510,9 +504,7 @@ class InformationFactor:
         An update reads the diagonal of ``Q_RR`` and a few of its blocks, never all of it:
         ``diag(Q_RR)`` is the squared norms of ``V``'s rows, ``Q_RR[a, b] = V[a] V[b]^T``
         and ``B^T Q_RR B = (V^T B)^T (V^T B)``. ``U^-1`` is the first half of LAPACK
-        ``potri`` (then ``V V^T``): the second half and the symmetrising pass of a dense
-        ``Q_RR`` are not paid (with ``U^-1`` by :func:`seqat.update.lower_inverse`: ~0.5 ms of a
-        ~5 ms update on the paper strip, r ~ 190, measured 2026-12-03)."""
+        ``potri`` (then ``V V^T``, not paid; ``U^-1`` by :func:`seqat.update.lower_inverse`)."""
         if self._V is None:
             if self.U.shape[0] == 0:
                 self._V = np.zeros((0, 0))
@@ -625,9 +617,7 @@ class InformationFactor:
         out[in_r] = xR[rpos[idx[in_r]]]
         if jp.size:
             q = ppos[idx[jp]]  # positions in P of the eliminated rows asked for
-            # once per point asked for (not per entry: a point's three coordinates are
-            # one block, and its back-substitution is formed once)
-            pts, at = np.unique(q // GP_SIZE, return_inverse=True)
+            pts, at = np.unique(q // GP_SIZE, return_inverse=True)  # once per point
             cols3 = (pts[:, None] * GP_SIZE + np.arange(GP_SIZE)).ravel()
             rhs = -(self._columns_of(self.L_RP, cols3).T @ xR).reshape(pts.size, GP_SIZE, k)
             rhs[at, q % GP_SIZE, jp] += 1.0  # E_p: the unit entries of idx's eliminated ones
