@@ -33,10 +33,10 @@ def test_reopened_parameters_equal_seq_f_through_a_chain_of_departures(
     (small departures) and kept factorised (large ones, seqat.conditional); all at once, or
     one point first (a prior through the chain: a few rows of a larger record).
 
-    Known and left (docs/algorithm.md, *Re-opening*): re-opening the rest *after* that one
-    point gives the right estimates but a cofactor off by ~7e-5 relative. The point's prior
-    came through the later record, which re-opening does not condition on it; so only the
-    estimates are compared then."""
+    Known and left (docs/algorithm.md, *Re-opening departed parameters*): re-opening the
+    rest *after* that one point gives the right estimates but a cofactor off by ~7e-5
+    relative. The point's prior came through the later record, which re-opening does not
+    condition on it; so only the estimates are compared then."""
     import seqat.departures
 
     if factorised:
