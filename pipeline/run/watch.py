@@ -15,9 +15,9 @@ Images are adjusted in acquisition order (nav-file order; for nav in EXIF, the o
 which they complete) through the same :class:`~pipeline.run.session.RunSession` as ``seqat run``,
 with its journal, latency budget and listeners. An image waits for its nav row (and a nav row
 for its image) up to ``wait_timeout_s``, then it is skipped with a reason. Each image prints
-one line: latency (input complete -> estimate), window, σ0, σ of the new camera position,
-observations rejected / skipped. Ctrl-C (or SIGTERM) or ``idle_timeout_s`` without new input
-stops the watch cleanly: the results so far are published as by ``seqat run``.
+one line (:func:`live_line`). New input is read after every image (a backlog's rows each keep
+the time of the poll that found them). Ctrl-C (or SIGTERM) or ``idle_timeout_s`` without new
+input stops the watch cleanly: the results so far are published as by ``seqat run``.
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ import os
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -553,9 +554,8 @@ def live_line(live: ImageLive, budget_ms: float | None) -> Text:
         late = budget_ms is not None and live.latency_ms > budget_ms
         text.append(f" latency {live.latency_ms:6.0f} ms", style="red" if late else "green")
     text.append(f"  (track {live.prep_ms:4.0f} + AT {live.update_ms:4.0f} ms)")
-    text.append(f"  window {live.window_images:3d}  σ0 {live.sigma0:5.2f}")
-    sx, sy, sz = live.sigma_position_m
-    text.append(f"  σXYZ {sx:.3f} {sy:.3f} {sz:.3f} m")
+    sxyz = " ".join(f"{s:.3f}" for s in live.sigma_position_m)
+    text.append(f"  window {live.window_images:3d}  σ0 {live.sigma0:5.2f}  σXYZ {sxyz} m")
     text.append(f"  rejected {live.observations_rejected}  skipped {live.observations_skipped}")
     if live.threshold is not None:
         text.append(f"  ρ≥{live.threshold:g}")
@@ -563,8 +563,7 @@ def live_line(live: ImageLive, budget_ms: float | None) -> Text:
 
 
 class ImagePaths(dict[str, Path]):
-    """Image id -> file of the images that arrived; ``get`` of another id (a resumed watch's
-    journaled image) looks for it in the image folder."""
+    """Image id -> file of the arrived images; ``get`` of another id looks in the folder."""
 
     def __init__(self, folder: Path | None) -> None:
         super().__init__()
@@ -582,8 +581,7 @@ class ImagePaths(dict[str, Path]):
         return default
 
 
-#: Makes the listeners of a watch once its CRS and camera are known (the first image):
-#: called with the flight and the image files (filled as images arrive).
+#: Makes a watch's listeners once the first image fixes CRS and camera: (flight, image files).
 ListenerFactory = Callable[[Flight, Mapping[str, Path]], Sequence[ImageListener]]
 
 
@@ -620,15 +618,14 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
     make_listeners : callable or None
         More listeners (the live ortho), made when the first image fixes CRS and camera.
     stop_sigma_m : float or None
-        The user's stop criterion (every ground point σ ≤ this), for ``OUT/live/`` and the
-        page; ``OUT/live/estimates.json`` is written after every image in any case.
+        The user's stop criterion (every ground point σ ≤ this), for ``OUT/live/``.
     on_claimed : callable or None
         Called with OUT once it is claimed and journaled (``--serve`` starts its server).
 
     Returns
     -------
     RunSummary
-        ``stopped`` is ``idle`` or ``interrupted``.
+        ``stopped``: ``idle`` or ``interrupted``.
 
     Raises
     ------
@@ -730,7 +727,9 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
                 items, activity = grow.poll(now)
                 if activity:
                     last_activity = now
-                for item in items:
+                queue = deque(items)
+                while queue:
+                    item = queue.popleft()
                     if stop.is_set():
                         break  # not adjusted, not skipped: a resumed watch takes them
                     if isinstance(item, SkippedImage):
@@ -753,6 +752,7 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
                         continue
                     session.add(prepared)
                     last_activity = time.monotonic()
+                    queue.extend(grow.poll(last_activity)[0])  # each row at its own time
                 if (watch.idle_timeout_s is not None
                         and time.monotonic() - last_activity > watch.idle_timeout_s):
                     stopped = "idle"
