@@ -301,7 +301,18 @@ class RelinearisationMixin:
         true = f.residuals(xe, xp, self._cam)
         self._drift_px = f.linearisation_error(xe, xp, self._cam, true)
         astray = self._astray_points(f, true)
-        if self._drift_px <= limit and not force and not astray.size:
+        # astray points are re-intersected first. One that no consensus moves re-linearises
+        # the window again only once its rays changed (a new ray may move it or its weights):
+        # on the same rays it re-linearised a 3900-parameter block window after every image,
+        # 0.1-0.6 s each (docs/algorithm.md, *Re-linearising the window*)
+        xk, wf = x.copy(), f.w
+        rescues: list[tuple[int, Key]] = []
+        if astray.size:
+            wf = self._rescue_points(f, astray, xk, e_idx, p_idx, wf, rescues)
+        rays = np.count_nonzero(f.pt[:, None] == astray[None, :], axis=0)
+        tried = dict(zip(astray.tolist(), rays.tolist(), strict=True))
+        if (self._drift_px <= limit and not force and not rescues
+                and all(self._astray_tried.get(p) == n for p, n in tried.items())):
             return
         self.relinearisations += 1
         L = w.L if w.L is not None else window_matrix(np.linalg.inv(w.Q))
@@ -348,15 +359,10 @@ class RelinearisationMixin:
         # the previous ones (an outer IRLS loop, at most ROBUST_ROUNDS); re-weighting at every
         # iterate let a re-linearisation after a turn, far from the start, trade dozens of
         # good points for outliers (seen on Seneca: 1e-9 weights, a singular window).
-        wf = f.w
         robust = opts.robust_scale
         sigma = 1.0 / np.sqrt(f.w0)
-        xk = x.copy()
         ssr_old_factors = f.linearised_ssr(x[e_idx], x[p_idx])
         prior_old = prior(x, H_p_times(x))
-        rescues: list[tuple[int, Key]] = []
-        if astray.size:
-            wf = self._rescue_points(f, astray, xk, e_idx, p_idx, wf, rescues)
         Hp_x = H_p_times(xk)
         Je, Jp, r = f.evaluate(xk[e_idx], xk[p_idx], self._cam)
         # The window's estimate ends at the minimum of its quadratic model (``L x = eta``:
@@ -440,6 +446,7 @@ class RelinearisationMixin:
         self._drift_deg = float(np.degrees(np.max(np.abs(dx[ie[:, 3:]]), initial=0.0)))
         w.x = x_new
         self._rescues.extend(rescues)
+        self._astray_tried = tried  # (a re-linearisation refused as singular tries again)
         w.L = H if w.L is not None else None
         if self._inverse:
             Q = np.linalg.inv(H.toarray() if scipy.sparse.issparse(H) else H)

@@ -306,8 +306,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self._nav_rows: dict[int, FloatArray] = {}  # GPS/INS rows in L: relinearise.py
         self._nav_retired: dict[int, FloatArray] = {}  # ... their group weights once finalised
         self._factors = Factors()
-        self.relinearisations = 0  # window re-linearisations so far
-        self.relinearisations_skipped = 0  # ... given up on a singular system
+        self.relinearisations = self.relinearisations_skipped = 0  # so far; given up: singular
+        self._astray_tried: dict[int, int] = {}  # astray GP -> its window rays when last tried
         self._drift_px = self._drift_m = self._drift_deg = float("nan")
         self.recorded: list[RecordedRows] | None = [] if record else None
         self.initial_state: tuple[list[Key], FloatArray, FloatArray] | None = None

@@ -140,3 +140,44 @@ def test_a_point_born_on_blunders_with_a_third_of_its_rays_wrong_is_rescued(
     p = next(p for p in est.solution().points if p.point_id == f.point_ids[j])
     assert f.point_ids[j] in est.rescued
     assert np.linalg.norm(p.xyz_m - f.truth_xyz[j]) < 0.3
+
+
+def test_an_astray_point_no_consensus_rescues_does_not_relinearise_on_the_same_rays(
+        short_strip: SimulatedFlight, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A point with two good rays and every later ray a blunder sits at the good pair's
+    intersection, its rays mostly beyond the scale: astray, and no three rays agree anywhere
+    (no rescue). While it gains rays, each new ray may re-linearise the window; once it has
+    its last ray it stays in the window on the same rays, and then it must not re-linearise
+    the window after every image (a block flight: 0.1-0.6 s each, 35 images in a row)."""
+    import seqat.relinearise
+
+    f = short_strip
+    j = 34
+    rows = np.flatnonzero(f.obs_point == j)
+    rows = rows[np.argsort(f.obs_image[rows])]
+    bad = rows[2:]  # born right (first two rays), every later ray wrong, each its own way
+    rng = np.random.default_rng(0)
+    angle, size = rng.uniform(0.0, 2 * np.pi, bad.size), rng.uniform(150.0, 300.0, bad.size)
+    uv = f.obs_uv.copy()
+    uv[bad] += np.stack([size * np.cos(angle), size * np.sin(angle)], axis=1)
+    g = dataclasses.replace(f, obs_uv=uv)
+    est = SequentialAT(g.camera, SequentialOptions())
+    seen: list[dict[int, int]] = []  # per check: astray point -> its window rays
+    astray_points = seqat.relinearise.RelinearisationMixin._astray_points
+
+    def record(self: SequentialAT, fs: object, true: np.ndarray) -> np.ndarray:
+        out = astray_points(self, fs, true)  # type: ignore[arg-type]
+        seen.append({int(p): int(np.count_nonzero(fs.pt == p)) for p in out})  # type: ignore[attr-defined]
+        return out
+
+    monkeypatch.setattr(seqat.relinearise.RelinearisationMixin, "_astray_points", record)
+    same_rays_relinearised, same_rays = 0, 0
+    for fr in g.frames():
+        before, n_seen = est.relinearisations, len(seen)
+        est.add_frame(fr)
+        if len(seen) > n_seen >= 1 and seen[n_seen] and seen[n_seen] == seen[n_seen - 1]:
+            same_rays += 1
+            same_rays_relinearised += est.relinearisations > before and est._drift_px <= 1.0
+    assert f.point_ids[j] not in est.rescued
+    assert same_rays >= 3  # the case happened: the point stayed astray on the same rays
+    assert same_rays_relinearised == 0  # was 5 of 5
