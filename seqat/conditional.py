@@ -5,7 +5,7 @@ re-opening reads the blocks of the keys that come back (their prior), and splitt
 record reads the rows of those keys and leaves the rest conditioned on them
 (``C_MM - K C_RM``). A dense ``Q_F|W`` costs O(|F|^2) memory and its formation
 O(r^2 p + r p^2) time at every departure; when forty images and their points leave at once
-(a window cap cut on a block flight) that was ~3400 x 3400, 93 MB and 1 s of a 1.9 s update
+(a window-cap cut on a block flight) that was ~3400 x 3400, 93 MB and ~1 s of a 2.5 s update
 (docs/benchmarks.md, *Window-cap cuts on a block*). :class:`Conditional` keeps the
 factorisation of ``L_FF`` (:class:`seqat.information.InformationFactor`, GPs eliminated per
 3 x 3 block) and forms only the pieces asked for; each split adds a low-rank correction.

@@ -304,7 +304,7 @@ class RelinearisationMixin:
         # astray points are re-intersected first. One that no consensus moves re-linearises
         # the window again only once its rays changed (a new ray may move it or its weights):
         # on the same rays it re-linearised a 3900-parameter block window after every image,
-        # 0.1-0.6 s each (docs/algorithm.md, *Re-linearising the window*)
+        # 0.1-0.6 s each (docs/algorithm.md, *Robust loss*: points born on a blunder)
         xk, wf = x.copy(), f.w
         rescues: list[tuple[int, Key]] = []
         if astray.size:
