@@ -16,6 +16,7 @@ import scipy.linalg
 import scipy.sparse
 
 from seqat.conditional import Conditional
+from seqat.dense import add_square, square_take
 from seqat.geometry import wrap_angle
 from seqat.information import (
     InformationFactor,
@@ -284,7 +285,10 @@ class DepartureMixin:
         w = self._w
         keep_keys = [k for k in w.keys if k not in leaving]
         leave_keys = [k for k in w.keys if k in leaving]
-        keep, leave = w.indices(keep_keys), w.indices(leave_keys)
+        leave = w.indices(leave_keys)
+        stays = np.ones(w.x.size, dtype=bool)
+        stays[leave] = False
+        keep = np.flatnonzero(stays)  # = w.indices(keep_keys): the layout keeps the order
         off = 0
         # each key's own marginal block (the RTS record holds the joint conditional)
         for k, frozen in zip(leave_keys, w.q_key_blocks(leave_keys), strict=True):
@@ -312,8 +316,8 @@ class DepartureMixin:
             if scipy.sparse.issparse(w.L):
                 L = window_matrix(add_block(submatrix(w.L, keep, keep), support, fill))
             else:
-                L = w.L.take(keep, axis=0).take(keep, axis=1)  # a C-ordered copy
-                L[np.ix_(support, support)] += fill
+                L = square_take(w.L, keep)
+                add_square(L, support, fill)
                 L = window_matrix(L)
             # GPs the marginal prior now ties to other GPs are no longer eliminable alone
             w.couple(keys_of(keep_keys, support))

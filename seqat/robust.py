@@ -95,12 +95,18 @@ def nav_dof() -> np.ndarray:
     return np.array([sl.stop - sl.start for _, sl in NAV_GROUPS])
 
 
+#: Each group's degrees of freedom, its first component, and each component's group.
+_NAV_DOF = nav_dof().astype(np.float64)
+_NAV_STARTS = np.array([sl.start for _, sl in NAV_GROUPS])
+_NAV_GROUP_OF = np.repeat(np.arange(len(NAV_GROUPS)), nav_dof())
+
+
 def nav_u2(res: FloatArray, sigma: FloatArray) -> FloatArray:
     """Squared Mahalanobis norm of each image's GPS/INS groups (:data:`NAV_GROUPS`), (n, g),
     from residuals ``res`` and sigmas ``sigma`` (n, 6; diagonal covariance)."""
     z2 = (np.asarray(res, dtype=np.float64).reshape(-1, 6)
           / np.asarray(sigma, dtype=np.float64).reshape(-1, 6)) ** 2
-    return np.stack([np.sum(z2[:, sl], axis=1) for _, sl in NAV_GROUPS], axis=1)
+    return np.add.reduceat(z2, _NAV_STARTS, axis=1)  # each group summed in order
 
 
 def nav_group_weight(u2: FloatArray, scale: float | None, dof: int = 3) -> FloatArray:
@@ -115,10 +121,7 @@ def nav_group_weight(u2: FloatArray, scale: float | None, dof: int = 3) -> Float
 def nav_components(group_weights: FloatArray) -> FloatArray:
     """Group weights (n, g) as weights of the 6 GPS/INS components (n, 6)."""
     wg = np.asarray(group_weights, dtype=np.float64).reshape(-1, len(NAV_GROUPS))
-    out = np.empty((wg.shape[0], 6))
-    for g, (_, sl) in enumerate(NAV_GROUPS):
-        out[:, sl] = wg[:, g : g + 1]
-    return out
+    return wg[:, _NAV_GROUP_OF]
 
 
 def nav_groups_of(component_weights: FloatArray) -> FloatArray:
@@ -134,8 +137,7 @@ def nav_weight(res: FloatArray, sigma: FloatArray, scale: float | None,
     u2 = nav_u2(res, sigma)
     if scale is None:
         return np.ones((u2.shape[0], 6))
-    wg = np.stack([nav_group_weight(u2[:, g], scale, d) for g, d in enumerate(nav_dof())],
-                  axis=1)
+    wg = robust_weight(u2 / _NAV_DOF, scale).reshape(u2.shape)  # each group's own dof
     return nav_components(wg if on is None else np.where(on, wg, 1.0))
 
 

@@ -18,6 +18,7 @@ import scipy.sparse
 
 from seqat import snooping
 from seqat.calibration import FreeCamera
+from seqat.dense import add_square
 from seqat.geometry import wrap_angle
 from seqat.information import (
     WindowMatrix,
@@ -117,7 +118,7 @@ def add_information(L: WindowMatrix, touched: np.ndarray, rows: LinearRows) -> W
         out[:n1, :n1] = L
         out[:n1, n1:] = 0.0
         out[n1:] = 0.0
-        out[np.ix_(cols, cols)] += M
+        add_square(out, cols, M)
         return window_matrix(out)
     return window_matrix(add_block(padded(L, n1 + n2), cols, M))
 

@@ -98,12 +98,14 @@ def first_over_threshold(correlations: FloatArray, threshold: float) -> int:
 
 
 def keys_of(keys: list[Key], indices: np.ndarray) -> list[Key]:
-    """The key of each parameter index, for ``keys`` laid out in that order."""
+    """The keys holding the parameter ``indices``, each once, in layout order, for ``keys``
+    laid out in that order."""
     table = _SIZES
     sizes = np.fromiter((table.get(k[0], k[1]) for k in keys), dtype=np.int64,
                         count=len(keys))
     starts = np.cumsum(sizes) - sizes
-    return [keys[int(b)] for b in np.searchsorted(starts, indices, side="right") - 1]
+    blocks = np.unique(np.searchsorted(starts, indices, side="right") - 1)
+    return [keys[b] for b in blocks.tolist()]
 
 
 @dataclass(eq=False)
