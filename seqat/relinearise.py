@@ -270,7 +270,6 @@ class RelinearisationMixin:
                 rescues.append((len(self._departures), ("p", int(p))))
                 x[p_idx[rows[0]]] = cand
                 wf[rows] = f.w0[rows] * robust_weight(u2_cand, k)
-                self.rescued.append(self._point_ids[int(p)])
         return wf
 
     def _relinearise(self, threshold_px: float | None = None, force: bool = False) -> None:
@@ -445,7 +444,8 @@ class RelinearisationMixin:
         self._drift_m = float(np.max(np.abs(dx[ie[:, :3]]), initial=0.0))
         self._drift_deg = float(np.degrees(np.max(np.abs(dx[ie[:, 3:]]), initial=0.0)))
         w.x = x_new
-        self._rescues.extend(rescues)
+        self._rescues.extend(rescues)  # named once the re-linearisation is kept
+        self.rescued.extend(self._point_ids[k[1]] for _, k in rescues)
         self._astray_tried = tried  # (a re-linearisation refused as singular tries again)
         w.L = H if w.L is not None else None
         if self._inverse:

@@ -142,6 +142,42 @@ def test_a_point_born_on_blunders_with_a_third_of_its_rays_wrong_is_rescued(
     assert np.linalg.norm(p.xyz_m - f.truth_xyz[j]) < 0.3
 
 
+def test_a_rescue_is_named_only_when_its_relinearisation_is_kept(
+        short_strip: SimulatedFlight, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The rescue case above with every re-linearisation refused as singular (then skipped,
+    the window as the updates left it): the rescue was tried but not kept, so it is not
+    named (the old code named it on each try, also on the retries after a singular one)."""
+    import seqat.relinearise
+    from seqat.information import RankDeficiency
+
+    f = short_strip
+    j = 34
+    rows = np.flatnonzero(f.obs_point == j)
+    rows = rows[np.argsort(f.obs_image[rows])]
+    bad = rows[np.r_[0, 1, 3 : rows.size : 3]]
+    uv = f.obs_uv.copy()
+    uv[bad] += np.random.default_rng(j).uniform(-120.0, 120.0, size=(bad.size, 2))
+    g = dataclasses.replace(f, obs_uv=uv)
+    est = SequentialAT(g.camera, SequentialOptions())
+    tried: list[int] = []
+    rescue = seqat.relinearise.RelinearisationMixin._rescue_points
+
+    def spy(self: SequentialAT, *args: object) -> np.ndarray:
+        out = rescue(self, *args)  # type: ignore[arg-type]
+        tried.append(len(args[-1]))  # type: ignore[arg-type]
+        return out
+
+    def refuse(*args: object, **kwargs: object) -> None:
+        raise RankDeficiency("refused", np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+
+    monkeypatch.setattr(seqat.relinearise.RelinearisationMixin, "_rescue_points", spy)
+    monkeypatch.setattr(seqat.relinearise, "InformationFactor", refuse)
+    for fr in g.frames():
+        est.add_frame(fr)
+    assert sum(tried) > 0 and est.relinearisations_skipped > 0  # rescued, then refused
+    assert est.rescued == []
+
+
 def test_an_astray_point_no_consensus_rescues_does_not_relinearise_on_the_same_rays(
         short_strip: SimulatedFlight, monkeypatch: pytest.MonkeyPatch) -> None:
     """A point with two good rays and every later ray a blunder sits at the good pair's
