@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from seqat.geometry import depth, intersect_rays, project, viewing_axes, wrap_angle
+from seqat.information import RankDeficiency, factor_information, padded, window_matrix
+from seqat.robust import cauchy_weight
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 from seqat.update import LinearRows
 from seqat.window import Key
@@ -118,6 +120,97 @@ class BirthMixin:
         ok &= front
         sel = np.flatnonzero(ok)
         return [candidates[c] for c in sel], X[sel]
+
+    def _birth_at_finish(self) -> int:
+        """finish(): the tie points still pending with ``min_rays`` rays in window images (after
+        the final re-opening: every image that may re-enter) are born at the current
+        estimates, admitted as Sim admits them (``options.sim.min_ray_angle_deg``, default any
+        intersection; in front of every camera), so the final re-linearisation adjusts the
+        same tie points as Sim. During the flight a point waits for ``min_ray_angle_deg`` of
+        ray spread (its start values there are the GPS/INS); a return over the same spot
+        (Seneca without 11 of its images: 23 points seen 48 images apart from 3.3 m, 2.4 deg)
+        never reaches it, and without them Seq-R ended 0.5 m / 0.3 deg from Sim
+        (docs/algorithm.md, *When a tie point becomes a GP*).
+
+        The points enter as an update does: their rows' information is added to ``L`` and
+        the window moves to the minimum of the augmented model (one solve), σ0's sum of
+        squares and redundancy follow. Returns the number born."""
+        w = self._w
+        if w.L is None or self._inverse:
+            return 0  # the paper's inverse engine: no finish-time births
+        cand: list[tuple[int, list[tuple[int, FloatArray, float]]]] = []
+        for p, obs in self._pending.items():
+            rays = [o for o in obs if ("e", o[0]) in w.offset]
+            if len(rays) >= max(self._min_rays(p), 2) and self._control_of(p) is None:
+                cand.append((p, rays))
+        if not cand:
+            return 0
+        I = np.concatenate([np.full(len(r), c) for c, (_, r) in enumerate(cand)])
+        J = np.fromiter((j for _, r in cand for j, _, _ in r), dtype=np.int64, count=I.size)
+        UV = np.array([uv for _, r in cand for _, uv, _ in r], dtype=np.float64).reshape(-1, 2)
+        sig = np.fromiter((s for _, r in cand for _, _, s in r), dtype=np.float64,
+                          count=I.size)
+        E = w.x[w.offsets_of("e", J)[:, None] + np.arange(EOP_SIZE)]
+        X, spread = intersect_rays(E, UV, I, len(cand), self._camera_now())
+        ok = np.all(np.isfinite(X), axis=1) & (
+            spread >= np.radians(self.options.sim.min_ray_angle_deg))
+        front = np.ones(len(cand), dtype=bool)
+        np.logical_and.at(front, I, depth(E, np.nan_to_num(X)[I]) > 0)
+        born = np.flatnonzero(ok & front)
+        if not born.size:
+            return 0
+        use = np.isin(I, born)
+        I, J, UV, sig, E = I[use], J[use], UV[use], sig[use], E[use]
+        n0, cam_key = w.x.size, self._cam_key
+        keys = w.keys + [("p", cand[c][0]) for c in born]
+        col = np.full(len(cand), -1, dtype=np.int64)
+        col[born] = n0 + GP_SIZE * np.arange(born.size)
+        e_cols = w.offsets_of("e", J)[:, None] + np.arange(EOP_SIZE)
+        if cam_key is not None:  # self-calibration: the camera rides along with every image
+            cam_cols = w.index(cam_key)
+            e_cols = np.concatenate([e_cols, np.broadcast_to(cam_cols, (J.size, cam_cols.size))],
+                                    axis=1)
+        x = np.concatenate([w.x, X[born].ravel()])
+        Xr = x[col[I][:, None] + np.arange(GP_SIZE)]
+        proj, Je, Jp = self._cam.project_with_jacobians(x[e_cols], Xr)
+        r = UV - proj
+        wt = cauchy_weight(r, sig, self.options.robust_scale) / sig**2
+        cols = np.concatenate([e_cols, col[I][:, None] + np.arange(GP_SIZE)], axis=1)
+        n = x.size
+        # the rows' gradient at x (J^T W r), by window key: a point the factorisation finds
+        # undetermined leaves the window below, and the other keys' offsets move
+        g = np.zeros(n)
+        np.add.at(g, cols.ravel(), np.einsum("kri,kr->ki", np.concatenate([Je, Jp], axis=2),
+                                             wt[:, None] * r).ravel())
+        w.L = window_matrix(padded(w.L, n) + factor_information(Je, Jp, wt, J, cols, n))
+        w.x = x
+        w.relayout(keys)
+        g_key = {k: g[w.index(k)] for k in keys}
+        self._factors.add_linearised(J, np.repeat([cand[c][0] for c in born],
+                                                  np.bincount(I, minlength=len(cand))[born]),
+                                     UV, sig, x[e_cols], Xr, Je, Jp, r, weight=wt * sig**2)
+        for c in born:
+            p, rays = cand[c]
+            del self._pending[p]
+            self._forced.discard(p)
+            self._gp_count[p] = self._gp_nobs[p] = len(rays)
+            self._gp_order.append(p)
+            self._n_points += 1
+            for j, _, _ in rays:
+                self._img_points.setdefault(j, []).append(p)
+        try:
+            w.settle()  # a point the rays do not determine leaves (on_singular)
+        except RankDeficiency:
+            return int(born.size)  # left to the final re-linearisation's retries
+        b = np.zeros(w.x.size)
+        for k, v in g_key.items():
+            if k in w.offset:
+                b[w.index(k)] = v
+        dx = w.q_apply(np.arange(b.size), b)
+        w.x = w.x + dx
+        self._ssr = max(self._ssr + float(np.sum(wt[:, None] * r**2)) - float(b @ dx), 0.0)
+        self._redundancy += 2 * int(np.count_nonzero(wt)) - GP_SIZE * int(born.size)
+        return int(born.size)
 
     def _control_of(self, p: int) -> tuple[FloatArray, FloatArray] | None:
         """Surveyed coordinates (local) and their weights of point ``p`` when it is a

@@ -23,11 +23,13 @@ from seqat.information import (
     RankDeficiency,
     add_block,
     dense_block,
+    factor_information,
     nonzero_columns,
     padded,
     submatrix,
     window_matrix,
 )
+from seqat.rows import gradient_from_factors
 from seqat.simultaneous import sigma_scale
 from seqat.types import EOP_SIZE, EopEstimate, FloatArray, PointEstimate
 from seqat.update import spd_inverse
@@ -40,11 +42,16 @@ from seqat.window import (
     keys_of,
 )
 
-#: finish() re-opens the departed keys only when they are at most this many parameters: they
-#: join the reduced system densely (their conditional prior couples them), so the final
-#: re-linearisation costs O(size^3) per step (Seneca: 1281 parameters, ~50 steps, 5-12 s);
-#: beyond it the RTS values stand (:attr:`SequentialAT.final_reopen_skipped`).
+#: finish() re-opens the departed keys through their records only when they are at most this
+#: many parameters: they join the reduced system densely (their conditional prior couples
+#: them), so the final re-linearisation costs O(size^3) per step (Seneca: 1281 parameters,
+#: ~50 steps, 5-12 s); beyond it the RTS values stand (SequentialAT.final_reopen_skipped) ...
 FINAL_REOPEN_MAX_PARAMS = 2000
+#: ... unless every departed key comes back (none finalised or handed to a sink, all within
+#: the re-opening age) on a flight of at most this many images: then the window's information
+#: is rebuilt from the flight's rows, GPs eliminated one by one again, whatever the number of
+#: parameters (:meth:`DepartureMixin._reopen_all`; the reduced system is the EOPs, dense).
+FINAL_REBUILD_MAX_IMAGES = 500
 #: Dormant factors (of departed keys) are pruned every this many images.
 PRUNE_EVERY = 50
 #: A GP stays in the Seq-R window only while this many window images (new one included) see it.
@@ -154,12 +161,91 @@ class DepartureMixin:
                                                                    for p in sorted(pts)]
         keys = [k for k in keys if k in self._departed]
         size = sum(key_size(k) for k in keys)
+        if (keys and not self._inverse and len(keys) == len(self._departed)
+                and not self._final_eop
+                and not self._final_gp and not self._sunk
+                and len(self._image_ids) <= FINAL_REBUILD_MAX_IMAGES):
+            self._final_reopened.update(keys)
+            self._reopen_all(keys)
+            return
         if not keys or size > FINAL_REOPEN_MAX_PARAMS:
             self.final_reopen_skipped = size if keys else 0
             return
         self._final_reopened.update(keys)
         self._reopen(keys)
         self._w.settle()
+
+    def _reopen_all(self, keys: list[Key]) -> None:
+        """finish() when every departed key re-enters: the window's information is rebuilt
+        from the flight's rows (image points at their linearisation, GPS/INS, the camera's
+        prior, ground control), the same information the departures' conditional priors
+        restore but with its sparsity: GPs couple only through the images that see them and
+        are eliminated one by one again, where the conditional priors, composed and inverted
+        densely, tie every re-opened GP to the others (Seneca without 11 of its images: 3840
+        parameters in the reduced system, the re-opening skipped and Seq-R 0.5 m / 0.3 deg
+        from Sim; rebuilt: 3-4 mm / 0.004 deg). The keys start at their RTS-smoothed values;
+        one solve takes the window to the minimum of the rebuilt model, which the final
+        re-linearisation then continues from (docs/algorithm.md, *What the window costs in
+        accuracy*)."""
+        w = self._w
+        smoothed = self._smoothed_departed()
+        for key in keys:
+            self._departed.pop(key)
+            if key[0] == "e":
+                j = key[1]
+                self._img_points[j] = self._kept_rays(j)
+                pos = sum(1 for jj in self._window_images if jj < j)
+                self._window_images.insert(pos, j)
+            else:
+                self._gp_count[key[1]] = 0
+        w.x = np.concatenate([w.x] + [smoothed[k] for k in keys])
+        w.relayout(w.keys + keys)
+        self._factors.wake(w)
+        self.reopened += len(keys)
+        n = w.x.size
+        # the linear rows: GPS/INS of every image, the camera's prior, ground control
+        diag, g = np.zeros(n), np.zeros(n)
+        for key in w.keys:
+            idx = w.index(key)
+            if key[0] == "e" and key[1] in self._nav_rows:
+                row = self._nav_rows[key[1]]
+                r = row[:EOP_SIZE] - w.x[idx]
+                r[3:] = wrap_angle(r[3:])
+                wt = row[12:] / row[EOP_SIZE:12] ** 2
+            elif key[0] == "p" and self.control and self._point_ids[key[1]] in self.control:
+                cp = self.control[self._point_ids[key[1]]]
+                r, wt = cp.xyz_m - self._origin - w.x[idx], cp.weight
+            elif key == self._cam_key and self.options.calibration is not None:
+                sigma = self.options.calibration.prior_sigma(self.camera)[self._cam.index]
+                r = self.camera.intrinsics[self._cam.index] - w.x[idx]
+                wt = 1.0 / sigma**2
+            else:
+                continue
+            wt = np.where(np.isfinite(wt), wt, 0.0)
+            diag[idx] += wt
+            g[idx] += wt * r
+        L = scipy.sparse.diags_array(diag).tocsr()
+        ssr = float(g @ (g / np.where(diag > 0, diag, 1.0)))  # sum of w r^2 of those rows
+        f = self._factors.in_window(w)
+        if f is not None:
+            e_idx, p_idx = f.columns(w)
+            cols = np.concatenate([e_idx, p_idx], axis=1)
+            r = f.r_lin - (np.einsum("kri,ki->kr", f.Je, w.x[e_idx] - f.e_lin)
+                           + np.einsum("kri,ki->kr", f.Jp, w.x[p_idx] - f.p_lin))
+            L = L + factor_information(f.Je, f.Jp, f.w, f.img, cols, n)
+            g += gradient_from_factors(f.Je, f.Jp, r, f.w, cols, n)
+            ssr += float(np.sum(f.w[:, None] * r**2))
+        w.L = window_matrix(L)
+        w.coupled = set()
+        w.changed()
+        g_key = {k: g[w.index(k)] for k in w.keys}
+        w.settle()  # GPs the rows do not determine leave (on_singular)
+        b = np.zeros(w.x.size)
+        for k in w.keys:
+            b[w.index(k)] = g_key[k]
+        dx = w.q_apply(np.arange(b.size), b)
+        w.x = w.x + dx
+        self._ssr = max(ssr - float(b @ dx), 0.0)
 
     def _smoothed_departed(self) -> dict[Key, FloatArray]:
         """RTS backward pass over the departures, newest first: O(sum |F| |W|).

@@ -286,15 +286,14 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self._departed_rays: deque[tuple[int, list[int]]] = deque()
         self.reopened = 0  # departed parameters re-opened so far
         self._orphans: set[int] = set()  # window GPs no window image sees (ray rejected)
-        #: Images whose rows sent the update beyond every prior (DIVERGED_SIGMAS): carried
-        #: by their GPS/INS alone.
+        #: Images whose rows sent the update beyond every prior (DIVERGED_SIGMAS): nav only.
         self.diverged: list[str] = []
         #: Points the data do not determine (singular information), taken out: point ids.
         self.undetermined: list[str] = []
         self.rescued: list[str] = []  # GPs re-intersected robustly (relinearise)
         self._rescues: list[tuple[int, Key]] = []  # (records made before it, GP rescued)
         self._final_reopened: set[Key] = set()  # departed keys re-opened by finish()
-        self.final_reopen_skipped = 0  # finish(): departed ones not re-opened (too many)
+        self.final_reopen_skipped = self.finish_born = 0  # finish(): not re-opened; born
         self._dropped_value: dict[Key, FloatArray] = {}
         self._w.on_singular = self._drop_undetermined
         #: Observations removed by data snooping: (image id, point id, w-test value).
@@ -345,6 +344,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                 if self.options.relinearise_px is not None:
                     if self.options.smoothing and self.options.final_reopen:
                         self._reopen_departed()
+                    self.finish_born = self._birth_at_finish()
                     self._final_relinearise()
                 self._hold_undetermined_camera()
 
