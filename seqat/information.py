@@ -31,7 +31,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 
-from seqat.dense import square_take
+from seqat.dense import take_columns
 from seqat.errors import EstimationError
 from seqat.types import GP_SIZE, FloatArray
 from seqat.update import lower_inverse
@@ -185,7 +185,8 @@ def gather_parts(L: FloatArray | SparseMatrix, r_idx: np.ndarray, p_idx: np.ndar
     if not scipy.sparse.issparse(L):
         L = np.asarray(L)
         D = L[p_idx[:, :, None], p_idx[:, None, :]]
-        return D, square_take(L, r_idx), L.take(r_idx, axis=0)[:, p_idx.ravel()]
+        rows_r = L.take(r_idx, axis=0)
+        return D, take_columns(rows_r, r_idx), rows_r[:, p_idx.ravel()]
     p_flat = p_idx.ravel()
     npt = p_idx.shape[0]
     rows_r = L[r_idx]
