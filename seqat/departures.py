@@ -196,17 +196,7 @@ class DepartureMixin:
         smoothed = self._smoothed_departed()
         for key in keys:
             self._departed.pop(key)
-            if key[0] == "e":
-                j = key[1]
-                self._img_points[j] = self._kept_rays(j)
-                pos = sum(1 for jj in self._window_images if jj < j)
-                self._window_images.insert(pos, j)
-            else:
-                self._gp_count[key[1]] = 0
-        w.x = np.concatenate([w.x] + [smoothed[k] for k in keys])
-        w.relayout(w.keys + keys)
-        self._factors.wake(w)
-        self.reopened += len(keys)
+        self._rejoin(keys, np.concatenate([smoothed[k] for k in keys]))
         n = w.x.size
         # the linear rows: GPS/INS of every image, the camera's prior, ground control
         diag, g = np.zeros(n), np.zeros(n)
@@ -583,15 +573,6 @@ class DepartureMixin:
         else:
             mean, J, C = self._conditional_prior(keys, sizes)
             self._split_records(keys)
-        for key in keys:
-            if key[0] == "e":
-                j = key[1]
-                # its kept pending rays are window rays again (born now or later)
-                self._img_points[j] = self._kept_rays(j)
-                pos = sum(1 for jj in self._window_images if jj < j)
-                self._window_images.insert(pos, j)
-            else:
-                self._gp_count[key[1]] = 0
         C = 0.5 * (C + C.T)
         if self._inverse:
             QJt = w.Q @ J.T
@@ -611,7 +592,22 @@ class DepartureMixin:
             Js = np.hstack([-J[:, support], np.eye(m)])  # x_new - J x_W, on cols
             M = Js.T @ Ci @ Js
             w.L = window_matrix(add_block(padded(w.L, n + m), cols, 0.5 * (M + M.T)))
-        w.x = np.concatenate([w.x, mean])
+        self._rejoin(keys, mean)
+
+    def _rejoin(self, keys: list[Key], values: FloatArray) -> None:
+        """Re-opened ``keys`` (left :attr:`_departed`) join the window's bookkeeping and
+        layout at ``values``, after ``L`` (or ``Q``) took them."""
+        w = self._w
+        for key in keys:
+            if key[0] == "e":
+                j = key[1]
+                # its kept pending rays are window rays again (born now or later)
+                self._img_points[j] = self._kept_rays(j)
+                pos = sum(1 for jj in self._window_images if jj < j)
+                self._window_images.insert(pos, j)
+            else:
+                self._gp_count[key[1]] = 0
+        w.x = np.concatenate([w.x, values])
         w.relayout(w.keys + keys)
         self._factors.wake(w)  # their rows, kept dormant, are window rows again
         self.reopened += len(keys)
