@@ -150,7 +150,8 @@ class BirthMixin:
         UV = np.array([uv for _, r in cand for _, uv, _ in r], dtype=np.float64).reshape(-1, 2)
         sig = np.fromiter((s for _, r in cand for _, _, s in r), dtype=np.float64,
                           count=I.size)
-        E = w.x[w.offsets_of("e", J)[:, None] + np.arange(EOP_SIZE)]
+        e_cols = w.offsets_of("e", J)[:, None] + np.arange(EOP_SIZE)
+        E = w.x[e_cols]
         X, spread = intersect_rays(E, UV, I, len(cand), self._camera_now())
         ok = np.all(np.isfinite(X), axis=1) & (
             spread >= np.radians(self.options.sim.min_ray_angle_deg))
@@ -160,12 +161,11 @@ class BirthMixin:
         if not born.size:
             return 0
         use = np.isin(I, born)
-        I, J, UV, sig, E = I[use], J[use], UV[use], sig[use], E[use]
+        I, J, UV, sig, E, e_cols = I[use], J[use], UV[use], sig[use], E[use], e_cols[use]
         n0, cam_key = w.x.size, self._cam_key
         keys = w.keys + [("p", cand[c][0]) for c in born]
         col = np.full(len(cand), -1, dtype=np.int64)
         col[born] = n0 + GP_SIZE * np.arange(born.size)
-        e_cols = w.offsets_of("e", J)[:, None] + np.arange(EOP_SIZE)
         if cam_key is not None:  # self-calibration: the camera rides along with every image
             cam_cols = w.index(cam_key)
             e_cols = np.concatenate([e_cols, np.broadcast_to(cam_cols, (J.size, cam_cols.size))],
