@@ -9,6 +9,7 @@ of a point being born, re-enters with its exact conditional given the window
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -277,6 +278,18 @@ class DepartureMixin:
                 value.setdefault(k, x_f[off : off + size])
                 off += size
         return value
+
+    def set_correlation_threshold(self, threshold: float) -> None:
+        """Seq-R: the window threshold of the next updates (the latency budget tightens it,
+        seed 000: "select the threshold for the speed requirement"). Seq-F stays Seq-F."""
+        if self.options.correlation_threshold is None:
+            raise ValueError("Seq-F (correlation_threshold None) has no window to cut")
+        self.options = dataclasses.replace(self.options, correlation_threshold=threshold)
+
+    def set_max_window_images(self, cap: int | None) -> None:
+        """Seq-R: the window's largest number of images from the next update on (None: no
+        cap; the latency budget's second dial). Checked as the option is (ConfigError)."""
+        self.options = dataclasses.replace(self.options, max_window_images=cap)
 
     def _select_window(self, frame_points: set[int]) -> int:
         """Seq-R: cut the window before the update; returns the number of images dropped."""

@@ -318,13 +318,6 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         r = self._redundancy
         return float(np.sqrt(self._ssr / r)) if r > 0 else float("nan")
 
-    def set_correlation_threshold(self, threshold: float) -> None:
-        """Seq-R: the window threshold of the next updates (the latency budget tightens it,
-        seed 000: "select the threshold for the speed requirement"). Seq-F stays Seq-F."""
-        if self.options.correlation_threshold is None:
-            raise ValueError("Seq-F (correlation_threshold None) has no window to cut")
-        self.options = dataclasses.replace(self.options, correlation_threshold=threshold)
-
     def add_frame(self, frame: Frame) -> ImageUpdate:
         """Add the next image and update the triangulation."""
         with _BLAS.limit(limits=UPDATE_BLAS_THREADS, user_api="blas"):

@@ -242,8 +242,7 @@ class RunSession:
         _set_threshold(self.estimator, event.new_threshold)
         options = getattr(self.estimator, "options", None)
         if getattr(options, "max_window_images", event.new_window_cap) != event.new_window_cap:
-            self.estimator.options = dataclasses.replace(  # type: ignore[attr-defined]
-                options, max_window_images=event.new_window_cap)
+            self.estimator.set_max_window_images(event.new_window_cap)  # type: ignore[attr-defined]
         if event.new_features is not None and event.new_features != event.old_features:
             self.source.set_max_features(event.new_features)
 

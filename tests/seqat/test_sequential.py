@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from seqat.errors import ConfigError
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
 from seqat.simultaneous import SimOptions, SimultaneousAT
@@ -324,3 +325,23 @@ def test_a_window_cap_bounds_the_window_and_keeps_the_accuracy() -> None:
         else:
             assert np.median(windows) > 2 * 6
     assert rmse[6] < 1.05 * rmse[None]
+
+
+def test_the_window_cap_set_during_a_flight_applies_from_the_next_update() -> None:
+    """``set_max_window_images`` (what the latency budget calls): the cap holds from the next
+    update on, lifts again with None, and a cap below 2 is a ConfigError (as the option)."""
+    flight = simulate_strip(StripSimConfig(n_images=60, n_points=60), seed=4)
+    est = SequentialAT(flight.camera, SequentialOptions())
+    frames = list(flight.frames())
+    windows = [est.add_frame(f).window_images for f in frames[:30]]
+    assert windows[-1] > 8
+    est.set_max_window_images(4)
+    assert est.options.max_window_images == 4
+    capped = [est.add_frame(f).window_images for f in frames[30:40]]
+    # the first cut may keep images whose pending rays it holds (once per point)
+    assert capped[0] < windows[-1] and max(capped[1:]) <= 4 + 1
+    est.set_max_window_images(None)
+    free = [est.add_frame(f).window_images for f in frames[40:]]
+    assert max(free) > 5
+    with pytest.raises(ConfigError, match="max_window_images"):
+        est.set_max_window_images(1)
