@@ -54,6 +54,14 @@ The GTSAM problem (one update per image)
 * iSAM2: Gauss-Newton, relinearise threshold 0.01 (tangent units), ``relinearizeSkip = 1``;
   one ``update`` per image (``extra_updates`` more empty updates can be asked for: each is one
   more iSAM2 step, timed into ``update_ms``).
+* Sigmas (``--sigma pose``, ``--sigma all``; one more run per lag and kind): Seq-R's update
+  publishes the new image's EOP sigmas and the r.m.s. sigma of the window's GPs (the
+  precision monitoring after every image of docs/algorithm.md), GTSAM's ``update`` nothing of
+  the kind. Such a run then reads ``marginalCovariance`` of the new pose (``pose``), and of
+  every landmark in the smoother (``all``), after each update; the time is reported as
+  ``σ`` and its ratio column is against update + σ per image. The first update after such
+  reads is itself slower than in the plain run (iSAM2 keeps what the marginals computed in
+  its Bayes tree), which the same run's ``update`` column shows.
 * Estimates: after every update ``calculateEstimate()`` (outside ``update_ms``; its own time is
   reported as ``calculate_estimate_ms``) refreshes the latest estimate of every key still in
   the smoother (and tells which keys are still there); a departed key keeps its last estimate
@@ -136,6 +144,10 @@ MISSING_GTSAM = ("seqat bench gtsam needs the optional package gtsam "
 DEFAULT_CONFIG = Path("configs/paper_sim.yaml")
 DEFAULT_SEEDS = (1,)
 DEFAULT_LAGS = (10, 20)
+#: ``--sigma`` choices: the marginal covariances a GTSAM run reads after each update, as
+#: Seq-R publishes them (its ``ImageUpdate``: the new image's EOP sigmas and the r.m.s. sigma
+#: of the window's GPs): ``pose`` the new pose's, ``all`` that and every landmark's.
+SIGMA_KINDS = {"pose": "σ new pose", "all": "σ new pose, landmarks"}
 
 
 def _gtsam():  # type: ignore[no-untyped-def]
@@ -305,9 +317,16 @@ def run_seq_r(flight: SimulatedFlight) -> _MethodRun:
     )
 
 
-def run_gtsam(flight: SimulatedFlight, lag: int, *, extra_updates: int = 0) -> _MethodRun:
+def run_gtsam(flight: SimulatedFlight, lag: int, *, extra_updates: int = 0,
+              sigma: str | None = None) -> _MethodRun:
     """Stream ``flight`` through ``gtsam.IncrementalFixedLagSmoother`` with a lag of ``lag``
-    images (module docstring)."""
+    images (module docstring). ``sigma`` (a key of :data:`SIGMA_KINDS`): after each update
+    (and outside ``update_ms``), the marginal covariances Seq-R publishes are read with
+    ``smoother.marginalCovariance``; their time is ``extra["sigma_ms"]`` and is added to the
+    run's CPU time."""
+    if sigma is not None and sigma not in SIGMA_KINDS:
+        raise ConfigError(f"seqat bench gtsam: --sigma: expected one of {sorted(SIGMA_KINDS)}, "
+                          f"got {sigma!r}")
     gtsam = _gtsam()
     X, L = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.L
     n = len(flight.image_ids)
@@ -330,6 +349,7 @@ def run_gtsam(flight: SimulatedFlight, lag: int, *, extra_updates: int = 0) -> _
     build_ms: list[float] = []
     cpu_ms: list[float] = []
     estimate_ms: list[float] = []
+    sigma_ms: list[float] = []
     max_rho = 0.0
     noise_kinds: set[str] = set()
     counts = {"landmarks_entered": 0, "triangulation_failed": 0, "obs_dropped_departed": 0,
@@ -420,9 +440,17 @@ def run_gtsam(flight: SimulatedFlight, lag: int, *, extra_updates: int = 0) -> _
         departed_pts |= entered - alive_pts
         entered &= alive_pts
         window_vars.append(len(alive_poses) + len(alive_pts))
+        if sigma is not None:  # what Seq-R publishes after each image (its update_ms has it)
+            t4, c4 = time.perf_counter(), time.process_time()
+            smoother.marginalCovariance(xk)
+            if sigma == "all":
+                for j in alive_pts:
+                    smoother.marginalCovariance(L(j))
+            sigma_ms.append((time.perf_counter() - t4) * 1e3)
+            cpu_ms[-1] += (time.process_time() - c4) * 1e3
     pts = np.asarray(sorted(latest_pt), dtype=np.int64)
     return _MethodRun(
-        label=f"GTSAM iFLS lag {lag}",
+        label=f"GTSAM iFLS lag {lag}" + (f" + {SIGMA_KINDS[sigma]}" if sigma else ""),
         lag=lag,
         update_ms=update_ms,
         build_ms=build_ms,
@@ -439,6 +467,8 @@ def run_gtsam(flight: SimulatedFlight, lag: int, *, extra_updates: int = 0) -> _
             "isam2_iterations_total": int(sum(iterations)),
             "extra_updates": extra_updates,
             "calculate_estimate_ms": _stats(estimate_ms),
+            "sigma": sigma,
+            "sigma_ms": sigma_ms,
             "prior_max_correlation": max_rho,
             "prior_noise_models": sorted(noise_kinds),
             "threads_before": threads_before,  # process threads before the run
@@ -500,12 +530,16 @@ def run_gtsam_bench(
     out_dir: Path | str,
     *,
     extra_updates: int = 0,
+    sigmas: Sequence[str] = (),
 ) -> dict:
-    """Run Seq-R and GTSAM's fixed-lag smoother (one run per lag) on one simulated strip per
-    seed; write ``bench_gtsam.json`` and ``bench_gtsam.md`` to ``out_dir``; return the report.
+    """Run Seq-R and GTSAM's fixed-lag smoother (one run per lag, and one more per lag and
+    ``sigmas`` kind: :data:`SIGMA_KINDS`) on one simulated strip per seed; write
+    ``bench_gtsam.json`` and ``bench_gtsam.md`` to ``out_dir``; return the report.
 
     Timing rows pool the per-image times over the seeds on Seq-R's timed images (its
-    sequential stage); ``ratio`` is a method's median over GTSAM's median in the same run.
+    sequential stage); ``ratio`` is a method's median over a GTSAM run's median in the same
+    run: of its update alone, or, for a run that reads sigmas, of its update plus the
+    marginal covariances (per image), what Seq-R's update time holds too.
     """
     gtsam = _gtsam()
     import importlib.metadata
@@ -525,7 +559,8 @@ def run_gtsam_bench(
         for seed in seeds:
             flight = simulate_strip(cfg, seed)
             runs = [run_seq_r(flight)]
-            runs += [run_gtsam(flight, lag, extra_updates=extra_updates) for lag in lag_images]
+            runs += [run_gtsam(flight, lag, extra_updates=extra_updates, sigma=kind)
+                     for lag in lag_images for kind in (None, *dict.fromkeys(sigmas))]
             timed_images = [i for i, t in enumerate(runs[0].timed) if t]
             sm = runs[0].extra["smoothed"]
             common = sm["point_idx"]
@@ -536,12 +571,17 @@ def run_gtsam_bench(
                 upd = _select(r.update_ms, timed_images)
                 bld = _select(r.build_ms, timed_images)
                 tot = [a + b for a, b in zip(upd, bld, strict=True)] if r.lag is not None else []
+                sig = (_select(r.extra["sigma_ms"], timed_images)  # type: ignore[arg-type]
+                       if r.extra.get("sigma") else [])
+                with_sigma = [a + b for a, b in zip(upd, sig, strict=True)] if sig else []
                 p = pooled.setdefault(r.label, {"update": [], "build": [], "total": [],
-                                                "cpu": []})
+                                                "cpu": [], "sigma": [], "update_sigma": []})
                 p["update"] += upd
                 p["cpu"] += _select(r.cpu_ms, timed_images)
                 p["build"] += bld if r.lag is not None else []
                 p["total"] += tot
+                p["sigma"] += sig
+                p["update_sigma"] += with_sigma
                 rows.append({
                     "label": r.label,
                     "lag_images": r.lag,
@@ -549,17 +589,20 @@ def run_gtsam_bench(
                     "cpu": _stats(_select(r.cpu_ms, timed_images)),
                     "build": _stats(bld) if r.lag is not None else None,
                     "update_plus_build": _stats(tot) if r.lag is not None else None,
+                    "sigma": _stats(sig) if sig else None,
+                    "update_plus_sigma": _stats(with_sigma) if sig else None,
                     "update_all_images": _stats(r.update_ms),
                     "accuracy": accuracy(r.eop, r.point_idx, r.xyz, flight, common),
                     "failure": r.failure,
-                    "extra": {k: v for k, v in r.extra.items() if k != "smoothed"},
+                    "extra": {k: v for k, v in r.extra.items()
+                              if k not in ("smoothed", "sigma_ms")},
                     "update_ms": [round(v, 4) for v in r.update_ms],
                     "build_ms": [round(v, 4) for v in r.build_ms] if r.lag is not None else None,
                 })
             rows.insert(1, {
                 "label": f"{runs[0].label} RTS-smoothed (same run)",
                 "lag_images": None, "update": None, "cpu": None, "build": None,
-                "update_plus_build": None,
+                "update_plus_build": None, "sigma": None, "update_plus_sigma": None,
                 "update_all_images": None,
                 "accuracy": accuracy(sm["eop"], sm["point_idx"], sm["xyz"], flight, common),
                 "failure": None, "extra": {}, "update_ms": None, "build_ms": None,
@@ -590,18 +633,22 @@ def run_gtsam_bench(
             "cpu": _stats(p["cpu"]) if p else None,
             "build": _stats(p["build"]) if p and p["build"] else None,
             "update_plus_build": _stats(p["total"]) if p and p["total"] else None,
+            "sigma": _stats(p["sigma"]) if p and p["sigma"] else None,
+            "update_plus_sigma": _stats(p["update_sigma"]) if p and p["update_sigma"] else None,
             "accuracy_mean_over_seeds": mean_acc,
             "failures": sum(x["failure"] is not None for x in runs),
         })
-        if label.startswith("GTSAM"):
-            gt_medians[label] = (summary[-1]["update"]["median_ms"],
-                                 summary[-1]["cpu"]["median_ms"])
+        if label.startswith("GTSAM"):  # the reference: the update, with its sigmas if read
+            ref = summary[-1]["update_plus_sigma"] or summary[-1]["update"]
+            gt_medians[label] = (ref["median_ms"], summary[-1]["cpu"]["median_ms"])
     for s in summary:
         for key, clock in (("ratio_to_gtsam_median", "update"), ("cpu_ratio_to_gtsam_median",
                                                                   "cpu")):
             col = 0 if clock == "update" else 1
-            s[key] = {g: (s[clock]["median_ms"] / m[col]
-                          if s[clock] and m[col] and math.isfinite(m[col]) else math.nan)
+            own = s["update_plus_sigma"] if clock == "update" and s["update_plus_sigma"] \
+                else s[clock]  # a run that reads sigmas: its update + σ, as its reference
+            s[key] = {g: (own["median_ms"] / m[col]
+                          if own and m[col] and math.isfinite(m[col]) else math.nan)
                       for g, m in gt_medians.items()}
     report = {
         "config_path": str(config_path),
@@ -619,6 +666,7 @@ def run_gtsam_bench(
             "relinearize_threshold": RELINEARIZE_THRESHOLD,
             "relinearize_skip": 1,
             "extra_updates": extra_updates,
+            "sigmas": list(dict.fromkeys(sigmas)),
         },
         "env": {v: os.environ.get(v) for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
                                                 "MKL_NUM_THREADS")},
@@ -656,7 +704,8 @@ def summary_table(report: dict) -> list[str]:
     gts = [s["label"] for s in report["summary"] if s["label"].startswith("GTSAM")]
     head = ("| method | n | median | p95 | max | " + " | ".join(f"ratio to {x}" for x in gts)
             + " | CPU median | CPU p95 | " + " | ".join(f"CPU ratio to {x}" for x in gts)
-            + " | GTSAM build median | update+build median | EOP pos RMSE (m) | "
+            + " | GTSAM build median | update+build median | σ median | update+σ median | "
+            "EOP pos RMSE (m) | "
             "att RMSE (deg) | GP RMSE (m) | failed runs |")
     lines += [head, "|" + "---|" * (head.count("|") - 1)]
     for s in report["summary"]:
@@ -667,9 +716,13 @@ def summary_table(report: dict) -> list[str]:
             _f(s["cpu_ratio_to_gtsam_median"][x]) for x in gts)
         b = s["build"]["median_ms"] if s["build"] else None
         t = s["update_plus_build"]["median_ms"] if s["update_plus_build"] else None
+        sg = s.get("sigma")
+        us = s.get("update_plus_sigma")
         a = s["accuracy_mean_over_seeds"]
         lines.append(f"| {s['label']} | {u['n'] or '–'} | {_f(u['median_ms'])} | "
                      f"{_f(u['p95_ms'])} | {_f(u['max_ms'])} | {ratios} | {_f(b)} | {_f(t)} | "
+                     f"{_f(sg['median_ms'] if sg else None)} | "
+                     f"{_f(us['median_ms'] if us else None)} | "
                      f"{_f(a['pos_rmse_m'], '.3f')} | {_f(a['att_rmse_deg'], '.4f')} | "
                      f"{_f(a['gp_rmse_m'], '.3f')} | {s['failures']} |")
     return lines
@@ -697,9 +750,13 @@ def render_markdown(report: dict) -> str:
         "",
         "Per-image time (ms), pooled over seeds, on Seq-R's timed images (its sequential "
         "stage). GTSAM `update` = `smoother.update(...)` only; `build` = that image's factors, "
-        "values, timestamps and triangulations. Ratio = the row's median update time over that "
-        "GTSAM run's. *CPU* = process CPU time of Seq-R's whole `add_frame` (the published "
-        "sigmas included) and of GTSAM's `update` call: on a shared machine the wall clock "
+        "values, timestamps and triangulations; `σ` (runs marked *+ σ*) = the "
+        "`marginalCovariance` calls after the update for what Seq-R publishes after each image "
+        "(the new pose's sigmas; with *landmarks*, every landmark's too). Ratio = the row's "
+        "median update time over that GTSAM run's median update time (*+ σ* runs: update + σ "
+        "per image, in the row and as the reference). *CPU* = process CPU time of Seq-R's "
+        "whole `add_frame` (the published sigmas included) and of GTSAM's `update` call (and "
+        "its σ): on a shared machine the wall clock "
         "also counts the time the process waited for a core. Accuracy: mean over seeds of the "
         "RMSE against truth (r.m.s. over the three components). The machine is shared: only "
         "ratios within this run count.",
@@ -758,9 +815,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
     ap.add_argument("--out", type=Path, default=Path("out/bench"))
     ap.add_argument("--extra-updates", type=int, default=0,
                     help="empty smoother updates after each image's (timed with it)")
+    ap.add_argument("--sigma", action="append", choices=sorted(SIGMA_KINDS), default=[],
+                    help="one more GTSAM run per lag that reads, after each update, the "
+                         "marginal covariances Seq-R publishes: 'pose' (the new pose's) or "
+                         "'all' (and every landmark's); repeat for both")
     args = ap.parse_args(argv)
     report = run_gtsam_bench(args.config, args.seed or DEFAULT_SEEDS, args.lag or DEFAULT_LAGS,
-                             args.out, extra_updates=args.extra_updates)
+                             args.out, extra_updates=args.extra_updates, sigmas=args.sigma)
     print("\n".join(summary_table(report)))
     print(f"written: {args.out / 'bench_gtsam.json'}, {args.out / 'bench_gtsam.md'}")
     return report

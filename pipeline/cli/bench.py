@@ -22,8 +22,9 @@ RENDERED_BENCH = "rendered"
 #: (:mod:`pipeline.bench.ortho`; its own arguments follow).
 ORTHO_BENCH = "ortho"
 #: ``seqat bench gtsam [--seed N ...] [--lag N ...] [--out DIR] [--config CONFIG.yaml]
-#: [--extra-updates N]``: GTSAM's fixed-lag smoother beside Seq-R on simulated strips
-#: (:mod:`pipeline.bench.gtsam`, optional package gtsam; its own arguments follow).
+#: [--extra-updates N] [--sigma pose|all ...]``: GTSAM's fixed-lag smoother beside Seq-R on
+#: simulated strips (:mod:`pipeline.bench.gtsam`, optional package gtsam; its own arguments
+#: follow).
 GTSAM_BENCH = "gtsam"
 #: ``seqat bench fuzz [--seed S ...] [--cases N] [--case K ...] [--jobs J] [--timeout-s T]
 #: [--kind KIND ...] [--flight NAME ...] [--keep]``: seeded mutations of the sample flights run

@@ -21,6 +21,7 @@ from pipeline.bench.gtsam import (  # noqa: E402
     run_gtsam,
     run_gtsam_bench,
 )
+from seqat.errors import ConfigError  # noqa: E402
 from seqat.geometry import project, rotation_matrix  # noqa: E402
 from seqat.simulate import StripSimConfig, simulate_strip  # noqa: E402
 
@@ -103,6 +104,39 @@ def test_tiny_strip_bench(tmp_path: Path) -> None:
     assert summary["Seq-R ρ≥0.1"]["update"]["n"] == 5  # after the 10 initial images
     md = (tmp_path / "out" / "bench_gtsam.md").read_text(encoding="utf-8")
     assert "GTSAM iFLS lag 5" in md and "Seq-R" in md
+
+
+def test_sigma_runs_time_the_marginals_seq_r_publishes(tmp_path: Path) -> None:
+    """``--sigma pose``: one more run per lag that reads the new pose's marginal covariance
+    after each update; its ratio reference is update + σ per image, its estimates those of
+    the plain run (reading marginals changes no estimate)."""
+    config = tmp_path / "tiny.yaml"
+    config.write_text(TINY_CONFIG, encoding="utf-8")
+    report = run_gtsam_bench(config, seeds=(1,), lag_images=(5,), out_dir=tmp_path / "out",
+                             sigmas=("pose", "pose"))
+    (seed,) = report["results"]
+    rows = {m["label"]: m for m in seed["methods"]}
+    assert set(rows) == {"Seq-R ρ≥0.1", "Seq-R ρ≥0.1 RTS-smoothed (same run)",
+                         "GTSAM iFLS lag 5", "GTSAM iFLS lag 5 + σ new pose"}  # once each
+    plain, with_sigma = rows["GTSAM iFLS lag 5"], rows["GTSAM iFLS lag 5 + σ new pose"]
+    assert plain["sigma"] is None and with_sigma["extra"]["sigma"] == "pose"
+    assert with_sigma["sigma"]["n"] == 5 and with_sigma["sigma"]["median_ms"] > 0
+    assert with_sigma["update_plus_sigma"]["median_ms"] > with_sigma["update"]["median_ms"]
+    assert with_sigma["accuracy"] == plain["accuracy"]
+    summary = {s["label"]: s for s in report["summary"]}
+    own = summary["GTSAM iFLS lag 5 + σ new pose"]
+    assert own["ratio_to_gtsam_median"]["GTSAM iFLS lag 5 + σ new pose"] == 1.0
+    seq = summary["Seq-R ρ≥0.1"]
+    assert seq["ratio_to_gtsam_median"]["GTSAM iFLS lag 5 + σ new pose"] == pytest.approx(
+        seq["update"]["median_ms"] / own["update_plus_sigma"]["median_ms"])
+    md = (tmp_path / "out" / "bench_gtsam.md").read_text(encoding="utf-8")
+    assert "| GTSAM iFLS lag 5 + σ new pose |" in md
+
+
+def test_unknown_sigma_kind_is_a_config_error() -> None:
+    flight = simulate_strip(dataclasses.replace(StripSimConfig(), n_images=4, n_points=20), 1)
+    with pytest.raises(ConfigError, match="--sigma: expected one of"):
+        run_gtsam(flight, lag=2, sigma="landmarks")
 
 
 def test_gtsam_error_is_reported_not_raised(monkeypatch: pytest.MonkeyPatch) -> None:
