@@ -14,7 +14,7 @@ Exactly symmetric: a block and its transpose receive the same values in the same
 A factor entry outside the pattern must be an exact zero (a structural one: the camera's
 ``cx`` x ``cy`` entry, whose Jacobian columns are (1, 0) and (0, 1)); when one is not, or
 ``L`` is not a sparse matrix with a symmetric pattern (dense small windows), the parts are
-assembled entry by entry as before (:func:`seqat.information.add_factor_parts`): the result
+assembled entry by entry as before (:func:`add_factor_parts`, in this module too): the result
 never depends on which way was taken but for rounding.
 """
 
@@ -28,17 +28,155 @@ import scipy.sparse
 from seqat.information import (
     SparseMatrix,
     WindowMatrix,
-    add_factor_parts,
-    factor_information,
     gather_parts,
-    image_factor_blocks,
-    image_sum_index,
+    sparse_entries,
     split_indices,
     window_matrix,
 )
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 
 
+# ---------------------------------------------------------------- factors to information
+# (entry by entry: the general way, and what the pattern assembly below falls back to)
+def add_block_parts(parts: tuple[FloatArray, FloatArray, FloatArray], blocks: FloatArray,
+                    cols: np.ndarray, r_idx: np.ndarray, p_idx: np.ndarray, n: int,
+                    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``parts`` (of :func:`gather_parts`) plus symmetric blocks ``blocks`` (k, c, c) on
+    window columns ``cols`` (k, c), each block touching at most one eliminated GP: the parts
+    of ``L + sum_k blocks_k`` without forming the n x n matrix."""
+    a = np.broadcast_to(cols[:, :, None], blocks.shape).ravel()
+    b = np.broadcast_to(cols[:, None, :], blocks.shape).ravel()
+    return _add_entries(parts, a, b, blocks.ravel(), r_idx, p_idx, n)
+
+
+def add_factor_parts(parts: tuple[FloatArray, FloatArray, FloatArray], Je: FloatArray,
+                     Jp: FloatArray, w: FloatArray, img: np.ndarray, cols: np.ndarray,
+                     r_idx: np.ndarray, p_idx: np.ndarray, n: int,
+                     ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`add_block_parts` of image-point factors ``J^T W J`` (``J = [Je, Jp]``, one per
+    observation, on window columns ``cols`` (k, ce + 3): image block, then GP), with the
+    image-block x image-block parts summed per image first (the factors of one image share
+    those columns: with a self-calibrated camera 13 x 13 of every 16 x 16 block)."""
+    if Je.shape[0] == 0:
+        return parts
+    return _add_entries(parts, *factor_entries(Je, Jp, w, img, cols), r_idx, p_idx, n)
+
+
+def factor_information(Je: FloatArray, Jp: FloatArray, w: FloatArray, img: np.ndarray,
+                       cols: np.ndarray, n: int,
+                       minus: tuple[FloatArray, FloatArray, FloatArray] | None = None,
+                       ) -> SparseMatrix:
+    """``sum J^T W J`` of image-point factors as a sparse n x n matrix (exactly symmetric;
+    the entries of :func:`factor_entries`); with ``minus = (Je0, Jp0, w0)`` the same
+    factors' blocks at another linearisation are subtracted block by block (one entry per
+    difference, not two)."""
+    return sparse_entries(*factor_entries(Je, Jp, w, img, cols, minus), n)
+
+
+def factor_entries(Je: FloatArray, Jp: FloatArray, w: FloatArray, img: np.ndarray,
+                   cols: np.ndarray,
+                   minus: tuple[FloatArray, FloatArray, FloatArray] | None = None,
+                   ) -> tuple[np.ndarray, np.ndarray, FloatArray]:
+    """Rows, columns and values of ``sum J^T W J`` over image-point factors (both
+    triangles; an entry may repeat): the image-block x image-block parts summed per image
+    (36 entries per image, not per observation), the parts with a GP row or column per
+    factor; every block symmetric to the last bit. ``minus``: see
+    :func:`factor_information`."""
+    k, ce = Je.shape[0], Je.shape[2]
+    if k == 0:
+        z = np.zeros(0, dtype=np.int64)
+        return z, z, np.zeros(0)
+    uniq, first, inv = np.unique(img, return_index=True, return_inverse=True)
+    S, PE, PP = image_factor_blocks(Je, Jp, w, inv, uniq.size, minus)
+    ecols = cols[first, :ce]
+    gp_cols = cols[:, ce:]
+    a = np.concatenate([
+        np.broadcast_to(ecols[:, :, None], S.shape).ravel(),
+        np.broadcast_to(gp_cols[:, :, None], PE.shape).ravel(),
+        np.broadcast_to(cols[:, :ce, None], (k, ce, GP_SIZE)).ravel(),
+        np.broadcast_to(gp_cols[:, :, None], PP.shape).ravel()])
+    b = np.concatenate([
+        np.broadcast_to(ecols[:, None, :], S.shape).ravel(),
+        np.broadcast_to(cols[:, None, :ce], PE.shape).ravel(),
+        np.broadcast_to(gp_cols[:, None, :], (k, ce, GP_SIZE)).ravel(),
+        np.broadcast_to(gp_cols[:, None, :], PP.shape).ravel()])
+    v = np.concatenate([S.ravel(), PE.ravel(), np.swapaxes(PE, 1, 2).ravel(), PP.ravel()])
+    return a, b, v
+
+
+def image_factor_blocks(Je: FloatArray, Jp: FloatArray, w: FloatArray, inv: np.ndarray,
+                        nimg: int, minus: tuple[FloatArray, FloatArray, FloatArray] | None = None,
+                        flat: np.ndarray | None = None,
+                        ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The blocks of :func:`factor_entries`: image x image summed per image (``inv``: each
+    factor's image among ``nimg``) (nimg, ce, ce), GP x image (k, 3, ce) and GP x GP
+    (k, 3, 3), the square ones symmetric to the last bit; ``minus``: less the same factors'
+    blocks at another linearisation; ``flat``: :func:`image_sum_index` (made if None)."""
+    k, ce = Je.shape[0], Je.shape[2]
+    if flat is None:
+        flat = image_sum_index(inv, ce)
+
+    def blocks(Je: FloatArray, Jp: FloatArray, w: FloatArray,
+               ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        EE = np.einsum("kri,krj->kij", Je * w[:, None, None], Je).reshape(k, ce * ce)
+        S = np.bincount(flat, weights=EE.ravel(), minlength=nimg * ce * ce).reshape(
+            nimg, ce, ce)
+        wJp = Jp * w[:, None, None]
+        return (S, np.einsum("kri,krj->kij", wJp, Je),  # PE: GP rows, image-block columns
+                np.einsum("kri,krj->kij", wJp, Jp))
+
+    S, PE, PP = blocks(Je, Jp, w)
+    if minus is not None:
+        S0, PE0, PP0 = blocks(*minus)
+        S, PE, PP = S - S0, PE - PE0, PP - PP0
+    return 0.5 * (S + np.swapaxes(S, 1, 2)), PE, 0.5 * (PP + np.swapaxes(PP, 1, 2))
+
+
+def image_sum_index(inv: np.ndarray, ce: int) -> np.ndarray:
+    """Where each factor's image x image entries go in the per-image sums of
+    :func:`image_factor_blocks` (``inv``: each factor's image)."""
+    return (inv[:, None] * (ce * ce) + np.arange(ce * ce)).ravel()
+
+
+def factor_matvec(Je: FloatArray, Jp: FloatArray, w: FloatArray, cols: np.ndarray,
+                  z: FloatArray) -> FloatArray:
+    """``(sum J^T W J) z`` of image-point factors, O(factors): without forming the matrix."""
+    J = np.concatenate([Je, Jp], axis=2)  # (k, 2, ce + 3)
+    Jz = np.einsum("kri,ki->kr", J, z[cols])
+    return np.bincount(cols.ravel(), weights=np.einsum("kri,kr->ki", J * w[:, None, None],
+                                                       Jz).ravel(), minlength=z.size)
+
+
+def _add_entries(parts: tuple[FloatArray, FloatArray, FloatArray], a: np.ndarray,
+                 b: np.ndarray, v: FloatArray, r_idx: np.ndarray, p_idx: np.ndarray, n: int,
+                 ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``parts`` plus the entries ``v`` at window rows ``a`` and columns ``b`` (each entry
+    once: a symmetric addition lists both triangles)."""
+    D, L_RR, L_RP = parts
+    r, npt = r_idx.size, p_idx.shape[0]
+    rpos = np.full(n, -1, dtype=np.int64)
+    rpos[r_idx] = np.arange(r)
+    ppos = np.full(n, -1, dtype=np.int64)
+    ppos[p_idx.ravel()] = np.arange(GP_SIZE * npt)
+    ra, rb, pa, pb = rpos[a], rpos[b], ppos[a], ppos[b]
+    sel = (ra >= 0) & (rb >= 0)
+    RR = L_RR + np.bincount(ra[sel] * r + rb[sel], weights=v[sel],
+                            minlength=r * r).reshape(r, r)
+    sel = (ra >= 0) & (pb >= 0)
+    if scipy.sparse.issparse(L_RP):  # a GP couples to few images: O(entries), not O(r np)
+        RP = L_RP + scipy.sparse.coo_array(
+            (v[sel], (ra[sel], pb[sel])), shape=(r, GP_SIZE * npt)).tocsr()
+    else:
+        RP = L_RP + np.bincount(ra[sel] * (GP_SIZE * npt) + pb[sel], weights=v[sel],
+                                minlength=r * GP_SIZE * npt).reshape(r, GP_SIZE * npt)
+    sel = (pa >= 0) & (pb >= 0)
+    DD = D + np.bincount((pa[sel] // GP_SIZE) * GP_SIZE**2 + (pa[sel] % GP_SIZE) * GP_SIZE
+                         + pb[sel] % GP_SIZE, weights=v[sel],
+                         minlength=npt * GP_SIZE**2).reshape(npt, GP_SIZE, GP_SIZE)
+    return DD, RR, RP
+
+
+# ---------------------------------------------------------------- on L's pattern
 def _runs(cols: np.ndarray) -> list[tuple[int, int]] | None:
     """``(first, length)`` of the runs of consecutive columns in each factor's image block
     (k, ce): the EOP's 6, the camera's; None unless every factor has the same runs."""

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from seqat.assembly import factor_information
 from seqat.geometry import depth, intersect_rays, project, viewing_axes, wrap_angle
-from seqat.information import RankDeficiency, factor_information, padded, window_matrix
+from seqat.information import RankDeficiency, padded, window_matrix
 from seqat.robust import cauchy_weight
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 from seqat.update import LinearRows

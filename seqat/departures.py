@@ -16,6 +16,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 
+from seqat.assembly import factor_information
 from seqat.conditional import Conditional
 from seqat.dense import add_square, square_take
 from seqat.geometry import wrap_angle
@@ -25,7 +26,6 @@ from seqat.information import (
     WindowMatrix,
     add_block,
     dense_block,
-    factor_information,
     nonzero_columns,
     padded,
     submatrix,

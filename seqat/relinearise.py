@@ -10,15 +10,9 @@ from collections.abc import Callable, Iterable, Sequence
 import numpy as np
 import scipy.sparse
 
-from seqat.assembly import WindowAssembly
+from seqat.assembly import WindowAssembly, factor_information, factor_matvec
 from seqat.geometry import depth, intersect_rays, wrap_angle
-from seqat.information import (
-    InformationFactor,
-    RankDeficiency,
-    factor_information,
-    factor_matvec,
-    window_matrix,
-)
+from seqat.information import InformationFactor, RankDeficiency, window_matrix
 from seqat.robust import (
     NAV_GROUPS,
     NAV_REPORT_WEIGHT,

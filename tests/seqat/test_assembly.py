@@ -7,14 +7,8 @@ import numpy as np
 import pytest
 import scipy.sparse
 
-from seqat.assembly import WindowAssembly
-from seqat.information import (
-    add_factor_parts,
-    factor_information,
-    gather_parts,
-    split_indices,
-    window_matrix,
-)
+from seqat.assembly import WindowAssembly, add_factor_parts, factor_information
+from seqat.information import gather_parts, split_indices, window_matrix
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight
 

@@ -196,7 +196,8 @@ def _engines_agree(short_strip: SimulatedFlight, threshold: float | None) -> Non
 def test_factor_parts_summed_per_image_equal_the_block_scatter(ce: int) -> None:
     """add_factor_parts (image-block parts summed per image) == add_block_parts of every
     factor's full block, with eliminated and kept (coupled) GPs and a shared camera block."""
-    from seqat.information import add_block_parts, add_factor_parts, gather_parts, split_indices
+    from seqat.assembly import add_block_parts, add_factor_parts
+    from seqat.information import gather_parts, split_indices
     from seqat.rows import factor_blocks
 
     rng = np.random.default_rng(4)
