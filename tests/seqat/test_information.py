@@ -129,6 +129,14 @@ def test_point_marginals_read_per_point_blocks_even_when_its_columns_differ(
     np.testing.assert_allclose(f._point_extra(), want, rtol=1e-9, atol=1e-15)
     monkeypatch.setattr(np, "array_split", lambda a, k: [a[:1], a[1:]])  # two chunks
     np.testing.assert_allclose(f._point_extra(), want, rtol=1e-9, atol=1e-15)
+    # a departure's 3 x 3 blocks (diagonal_blocks) by the same per-point reads, point 1 too
+    pts = np.array([0, 1, 5, 20])
+    Bp = B.reshape(B.shape[0], -1, 3)
+    got = f.diagonal_blocks(f.p_idx[pts].ravel(), np.full(pts.size, 3))
+    for j, blk in zip(pts, got, strict=True):
+        want_b = f.Dinv[j] + Bp[:, j].T @ Qrr @ Bp[:, j]
+        np.testing.assert_allclose(blk, want_b, rtol=1e-9, atol=1e-15)
+        np.testing.assert_array_equal(blk, blk.T)
 
 
 def test_singular_point_block_is_named_not_a_nan() -> None:
