@@ -100,12 +100,19 @@ def first_over_threshold(correlations: FloatArray, threshold: float) -> int:
 def keys_of(keys: list[Key], indices: np.ndarray) -> list[Key]:
     """The keys holding the parameter ``indices``, each once, in layout order, for ``keys``
     laid out in that order."""
+    return blocks_of(keys, indices)[0]
+
+
+def blocks_of(keys: list[Key], indices: np.ndarray) -> tuple[list[Key], np.ndarray]:
+    """:func:`keys_of` and every parameter of those keys (their indices, ascending)."""
     table = _SIZES
     sizes = np.fromiter((table.get(k[0], k[1]) for k in keys), dtype=np.int64,
                         count=len(keys))
     starts = np.cumsum(sizes) - sizes
     blocks = np.unique(np.searchsorted(starts, indices, side="right") - 1)
-    return [keys[b] for b in blocks.tolist()]
+    first, size = starts[blocks], sizes[blocks]
+    cols = np.repeat(first - (np.cumsum(size) - size), size) + np.arange(size.sum())
+    return [keys[b] for b in blocks.tolist()], cols
 
 
 @dataclass(eq=False)
