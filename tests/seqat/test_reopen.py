@@ -9,6 +9,7 @@ from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
 from seqat.simultaneous import SimOptions, SimultaneousAT
 from seqat.types import EOP_SIZE, Solution
+from seqat.window import key_size
 
 
 def _cut_by_hand(est: SequentialAT, keys: list[tuple[str, int]], now: int) -> None:
@@ -64,6 +65,39 @@ def test_reopened_parameters_equal_seq_f_through_a_chain_of_departures(
         gone = gone[1:]
     _reopen_and_compare(cut, full, gone, cofactor=not one_first)
     assert cut.reopened == len(gone) + one_first
+
+
+def test_a_departure_record_holds_its_gain_on_the_markov_blanket_only() -> None:
+    """The RTS gain ``-L_FF^-1 L_FW`` of leaving parameters F is zero on every window key F's
+    information does not reach: the record keeps the gain on the others (the blanket) and
+    equals the dense gain there."""
+    f = simulate_strip(StripSimConfig(n_images=30, n_points=60), seed=2)
+    est = SequentialAT(f.camera, SequentialOptions(correlation_threshold=None,
+                                                   relinearise_px=None))
+    for fr in list(f.frames())[:20]:
+        est.add_frame(fr)
+    w = est._w
+    L = w.L.toarray() if hasattr(w.L, "toarray") else np.array(w.L)
+    leaving = {("e", 3), ("e", 4)}
+    leaving |= {k for k in w.keys if k[0] == "p" and k not in w.coupled
+                and w.index(k)[0] < w.index(("e", 6))[0]}  # points born before image 6
+    leave_keys = [k for k in w.keys if k in leaving]
+    keep_keys = [k for k in w.keys if k not in leaving]
+    F, W = w.indices(leave_keys), w.indices(keep_keys)
+    J = -np.linalg.solve(L[np.ix_(F, F)], L[np.ix_(F, W)])  # the dense gain on all of W
+    x_before = w.x.copy()
+    _cut_by_hand(est, leave_keys, 20)
+    dep = est._departures[-1]
+    assert dep.leaving == tuple(leave_keys)
+    pos = dict(zip(keep_keys, np.split(np.arange(W.size), np.cumsum(
+        [key_size(k) for k in keep_keys])[:-1]), strict=True))  # key -> its columns in W
+    blanket = [k for k in keep_keys if np.any(L[np.ix_(F, W[pos[k]])] != 0.0)]
+    assert list(dep.staying) == blanket and 0 < len(blanket) < len(keep_keys)
+    cols = np.concatenate([pos[k] for k in blanket])
+    rest = np.setdiff1d(np.arange(W.size), cols)
+    assert np.all(J[:, rest] == 0.0)
+    np.testing.assert_allclose(dep.gain, J[:, cols], rtol=1e-9, atol=1e-12 * np.abs(J).max())
+    np.testing.assert_array_equal(dep.x_staying, x_before[W[cols]])
 
 
 def _reopen_and_compare(cut: SequentialAT, full: SequentialAT, keys: list[tuple[str, int]],
