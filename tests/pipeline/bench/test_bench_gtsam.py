@@ -133,6 +133,22 @@ def test_sigma_runs_time_the_marginals_seq_r_publishes(tmp_path: Path) -> None:
     assert "| GTSAM iFLS lag 5 + σ new pose |" in md
 
 
+def test_a_marginal_error_ends_the_run_like_an_update_error(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    class Failing(gtsam.IncrementalFixedLagSmoother):
+        def marginalCovariance(self, key):  # type: ignore[no-untyped-def]
+            if gtsam.Symbol(key).index() == 2:
+                raise RuntimeError("Indeterminant linear system detected (test)")
+            return super().marginalCovariance(key)
+
+    monkeypatch.setattr(gtsam, "IncrementalFixedLagSmoother", Failing)
+    flight = simulate_strip(dataclasses.replace(StripSimConfig(), n_images=8, n_points=30), 2)
+    run = run_gtsam(flight, lag=3, sigma="pose")
+    assert run.failure is not None and run.failure["image"] == 2
+    assert len(run.extra["sigma_ms"]) == len(run.update_ms) == 3  # type: ignore[arg-type]
+    assert np.isnan(run.extra["sigma_ms"][-1])  # type: ignore[index]
+
+
 def test_unknown_sigma_kind_is_a_config_error() -> None:
     flight = simulate_strip(dataclasses.replace(StripSimConfig(), n_images=4, n_points=20), 1)
     with pytest.raises(ConfigError, match="--sigma: expected one of"):
