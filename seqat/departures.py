@@ -265,7 +265,9 @@ class DepartureMixin:
             dep = self._departures[r]
             if dep is None:
                 continue
-            if any(last_rescue.get(k, 0) > r for k in dep.staying):
+            if not dep.staying:  # F was tied to nothing that stayed (no ties): its own value
+                x_w = np.zeros(0)
+            elif any(last_rescue.get(k, 0) > r for k in dep.staying):
                 x_w = np.concatenate([value[k] if last_rescue.get(k, 0) <= r else
                                       dep.x_staying[o : o + key_size(k)]
                                       for k, o in zip(dep.staying, key_offsets(dep.staying),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -272,3 +274,27 @@ def test_finish_adjusts_the_tie_points_still_waiting_for_ray_spread(
     assert np.all(np.isfinite(got[pid].sigma_m)) and np.all(got[pid].sigma_m > 0)
     np.testing.assert_allclose([e.eop for e in est.solution().eops], [e.eop for e in sim.eops],
                                rtol=0, atol=5e-4)
+
+
+def test_an_image_tied_to_nothing_departs_smooths_and_finishes() -> None:
+    """Images without tie points (their frames hold no image points: GPS/INS alone) leave the
+    window tied to nothing that stays: their records have an empty blanket, smoothing leaves
+    them at their departure values, and finish() re-adjusts the flight with them."""
+    f = simulate_strip(StripSimConfig(n_images=40, n_points=60), seed=2)
+    frames = list(f.frames())
+    for k in (20, 21):
+        frames[k] = dataclasses.replace(frames[k], point_ids=(), uv_px=np.zeros((0, 2)))
+    est = SequentialAT(f.camera, SequentialOptions(max_window_images=3))
+    for fr in frames:
+        est.add_frame(fr)
+    empty = [d for d in est._departures if d is not None and not d.staying]
+    assert empty and all(d.gain.shape == (d.x_leaving.size, 0) for d in empty)
+    frozen = est.solution(smoothed=False)
+    smoothed = est.solution(smoothed=True)
+    assert len(smoothed.eops) == 40
+    for a, b in zip(frozen.eops, smoothed.eops, strict=True):
+        assert np.all(np.isfinite(b.eop))
+        if a.image_id in (frames[20].image_id, frames[21].image_id):
+            np.testing.assert_array_equal(a.eop, b.eop)  # nothing later reaches them
+    est.finish()
+    assert np.all(np.isfinite([e.eop for e in est.solution().eops]))
