@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterator
+from collections import Counter
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -73,6 +74,8 @@ from seqat.types import FloatArray, Frame, PinholeCamera
 FULL_FRAME_DIAGONAL_MM = 43.2666
 #: Relative aspect-ratio difference still taken as "the same camera, resized".
 ASPECT_TOLERANCE = 2e-3
+#: Images named in a warning that groups many (the rest are counted).
+MAX_NAMED = 5
 #: A file with more than this share of its observations outside the image is refused.
 MAX_OUTSIDE_FRACTION = 0.5
 
@@ -201,6 +204,16 @@ def _bare_image_folder(folder: Path) -> FlightConfig:
     raise InputDataError(f"{folder / FLIGHT_YAML}: no such file, and no JPEG images in "
                          f"{folder} or {folder / IMAGES_DIR} (a flight folder needs "
                          f"{FLIGHT_YAML} or images)")
+
+
+def camera_image(metas: Iterable[ImageMetadata]) -> ImageMetadata:
+    """The image whose EXIF gives a folder's camera: the first of the folder's most common
+    size (a camera's other mode, e.g. Seneca's first image at 90 % of the others' size, is
+    then the one resampled, not the rest of the flight); on a tie the earlier size."""
+    metas = list(metas)
+    sizes = Counter((m.width_px, m.height_px) for m in metas)
+    best = max(sizes.values())
+    return next(m for m in metas if sizes[(m.width_px, m.height_px)] == best)
 
 
 def camera_from_exif(meta: ImageMetadata) -> CameraConfig:
@@ -395,7 +408,7 @@ def read_flight(flight_dir: Path | str, *, gcp_file: Path | str | None = None,
     if camera_config is None:
         if not metas:
             raise ConfigError(f"{source}: camera: required for an observations flight")
-        camera_config, approximate = camera_from_exif(next(iter(metas.values()))), True
+        camera_config, approximate = camera_from_exif(camera_image(metas.values())), True
     if obs_path is None:
         check_one_camera(nav.image_ids, metas)
         for dup in duplicate_images(nav.image_ids, metas):
@@ -487,17 +500,28 @@ def _check_sizes(nav: NavTable, metas: dict[str, ImageMetadata], camera: CameraC
     when read (warning); one of another aspect ratio is skipped.
     """
     keep = []
+    resampled: dict[tuple[int, int], list[str]] = {}
     for row, image in enumerate(nav.image_ids):
         meta = metas.get(image)
         if meta is None:
             continue
         skip, warning = check_image_size(meta, camera)
         if warning is not None:
-            warnings.append(warning)
+            resampled.setdefault((meta.width_px, meta.height_px), []).append(warning)
         if skip is not None:
             skipped.append(SkippedImage(image=image, reason=skip))
             continue
         keep.append(row)
+    for (w, h), lines in resampled.items():  # one line per size, not one per image
+        if len(lines) == 1:
+            warnings.append(lines[0])
+            continue
+        names = [line.split(":", 1)[0] for line in lines]
+        shown = ", ".join(names[:MAX_NAMED]) + (f" and {len(names) - MAX_NAMED} more"
+                                                if len(names) > MAX_NAMED else "")
+        warnings.append(f"{len(names)} images of {w} x {h} px ({shown}) differ from the "
+                        f"camera's {camera.width_px} x {camera.height_px} px; resampled to it "
+                        "(same aspect ratio)")
     return NavTable(image_ids=tuple(nav.image_ids[i] for i in keep), times_s=nav.times_s[keep],
                     eop=nav.eop[keep])
 

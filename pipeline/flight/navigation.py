@@ -537,9 +537,10 @@ def read_image_folder_nav(folder: Path | str, crs: str = "auto",
     Returns
     -------
     ImageFolderNav
-        Images sorted by time (file name for equal or missing times). Warnings: image size
-        differing from the first image's, missing time, missing attitude, height of unknown
-        kind (taken as ellipsoidal), times not strictly increasing.
+        Images sorted by time (file name for equal or missing times). Warnings: missing
+        time, missing attitude, height of unknown kind (taken as ellipsoidal), times not
+        strictly increasing (image sizes are checked against the camera when the flight's
+        images are read: ``pipeline.flight.folder``).
 
     Raises
     ------
@@ -621,14 +622,10 @@ def _fix(meta: ImageMetadata) -> tuple[float, float, float]:
 
 
 def _folder_warnings(metas: list[ImageMetadata]) -> list[str]:
-    first = metas[0]
     warnings = []
     prev_time: float | None = None
-    for m in metas:
+    for m in metas:  # sizes: checked against the camera when the images are read
         name = m.path.name
-        if (m.width_px, m.height_px) != (first.width_px, first.height_px):
-            warnings.append(f"{name}: size {m.width_px} x {m.height_px} px differs from "
-                            f"{first.path.name} ({first.width_px} x {first.height_px} px)")
         if m.time_s is None:
             warnings.append(f"{name}: no acquisition time (found: {found_tags(m)})")
         elif prev_time is not None and m.time_s <= prev_time:
