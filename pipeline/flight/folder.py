@@ -14,8 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -204,16 +203,6 @@ def _bare_image_folder(folder: Path) -> FlightConfig:
     raise InputDataError(f"{folder / FLIGHT_YAML}: no such file, and no JPEG images in "
                          f"{folder} or {folder / IMAGES_DIR} (a flight folder needs "
                          f"{FLIGHT_YAML} or images)")
-
-
-def camera_image(metas: Iterable[ImageMetadata]) -> ImageMetadata:
-    """The image whose EXIF gives a folder's camera: the first of the folder's most common
-    size (a camera's other mode, e.g. Seneca's first image at 90 % of the others' size, is
-    then the one resampled, not the rest of the flight); on a tie the earlier size."""
-    metas = list(metas)
-    sizes = Counter((m.width_px, m.height_px) for m in metas)
-    best = max(sizes.values())
-    return next(m for m in metas if sizes[(m.width_px, m.height_px)] == best)
 
 
 def camera_from_exif(meta: ImageMetadata) -> CameraConfig:
@@ -408,7 +397,7 @@ def read_flight(flight_dir: Path | str, *, gcp_file: Path | str | None = None,
     if camera_config is None:
         if not metas:
             raise ConfigError(f"{source}: camera: required for an observations flight")
-        camera_config, approximate = camera_from_exif(camera_image(metas.values())), True
+        camera_config, approximate = camera_from_exif(next(iter(metas.values()))), True
     if obs_path is None:
         check_one_camera(nav.image_ids, metas)
         for dup in duplicate_images(nav.image_ids, metas):

@@ -277,14 +277,13 @@ def test_run_with_ortho_and_report_writes_the_whole_chain(mini_chain: Path) -> N
     assert "k1 " in (out / "report.html").read_text()
 
 
-def test_images_of_another_size_are_resampled_to_the_most_common_one(tmp_path: Path) -> None:
-    """The camera comes from the folder's most common image size, not from the first image
-    (Seneca's first image is the camera's other mode, 90 % of the others): the odd images are
-    resampled to it and named in one warning per size, one image alone in its own line."""
+def test_images_of_another_size_are_named_once_per_size(tmp_path: Path) -> None:
+    """Images of another size than the camera's (the first image's) with its aspect ratio are
+    resampled to it and named in one warning per size; one image alone in its own line."""
     folder = tmp_path / "mini"
     shutil.copytree(MINI, folder)
     images = sorted((folder / "images").glob("*.jpg"))
-    for path, size in zip(images[:4], [(900, 675)] * 3 + [(800, 600)], strict=True):
+    for path, size in zip(images[1:5], [(900, 675)] * 3 + [(800, 600)], strict=True):
         with Image.open(path) as im:
             exif, xmp = im.info.get("exif"), im.info.get("xmp")
             small = im.resize(size)
@@ -295,8 +294,8 @@ def test_images_of_another_size_are_resampled_to_the_most_common_one(tmp_path: P
     assert cam.fx_px == pytest.approx(MINI_F_PX, rel=1e-9)
     assert len(flight.nav) == 18 and not flight.skipped
     assert [w for w in flight.warnings if "resampled" in w] == [
-        "3 images of 900 x 675 px (IMG_0460.jpg, IMG_0461.jpg, IMG_0462.jpg) differ from the "
+        "3 images of 900 x 675 px (IMG_0461.jpg, IMG_0462.jpg, IMG_0463.jpg) differ from the "
         "camera's 1000 x 750 px; resampled to it (same aspect ratio)",
-        "IMG_0463.jpg: size 800 x 600 px differs from the camera's 1000 x 750 px; resampled "
+        "IMG_0464.jpg: size 800 x 600 px differs from the camera's 1000 x 750 px; resampled "
         "to it (same aspect ratio)"]
     assert np.isfinite(flight.nav.eop[:, 3:]).all()  # the resized files kept their XMP
