@@ -489,23 +489,24 @@ def _check_sizes(nav: NavTable, metas: dict[str, ImageMetadata], camera: CameraC
     when read (warning); one of another aspect ratio is skipped.
     """
     keep = []
-    resampled: dict[tuple[int, int], list[str]] = {}
+    resampled: dict[tuple[int, int], list[tuple[str, str]]] = {}  # size: (file, warning)
     for row, image in enumerate(nav.image_ids):
         meta = metas.get(image)
         if meta is None:
             continue
         skip, warning = check_image_size(meta, camera)
         if warning is not None:
-            resampled.setdefault((meta.width_px, meta.height_px), []).append(warning)
+            resampled.setdefault((meta.width_px, meta.height_px), []).append(
+                (meta.path.name, warning))
         if skip is not None:
             skipped.append(SkippedImage(image=image, reason=skip))
             continue
         keep.append(row)
-    for (w, h), lines in resampled.items():  # one line per size, not one per image
-        if len(lines) == 1:
-            warnings.append(lines[0])
+    for (w, h), files in resampled.items():  # one line per size, not one per image
+        if len(files) == 1:
+            warnings.append(files[0][1])
             continue
-        names = [line.split(":", 1)[0] for line in lines]
+        names = [name for name, _ in files]
         shown = ", ".join(names[:MAX_NAMED]) + (f" and {len(names) - MAX_NAMED} more"
                                                 if len(names) > MAX_NAMED else "")
         warnings.append(f"{len(names)} images of {w} x {h} px ({shown}) differ from the "
