@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -489,31 +489,41 @@ def _check_sizes(nav: NavTable, metas: dict[str, ImageMetadata], camera: CameraC
     when read (warning); one of another aspect ratio is skipped.
     """
     keep = []
-    resampled: dict[tuple[int, int], list[tuple[str, str]]] = {}  # size: (file, warning)
+    resampled: list[ImageMetadata] = []
     for row, image in enumerate(nav.image_ids):
         meta = metas.get(image)
         if meta is None:
             continue
         skip, warning = check_image_size(meta, camera)
         if warning is not None:
-            resampled.setdefault((meta.width_px, meta.height_px), []).append(
-                (meta.path.name, warning))
+            resampled.append(meta)
         if skip is not None:
             skipped.append(SkippedImage(image=image, reason=skip))
             continue
         keep.append(row)
-    for (w, h), files in resampled.items():  # one line per size, not one per image
-        if len(files) == 1:
-            warnings.append(files[0][1])
-            continue
-        names = [name for name, _ in files]
-        shown = ", ".join(names[:MAX_NAMED]) + (f" and {len(names) - MAX_NAMED} more"
-                                                if len(names) > MAX_NAMED else "")
-        warnings.append(f"{len(names)} images of {w} x {h} px ({shown}) differ from the "
-                        f"camera's {camera.width_px} x {camera.height_px} px; resampled to it "
-                        "(same aspect ratio)")
+    warnings += resampling_warnings(resampled, camera)
     return NavTable(image_ids=tuple(nav.image_ids[i] for i in keep), times_s=nav.times_s[keep],
                     eop=nav.eop[keep])
+
+
+def resampling_warnings(metas: Sequence[ImageMetadata], camera: CameraConfig) -> list[str]:
+    """The warnings of images resampled to the camera (:func:`check_image_size`), one line
+    per size: an image alone in its own words, several named up to :data:`MAX_NAMED`."""
+    by_size: dict[tuple[int, int], list[ImageMetadata]] = {}
+    for meta in metas:
+        by_size.setdefault((meta.width_px, meta.height_px), []).append(meta)
+    out = []
+    for (w, h), group in by_size.items():
+        if len(group) == 1:
+            out.append(str(check_image_size(group[0], camera)[1]))
+            continue
+        names = [m.path.name for m in group]
+        shown = ", ".join(names[:MAX_NAMED]) + (f" and {len(names) - MAX_NAMED} more"
+                                                if len(names) > MAX_NAMED else "")
+        out.append(f"{len(names)} images of {w} x {h} px ({shown}) differ from the camera's "
+                   f"{camera.width_px} x {camera.height_px} px; resampled to it (same aspect "
+                   "ratio)")
+    return out
 
 
 def check_image_size(meta: ImageMetadata, camera: CameraConfig) -> tuple[str | None, str | None]:

@@ -8,8 +8,7 @@ inputs completed since the last one (docs/formats.md, *Watched flights*):
 * an image is complete once its name is final (writers use ``name.jpg.part`` or a hidden
   name and rename) and it holds the JPEG end-of-image marker after its image data;
 * a CSV line counts once it ends with a newline;
-* an observations flight's image is complete once its nav row is: its observation rows are
-  appended before the nav row.
+* an observations flight's image is complete once its nav row is (its rows come before).
 
 Images are adjusted in acquisition order (nav-file order; for nav in EXIF, the order in
 which they complete) through the same :class:`~pipeline.run.session.RunSession` as ``seqat run``,
@@ -52,6 +51,7 @@ from pipeline.flight.folder import (
     check_image_size,
     geodetic_nav_eop,
     read_truth,
+    resampling_warnings,
 )
 from pipeline.flight.gcp import ODM_GCP_FILE
 from pipeline.flight.image_metadata import (
@@ -263,6 +263,7 @@ class GrowingFlight:
         self._journaled = frozenset(done)  # their rows are read again, and ignored
         self._wait = wait_timeout_s
         self.warnings: list[str] = []
+        self.resampled: list[ImageMetadata] = []  # images of another size: warned at the end
         self.images_dir = folder / config.images if config.images is not None else None
         if self.images_dir is not None and not self.images_dir.is_dir():
             raise InputDataError(f"{self.images_dir}: no such image folder (images in {source})")
@@ -503,8 +504,7 @@ class GrowingFlight:
             self.camera, self.camera_approximate = camera_from_exif(meta), True
         self._make_flight()
         skip, warning = check_image_size(meta, self.camera)
-        if warning is not None:
-            self.warnings.append(warning)
+        self.resampled += [meta] if warning is not None else []
         if skip is not None:
             return SkippedImage(image=image, reason=skip)
         return Arrival(image=image, time_s=time_s, nav_eop=eop, ready_s=ready_s, path=path)
@@ -775,8 +775,8 @@ def watch_flight(flight_dir: Path | str, out_dir: Path | str, *,
                 close()
     flight = grow.flight
     assert flight is not None and source is not None
-    inputs = dataclasses.replace(flight, nav=session.nav(), skipped=tuple(skipped),
-                                 warnings=tuple(grow.warnings)).inputs()
+    inputs = dataclasses.replace(flight, nav=session.nav(), skipped=tuple(skipped), warnings=(
+        *grow.warnings, *resampling_warnings(grow.resampled, flight.camera_config))).inputs()
     return publish_run(out, session, solution, method=method, flight=str(folder), inputs=inputs,
                        options=with_calibration(options, flight.calibration), final_only=False,
                        tracking_options=source.tracking_options, truth=read_truth(folder),

@@ -486,3 +486,27 @@ def test_watch_cli_summary_names_the_budget(tmp_path: Path, budget: str | None) 
     else:
         assert budget_doc["mode"] == "fixed" and budget_doc["budget_ms"] == 400.0
         assert "budget (fixed)" in result.stdout and "400 ms" in result.stdout
+
+
+def test_watch_names_images_of_another_size_once_per_size(tmp_path: Path) -> None:
+    """Images of another size than the camera's (the first image's) are resampled as in
+    ``seqat run``, and run.json names them in one warning per size, not one per image."""
+    from PIL import Image
+
+    from ..sample_runs import MINI
+
+    flight, out = tmp_path / "flight", tmp_path / "out"
+    shutil.copytree(MINI, flight)
+    (flight / FLIGHT_YAML).write_text("images: images\nnav:\n  source: images\n",
+                                      encoding="utf-8")
+    for path in sorted((flight / "images").glob("*.jpg"))[1:3]:
+        with Image.open(path) as im:
+            exif, xmp = im.info.get("exif"), im.info.get("xmp")
+            small = im.resize((900, 675))
+        small.save(path, "JPEG", exif=exif, **({"xmp": xmp} if xmp else {}))
+    summary = watch_flight(flight, out, watch=QUICK, console=_quiet(), budget_ms=NO_BUDGET)
+    assert summary.n_images == 18
+    warnings = json.loads((out / "run.json").read_text(encoding="utf-8"))["warnings"]
+    assert [w for w in warnings if "resampled" in w] == [
+        "2 images of 900 x 675 px (IMG_0461.jpg, IMG_0462.jpg) differ from the camera's "
+        "1000 x 750 px; resampled to it (same aspect ratio)"]
