@@ -34,3 +34,15 @@ def copy_run_files(run: Path, to: Path) -> Path:
     ortho only listens), for a test that writes into it."""
     shutil.copytree(run, to, ignore=shutil.ignore_patterns(*ORTHO_AND_REPORT_FILES))
     return to
+
+
+def resize_images(paths: list[Path], sizes: list[tuple[int, int]]) -> None:
+    """Rewrite each JPEG of ``paths`` at the matching size, keeping its EXIF and XMP (a
+    camera's other mode, as Seneca's first image)."""
+    from PIL import Image
+
+    for path, size in zip(paths, sizes, strict=True):
+        with Image.open(path) as im:
+            exif, xmp = im.info.get("exif"), im.info.get("xmp")
+            small = im.resize(size)
+        small.save(path, "JPEG", exif=exif, **({"xmp": xmp} if xmp else {}))

@@ -23,7 +23,7 @@ from seqat.errors import InputDataError
 from seqat.geometry import project, rotation_matrix
 from seqat.types import PinholeCamera
 
-from ..sample_runs import MINI, MINI_ORTHO_PIXEL_M, copy_run_files
+from ..sample_runs import MINI, MINI_ORTHO_PIXEL_M, copy_run_files, resize_images
 
 #: EXIF of the Seneca images: 4.3 mm, 16393.44 px/inch at ExifImageWidth 4000 px.
 MINI_F_PX = 4.3 * 16393.44262295082 / 25.4 * 1000 / 4000
@@ -283,11 +283,7 @@ def test_images_of_another_size_are_named_once_per_size(tmp_path: Path) -> None:
     folder = tmp_path / "mini"
     shutil.copytree(MINI, folder)
     images = sorted((folder / "images").glob("*.jpg"))
-    for path, size in zip(images[1:5], [(900, 675)] * 3 + [(800, 600)], strict=True):
-        with Image.open(path) as im:
-            exif, xmp = im.info.get("exif"), im.info.get("xmp")
-            small = im.resize(size)
-        small.save(path, "JPEG", exif=exif, **({"xmp": xmp} if xmp else {}))
+    resize_images(images[1:5], [(900, 675)] * 3 + [(800, 600)])
     flight = read_flight(folder)
     cam = flight.camera_config
     assert (cam.width_px, cam.height_px) == (1000, 750)

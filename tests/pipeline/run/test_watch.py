@@ -26,7 +26,7 @@ from pipeline.run.watch import Arrival, GrowingFlight, ImageWatcher, WatchOption
 from seqat.errors import InputDataError
 from seqat.types import ImageUpdate
 
-from ..sample_runs import AUTZEN, STRIP, assert_same_results
+from ..sample_runs import AUTZEN, MINI, STRIP, assert_same_results, resize_images
 
 #: Feeding rate of the tests (images per second): faster than real time.
 FAST_RATE_HZ = 100.0
@@ -491,19 +491,11 @@ def test_watch_cli_summary_names_the_budget(tmp_path: Path, budget: str | None) 
 def test_watch_names_images_of_another_size_once_per_size(tmp_path: Path) -> None:
     """Images of another size than the camera's (the first image's) are resampled as in
     ``seqat run``, and run.json names them in one warning per size, not one per image."""
-    from PIL import Image
-
-    from ..sample_runs import MINI
-
     flight, out = tmp_path / "flight", tmp_path / "out"
     shutil.copytree(MINI, flight)
     (flight / FLIGHT_YAML).write_text("images: images\nnav:\n  source: images\n",
                                       encoding="utf-8")
-    for path in sorted((flight / "images").glob("*.jpg"))[1:3]:
-        with Image.open(path) as im:
-            exif, xmp = im.info.get("exif"), im.info.get("xmp")
-            small = im.resize((900, 675))
-        small.save(path, "JPEG", exif=exif, **({"xmp": xmp} if xmp else {}))
+    resize_images(sorted((flight / "images").glob("*.jpg"))[1:3], [(900, 675)] * 2)
     summary = watch_flight(flight, out, watch=QUICK, console=_quiet(), budget_ms=NO_BUDGET)
     assert summary.n_images == 18
     warnings = json.loads((out / "run.json").read_text(encoding="utf-8"))["warnings"]
