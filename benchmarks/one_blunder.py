@@ -4,8 +4,9 @@ target: within 10 % and 25 %).
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/one_blunder.py [--seed S ...] [--rows N]
 
-Each case moves one image point of one frame by 30-400 px in each coordinate (random signs,
-clipped to the image: a wrong but in-image observation) and streams the strip again.
+Each case moves one observation row by 30-400 px in a random direction, kept in the image
+(:func:`pipeline.bench.faults.injection.inject_blunders` with one row: a wrong but in-image
+match), and streams the strip again.
 """
 
 from __future__ import annotations
@@ -17,17 +18,17 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.bench.common import load_sim_config
+from pipeline.bench.faults.injection import inject_blunders
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight, simulate_strip
-from seqat.types import Frame
 
 CONFIG = Path(__file__).resolve().parent.parent / "configs" / "paper_sim.yaml"
 
 
-def rmse(flight: SimulatedFlight, frames: list[Frame]) -> tuple[float, float]:
+def rmse(flight: SimulatedFlight) -> tuple[float, float]:
     """EOP position and GP RMSE (m, r.m.s. over the components) of Seq-R's real-time values."""
     est = SequentialAT(flight.camera, SequentialOptions())
-    for f in frames:
+    for f in flight.frames():
         est.add_frame(f)
     sol = est.solution(smoothed=False)
     eop = np.array([e.eop for e in sol.eops])
@@ -46,23 +47,19 @@ def main() -> None:
     cfg = load_sim_config(CONFIG)
     for seed in args.seed or [1]:
         flight = simulate_strip(cfg, seed)
-        frames = list(flight.frames())
-        e0, g0 = rmse(flight, frames)
+        e0, g0 = rmse(flight)
         rng = np.random.default_rng(100 + seed)
-        size = np.array([flight.camera.width_px - 1, flight.camera.height_px - 1])
+        cam, rows = flight.camera, flight.obs_uv.shape[0]
         worst = [0.0, 0.0]
         for _ in range(args.rows):
-            k = int(rng.integers(len(frames)))
-            while not frames[k].point_ids:
-                k = int(rng.integers(len(frames)))
-            r = int(rng.integers(len(frames[k].point_ids)))
-            uv = frames[k].uv_px.copy()
-            uv[r] = np.clip(uv[r] + rng.choice([-1, 1], 2) * rng.uniform(30, 400, 2), 0, size)
-            case = list(frames)
-            case[k] = dataclasses.replace(frames[k], uv_px=uv)
-            e, g = rmse(flight, case)
+            b = inject_blunders(flight.obs_uv, cam.width_px, cam.height_px, 1.0 / rows, rng,
+                                min_px=30.0, max_px=400.0)
+            e, g = rmse(dataclasses.replace(flight, obs_uv=b.uv_px))
+            k = int(b.index[0])
             worst = [max(worst[0], e / e0), max(worst[1], g / g0)]
-            print(f"seed {seed} image {k} row {r}: EOP {e / e0:.3f} GP {g / g0:.3f}", flush=True)
+            size = float(np.hypot(*b.offset_px[0]))
+            print(f"seed {seed} row {k} (image {flight.obs_image[k]}, {size:.0f} px): "
+                  f"EOP {e / e0:.3f} GP {g / g0:.3f}", flush=True)
         print(f"seed {seed}: clean EOP {e0:.4f} m GP {g0:.4f} m; worst ratio EOP {worst[0]:.3f} "
               f"GP {worst[1]:.3f}")
 
