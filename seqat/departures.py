@@ -59,6 +59,15 @@ FINAL_REBUILD_MAX_IMAGES = 500
 PRUNE_EVERY = 50
 #: A GP stays in the Seq-R window only while this many window images (new one included) see it.
 MIN_WINDOW_RAYS = 2
+#: GPs that a marginal prior ties to each other (departures, re-openings) are kept in the
+#: reduced system, which then costs O(r^3) per factorisation. Over this many of them, the
+#: coupled GPs that no longer observe (no ray in the newest :data:`ACTIVE_IMAGES` window
+#: images nor in the new one) leave the window, exactly marginalised (a later ray re-opens
+#: them): a block's cross-strip re-openings tied 750 GPs into one dense clique (reduced
+#: system 2600 parameters, updates of 1-3 s; docs/algorithm.md, *What the window costs*).
+MAX_COUPLED_GPS = 100
+#: ... a GP observed in one of this many newest window images still observes.
+ACTIVE_IMAGES = 2
 #: A departure's conditional cofactor of up to this many parameters is formed dense (an image
 #: and its points: a few hundred); a larger one stays factorised (seqat.conditional), whose
 #: pieces cost a solve each instead of an index.
@@ -344,7 +353,8 @@ class DepartureMixin:
         if cap is not None:  # the new image joins: cap - 1 stay
             start = max(start, len(offs) + 1 - cap)
         start = self._hold_pending_rays(start, frame_points)
-        if start == 0:
+        quiet = self._quiet_coupled(frame_points)
+        if start == 0 and not quiet:
             return 0
         scale = sigma_scale(self.sigma0, self._redundancy)
         sd = np.sqrt(w.q_diagonal()) * scale
@@ -372,12 +382,26 @@ class DepartureMixin:
                 self._departed_rays.append((j, with_rays))
         for p in changed:
             if self._gp_count[p] + (p in frame_points) < MIN_WINDOW_RAYS:
-                leaving.add(("p", p))
-                idx = w.index(("p", p))
-                self._frozen_gp[p] = (w.x[idx].copy(), sd[idx])
-                del self._gp_count[p]
+                quiet.add(p)
+        for p in quiet:
+            leaving.add(("p", p))
+            idx = w.index(("p", p))
+            self._frozen_gp[p] = (w.x[idx].copy(), sd[idx])
+            del self._gp_count[p]
         self._depart(leaving, now)
         return start
+
+    def _quiet_coupled(self, frame_points: set[int]) -> set[int]:
+        """Over :data:`MAX_COUPLED_GPS` coupled GPs: those that no longer observe (they leave
+        with this cut); else none. The rule of the paper keeps a GP while two window images
+        see it, but a coupled one costs the reduced system three rows and columns, dense."""
+        w = self._w
+        if len(w.coupled) <= MAX_COUPLED_GPS:
+            return set()
+        active = set(frame_points).union(
+            *(self._img_points.get(j, ()) for j in list(self._window_images)[-ACTIVE_IMAGES:]))
+        return {k[1] for k in w.coupled
+                if k[0] == "p" and k[1] not in active and k[1] in self._gp_count}
 
     def _depart(self, leaving: set[Key], now: int) -> None:
         """Marginalise ``leaving`` out of the window, keeping its RTS record (smoothing)."""

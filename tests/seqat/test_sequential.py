@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -175,6 +177,39 @@ def test_seq_r_real_time_estimates_equal_seq_f(strip_120: SimulatedFlight) -> No
     # ... while the frozen (paper) values of departed images differ from them.
     frozen = np.array([e.eop for e in r.solution(smoothed=False).eops])
     assert np.max(np.abs(frozen[:, :3] - np.array([e.eop for e in sf.eops])[:, :3])) > 1e-3
+
+
+def test_quiet_coupled_points_leave_early_and_exactly(strip_120: SimulatedFlight,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """Coupled GPs (tied to each other by a departure's prior) that no image observes any more
+    leave the window before their images do once there are too many of them
+    (``MAX_COUPLED_GPS``; 0 here): fewer coupled GPs in the reduced system, and the same
+    estimates as Seq-F, real-time and smoothed (a departure is exact marginalisation)."""
+    import seqat.departures
+
+    opts = SequentialOptions(correlation_threshold=0.1, relinearise_px=None)
+
+    def run() -> tuple[SequentialAT, list, int]:
+        est = SequentialAT(strip_120.camera, opts)
+        ups, most = [], 0
+        for fr in strip_120.frames():
+            ups.append(est.add_frame(fr))
+            most = max(most, len(est._w.coupled))
+        return est, ups, most
+
+    _, _, most_default = run()
+    monkeypatch.setattr(seqat.departures, "MAX_COUPLED_GPS", 0)
+    r, ur, most = run()
+    f = SequentialAT(strip_120.camera, dataclasses.replace(opts, correlation_threshold=None))
+    uf = [f.add_frame(fr) for fr in strip_120.frames()]
+    assert most < most_default / 2
+    d = np.array([a.eop.eop - b.eop.eop for a, b in zip(ur, uf, strict=True)])
+    assert np.max(np.abs(d[:, :3])) < 1e-8 and np.max(np.abs(d[:, 3:])) < 1e-12
+    sr, sf = r.solution(), f.solution()
+    np.testing.assert_allclose([p.xyz_m for p in sr.points], [p.xyz_m for p in sf.points],
+                               rtol=0, atol=1e-8)
+    np.testing.assert_allclose([e.eop for e in sr.eops], [e.eop for e in sf.eops],
+                               rtol=0, atol=1e-8)
 
 
 @pytest.mark.parametrize(("hold", "reopen_max_age", "healthy"),
