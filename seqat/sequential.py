@@ -653,6 +653,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             builder = RowBuilder(self._cam, t, n2, obs, nav, nav_sigma, opts.robust_scale,
                                  opts.nav_robust_scale, control=self._control_rows(born, t))
             x1t = w.x[touched]
+            # the inverse update and data snooping read the update's observation-space terms
+            terms = self._inverse or opts.snooping_critical is not None
             d1t = np.zeros(touched.size)
             d2 = np.zeros(n2)
             iterations = 0
@@ -664,7 +666,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                 builder.robust = iterations > 1
                 rows = builder.rows(x1t, x2_0, d1t, d2)
                 try:
-                    sol = solve_update(Qtt, touched, rows, block=True)
+                    sol = solve_update(Qtt, touched, rows, block=True, terms=terms)
                 except EstimationError:
                     # a point being born that its rays no longer fix (an iterate sent it far
                     # off): it waits for more rays; anything else is a real failure

@@ -147,6 +147,76 @@ def test_large_update_forms_its_products_sparse_with_the_same_numbers(
     assert sparse.ssr_increment == pytest.approx(dense.ssr_increment, rel=1e-10)
 
 
+def test_large_update_in_the_parameter_space_gives_the_same_corrections(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """More rows than touched parameters (many points born at once): solved as a t x t
+    system (``terms=False``), the corrections, ``kappa1`` and the sum of squares are those of
+    Eq. 13-14's m2 x m2 system."""
+    import seqat.update as update
+
+    rng = np.random.default_rng(11)
+    t, n_new, m2 = 36, 20, 150
+    n2 = 6 + 3 * n_new
+    M = rng.standard_normal((2 * t, t))
+    Q = np.linalg.inv(M.T @ M + np.eye(t))
+    Q = 0.5 * (Q + Q.T)
+    A21, A22 = np.zeros((m2, t)), np.zeros((m2, n2))
+    for i in range(m2):
+        if i % 2:  # a window point seen by the new image
+            p = rng.integers(t // 3)
+            A21[i, 3 * p:3 * p + 3] = rng.standard_normal(3)
+            A22[i, :6] = rng.standard_normal(6)
+        else:  # a new point seen by a window image (6 of the touched columns)
+            e, p = rng.integers(t // 6), rng.integers(n_new)
+            A21[i, 6 * e:6 * e + 6] = rng.standard_normal(6)
+            A22[i, 6 + 3 * p:9 + 3 * p] = rng.standard_normal(3)
+    rows = LinearRows(A21=A21, A22=A22, w2=rng.uniform(0.5, 2.0, m2), l2=rng.standard_normal(m2),
+                      A32=np.eye(n2), w3=np.full(n2, 1e-2), l3=rng.standard_normal(n2))
+    touched = np.arange(t)
+    monkeypatch.setattr(update, "SPARSE_ROWS_FROM", 0)
+    ref = solve_update(Q, touched, rows, block=True)
+    fast = solve_update(Q, touched, rows, block=True, terms=False)
+    assert fast.S is None and fast.kappa is None  # it did take the parameter space
+    for name in ("kappa1", "delta1_touched", "delta2"):
+        np.testing.assert_allclose(getattr(fast, name), getattr(ref, name),
+                                   rtol=1e-9, atol=1e-12 * np.abs(getattr(ref, name)).max(),
+                                   err_msg=name)
+    assert fast.ssr_increment == pytest.approx(ref.ssr_increment, rel=1e-10)
+
+
+def test_information_of_a_large_update_added_sparse_equals_the_dense_sum(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """``add_information`` on a sparse window: the large update's ``A^T P A`` formed from its
+    non-zeros equals the dense block added on the touched and new columns."""
+    import scipy.sparse
+
+    import seqat.rows as rows_mod
+    from seqat.information import sparse_information
+
+    rng = np.random.default_rng(3)
+    n1, t, n2, m2 = 90, 30, 6 + 3 * 5, 60
+    touched = np.sort(rng.choice(n1, t, replace=False))
+    A21 = np.where(rng.random((m2, t)) < 0.1, rng.standard_normal((m2, t)), 0.0)
+    A22 = np.where(rng.random((m2, n2)) < 0.2, rng.standard_normal((m2, n2)), 0.0)
+    rows = LinearRows(A21=A21, A22=A22, w2=rng.uniform(0.5, 2.0, m2), l2=np.zeros(m2),
+                      A32=np.eye(n2)[:6], w3=np.full(6, 4.0), l3=np.zeros(6))
+    B = rng.standard_normal((n1, n1)) * (rng.random((n1, n1)) < 0.05)
+    L = B @ B.T + np.eye(n1)
+    cols = np.concatenate([touched, n1 + np.arange(n2)])
+    A2 = np.hstack([A21, A22])
+    want = np.zeros((n1 + n2, n1 + n2))
+    want[:n1, :n1] = L
+    want[np.ix_(cols, cols)] += A2.T @ (rows.w2[:, None] * A2)
+    want[n1:n1 + 6, n1:n1 + 6] += 4.0 * np.eye(6)
+    monkeypatch.setattr(rows_mod, "SPARSE_ROWS_FROM", 0)
+    monkeypatch.setattr(rows_mod, "window_matrix", lambda M: M)  # keep what it built
+    got = rows_mod.add_information(sparse_information(L), touched, rows)
+    assert scipy.sparse.issparse(got)
+    got = got.toarray()
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
+    np.testing.assert_array_equal(got, got.T)
+
+
 @pytest.mark.parametrize("n", [1, 7, 127, 128, 201])
 def test_lower_inverse_by_halves_equals_the_dense_inverse(n: int) -> None:
     """The triangle's inverse by halves (trtri on each, trmm for the corner) from the split's
