@@ -394,9 +394,12 @@ class DepartureMixin:
     def _quiet_coupled(self, frame_points: set[int]) -> set[int]:
         """Over :data:`MAX_COUPLED_GPS` coupled GPs: those that no longer observe (they leave
         with this cut); else none. The rule of the paper keeps a GP while two window images
-        see it, but a coupled one costs the reduced system three rows and columns, dense."""
+        see it, but a coupled one costs the reduced system three rows and columns, dense.
+        Without departure records (no smoothing) or re-opening, a GP that left is not
+        brought back exactly: none leaves early then."""
         w = self._w
-        if len(w.coupled) <= MAX_COUPLED_GPS:
+        # only where a later ray re-opens them exactly (departure records kept)
+        if len(w.coupled) <= MAX_COUPLED_GPS or not self._records or self._reopen_age == 0:
             return set()
         active = set(frame_points).union(
             *(self._img_points.get(j, ()) for j in list(self._window_images)[-ACTIVE_IMAGES:]))
