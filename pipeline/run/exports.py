@@ -33,6 +33,7 @@ from pipeline.common.tables import EopTable, PointTable
 from pipeline.flight.navigation import image_files
 from pipeline.flight.schema import CameraConfig
 from seqat.cvframe import cv_pose_from_eop
+from seqat.types import FloatArray
 
 SHOTS_GEOJSON = "shots.geojson"
 CAMERAS_OPK_CSV = "cameras_opk.csv"
@@ -148,6 +149,16 @@ def format_prj(crs: pyproj.CRS) -> str:
     return text + "\n"
 
 
+def laz_scales(span_m: FloatArray) -> FloatArray:
+    """LAS scale per axis: :data:`LAZ_SCALE_M`, or the smallest power of ten over it whose
+    int32 range holds ``span_m`` (coordinates minus the offset, >= 0): a point the
+    estimate left thousands of kilometres off (a blunder's intersection) coarsens its axis
+    instead of failing the export."""
+    top = np.max(span_m, axis=0) if len(span_m) else np.zeros(3)
+    need = np.maximum(top / (np.iinfo(np.int32).max - 1), LAZ_SCALE_M)
+    return LAZ_SCALE_M * 10.0 ** np.ceil(np.log10(need / LAZ_SCALE_M) - 1e-12)
+
+
 def tie_points_laz(points: PointTable, crs: pyproj.CRS) -> bytes:
     """``tie_points.laz``: LAS 1.4, point format 6, millimetre coordinates, the CRS as a WKT
     VLR; extra dimensions ``sx_m``, ``sy_m``, ``sz_m`` (float32, NaN where none) and
@@ -160,8 +171,8 @@ def tie_points_laz(points: PointTable, crs: pyproj.CRS) -> bytes:
     ])
     keep = np.all(np.isfinite(points.xyz_m), axis=1)  # a point without a position is left out
     xyz = points.xyz_m[keep]
-    header.scales = np.full(3, LAZ_SCALE_M)
     header.offsets = np.floor(xyz.min(axis=0)) if len(xyz) else np.zeros(3)
+    header.scales = laz_scales(xyz - header.offsets if len(xyz) else np.zeros((0, 3)))
     header.add_crs(crs)
     las = laspy.LasData(header)
     las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]

@@ -90,6 +90,26 @@ def test_exports_write_null_for_nan_and_leave_out_points_without_position() -> N
     assert len(las.points) == 1 and las["n_obs"][0] == 3
 
 
+def test_tie_points_laz_holds_a_point_thousands_of_km_off() -> None:
+    """A wild estimate (a blunder's intersection 5000 km off) must not fail the export
+    (laspy: "Values given do not fit after applying offset and scale"): that axis gets a
+    coarser scale, every point reads back within half of it; the others keep millimetres."""
+    import io
+
+    from pipeline.common.tables import PointTable
+    from pipeline.run.exports import LAZ_SCALE_M, tie_points_laz
+
+    xyz = np.array([[500000.123, 4100000.456, 10.789], [500010.0, 4100020.0, 12.0],
+                    [500005.0, 9100000.0, 11.0]])
+    points = PointTable(point_ids=("a", "b", "c"), xyz_m=xyz, sigma_m=np.full((3, 3), 0.1),
+                        n_obs=np.array([3, 2, 2]))
+    las = laspy.read(io.BytesIO(tie_points_laz(points, pyproj.CRS.from_epsg(32610))))
+    scales = np.asarray(las.header.scales)
+    assert scales[0] == LAZ_SCALE_M and scales[2] == LAZ_SCALE_M and scales[1] == 0.01
+    got = np.column_stack([las.x, las.y, las.z])
+    assert np.all(np.abs(got - xyz) <= scales / 2 + 1e-9)
+
+
 def test_opk_table_round_trips_against_eop_csv(strip_run: Path) -> None:
     run = read_run(strip_run)
     lines = (strip_run / CAMERAS_OPK_CSV).read_text().splitlines()
