@@ -28,7 +28,7 @@ end (``on_finish``, with the final solution):
 
 Surface, chosen at the start by the rules of ``seqat ortho`` (:func:`pipeline.ortho.stage.
 find_dsm`: ``--dsm``, ``OUT/dsm.tif``, the flight's ``lidar:``). Without one the fallback is
-a flat plane at the mean height of the estimator's ground points after the first update
+a flat plane at the median height of the estimator's ground points after the first update
 that has any (Seq-R: the initial simultaneous window), under the whole nav's footprint;
 images georeferenced before that wait for it, and the plane stays for the whole flight.
 
@@ -298,7 +298,7 @@ class LiveOrtho:
                 if not solution.points:
                     raise InputDataError(f"{self.out_dir}: no DSM (--dsm, dsm.tif, flight "
                                          "lidar:) and no tie points to place a flat plane")
-                self._start_flat_at(float(np.mean([p.xyz_m[2] for p in solution.points])),
+                self._start_flat_at(float(np.median([p.xyz_m[2] for p in solution.points])),
                                     "the end of the run",
                                     np.array([e.eop[:3] for e in solution.eops]))
             self._summary = self._finish(solution, t0)
@@ -353,7 +353,7 @@ class LiveOrtho:
         window = getattr(estimator, "window_solution", None)
         solution = window() if window is not None else estimator.solution()  # type: ignore[attr-defined]
         heights = [p.xyz_m[2] for p in solution.points]
-        self._start_flat_at(float(np.mean(heights)),
+        self._start_flat_at(float(np.median(heights)),  # robust to a wild point (stage.py)
                             f"image {image_id} ({len(heights)} points)",
                             np.array([e.eop[:3] for e in solution.eops]))
         self._surface_from = image_id
@@ -367,7 +367,7 @@ class LiveOrtho:
             lo, hi = xyz.min(axis=0), xyz.max(axis=0)
             xyz = np.vstack([xyz, [lo[0] - m, lo[1] - m, hi[2]], [hi[0] + m, hi[1] + m, hi[2]]])
         plane, warning = flat_plane(z_m, xyz, self.crs,
-                                    f"the mean height of the tie points known after {when}:")
+                                    f"the median height of the tie points known after {when}:")
         self._warnings.append(warning)
         self._start(plane)
 

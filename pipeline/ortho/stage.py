@@ -12,8 +12,8 @@
 * ``OUT/ortho.json`` — the per-image timings and warnings (:class:`OrthoRunSummary`).
 
 Surface, first found: ``--dsm``; ``OUT/dsm.tif``; the flight's ``lidar:`` (a DSM GeoTIFF is
-used as is, LAS/LAZ files are gridded into ``OUT/dsm.tif``); else a flat plane at the mean
-height of the tie points, with a warning.
+used as is, LAS/LAZ files are gridded into ``OUT/dsm.tif``); else a flat plane at the median
+height of the tie points (a wild point does not move it), with a warning.
 """
 
 from __future__ import annotations
@@ -304,8 +304,10 @@ def choose_dsm(run_dir: Path, crs: pyproj.CRS, dsm_path: Path | None, flight_dir
     if len(points_z_m) == 0:
         raise InputDataError(f"{run_dir}: no DSM (--dsm, {DSM_FILE}, flight lidar:) and no tie "
                              "points to place a flat plane")
-    plane, warning = flat_plane(float(np.mean(points_z_m)), eops.eop[:, :3], crs,
-                                "the mean tie point height")
+    # the median: a tie point that blunders sent kilometres under the ground (2 rays, one
+    # down-weighted: σ of hundreds of metres) moves a mean by metres
+    plane, warning = flat_plane(float(np.median(points_z_m)), eops.eop[:, :3], crs,
+                                "the median tie point height")
     return plane, (warning,)
 
 

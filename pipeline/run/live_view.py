@@ -10,7 +10,7 @@ writer thread replaces ``OUT/live/estimates.json`` atomically with them (docs/fo
 AT loop only copies a window's worth of numbers per image and never waits for a write.
 
 Each camera carries the wall-clock time of its first estimate (``at_unix_s``: the AT update
-that georeferenced it) and its footprint on the plane at the mean height of the window's
+that georeferenced it) and its footprint on the plane at the median height of the window's
 ground points (the four image corners' rays; the camera's distortion is ignored).
 
 Given the image files, the writer also makes each georeferenced image's *quick-look*
@@ -189,7 +189,7 @@ class LiveEstimates:
         solution: Solution | None = window() if window is not None else None
         eops = list(solution.eops) if solution is not None else [update.eop]
         points = solution.points if solution is not None else ()
-        ground_z = (float(np.mean([p.xyz_m[2] for p in points])) if points else math.nan)
+        ground_z = (float(np.median([p.xyz_m[2] for p in points])) if points else math.nan)
         with self._lock:
             for e in eops:
                 old = self._cameras.get(e.image_id)

@@ -295,6 +295,24 @@ def test_dsm_samples_bilinearly_and_flat_plane_is_flat() -> None:
     assert plane.height_range((150.0, 250.0, 160.0, 260.0)) == (12.5, 12.5)
 
 
+def test_flat_fallback_plane_is_not_moved_by_a_wild_tie_point(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without a DSM the plane lies at the median tie point height: one point that blunders
+    sent 3 km under the ground (σ of hundreds of metres, published as estimated) must not
+    drop it (the mean did, by 3000 / n metres)."""
+    import pipeline.ortho.stage as stage
+    from pipeline.common.tables import EopTable
+
+    monkeypatch.setattr(stage, "find_dsm", lambda *a, **k: (None, ()))
+    eops = EopTable(image_ids=("a", "b"), eop=np.array([[500000.0, 4100000.0, 220.0, 0, 0, 0],
+                                                        [500050.0, 4100000.0, 220.0, 0, 0, 0]]),
+                    sigma=np.full((2, 6), 0.01))
+    z = np.array([100.0, 101.0, 99.0, 100.5, -2900.0])
+    plane, (warning,) = stage.choose_dsm(tmp_path, UTM10, None, tmp_path, eops, z)
+    assert plane.height_range((499990.0, 4099990.0, 500060.0, 4100010.0)) == (100.0, 100.0)
+    assert "median tie point height 100.00 m" in warning
+
+
 def test_parse_las_crs_reads_epsg_and_wkt_files(tmp_path: Path) -> None:
     assert parse_las_crs("EPSG:2994").equals(OREGON_FT)
     path = tmp_path / "crs.wkt"
