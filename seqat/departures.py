@@ -64,7 +64,7 @@ MIN_WINDOW_RAYS = 2
 #: coupled GPs that no longer observe (no ray in the newest :data:`ACTIVE_IMAGES` window
 #: images nor in the new one) leave the window, exactly marginalised (a later ray re-opens
 #: them): a block's cross-strip re-openings tied 750 GPs into one dense clique (reduced
-#: system 2600 parameters, updates of 1-3 s; docs/algorithm.md, *What the window costs*).
+#: system 2600 parameters, updates of 1-3 s; docs/algorithm.md, *Seq-R: the window*).
 MAX_COUPLED_GPS = 100
 #: ... a GP observed in one of this many newest window images still observes.
 ACTIVE_IMAGES = 2
