@@ -24,6 +24,7 @@ from seqat.information import (
     WindowMatrix,
     add_block,
     padded,
+    sparse_entries,
     window_matrix,
 )
 from seqat.robust import (
@@ -120,10 +121,9 @@ def add_information(L: WindowMatrix, touched: np.ndarray, rows: LinearRows) -> W
         i3, j3 = np.nonzero(A32)
         r = np.concatenate([cols[Ms.row], cols[t + i3]])
         c = np.concatenate([cols[Ms.col], cols[t + j3]])
-        v = np.concatenate([Ms.data, A32[i3, j3]])
-        M = scipy.sparse.coo_array((np.concatenate([v, v]), (np.concatenate([r, c]),
-                                                             np.concatenate([c, r]))),
-                                   shape=(n1 + n2, n1 + n2)).tocsr() * 0.5
+        v = 0.5 * np.concatenate([Ms.data, A32[i3, j3]])  # each entry and its mirror: symmetric
+        M = sparse_entries(np.concatenate([r, c]), np.concatenate([c, r]),
+                           np.concatenate([v, v]), n1 + n2)
         return window_matrix(padded(L, n1 + n2) + M)
     M = A2.T @ (rows.w2[:, None] * A2)
     M[t:, t:] += rows.A32.T @ (rows.w3[:, None] * rows.A32)

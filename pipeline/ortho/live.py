@@ -298,7 +298,7 @@ class LiveOrtho:
                 if not solution.points:
                     raise InputDataError(f"{self.out_dir}: no DSM (--dsm, dsm.tif, flight "
                                          "lidar:) and no tie points to place a flat plane")
-                self._start_flat_at(float(np.median([p.xyz_m[2] for p in solution.points])),
+                self._start_flat_at(np.array([p.xyz_m[2] for p in solution.points]),
                                     "the end of the run",
                                     np.array([e.eop[:3] for e in solution.eops]))
             self._summary = self._finish(solution, t0)
@@ -352,21 +352,22 @@ class LiveOrtho:
     def _start_flat(self, image_id: str, estimator: object) -> None:
         window = getattr(estimator, "window_solution", None)
         solution = window() if window is not None else estimator.solution()  # type: ignore[attr-defined]
-        heights = [p.xyz_m[2] for p in solution.points]
-        self._start_flat_at(float(np.median(heights)),  # robust to a wild point (stage.py)
-                            f"image {image_id} ({len(heights)} points)",
+        heights = np.array([p.xyz_m[2] for p in solution.points])
+        self._start_flat_at(heights, f"image {image_id} ({len(heights)} points)",
                             np.array([e.eop[:3] for e in solution.eops]))
         self._surface_from = image_id
 
-    def _start_flat_at(self, z_m: float, when: str, cameras_xyz: FloatArray) -> None:
-        """The flat plane under the flight's nav (a watch: under ``cameras_xyz``, the
-        cameras known now, and :attr:`_flat_margin_m` beyond them)."""
+    def _start_flat_at(self, points_z_m: FloatArray, when: str, cameras_xyz: FloatArray,
+                       ) -> None:
+        """The flat plane at the median tie point height (:func:`flat_plane`) under the
+        flight's nav (a watch: under ``cameras_xyz``, the cameras known now, and
+        :attr:`_flat_margin_m` beyond them)."""
         xyz = self.nav.eop[:, :3] if len(self.nav.image_ids) else cameras_xyz.reshape(-1, 3)
         if self._flat_margin_m > 0:
             m = self._flat_margin_m
             lo, hi = xyz.min(axis=0), xyz.max(axis=0)
             xyz = np.vstack([xyz, [lo[0] - m, lo[1] - m, hi[2]], [hi[0] + m, hi[1] + m, hi[2]]])
-        plane, warning = flat_plane(z_m, xyz, self.crs,
+        plane, warning = flat_plane(points_z_m, xyz, self.crs,
                                     f"the median height of the tie points known after {when}:")
         self._warnings.append(warning)
         self._start(plane)

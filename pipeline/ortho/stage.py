@@ -281,10 +281,14 @@ def find_dsm(run_dir: Path, crs: pyproj.CRS, dsm_path: Path | None, flight_dir: 
     return None, ()
 
 
-def flat_plane(z_m: float, cameras_xyz_m: np.ndarray, crs: pyproj.CRS, what: str) -> (
-        tuple[Dsm, str]):
-    """The flat fallback surface at ``z_m`` under the cameras (``FLAT_MARGIN_HEIGHTS`` flying
-    heights around them) and its warning; ``what`` says where the height comes from."""
+def flat_plane(points_z_m: np.ndarray, cameras_xyz_m: np.ndarray, crs: pyproj.CRS,
+               what: str) -> tuple[Dsm, str]:
+    """The flat fallback surface at the median of the tie point heights ``points_z_m`` under
+    the cameras (``FLAT_MARGIN_HEIGHTS`` flying heights around them) and its warning;
+    ``what`` says where the height comes from. The median, not the mean: a tie point that
+    blunders sent kilometres under the ground (2 rays, one down-weighted: σ of hundreds of
+    metres) moves a mean by metres."""
+    z_m = float(np.median(points_z_m))
     xy = cameras_xyz_m[:, :2]
     margin = FLAT_MARGIN_HEIGHTS * float(np.max(cameras_xyz_m[:, 2]) - z_m)
     bounds = (xy[:, 0].min() - margin, xy[:, 1].min() - margin, xy[:, 0].max() + margin,
@@ -304,10 +308,7 @@ def choose_dsm(run_dir: Path, crs: pyproj.CRS, dsm_path: Path | None, flight_dir
     if len(points_z_m) == 0:
         raise InputDataError(f"{run_dir}: no DSM (--dsm, {DSM_FILE}, flight lidar:) and no tie "
                              "points to place a flat plane")
-    # the median: a tie point that blunders sent kilometres under the ground (2 rays, one
-    # down-weighted: σ of hundreds of metres) moves a mean by metres
-    plane, warning = flat_plane(float(np.median(points_z_m)), eops.eop[:, :3], crs,
-                                "the median tie point height")
+    plane, warning = flat_plane(points_z_m, eops.eop[:, :3], crs, "the median tie point height")
     return plane, (warning,)
 
 

@@ -172,7 +172,7 @@ def tie_points_laz(points: PointTable, crs: pyproj.CRS) -> bytes:
     keep = np.all(np.isfinite(points.xyz_m), axis=1)  # a point without a position is left out
     xyz = points.xyz_m[keep]
     header.offsets = np.floor(xyz.min(axis=0)) if len(xyz) else np.zeros(3)
-    header.scales = laz_scales(xyz - header.offsets if len(xyz) else np.zeros((0, 3)))
+    header.scales = laz_scales(xyz - header.offsets)
     header.add_crs(crs)
     las = laspy.LasData(header)
     las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
