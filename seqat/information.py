@@ -300,6 +300,10 @@ class InformationFactor:
         self._kept_gp = np.asarray([] if kept_gp is None else kept_gp, dtype=np.int64)
         self.n = n
         self._pos: tuple[np.ndarray, np.ndarray] | None = None  # _positions(), on request
+        self._Qrr: FloatArray | None = None
+        self._V: FloatArray | None = None
+        # a large window's B and L_RP by columns (sparse), on request
+        self._csc: dict[str, scipy.sparse.csc_array] = {}
         eliminate = np.asarray(eliminate, dtype=np.int64)
         self.r_idx, self.p_idx = r_idx, p_idx = split_indices(n, eliminate)
         npt = p_idx.shape[0]
@@ -346,7 +350,7 @@ class InformationFactor:
             self.L_RP = L_RP.tocsr()
             self.B = (self.L_RP @ Dinv_blocks).tocsr()
             if self.L_RP.nnz >= GROUPED_FROM_ROWS * GP_SIZE * npt:  # long tracks
-                BL = self._schur_product(_canonical_csc(self.L_RP), r)
+                BL = self._schur_product(self._by_columns("L_RP"), r)
             else:
                 BL = (self.B @ self.L_RP.T).toarray()
         else:
@@ -383,9 +387,6 @@ class InformationFactor:
 
     def _chol(self, S: FloatArray) -> None:
         r = S.shape[0]
-        self._Qrr: FloatArray | None = None
-        self._V: FloatArray | None = None
-        self._Bcsc: scipy.sparse.csc_array | None = None  # B by columns, on request
         if r == 0:
             self.U = np.zeros((0, 0))
             return
@@ -515,10 +516,8 @@ class InformationFactor:
         of points (:func:`point_column_groups`) reads the block of ``Q_RR`` on the rows its
         columns of ``B`` live on: ``W = Q_RR[rows, rows] B_g``, then ``B_p^T W_p`` per point."""
         Q = self._q_rr()
-        if self._Bcsc is None:
-            self._Bcsc = _canonical_csc(self.B)
         extra = np.zeros((pts.size, GP_SIZE, GP_SIZE) if full else (pts.size, GP_SIZE))
-        for sel, rows, Bg in point_column_groups(self._Bcsc, pts):
+        for sel, rows, Bg in point_column_groups(self._by_columns("B"), pts):
             k = sel.size
             W = Q[np.ix_(rows, rows)] @ Bg
             if full:
@@ -545,7 +544,7 @@ class InformationFactor:
         M[rpos[idx[in_r]], np.flatnonzero(in_r)] = 1.0
         jp = np.flatnonzero(in_p)
         if jp.size:
-            M[:, jp] -= self._columns_of(self.B, ppos[idx[jp]])
+            M[:, jp] -= self._columns_of("B", ppos[idx[jp]])
         xR = self._solve_S(M)
         out = np.empty((k, k))
         out[in_r] = xR[rpos[idx[in_r]]]
@@ -553,7 +552,11 @@ class InformationFactor:
             q = ppos[idx[jp]]  # positions in P of the eliminated rows asked for
             pts, at = np.unique(q // GP_SIZE, return_inverse=True)  # once per point
             cols3 = (pts[:, None] * GP_SIZE + np.arange(GP_SIZE)).ravel()
-            rhs = -(self._columns_of(self.L_RP, cols3).T @ xR).reshape(pts.size, GP_SIZE, k)
+            if scipy.sparse.issparse(self.L_RP):  # its columns' few non-zeros: O(nnz k)
+                rhs = -(self._by_columns("L_RP")[:, cols3].T @ xR)
+            else:
+                rhs = -(self.L_RP[:, cols3].T @ xR)
+            rhs = rhs.reshape(pts.size, GP_SIZE, k)
             rhs[at, q % GP_SIZE, jp] += 1.0  # E_p: the unit entries of idx's eliminated ones
             x_p = np.matmul(self.Dinv[pts], rhs)  # (points, 3, k)
             out[jp] = x_p[at, q % GP_SIZE]
@@ -605,7 +608,7 @@ class InformationFactor:
             Qpp = self.Dinv[blk].copy()
             if r:
                 cols = (blk[:, None] * GP_SIZE + np.arange(GP_SIZE)).ravel()
-                Bc = self._columns_of(self.B, cols).reshape(r, blk.size, GP_SIZE)
+                Bc = self._columns_of("B", cols).reshape(r, blk.size, GP_SIZE)
                 VB = np.tensordot(V, Bc, axes=(0, 0))  # V^T B: (r, points, 3)
                 Qpp += np.einsum("rpi,rpj->pij", VB, VB)
             Qpp = 0.5 * (Qpp + np.swapaxes(Qpp, 1, 2))
@@ -675,11 +678,18 @@ class InformationFactor:
         order = np.argsort(np.concatenate([jr, jp]))
         return out.take(order, axis=0)[:, order]
 
-    @staticmethod
-    def _columns_of(M: FloatArray | SparseMatrix, cols: np.ndarray) -> FloatArray:
-        """``M[:, cols]`` as a dense array (dense or sparse ``M``)."""
+    def _by_columns(self, name: str) -> scipy.sparse.csc_array:
+        """``B`` or ``L_RP`` (sparse: a large window's) by columns, converted once."""
+        out = self._csc.get(name)
+        if out is None:
+            out = self._csc[name] = _canonical_csc(getattr(self, name))
+        return out
+
+    def _columns_of(self, name: str, cols: np.ndarray) -> FloatArray:
+        """``B[:, cols]`` or ``L_RP[:, cols]`` (``name``) as a dense array."""
+        M = getattr(self, name)
         if scipy.sparse.issparse(M):
-            return M.tocsc()[:, cols].toarray()
+            return self._by_columns(name)[:, cols].toarray()
         return np.asarray(M)[:, cols]
 
     def dense(self) -> FloatArray:
