@@ -302,8 +302,6 @@ class InformationFactor:
         self._pos: tuple[np.ndarray, np.ndarray] | None = None  # _positions(), on request
         self._Qrr: FloatArray | None = None
         self._V: FloatArray | None = None
-        # a large window's B and L_RP by columns (sparse), on request
-        self._csc: dict[str, scipy.sparse.csc_array] = {}
         eliminate = np.asarray(eliminate, dtype=np.int64)
         self.r_idx, self.p_idx = r_idx, p_idx = split_indices(n, eliminate)
         npt = p_idx.shape[0]
@@ -347,18 +345,20 @@ class InformationFactor:
                 (self.Dinv.ravel(), np.repeat(k.reshape(npt, GP_SIZE), GP_SIZE, axis=0).ravel(),
                  np.arange(0, GP_SIZE * GP_SIZE * npt + 1, GP_SIZE)),
                 shape=(GP_SIZE * npt, GP_SIZE * npt))
-            self.L_RP = L_RP.tocsr()
-            self.B = (self.L_RP @ Dinv_blocks).tocsr()
+            # kept by columns (a point's three): what the groups, Q[touched, touched] and the
+            # products read, one copy each (a departure record keeps its factor)
+            self.L_RP = _canonical_csc(L_RP)
+            self.B = _canonical_csc(self.L_RP @ Dinv_blocks)
             if self.L_RP.nnz >= GROUPED_FROM_ROWS * GP_SIZE * npt:  # long tracks
-                BL = self._schur_product(self._by_columns("L_RP"), r)
+                BL = self._schur_product(self.L_RP, r)
             else:
                 BL = (self.B @ self.L_RP.T).toarray()
         else:
             B = np.matmul(L_RP.reshape(r, npt, GP_SIZE).transpose(1, 0, 2),
                           self.Dinv).transpose(1, 0, 2).reshape(r, GP_SIZE * npt)
             if L_RP.size > SPARSE_FROM:
-                self.L_RP = scipy.sparse.csr_array(L_RP)
-                self.B = scipy.sparse.csr_array(B)
+                self.L_RP = _canonical_csc(L_RP)
+                self.B = _canonical_csc(B)
                 BL = (self.B @ self.L_RP.T).toarray()
             else:
                 self.L_RP, self.B = L_RP, B
@@ -679,11 +679,11 @@ class InformationFactor:
         return out.take(order, axis=0)[:, order]
 
     def _by_columns(self, name: str) -> scipy.sparse.csc_array:
-        """``B`` or ``L_RP`` (sparse: a large window's) by columns, converted once."""
-        out = self._csc.get(name)
-        if out is None:
-            out = self._csc[name] = _canonical_csc(getattr(self, name))
-        return out
+        """``B`` or ``L_RP`` (sparse: a large window's) by columns, rows sorted: as kept."""
+        M = getattr(self, name)
+        if isinstance(M, scipy.sparse.csc_array) and M.has_canonical_format:
+            return M
+        return _canonical_csc(M)
 
     def _columns_of(self, name: str, cols: np.ndarray) -> FloatArray:
         """``B[:, cols]`` or ``L_RP[:, cols]`` (``name``) as a dense array."""
