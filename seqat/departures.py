@@ -10,14 +10,13 @@ of a point being born, re-enters with its exact conditional given the window
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
 import scipy.sparse
 
 from seqat.assembly import factor_information
-from seqat.conditional import Conditional
+from seqat.conditional import Conditional, Departure, split_gain
 from seqat.dense import add_square, square_take
 from seqat.geometry import wrap_angle
 from seqat.information import (
@@ -96,31 +95,11 @@ def leaving_conditional(L_ff: WindowMatrix, L_fs: FloatArray, leave_keys: list[K
             pass
         else:
             cond = Conditional(f.dense() if f.n <= DENSE_CONDITIONAL_UP_TO else f)
-            return cond, -f.solve(np.asarray(L_fs, dtype=np.float64))
+            return cond, cond.gain(L_fs)
     if scipy.sparse.issparse(L_ff):
         L_ff = L_ff.toarray()
-    cond = spd_inverse(L_ff, "information of the leaving parameters")
-    return Conditional(cond), -cond @ L_fs
-
-@dataclass(frozen=True, kw_only=True, eq=False)
-class Departure:
-    """Parameters F leaving the Seq-R window and their Rauch-Tung-Striebel gain on the rest W.
-
-    Later data reach F only through W (F is never observed again), so given the final
-    (smoothed) estimate of W the final estimate of F is ``x_F + J (x_W_final - x_W)`` with
-    ``J = Q_FW Q_WW^-1`` taken at departure (Rauch, Tung & Striebel 1965). W is F's Markov
-    blanket in the window (the keys ``L_FW`` is non-zero on): ``J = -L_FF^-1 L_FW`` is zero
-    on every other window key.
-    """
-
-    leaving: tuple[Key, ...]
-    staying: tuple[Key, ...]
-    x_leaving: FloatArray
-    x_staying: FloatArray
-    gain: FloatArray  # (|F|, |W|)
-    conditional: Conditional  # (|F|, |F|) Q_F|W = L_FF^-1, factorised
-    at: int  # index of the image before which F left
-
+    cond = Conditional(spd_inverse(L_ff, "information of the leaving parameters"))
+    return cond, cond.gain(L_fs)
 
 class DepartureMixin:
     """Window cut, departures, re-opening and smoothing of :class:`SequentialAT`."""
@@ -283,7 +262,7 @@ class DepartureMixin:
                                                       strict=True)])
             else:
                 x_w = np.concatenate([value[k] for k in dep.staying])
-            x_f = dep.x_leaving + dep.gain @ (x_w - dep.x_staying)
+            x_f = dep.x_leaving + dep.rts_gain() @ (x_w - dep.x_staying)
             off = 0
             for k in dep.leaving:
                 size = key_size(k)
@@ -450,20 +429,13 @@ class DepartureMixin:
             blanket, cols = blocks_of(keep_keys, support)
             w.couple(blanket)
             w.L = L
-        if w.L is not None and self._records:
-            gain = np.zeros((leave.size, cols.size))
-            gain[:, np.searchsorted(cols, support)] = gain_s
+        if w.L is not None and self._records:  # J is formed from L_FS on request
             self._departures.append(
-                Departure(
-                    leaving=tuple(leave_keys),
-                    staying=tuple(blanket),
-                    x_leaving=w.x[leave],
-                    x_staying=w.x[keep[cols]],
-                    gain=gain,
-                    conditional=cond,
-                    at=now,
-                )
-            )
+                Departure(leaving=tuple(leave_keys), staying=tuple(blanket),
+                          x_leaving=w.x[leave], x_staying=w.x[keep[cols]], conditional=cond,
+                          at=now, coupling=scipy.sparse.csr_array(L_fs),
+                          coupling_cols=np.searchsorted(cols, support),
+                          gain_width=int(cols.size)))
         w.coupled -= leaving
         w.marginalise(keep_keys, keep, w.L)
 
@@ -710,7 +682,7 @@ class DepartureMixin:
                                    for k in members])
             JK = buf[:, cols].copy()
             buf[:, cols] = 0.0
-            G = dep.gain[src]
+            G = dep.rts_gain()[src]
             const += JK @ (dep.x_leaving[src] - G @ dep.x_staying)
             C += dep.conditional.quadratic(src, JK)
             JG = JK @ G
@@ -762,14 +734,15 @@ class DepartureMixin:
             C = dep.conditional
             C_rm = C.entries(r_idx, m_idx)
             K = np.linalg.solve(C.block(r_idx), C_rm).T
-            self._departures[rec] = Departure(
+            self._departures[rec] = dataclasses.replace(
+                dep,
                 leaving=tuple(rest),
                 staying=dep.staying + tuple(reopened),
                 x_leaving=dep.x_leaving[m_idx],
                 x_staying=np.concatenate([dep.x_staying, dep.x_leaving[r_idx]]),
-                gain=np.hstack([dep.gain[m_idx] - K @ dep.gain[r_idx], K]),
                 conditional=C.restricted(m_idx, K, C_rm),
-                at=dep.at,
+                gain=None if dep.gain is None else split_gain(dep.gain, m_idx, K, r_idx),
+                splits=dep.splits + ((m_idx, K, r_idx),) if dep.gain is None else (),
             )
             off = 0
             for k in rest:

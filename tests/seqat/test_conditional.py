@@ -80,3 +80,47 @@ def test_a_sparse_leaving_block_gives_the_dense_ones_conditional_and_gain(
         cond, gain = departures.leaving_conditional(L_ff, L[np.ix_(f, s)], keys, coupled)
         np.testing.assert_allclose(gain, gain_ref, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(cond.block(np.arange(f.size)), Q_ff, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("factorised", [True, False])
+def test_a_records_gain_formed_on_request_equals_the_dense_one_after_two_splits(
+        factorised: bool) -> None:
+    """A departure record keeps ``L_FS`` (sparse) and its splits, not the RTS gain
+    ``J = -L_FF^-1 L_FW``: the ``J`` it forms equals the dense formula at departure and,
+    after two splits (keys of the record re-opened twice), the dense chain
+    ``[J_M - K J_R, K]`` with ``K = C_MR C_RR^-1`` of the dense conditional."""
+    import scipy.sparse
+
+    from seqat.conditional import Departure
+
+    rng = np.random.default_rng(19)
+    L, gp = _window_like(rng, n_e=3, n_p=10)
+    n = L.shape[0]
+    f, w = np.arange(n - 12), np.arange(n - 12, n)  # the last four GPs stay (W)
+    L_ff = L[np.ix_(f, f)]
+    Q = np.linalg.inv(L_ff)
+    support = np.flatnonzero(np.any(L[np.ix_(f, w)] != 0, axis=0))
+    L_fs = L[np.ix_(f, w[support])]
+    base = InformationFactor(L_ff, gp[gp < f.size]) if factorised else Q
+    cond = Conditional(base)
+    dep = Departure(leaving=(), staying=(), x_leaving=np.zeros(f.size),
+                    x_staying=np.zeros(w.size), conditional=cond, at=0,
+                    coupling=scipy.sparse.csr_array(L_fs), coupling_cols=support,
+                    gain_width=w.size)
+    J = np.zeros((f.size, w.size))
+    J[:, support] = -Q @ L_fs
+    np.testing.assert_allclose(dep.rts_gain(), J, rtol=1e-9, atol=1e-12)
+    C = Q
+    for r in (np.array([0, 1, 2, 3, 4, 5]), np.array([2, 3, 4])):  # an image, then a GP
+        m = np.setdiff1d(np.arange(C.shape[0]), r)
+        K, C_next = _split(C, r, m)
+        J = np.hstack([J[m] - K @ J[r], K])
+        Kc = np.linalg.solve(dep.conditional.block(r), dep.conditional.entries(r, m)).T
+        dep = Departure(leaving=(), staying=(), x_leaving=np.zeros(m.size),
+                        x_staying=np.zeros(J.shape[1]),
+                        conditional=dep.conditional.restricted(m, Kc, dep.conditional.entries(
+                            r, m)), at=0, coupling=dep.coupling,
+                        coupling_cols=dep.coupling_cols, gain_width=dep.gain_width,
+                        splits=dep.splits + ((m, Kc, r),))
+        C = C_next
+        np.testing.assert_allclose(dep.rts_gain(), J, rtol=1e-8, atol=1e-11)

@@ -98,7 +98,7 @@ def test_a_departure_record_holds_its_gain_on_the_markov_blanket_only() -> None:
     cols = np.concatenate([pos[k] for k in blanket])
     rest = np.setdiff1d(np.arange(W.size), cols)
     assert np.all(J[:, rest] == 0.0)
-    np.testing.assert_allclose(dep.gain, J[:, cols], rtol=1e-9, atol=1e-12 * np.abs(J).max())
+    np.testing.assert_allclose(dep.rts_gain(), J[:, cols], rtol=1e-9, atol=1e-12 * np.abs(J).max())
     np.testing.assert_array_equal(dep.x_staying, x_before[W[cols]])
 
 
@@ -288,7 +288,7 @@ def test_an_image_tied_to_nothing_departs_smooths_and_finishes() -> None:
     for fr in frames:
         est.add_frame(fr)
     empty = [d for d in est._departures if d is not None and not d.staying]
-    assert empty and all(d.gain.shape == (d.x_leaving.size, 0) for d in empty)
+    assert empty and all(d.rts_gain().shape == (d.x_leaving.size, 0) for d in empty)
     frozen = est.solution(smoothed=False)
     smoothed = est.solution(smoothed=True)
     assert len(smoothed.eops) == 40
