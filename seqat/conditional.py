@@ -60,10 +60,11 @@ class Conditional:
 
     def gain(self, L_fs: FloatArray) -> FloatArray:
         """``-C L_fs``, the RTS gain of a departure on the support of ``L_FW``: one solve on a
-        factorised base, one product on a dense one (a conditional not yet split)."""
+        factorised base, one product on a dense one (the conditional at departure, before any
+        split: :meth:`Departure.rts_gain` applies the splits)."""
         factor = isinstance(self.base, InformationFactor)
         n = self.base.n if factor else np.shape(self.base)[0]  # type: ignore[union-attr]
-        assert not self.downdates and self.idx.size == n, "a split record stores its gain"
+        assert not self.downdates and self.idx.size == n, "the conditional at departure"
         L_fs = np.asarray(L_fs, dtype=np.float64)
         return -self.base.solve(L_fs) if factor else -self.base @ L_fs  # type: ignore[union-attr]
 

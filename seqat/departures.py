@@ -101,6 +101,7 @@ def leaving_conditional(L_ff: WindowMatrix, L_fs: FloatArray, leave_keys: list[K
     cond = Conditional(spd_inverse(L_ff, "information of the leaving parameters"))
     return cond, cond.gain(L_fs)
 
+
 class DepartureMixin:
     """Window cut, departures, re-opening and smoothing of :class:`SequentialAT`."""
 
