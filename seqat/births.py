@@ -189,7 +189,7 @@ class BirthMixin:
         g_key = {k: g[w.index(k)] for k in keys}
         self._factors.add_linearised(J, np.repeat([cand[c][0] for c in born],
                                                   np.bincount(I, minlength=len(cand))[born]),
-                                     UV, sig, x[e_cols], Xr, Je, Jp, r, weight=wt * sig**2)
+                                     UV, sig, x[e_cols], Xr, Je, Jp, r, robust=wt * sig**2)
         for c in born:
             p, rays = cand[c]
             del self._pending[p]

@@ -281,7 +281,7 @@ class RowBuilder:
         e, p, Je, Jp, r = self._lin
         factors.add_linearised(self.ids[:, 0], self.ids[:, 1],
                                self.obs.reshape(self.k, 2), self.sigmas, e, p, Je, Jp, r,
-                               weight=self.w[: 2 * self.k : 2])
+                               robust=self.w[: 2 * self.k : 2] / self.w0[: 2 * self.k : 2])
 
     def residuals(self, d1t: FloatArray, d2: FloatArray) -> FloatArray:
         """Residuals of the last linearised rows at the corrections ``(d1t, d2)``: image rows
@@ -449,16 +449,27 @@ class Factors:
         r = np.asarray(uv, dtype=np.float64).reshape(-1, 2) - proj
         w0 = 1.0 / np.asarray(sigma, dtype=np.float64).reshape(-1) ** 2
         self.add_linearised(img, pt, uv, sigma, e_lin, p_lin, Je, Jp, r,
-                            weight=w0 * cauchy_weight(r, sigma, robust_scale))
+                            robust=cauchy_weight(r, sigma, robust_scale))
 
     def add_linearised(self, img: np.ndarray, pt: np.ndarray, uv: FloatArray,
                        sigma: FloatArray, e_lin: FloatArray, p_lin: FloatArray, Je: FloatArray,
                        Jp: FloatArray, r: FloatArray, *,
-                       weight: FloatArray | None = None) -> None:
+                       robust: FloatArray | None = None) -> None:
+        """Keep rows linearised at ``(e_lin, p_lin)``. Their weight is ``robust / sigma^2``:
+        ``robust`` is the robust loss's factor in [0, 1] (default 1), never a weight. The
+        window's information holds the same rows with that weight; a factor kept at another
+        one leaves the difference in the kept information, linearised for good (a finish-time
+        birth passed ``1 / sigma^2`` twice: at 0.5 px, 3/4 of its rows never re-linearised
+        and their robust re-weighting counted them 1.75 times)."""
         if len(img) == 0:
             return
         w0 = 1.0 / np.asarray(sigma, dtype=np.float64).reshape(-1) ** 2
-        w = w0 if weight is None else np.asarray(weight, dtype=np.float64).reshape(-1).copy()
+        w = w0.copy()
+        if robust is not None:
+            factor = np.asarray(robust, dtype=np.float64).reshape(-1)
+            if not np.all((factor >= 0.0) & (factor <= 1.0 + 1e-12)):
+                raise ValueError("robust factors must lie in [0, 1]")
+            w *= factor
         self._chunks.append((np.asarray(img, dtype=np.int64).copy(),
                              np.asarray(pt, dtype=np.int64).copy(),
                              np.asarray(uv, dtype=np.float64).reshape(-1, 2).copy(), w, w0,

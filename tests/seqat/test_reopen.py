@@ -298,3 +298,53 @@ def test_an_image_tied_to_nothing_departs_smooths_and_finishes() -> None:
             np.testing.assert_array_equal(a.eop, b.eop)  # nothing later reaches them
     est.finish()
     assert np.all(np.isfinite([e.eop for e in est.solution().eops]))
+
+
+@pytest.mark.parametrize("sigma_px", [0.5, 2.0])
+def test_finish_born_points_are_kept_with_their_weight(sigma_px: float) -> None:
+    """Tie points born at finish() (each seen only in the last two images, short of the ray
+    spread a point waits for) enter the window's information and its re-linearised rows
+    with the same weight ``1 / sigma_px^2``: the window's information minus its image rows
+    is the linear rows' (GPS/INS) alone, and the finished Seq-R is at Sim's minimum. With
+    the factor kept at a weight of 1 (at 0.5 px, 3/4 of those rows stayed linearised where
+    they were born), a rendered 102-image block ended 0.04 deg from Sim."""
+    from seqat.assembly import factor_information
+
+    f = simulate_strip(StripSimConfig(n_images=40, n_points=60, sigma_px=sigma_px,
+                                      sigma_attitude_deg=2.0, sigma_position_m=1.0), seed=3)
+    last = f.obs_image.max()
+    late = set(f.obs_point[f.obs_image == last]) & set(f.obs_point[f.obs_image == last - 1])
+    late = set(sorted(late)[:6])
+    keep = ~np.isin(f.obs_point, list(late)) | (f.obs_image >= last - 1)
+    g = dataclasses.replace(f, obs_image=f.obs_image[keep], obs_point=f.obs_point[keep],
+                            obs_uv=f.obs_uv[keep])
+    est = SequentialAT(g.camera, SequentialOptions(robust_scale=None, nav_robust_scale=None))
+    for fr in g.frames():
+        est.add_frame(fr)
+    est.finish()
+    assert est.finish_born >= 3
+    w = est._w
+    rows = est._factors.in_window(w)
+    assert rows is not None
+    e_idx, p_idx = rows.columns(w)
+    n = w.x.size
+    image_rows = factor_information(rows.Je, rows.Jp, rows.w, rows.img,
+                                    np.concatenate([e_idx, p_idx], axis=1), n)
+    rest = np.asarray(w.L.toarray() if hasattr(w.L, "toarray") else w.L) - (
+        image_rows.toarray() if hasattr(image_rows, "toarray") else image_rows)
+    nav = np.zeros(n)
+    for key in w.keys:
+        if key[0] == "e":
+            row = est._nav_rows[key[1]]
+            nav[w.index(key)] = row[12:] / row[EOP_SIZE:12] ** 2
+    scale = np.abs(w.L).max()
+    assert np.abs(rest - np.diag(nav)).max() < 1e-9 * scale
+    sim = SimultaneousAT(g.camera, SimOptions(max_iterations=200, robust_scale=None,
+                                              nav_robust_scale=None), refit_every_frame=False)
+    for fr in g.frames():
+        sim.add_frame(fr)
+    got, want = est.solution(), sim.solution()
+    assert len(got.points) == len(want.points)
+    a, b = np.array([e.eop for e in got.eops]), np.array([e.eop for e in want.eops])
+    np.testing.assert_allclose(a[:, :3], b[:, :3], rtol=0, atol=1e-5)
+    np.testing.assert_allclose(a[:, 3:], b[:, 3:], rtol=0, atol=1e-8)
