@@ -58,7 +58,7 @@ from seqat import snooping
 from seqat.births import BirthMixin, degenerate_points
 from seqat.calibration import FreeCamera, SelfCalibration
 from seqat.camera_window import CameraMixin
-from seqat.departures import Departure, DepartureMixin
+from seqat.departures import DEFAULT_MAX_WINDOW_IMAGES, Departure, DepartureMixin
 from seqat.errors import EstimationError
 from seqat.geometry import wrap_angle
 from seqat.information import window_matrix
@@ -114,9 +114,10 @@ class SequentialOptions:
 
     correlation_threshold: float | None = 0.1  # None: Seq-F (no window cut)
     # Seq-R: at most this many images in the window after an update, whatever their
-    # correlations (the latency budget's last dial: on blocks the previous strip keeps the
-    # window long at any threshold); None: the paper's rule alone.
-    max_window_images: int | None = None
+    # correlations (on a block flown on a weak GPS/INS the whole block stays correlated
+    # and the paper's rule never cuts; also the latency budget's last dial); None: the
+    # paper's rule alone (docs/algorithm.md, *Seq-R: the window*).
+    max_window_images: int | None = DEFAULT_MAX_WINDOW_IMAGES
     initial_images: int = 10  # images adjusted simultaneously before the sequential stage
     min_rays: int = 2  # a tie point is born once seen in this many window images
     min_ray_angle_deg: float = 8.0  # ... and its rays spread at least this much (docs/algorithm.md)

@@ -18,8 +18,9 @@ does it on line, after each image of the sequential stage, with three dials:
   the strip between them (30-70 images on the 196-image block at ρ ≥ 0.8).
 
 After ``relax_after_images`` consecutive calm images they relax, one per step and in the
-reverse order, towards their configured values (the cap by ``1 / WINDOW_FACTOR``, gone above
-:data:`MAX_WINDOW_CAP`; the threshold by ``RELAX_FACTOR``; the features by
+reverse order, towards their configured values (the cap by ``1 / WINDOW_FACTOR``, back to
+the configured one, :data:`seqat.departures.DEFAULT_MAX_WINDOW_IMAGES` by default, when it
+reaches it or :data:`MAX_WINDOW_CAP`; the threshold by ``RELAX_FACTOR``; the features by
 ``1 / FEATURE_FACTOR``).
 
 The budget is either **fixed** (``--budget-ms N``: processing, reading and tracking + the
@@ -150,7 +151,8 @@ class LatencyBudget:
     def __init__(self, budget_ms: float | None, base_threshold: float, *,
                  max_threshold: float = DEFAULT_MAX_THRESHOLD,
                  relax_after_images: int = DEFAULT_RELAX_AFTER_IMAGES,
-                 relax_fraction: float = DEFAULT_RELAX_FRACTION) -> None:
+                 relax_fraction: float = DEFAULT_RELAX_FRACTION,
+                 base_window_cap: int | None = None) -> None:
         if budget_ms is not None and not budget_ms > 0:
             raise ConfigError(f"--budget-ms: expected a positive number, got {budget_ms!r}")
         self.keep_up = budget_ms is None
@@ -163,7 +165,9 @@ class LatencyBudget:
         #: The tracker's configured and current feature counts (:meth:`track_features`).
         self.base_features: int | None = None
         self.features: int | None = None
-        self.window_cap: int | None = None  # Seq-R max_window_images (None: none)
+        #: Seq-R ``max_window_images`` configured (None: none) and now.
+        self.base_window_cap = base_window_cap
+        self.window_cap: int | None = base_window_cap
         self.events: list[BudgetEvent] = []
         self.images_over = 0
         self._calm = 0  # consecutive calm images
@@ -227,9 +231,11 @@ class LatencyBudget:
                     new_c = max(MIN_WINDOW_CAP, round(ref * WINDOW_FACTOR))
         elif self._calm >= self.relax_after_images:
             reason = f"under {self.relax_fraction:g} x budget for {self._calm} images"
-            if old_c is not None:
-                new_c = round(old_c / WINDOW_FACTOR)
-                new_c = None if new_c > MAX_WINDOW_CAP else new_c
+            base = self.base_window_cap
+            if old_c != base:  # towards the configured cap (a cap relaxed past it is that)
+                new_c = round(old_c / WINDOW_FACTOR)  # type: ignore[operator]
+                if new_c > MAX_WINDOW_CAP or (base is not None and new_c >= base):
+                    new_c = base
             elif old > self.base_threshold:
                 new = max(self.base_threshold, old / RELAX_FACTOR)
             elif old_f is not None and self.base_features is not None \

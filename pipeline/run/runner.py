@@ -258,7 +258,8 @@ def make_budget(budget_ms: float | str | None, method: Method,
                           f"threshold), not --method {method.value}")
     assert isinstance(options, SequentialOptions) and options.correlation_threshold is not None
     return LatencyBudget(None if budget_ms is None else float(budget_ms),
-                         options.correlation_threshold)
+                         options.correlation_threshold,
+                         base_window_cap=options.max_window_images)
 
 
 def run_fingerprint(flight_dir: Path, method: Method, options: SequentialOptions | SimOptions,

@@ -380,3 +380,29 @@ def test_the_window_cap_set_during_a_flight_applies_from_the_next_update() -> No
     assert max(free) > 5
     with pytest.raises(ConfigError, match="max_window_images"):
         est.set_max_window_images(1)
+
+
+def test_on_a_weak_gps_block_the_window_cap_bounds_what_the_correlations_do_not() -> None:
+    """A block on a weak GPS/INS (1.5 m, 2 deg) is tied far more strongly than the GPS holds
+    it: every image stays correlated with the newest over the threshold and the paper's rule
+    never cuts (the window is the whole flight). The cap (``max_window_images``, 70 by
+    default) bounds it; departed images come back at finish(), so the finished estimates
+    are the uncapped ones."""
+    from seqat.departures import DEFAULT_MAX_WINDOW_IMAGES
+
+    assert SequentialOptions().max_window_images == DEFAULT_MAX_WINDOW_IMAGES
+    flight = simulate_strip(StripSimConfig(n_images=44, strips=2, n_points=160,
+                                           sigma_position_m=1.5, sigma_attitude_deg=2.0),
+                            seed=5)
+    runs = {}
+    for cap in (None, 12):
+        est = SequentialAT(flight.camera, SequentialOptions(max_window_images=cap))
+        windows = [u.window_images for u in (est.add_frame(f) for f in flight.frames())
+                   if u.stage == "sequential"]
+        est.finish()
+        runs[cap] = (windows, np.array([e.eop for e in est.solution().eops]))
+    free, capped = runs[None][0], runs[12][0]
+    assert free[-1] == len(flight.truth_eop)  # never cut: every image in the window
+    assert max(capped) <= 12 + 1 and capped[-1] <= 12
+    np.testing.assert_allclose(runs[12][1][:, :3], runs[None][1][:, :3], rtol=0, atol=1e-3)
+    np.testing.assert_allclose(runs[12][1][:, 3:], runs[None][1][:, 3:], rtol=0, atol=1e-5)

@@ -22,6 +22,7 @@ from pipeline.report.stage import make_report
 from pipeline.run.budget import MIN_WINDOW_CAP
 from pipeline.run.runner import Method, run_flight
 from pipeline.run.store import read_eop_csv, read_run
+from seqat.departures import DEFAULT_MAX_WINDOW_IMAGES
 from seqat.geometry import depth, project
 
 #: Check point residuals are recovered exactly (pixels projected from the adjusted EOPs).
@@ -215,7 +216,8 @@ def test_report_shows_the_latency_budget_changes(small_sim_dir: Path, tmp_path: 
     assert all(c["new_threshold"] == 0.8 for c in live["threshold_changes"][3:])
     html_text = (out / "report.html").read_text()
     assert "<h3>Live operation</h3>" in html_text and "0.1 → 0.2" in html_text
-    assert f"none → {caps[0]}" in html_text
+    # from the configured cap (the default, the budget's base) down
+    assert f"{DEFAULT_MAX_WINDOW_IMAGES} → {caps[0]}" in html_text
 def test_latency_table_adds_the_live_ortho_to_the_end_to_end_time() -> None:
     from pipeline.run.latency import latency_table
 

@@ -136,3 +136,31 @@ def test_the_window_cap_comes_after_the_threshold_and_goes_first() -> None:
         if e is not None:
             relaxed.append((e.new_threshold, e.new_window_cap))
     assert relaxed == [(0.8, 21), (0.8, 28)]  # the cap relaxes first, the threshold waits
+
+
+def test_a_configured_window_cap_is_where_the_cap_relaxes_back_to() -> None:
+    """With a window cap configured (Seq-R's default): tightening starts from it, and relaxing
+    returns to it, never past it to no cap."""
+    budget = LatencyBudget(None, 0.1, base_window_cap=24)
+    for k in range(4):
+        budget.arrived(100.0 + k * 0.5)
+    assert budget.window_cap == 24 and budget.report().final_window_cap == 24
+    caps = []
+    for k in range(5):
+        e = budget.after_image(f"a{k}", SEQ, 900.0, tracking_ms=100.0, latency_ms=900.0,
+                               window_images=40)
+        assert e is not None
+        caps.append((e.old_window_cap, e.new_window_cap))
+    assert caps[3:] == [(24, 18), (18, 14)]  # 0.75 x min(cap, window)
+    relaxed = []
+    for k in range(4 * DEFAULT_RELAX_AFTER_IMAGES):
+        e = budget.after_image(f"b{k}", SEQ, 100.0, tracking_ms=80.0, latency_ms=110.0,
+                               window_images=14)
+        if e is not None:
+            relaxed.append((e.new_threshold, e.new_window_cap))
+    assert relaxed[:2] == [(0.8, 19), (0.8, 24)]  # 25 would pass the configured 24
+    assert all(c == 24 for _, c in relaxed[2:]) and relaxed[-1][0] < 0.8
+    opts = SequentialOptions()
+    budget = make_budget(300.0, Method.SEQ_R, opts)
+    assert opts.max_window_images is not None
+    assert budget is not None and budget.window_cap == opts.max_window_images
