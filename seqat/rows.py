@@ -447,7 +447,6 @@ class Factors:
             return
         proj, Je, Jp = cam.project_with_jacobians(e_lin, p_lin)
         r = np.asarray(uv, dtype=np.float64).reshape(-1, 2) - proj
-        w0 = 1.0 / np.asarray(sigma, dtype=np.float64).reshape(-1) ** 2
         self.add_linearised(img, pt, uv, sigma, e_lin, p_lin, Je, Jp, r,
                             robust=cauchy_weight(r, sigma, robust_scale))
 
