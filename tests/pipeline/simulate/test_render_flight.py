@@ -229,6 +229,22 @@ def test_autzen_configs_plan_the_documented_block(name: str, n_images: int) -> N
     assert 1 - plan.strip_spacing_m / (cam.width_px * 0.3) == pytest.approx(0.6)
 
 
+def test_the_weak_gps_config_plans_the_documented_block() -> None:
+    """configs/autzen_weak_gps.yaml: 102 images, GSD 0.25 m, 90 % / 70 % overlap, GPS 1.5 m
+    and INS 2 deg (docs/benchmarks.md, *A block on a weak GPS/INS*)."""
+    config = load_simulate_config(Path(__file__).resolve().parents[3] / "configs"
+                                  / "autzen_weak_gps.yaml")
+    assert isinstance(config, RenderSimulateConfig)
+    plan, cam = config.plan, config.camera
+    flight = plan_poses(config, (0.0, 0.0), 0.0, np.random.default_rng(0))
+    assert len(flight.image_ids) == 102
+    gsd = plan.height_m / cam.fx_px
+    assert gsd == pytest.approx(0.25)
+    assert 1 - plan.speed_m_s / plan.frame_rate_hz / (cam.height_px * gsd) == pytest.approx(0.9)
+    assert 1 - plan.strip_spacing_m / (cam.width_px * gsd) == pytest.approx(0.7)
+    assert (config.nav.sigma_position_m, config.nav.sigma_attitude_deg) == (1.5, 2.0)
+
+
 def test_cli_simulate_rendered(sources: Path, noisy_flight: Path, tmp_path: Path) -> None:
     from typer.testing import CliRunner
 
