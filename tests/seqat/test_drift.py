@@ -7,7 +7,7 @@ import pytest
 
 from seqat.errors import ConfigError
 from seqat.sequential import SequentialAT, SequentialOptions
-from seqat.simulate import StripSimConfig, simulate_strip
+from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
 
 
 def test_drift_is_reported_and_small_on_the_paper_strip() -> None:
@@ -27,3 +27,41 @@ def test_drift_is_reported_and_small_on_the_paper_strip() -> None:
 def test_drift_check_needs_relinearisation() -> None:
     with pytest.raises(ConfigError, match="drift_check_every"):
         SequentialOptions(drift_check_every=5, relinearise_px=None)
+
+
+@pytest.mark.parametrize("named", [2, 20])
+def test_a_singular_relinearisation_drops_a_few_points_or_is_skipped(
+        short_strip: SimulatedFlight, monkeypatch: pytest.MonkeyPatch, named: int) -> None:
+    """A re-linearisation that meets a singular system takes out the GPs its weakest
+    direction lies on and tries again, when they are a few (points the data do not
+    determine). When it names more than MAX_UNDETERMINED_AT_ONCE, the window as a whole lost
+    its conditioning: the re-linearisation is skipped and no point is dropped (a weak-GPS
+    block dropped 349 points at once, and 1725 later rays)."""
+    from seqat import relinearise
+    from seqat.information import RankDeficiency
+
+    est = SequentialAT(short_strip.camera, SequentialOptions())
+    for fr in list(short_strip.frames())[:30]:
+        est.add_frame(fr)
+    w = est._w
+    gps = [k for k in w.keys if k[0] == "p"]
+    assert len(gps) >= named
+    offsets = np.array([w.offset[k] for k in gps[:named]])
+    tries = []
+
+    def singular(self: SequentialAT, threshold_px: float | None = None,
+                 force: bool = False) -> None:
+        tries.append(1)
+        if len(tries) == 1:
+            raise RankDeficiency("singular", offsets, offsets)
+
+    monkeypatch.setattr(SequentialAT, "_relinearise", singular)
+    n_points, skipped = len(est.undetermined), est.relinearisations_skipped
+    est._relinearise_if_needed()
+    if named <= relinearise.MAX_UNDETERMINED_AT_ONCE:
+        assert len(est.undetermined) == n_points + named and len(tries) == 2
+        assert est.relinearisations_skipped == skipped
+    else:
+        assert len(est.undetermined) == n_points and len(tries) == 1
+        assert est.relinearisations_skipped == skipped + 1
+        assert all(k in w.offset for k in gps[:named])
