@@ -178,6 +178,19 @@ def test_a_rescue_is_named_only_when_its_relinearisation_is_kept(
     assert est.rescued == []
 
 
+def _astray_without_consensus(f: SimulatedFlight, j: int) -> SimulatedFlight:
+    """``f`` with point ``j`` born right (its first two rays) and every later ray wrong, each
+    its own way (150-300 px): astray while it gains rays, and no three rays agree anywhere."""
+    rows = np.flatnonzero(f.obs_point == j)
+    rows = rows[np.argsort(f.obs_image[rows])]
+    bad = rows[2:]
+    rng = np.random.default_rng(0)
+    angle, size = rng.uniform(0.0, 2 * np.pi, bad.size), rng.uniform(150.0, 300.0, bad.size)
+    uv = f.obs_uv.copy()
+    uv[bad] += np.stack([size * np.cos(angle), size * np.sin(angle)], axis=1)
+    return dataclasses.replace(f, obs_uv=uv)
+
+
 def test_an_astray_point_no_consensus_rescues_does_not_relinearise_on_the_same_rays(
         short_strip: SimulatedFlight, monkeypatch: pytest.MonkeyPatch) -> None:
     """A point with two good rays and every later ray a blunder sits at the good pair's
@@ -189,14 +202,7 @@ def test_an_astray_point_no_consensus_rescues_does_not_relinearise_on_the_same_r
 
     f = short_strip
     j = 34
-    rows = np.flatnonzero(f.obs_point == j)
-    rows = rows[np.argsort(f.obs_image[rows])]
-    bad = rows[2:]  # born right (first two rays), every later ray wrong, each its own way
-    rng = np.random.default_rng(0)
-    angle, size = rng.uniform(0.0, 2 * np.pi, bad.size), rng.uniform(150.0, 300.0, bad.size)
-    uv = f.obs_uv.copy()
-    uv[bad] += np.stack([size * np.cos(angle), size * np.sin(angle)], axis=1)
-    g = dataclasses.replace(f, obs_uv=uv)
+    g = _astray_without_consensus(f, j)
     est = SequentialAT(g.camera, SequentialOptions())
     seen: list[dict[int, int]] = []  # per check: astray point -> its window rays
     astray_points = seqat.relinearise.RelinearisationMixin._astray_points
@@ -227,16 +233,7 @@ def test_an_astray_point_alone_relinearises_the_window_with_one_factorisation(
     cost of ~4.5 updates)."""
     import seqat.relinearise
 
-    f = short_strip
-    j = 34
-    rows = np.flatnonzero(f.obs_point == j)
-    rows = rows[np.argsort(f.obs_image[rows])]
-    bad = rows[2:]  # born right, every later ray wrong: astray while it gains rays
-    rng = np.random.default_rng(0)
-    angle, size = rng.uniform(0.0, 2 * np.pi, bad.size), rng.uniform(150.0, 300.0, bad.size)
-    uv = f.obs_uv.copy()
-    uv[bad] += np.stack([size * np.cos(angle), size * np.sin(angle)], axis=1)
-    g = dataclasses.replace(f, obs_uv=uv)
+    g = _astray_without_consensus(short_strip, 34)
     est = SequentialAT(g.camera, SequentialOptions())
     made = [0]
     base = seqat.relinearise.InformationFactor
