@@ -49,9 +49,8 @@ from seqat.window import (
 #: every image and the update grew with the flight (204 images: 13,900 parameters, p99
 #: 0.90 s). Capped at 70 images the finished estimates are the same to 0.1 mm and p99 is
 #: 0.34 s; under ~50 the strip before the new one leaves and re-opens image by image (p99
-#: 0.39 s at 56) and points fail to re-enter (40: 349 points undetermined). The paper
-#: strip (25), Seneca (70) and the rendered blocks (<= 70) are not cut by it
-#: (docs/benchmarks.md, *A block on a weak GPS/INS*).
+#: 0.39 s at 56). The paper strip (25), Seneca (70) and the rendered blocks (<= 70) are not
+#: cut by it (docs/benchmarks.md, *A block on a weak GPS/INS*).
 DEFAULT_MAX_WINDOW_IMAGES = 70
 #: finish() re-opens the departed keys through their records only when they are at most this
 #: many parameters: they join the reduced system densely (their conditional prior couples
