@@ -127,7 +127,7 @@ class Departure:
     where ``L_FW`` is non-zero, ``coupling_cols`` of ``gain_width``) and the splits made
     since (each ``(m_idx, K, r_idx)``, :func:`split_gain`), and :meth:`rts_gain` forms ``J``
     from them with the same operations as at departure (the 196-image block's 72 records:
-    a dense ``J`` per record was 47 of their 100 MB). ``gain``: a ``J`` given whole.
+    a dense ``J`` per record was 47 of their 100 MB).
     """
 
     leaving: tuple[Key, ...]
@@ -136,17 +136,13 @@ class Departure:
     x_staying: FloatArray
     conditional: Conditional  # (|F|, |F|) Q_F|W = L_FF^-1, factorised
     at: int  # index of the image before which F left
-    gain: FloatArray | None = None  # (|F|, |W|), given whole
-    coupling: scipy.sparse.csr_array | None = None  # L_FS at departure (|F0|, |S|)
-    coupling_cols: np.ndarray | None = None  # S: positions in W's parameters at departure
-    gain_width: int = 0  # |W| at departure
+    coupling: scipy.sparse.csr_array  # L_FS at departure (|F0|, |S|)
+    coupling_cols: np.ndarray  # S: positions in W's parameters at departure
+    gain_width: int  # |W| at departure
     splits: tuple[tuple[np.ndarray, FloatArray, np.ndarray], ...] = ()
 
     def rts_gain(self) -> FloatArray:
         """``J`` (|F|, |W|)."""
-        if self.gain is not None:
-            return self.gain
-        assert self.coupling is not None and self.coupling_cols is not None
         G = np.zeros((self.coupling.shape[0], self.gain_width))
         if self.coupling.shape[1]:
             G[:, self.coupling_cols] = Conditional(self.conditional.base).gain(

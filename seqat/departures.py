@@ -16,7 +16,7 @@ import scipy.linalg
 import scipy.sparse
 
 from seqat.assembly import factor_information
-from seqat.conditional import Conditional, Departure, split_gain
+from seqat.conditional import Conditional, Departure
 from seqat.dense import add_square, square_take
 from seqat.geometry import wrap_angle
 from seqat.information import (
@@ -750,8 +750,7 @@ class DepartureMixin:
                 x_leaving=dep.x_leaving[m_idx],
                 x_staying=np.concatenate([dep.x_staying, dep.x_leaving[r_idx]]),
                 conditional=C.restricted(m_idx, K, C_rm),
-                gain=None if dep.gain is None else split_gain(dep.gain, m_idx, K, r_idx),
-                splits=dep.splits + ((m_idx, K, r_idx),) if dep.gain is None else (),
+                splits=dep.splits + ((m_idx, K, r_idx),),
             )
             off = 0
             for k in rest:

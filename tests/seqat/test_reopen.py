@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+import scipy.sparse
 
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
@@ -183,9 +184,13 @@ def test_smoothing_does_not_pass_a_rescue_jump_to_images_that_left_before_it() -
     from seqat.departures import Departure, DepartureMixin
 
     gain = np.arange(6 * 6, dtype=float).reshape(6, 6) / 100.0  # (|F| = 6, |W| = 2 GPs)
+    # J = -C L_FS: with C = I, the coupling -gain gives this gain
     dep = Departure(leaving=(("e", 0),), staying=(("p", 1), ("p", 2)),
-                    x_leaving=np.ones(6), x_staying=np.zeros(6), gain=gain,
-                    conditional=Conditional(np.eye(6)), at=1)
+                    x_leaving=np.ones(6), x_staying=np.zeros(6),
+                    conditional=Conditional(np.eye(6)), at=1,
+                    coupling=scipy.sparse.csr_array(-gain), coupling_cols=np.arange(6),
+                    gain_width=6)
+    np.testing.assert_allclose(dep.rts_gain(), gain)
     now = np.array([100.0, -50.0, 30.0, 0.1, 0.2, 0.3])  # GP 1 jumped, GP 2 moved a little
     window = SimpleNamespace(keys=[("p", 1), ("p", 2)], x=now,
                              index=lambda k: np.arange(3) + 3 * (k[1] - 1))
