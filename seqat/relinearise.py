@@ -382,10 +382,12 @@ class RelinearisationMixin:
         step = np.zeros_like(xk)
 
         # factorisations left (during the flight shared by the robust rounds)
-        # (an astray point alone, the rows not drifting: one step, ASTRAY_RELINEARISE_STEPS)
-        budget = (opts.relinearise_iterations * (rounds if robust is not None else 1) + 1
-                  if final else FLIGHT_RELINEARISE_STEPS if self._drift_px > limit or force
-                  else ASTRAY_RELINEARISE_STEPS)
+        if final:
+            budget = opts.relinearise_iterations * (rounds if robust is not None else 1) + 1
+        elif self._drift_px > limit or force:
+            budget = FLIGHT_RELINEARISE_STEPS
+        else:  # an astray point alone, the rows not drifting
+            budget = ASTRAY_RELINEARISE_STEPS
 
         def gauss_newton(step_px: float) -> None:
             """Gauss-Newton steps at the weights ``wf`` until a step moves no parameter more
