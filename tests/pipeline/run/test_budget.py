@@ -9,6 +9,7 @@ from pipeline.run.budget import (
     BACKLOG_PERIODS,
     DEFAULT_RELAX_AFTER_IMAGES,
     MIN_FEATURES,
+    BudgetEvent,
     LatencyBudget,
 )
 from pipeline.run.runner import KEEP_UP, Method, make_budget
@@ -18,9 +19,10 @@ from seqat.sequential import SequentialOptions
 SEQ = "sequential"
 
 
-def _keep_up(period_s: float = 0.5, features: int | None = 4000) -> LatencyBudget:
+def _keep_up(period_s: float = 0.5, features: int | None = 4000,
+             base_window_cap: int | None = None) -> LatencyBudget:
     """A keep-up budget that has seen a few arrivals ``period_s`` apart."""
-    budget = LatencyBudget(None, 0.1)
+    budget = LatencyBudget(None, 0.1, base_window_cap=base_window_cap)
     budget.track_features(features)
     for k in range(4):
         budget.arrived(100.0 + k * period_s)
@@ -118,46 +120,39 @@ def test_a_draining_backlog_changes_nothing() -> None:
     assert event is not None and event.reason == "backlog"  # growing again
 
 
+def _over(budget: LatencyBudget, n: int, window: int) -> list[BudgetEvent]:
+    """``n`` images whose update alone is over the 500 ms interval: each changes a dial."""
+    events = [budget.after_image(f"a{k}", SEQ, 900.0, tracking_ms=100.0, latency_ms=900.0,
+                                 window_images=window) for k in range(n)]
+    assert all(e is not None for e in events)
+    return events  # type: ignore[return-value]
+
+
+def _calm(budget: LatencyBudget, n: int, window: int) -> list[tuple[float, int | None]]:
+    """``n`` calm images: the (threshold, window cap) of each change they made."""
+    events = [budget.after_image(f"b{k}", SEQ, 100.0, tracking_ms=80.0, latency_ms=110.0,
+                                 window_images=window) for k in range(n)]
+    return [(e.new_threshold, e.new_window_cap) for e in events if e is not None]
+
+
 def test_the_window_cap_comes_after_the_threshold_and_goes_first() -> None:
     budget = _keep_up(0.5, features=None)
-    steps = []
-    for k in range(6):  # the update alone over the interval, a 40-image window
-        e = budget.after_image(f"a{k}", SEQ, 900.0, tracking_ms=100.0, latency_ms=900.0,
-                               window_images=40)
-        assert e is not None
-        steps.append((e.new_threshold, e.new_window_cap))
+    steps = [(e.new_threshold, e.new_window_cap) for e in _over(budget, 6, window=40)]
     assert steps[:3] == [(0.2, None), (0.4, None), (0.8, None)]
     assert [c for _, c in steps[3:]] == [30, 22, 16]  # 0.75 x min(cap, window)
     assert budget.report().final_window_cap == 16
-    relaxed = []
-    for k in range(2 * DEFAULT_RELAX_AFTER_IMAGES):
-        e = budget.after_image(f"b{k}", SEQ, 100.0, tracking_ms=80.0, latency_ms=110.0,
-                               window_images=16)
-        if e is not None:
-            relaxed.append((e.new_threshold, e.new_window_cap))
+    relaxed = _calm(budget, 2 * DEFAULT_RELAX_AFTER_IMAGES, window=16)
     assert relaxed == [(0.8, 21), (0.8, 28)]  # the cap relaxes first, the threshold waits
 
 
 def test_a_configured_window_cap_is_where_the_cap_relaxes_back_to() -> None:
     """With a window cap configured (Seq-R's default): tightening starts from it, and relaxing
     returns to it, never past it to no cap."""
-    budget = LatencyBudget(None, 0.1, base_window_cap=24)
-    for k in range(4):
-        budget.arrived(100.0 + k * 0.5)
+    budget = _keep_up(0.5, features=None, base_window_cap=24)
     assert budget.window_cap == 24 and budget.report().final_window_cap == 24
-    caps = []
-    for k in range(5):
-        e = budget.after_image(f"a{k}", SEQ, 900.0, tracking_ms=100.0, latency_ms=900.0,
-                               window_images=40)
-        assert e is not None
-        caps.append((e.old_window_cap, e.new_window_cap))
+    caps = [(e.old_window_cap, e.new_window_cap) for e in _over(budget, 5, window=40)]
     assert caps[3:] == [(24, 18), (18, 14)]  # 0.75 x min(cap, window)
-    relaxed = []
-    for k in range(4 * DEFAULT_RELAX_AFTER_IMAGES):
-        e = budget.after_image(f"b{k}", SEQ, 100.0, tracking_ms=80.0, latency_ms=110.0,
-                               window_images=14)
-        if e is not None:
-            relaxed.append((e.new_threshold, e.new_window_cap))
+    relaxed = _calm(budget, 4 * DEFAULT_RELAX_AFTER_IMAGES, window=14)
     assert relaxed[:2] == [(0.8, 19), (0.8, 24)]  # 25 would pass the configured 24
     assert all(c == 24 for _, c in relaxed[2:]) and relaxed[-1][0] < 0.8
     opts = SequentialOptions()
