@@ -8,8 +8,8 @@ import numpy as np
 
 from seqat.calibration import correlation, to_hold, undetermined
 from seqat.information import add_block
+from seqat.precision import sigma_scale
 from seqat.relinearise import FINAL_RELINEARISE_PX
-from seqat.simultaneous import sigma_scale
 from seqat.types import CameraEstimate, PinholeCamera
 
 #: Self-calibration: a parameter held at its prior after the last image gets this many times

@@ -30,8 +30,8 @@ from seqat.information import (
     submatrix,
     window_matrix,
 )
+from seqat.precision import sigma_scale
 from seqat.rows import gradient_from_factors
-from seqat.simultaneous import sigma_scale
 from seqat.types import EOP_SIZE, EopEstimate, FloatArray, PointEstimate
 from seqat.update import spd_inverse
 from seqat.window import (

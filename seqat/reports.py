@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from seqat.geometry import wrap_angle
-from seqat.simultaneous import rms_point_sigma, sigma_scale
+from seqat.precision import rms_point_sigma, sigma_scale
 from seqat.types import EOP_SIZE, GP_SIZE, EopEstimate, FloatArray, Frame, ImageUpdate
 from seqat.update import LinearRows
 from seqat.window import Key, key_size

@@ -44,6 +44,9 @@ NAV_ROBUST_SCALE = 3.0
 NAV_GROUPS = (("position", slice(0, 3)), ("attitude", slice(3, 6)))
 #: A group whose weight factor is below this is reported as down-weighted (run.json).
 NAV_REPORT_WEIGHT = 0.9
+#: A tie point is published only while at least this many of its rays lie within the loss's
+#: core at the final estimate (:func:`disagreeing_points`).
+MIN_AGREEING_RAYS = 2
 
 
 def check_scale(name: str, value: float | None) -> None:
@@ -56,7 +59,8 @@ def check_scale(name: str, value: float | None) -> None:
                           f"got {value!r}")
 
 
-def _u2(res_px: FloatArray, sigma_px: FloatArray) -> FloatArray:
+def ray_u2(res_px: FloatArray, sigma_px: FloatArray) -> FloatArray:
+    """Squared normalised residual ``|v|² / σ²`` of each image point (k,), both coordinates."""
     res = np.asarray(res_px, dtype=np.float64).reshape(-1, 2)
     return np.sum(res**2, axis=1) / np.asarray(sigma_px, dtype=np.float64).reshape(-1) ** 2
 
@@ -68,6 +72,24 @@ def robust_weight(u2: FloatArray, scale: float | None) -> FloatArray:
         return np.ones(u2.size)
     k2 = scale**2
     return 1.0 / (1.0 + np.maximum(u2 - k2, 0.0) / k2)
+
+
+def disagreeing_points(u2: FloatArray, point: np.ndarray, scale: float | None) -> np.ndarray:
+    """The points (sorted, unique values of ``point``) with fewer than
+    :data:`MIN_AGREEING_RAYS` rays within the loss's core (``u² <= k²``), from each ray's
+    squared normalised residual ``u2`` and its point ``point`` (k,); none without a scale.
+
+    Two rays, one of them a wrong match, meet where neither is right: the loss cannot tell
+    which ray is wrong and leaves both beyond the core (each with half the mismatch across
+    the epipolar line), the point metres off along it. The data do not determine such a
+    point: the estimators keep it in the adjustment with the weights the loss gives its
+    rays but do not publish it (docs/algorithm.md, *Points whose rays disagree*)."""
+    point = np.asarray(point, dtype=np.int64)
+    if scale is None or point.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    pts, pos = np.unique(point, return_inverse=True)
+    inside = np.bincount(pos, weights=np.asarray(u2) <= scale**2, minlength=pts.size)
+    return pts[inside < MIN_AGREEING_RAYS]
 
 
 def robust_cost(u2: FloatArray, scale: float | None) -> float:
@@ -82,12 +104,12 @@ def robust_cost(u2: FloatArray, scale: float | None) -> float:
 
 def cauchy_weight(res_px: FloatArray, sigma_px: FloatArray, scale: float | None) -> FloatArray:
     """IRLS weight factor in (0, 1] of each image point (k,) from its residual (k, 2)."""
-    return robust_weight(_u2(res_px, sigma_px), scale)
+    return robust_weight(ray_u2(res_px, sigma_px), scale)
 
 
 def cauchy_cost(res_px: FloatArray, sigma_px: FloatArray, scale: float | None) -> float:
     """``Σ ρ(u²)`` of the image points (``Σ u²`` without a scale: least squares)."""
-    return robust_cost(_u2(res_px, sigma_px), scale)
+    return robust_cost(ray_u2(res_px, sigma_px), scale)
 
 
 def nav_dof() -> np.ndarray:

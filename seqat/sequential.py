@@ -63,22 +63,17 @@ from seqat.errors import EstimationError
 from seqat.geometry import wrap_angle
 from seqat.information import window_matrix
 from seqat.late import LateMixin
+from seqat.precision import sigma_scale
 from seqat.relinearise import RelinearisationMixin
 from seqat.reports import RecordedRows, ReportMixin
 from seqat.robust import NAV_ROBUST_SCALE, ROBUST_SCALE, check_scale
-from seqat.rows import (
-    Factors,
-    RowBuilder,
-    add_information,
-    snoop_update,
-)
+from seqat.rows import Factors, RowBuilder, add_information, snoop_update
 from seqat.simultaneous import (
     Covariance,
     SimOptions,
     SimultaneousAT,
     control_by_id,
     free_nav_sigma,
-    sigma_scale,
 )
 from seqat.types import (
     EOP_SIZE,
@@ -292,6 +287,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         #: Points the data do not determine (singular information), taken out: point ids.
         self.undetermined: list[str] = []
         self.rescued: list[str] = []  # GPs re-intersected robustly (relinearise)
+        self.disagreeing: list[str] = []  # GPs whose rays disagree, not published (finish)
+        self._disagreeing: set[int] = set()
         self._rescues: list[tuple[int, Key]] = []  # (records made before it, GP rescued)
         self._final_reopened: set[Key] = set()  # departed keys re-opened by finish()
         self.final_reopen_skipped = self.finish_born = 0  # finish(): not re-opened; born
@@ -340,6 +337,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                         self._reopen_departed()
                     self.finish_born = self._birth_at_finish()
                     self._final_relinearise()
+                    self._find_disagreeing()
                 self._hold_undetermined_camera()
 
     def solution(self, *, smoothed: bool | None = None) -> Solution:
@@ -385,6 +383,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             eops.append(EopEstimate(image_id=iid, eop=val, sigma=sig))
         pts = []
         for p in self._gp_order:
+            if p in self._disagreeing:
+                continue  # its rays disagree (finish(): seqat.robust.disagreeing_points)
             if ("p", p) in w.offset and ("p", p) not in realtime:
                 idx = w.index(("p", p))
                 xyz, sig, nobs = w.x[idx] + origin, sd[idx], self._gp_nobs[p]

@@ -39,6 +39,7 @@ from seqat.normals import (
     linearise,
     weighted_ssr,
 )
+from seqat.precision import rms_point_sigma, sigma_scale
 from seqat.robust import ROBUST_SCALE, cauchy_weight
 from seqat.types import (
     EOP_SIZE,
@@ -336,30 +337,6 @@ def control_by_id(control: Sequence[ControlPoint]) -> dict[str, ControlPoint]:
     return out
 
 
-def sigma_scale(sigma0: float, redundancy: int) -> float:
-    """Factor applied to cofactors' square roots: the a posteriori sigma0 (1 without redundancy)."""
-    return sigma0 if redundancy > 0 and np.isfinite(sigma0) else 1.0
-
-
-def rms_point_sigma(variances_m2: FloatArray) -> tuple[float, float, float]:
-    """r.m.s. of the GP standard errors per coordinate (seed 003 §4.4).
-
-    Parameters
-    ----------
-    variances_m2 : (m, 3) float
-        Variances of X, Y, Z of each point.
-
-    Returns
-    -------
-    tuple of 3 float
-        Metres; NaN without points.
-    """
-    if variances_m2.shape[0] == 0:
-        return (float("nan"),) * 3  # type: ignore[return-value]
-    rms = np.sqrt(np.mean(variances_m2, axis=0))
-    return (float(rms[0]), float(rms[1]), float(rms[2]))
-
-
 @dataclass(frozen=True, kw_only=True, eq=False)
 class SimState:
     """Everything a simultaneous solution knows, for handing over to the sequential stage.
@@ -423,6 +400,8 @@ class SimultaneousAT:
         self.rejections: list[tuple[str, str, float]] = []
         #: GPS/INS groups down-weighted by data snooping: (image id, "position"/"attitude").
         self.nav_downweighted: list[tuple[str, str]] = []
+        #: Tie points left out of the solution: their rays disagree (seqat.robust).
+        self.disagreeing: list[str] = []
 
     @property
     def nav_robust(self) -> list[tuple[str, str, float]]:
@@ -761,8 +740,24 @@ class SimultaneousAT:
             eop=EopEstimate(image_id=frame.image_id, eop=eop, sigma=sigma),
         )
 
+    def _disagreeing_points(self, res: SimResult) -> set[int]:
+        """Block points (positions in the selection) whose rays disagree at ``res``
+        (:func:`seqat.robust.disagreeing_points`; ground control exempt), named in
+        :attr:`disagreeing`."""
+        _, oi, op, uv, sg = self._observations()
+        pos = np.full(len(self._cat.point_ids), -1)
+        pos[self._point_sel] = np.arange(self._point_sel.size)
+        ids = self._cat.point_ids
+        use = (pos[op] >= 0) & np.fromiter((ids[j] not in self.control for j in op), bool, op.size)
+        oi, pt, uv, sg = oi[use], pos[op[use]], uv[use], sg[use]
+        u2 = rloss.ray_u2(uv - project(res.eop[oi], res.gp[pt], self.camera_now), sg)
+        off = rloss.disagreeing_points(u2, pt, self.options.robust_scale)
+        self.disagreeing = [ids[int(self._point_sel[j])] for j in off]
+        return set(off.tolist())
+
     def solution(self) -> Solution:
-        """Final estimates of every image and point with standard deviations."""
+        """Final estimates of every image and point with standard deviations; not the tie
+        points whose rays disagree (:meth:`_disagreeing_points`)."""
         if not self._cat.image_ids:
             raise EstimationError("no frames were added")
         if self._dirty or self._result is None or self._result.eop_cofactor is None:
@@ -782,8 +777,9 @@ class SimultaneousAT:
             )
         pts = []
         und = res.undetermined
+        off = self._disagreeing_points(res)
         for j, gi in enumerate(self._point_sel):
-            if und is not None and und[j]:
+            if (und is not None and und[j]) or j in off:
                 continue  # the data do not determine it (docs/algorithm.md)
             pts.append(
                 PointEstimate(

@@ -70,6 +70,10 @@ class RobustnessRecord:
     rescued_points : tuple[str, ...]
         Tie points most of whose rays disagreed with their estimate (one born on a blunder),
         re-intersected robustly from their rays during a window re-linearisation.
+    disagreeing_points : tuple[str, ...]
+        Tie points with fewer than two rays within the robust loss's core at the final
+        estimate (two rays, one a wrong match): left out of the solution
+        (:func:`seqat.robust.disagreeing_points`).
     final_reopen_skipped : int
         Seq-R: departed parameters that the final smoothing pass did not re-open for being
         too many (their RTS-smoothed values stand; 0: every one re-opened, or none departed).
@@ -91,6 +95,7 @@ class RobustnessRecord:
     undetermined_points: tuple[str, ...] = ()
     diverged_images: tuple[str, ...] = ()
     rescued_points: tuple[str, ...] = ()
+    disagreeing_points: tuple[str, ...] = ()
     final_reopen_skipped: int = 0
     nav_robust_scale: float | None = None
     nav_robust: tuple[NavRobust, ...] = ()
@@ -122,6 +127,7 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
                             diverged_images=tuple(getattr(estimator, "diverged", ())),
                             rescued_points=tuple(dict.fromkeys(getattr(estimator, "rescued",
                                                                        ()))),
+                            disagreeing_points=tuple(getattr(estimator, "disagreeing", ())),
                             final_reopen_skipped=int(getattr(estimator, "final_reopen_skipped",
                                                              0)),
                             nav_robust_scale=getattr(options, "nav_robust_scale", None),

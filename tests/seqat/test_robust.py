@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from seqat.robust import ROBUST_SCALE, cauchy_cost, cauchy_weight
+from seqat.robust import ROBUST_SCALE, cauchy_cost, cauchy_weight, disagreeing_points
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight
 from seqat.simultaneous import SimOptions, SimultaneousAT
@@ -28,6 +28,62 @@ def test_weights_are_the_derivative_of_the_cost_and_one_inside_the_core() -> Non
         assert (up - dn) / (2 * h) == pytest.approx(w[q], rel=1e-5)
     assert cauchy_cost(res, sigma, None) == pytest.approx(float(np.sum(u2)))
     np.testing.assert_array_equal(cauchy_weight(res, sigma, None), np.ones(5))
+
+
+def test_a_point_needs_two_rays_within_the_core() -> None:
+    """disagreeing_points: fewer than two rays with u² <= k² (the core's edge included);
+    none without a scale (least squares)."""
+    k = ROBUST_SCALE
+    u2 = np.array([0.0, k**2, 50.0, 60.0, 1.0, 70.0, 4.0, 5.0, 80.0])
+    point = np.array([7, 7, 3, 3, 5, 5, 9, 9, 9])
+    np.testing.assert_array_equal(disagreeing_points(u2, point, k), [3, 5])
+    assert disagreeing_points(u2, point, None).size == 0
+    assert disagreeing_points(np.zeros(0), np.zeros(0, dtype=np.int64), k).size == 0
+
+
+def _two_rays(f: SimulatedFlight, shift_px: tuple[float, float]) -> tuple[SimulatedFlight, str]:
+    """A point of the strip cut to its first two rays, the second moved by ``shift_px``."""
+    counts = np.bincount(f.obs_point)
+    mid = len(f.image_ids) // 2
+    p = int(next(q for q in np.unique(f.obs_point[f.obs_image == mid]) if counts[q] >= 3))
+    rows = np.flatnonzero(f.obs_point == p)
+    keep = np.ones(f.obs_uv.shape[0], dtype=bool)
+    keep[rows[2:]] = False
+    uv = f.obs_uv.copy()
+    uv[rows[1]] += shift_px
+    return dataclasses.replace(f, obs_image=f.obs_image[keep], obs_point=f.obs_point[keep],
+                               obs_uv=uv[keep]), f.point_ids[p]
+
+
+@pytest.mark.parametrize("method", ["sim", "seq-r"])
+def test_a_point_whose_two_rays_disagree_is_not_published(short_strip: SimulatedFlight,
+                                                          method: str) -> None:
+    """Two rays, one a wrong match 40 px across the epipolar line (the strip's x): the loss
+    cannot tell which is wrong and the point would sit metres off; it is left out of the
+    solution and named, by Sim and by the finished Seq-R alike. Moved along the epipolar
+    line the mismatch is invisible (a wrong depth that fits both rays): kept. A clean
+    flight loses no point."""
+
+    def run(f: SimulatedFlight) -> tuple[set[str], list[str]]:
+        if method == "sim":
+            est: SimultaneousAT | SequentialAT = SimultaneousAT(
+                f.camera, SimOptions(), refit_every_frame=False)
+        else:
+            est = SequentialAT(f.camera, SequentialOptions())
+        for fr in f.frames():
+            est.add_frame(fr)
+        if isinstance(est, SequentialAT):
+            est.finish()
+        return {p.point_id for p in est.solution().points}, est.disagreeing
+
+    across, pid = _two_rays(short_strip, (0.0, 40.0))
+    published, named = run(across)
+    assert named == [pid]
+    assert published == set(short_strip.point_ids) - {pid}
+    published, named = run(_two_rays(short_strip, (40.0, 0.0))[0])
+    assert named == [] and pid in published
+    published, named = run(short_strip)
+    assert named == [] and published == set(short_strip.point_ids)
 
 
 def _blunder(f: SimulatedFlight, px: float) -> SimulatedFlight:

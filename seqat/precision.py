@@ -1,0 +1,33 @@
+"""Precision of the published estimates: cofactors scaled by the a posteriori σ0, and the
+r.m.s. of the GP standard errors (seed 003 §4.4). Shared by Sim and the sequential
+estimators (docs/algorithm.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from seqat.types import FloatArray
+
+
+def sigma_scale(sigma0: float, redundancy: int) -> float:
+    """Factor applied to cofactors' square roots: the a posteriori sigma0 (1 without redundancy)."""
+    return sigma0 if redundancy > 0 and np.isfinite(sigma0) else 1.0
+
+
+def rms_point_sigma(variances_m2: FloatArray) -> tuple[float, float, float]:
+    """r.m.s. of the GP standard errors per coordinate (seed 003 §4.4).
+
+    Parameters
+    ----------
+    variances_m2 : (m, 3) float
+        Variances of X, Y, Z of each point.
+
+    Returns
+    -------
+    tuple of 3 float
+        Metres; NaN without points.
+    """
+    if variances_m2.shape[0] == 0:
+        return (float("nan"),) * 3  # type: ignore[return-value]
+    rms = np.sqrt(np.mean(variances_m2, axis=0))
+    return (float(rms[0]), float(rms[1]), float(rms[2]))
