@@ -147,6 +147,8 @@ class RobustnessSummary:
     dropout_bridged: int
     dropout_skipped: tuple[str, ...]
     nav_robust: tuple[str, ...] = ()  # "image: group (weight)"
+    points_disagreeing: int = 0  # tie points left out: fewer than two rays agree
+    points_undetermined: int = 0  # tie points left out: singular information
 
 
 def summarise(record: Mapping[str, object]) -> RobustnessSummary | None:
@@ -169,7 +171,9 @@ def summarise(record: Mapping[str, object]) -> RobustnessSummary | None:
         dropout_bridged=len(rob.get("dropout_bridged") or ()),  # type: ignore[arg-type]
         dropout_skipped=tuple(rob.get("dropout_skipped") or ()),  # type: ignore[arg-type]
         nav_robust=tuple(f"{n['image']}: {n['group']} ({n['weight']:.2g})"
-                         for n in rob.get("nav_robust") or ()))  # type: ignore[union-attr]
+                         for n in rob.get("nav_robust") or ()),  # type: ignore[union-attr]
+        points_disagreeing=len(rob.get("disagreeing_points") or ()),  # type: ignore[arg-type]
+        points_undetermined=len(rob.get("undetermined_points") or ()))  # type: ignore[arg-type]
 
 
 def robustness_rows(summary: RobustnessSummary) -> list[tuple[str, str]]:
@@ -183,6 +187,8 @@ def robustness_rows(summary: RobustnessSummary) -> list[tuple[str, str]]:
         ("GPS/INS groups down-weighted", ", ".join(summary.nav_downweighted) or "none"),
         ("GPS/INS groups down-weighted by the robust loss (weight)",
          ", ".join(summary.nav_robust) or "none"),
+        ("tie points left out: rays disagree / undetermined",
+         f"{summary.points_disagreeing} / {summary.points_undetermined}"),
         ("GNSS dropout images bridged / skipped",
          f"{summary.dropout_bridged} / {len(summary.dropout_skipped)}"
          + (f" ({', '.join(summary.dropout_skipped)})" if summary.dropout_skipped else "")),
