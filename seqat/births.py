@@ -194,6 +194,7 @@ class BirthMixin:
             p, rays = cand[c]
             del self._pending[p]
             self._forced.discard(p)
+            self._undetermined.pop(p, None)  # taken out earlier, determined now
             self._gp_count[p] = self._gp_nobs[p] = len(rays)
             self._gp_order.append(p)
             self._n_points += 1

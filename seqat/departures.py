@@ -113,23 +113,6 @@ def leaving_conditional(L_ff: WindowMatrix, L_fs: FloatArray, leave_keys: list[K
 class DepartureMixin:
     """Window cut, departures, re-opening and smoothing of :class:`SequentialAT`."""
 
-    def _drop_undetermined(self, keys: list[Key]) -> None:
-        """GPs whose information became singular (every ray down-weighted by the robust loss,
-        or rays that no longer intersect): out of the window and of the solution, named in
-        :attr:`undetermined`. A later observation of the point starts it anew."""
-        w = self._w
-        for k in keys:  # departure records may refer to them: they are constants now
-            self._dropped_value[k] = w.x[w.index(k)].copy()
-        w.drop(keys)
-        gone = {k[1] for k in keys if k[0] == "p"}
-        self._factors.forget(gone)
-        for p in gone:
-            self._gp_count.pop(p, None)
-            self._orphans.discard(p)
-            self.undetermined.append(self._point_ids[p])
-        self._gp_order = [p for p in self._gp_order if p not in gone]
-        self._n_points -= len(gone)
-
     def _prune_dormant(self, i: int) -> None:
         """Every :data:`PRUNE_EVERY` images: the dormant factors of keys that can no longer
         re-open (left more than the re-opening age ago, finalised) are dropped: memory stays

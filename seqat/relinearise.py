@@ -17,7 +17,6 @@ from seqat.robust import (
     NAV_GROUPS,
     NAV_REPORT_WEIGHT,
     cauchy_weight,
-    disagreeing_points,
     nav_components,
     nav_groups_of,
     nav_report,
@@ -176,24 +175,6 @@ class RelinearisationMixin:
             if not changed:
                 break
             self._relinearise_if_needed(FINAL_RELINEARISE_PX, force=True)
-
-    def _find_disagreeing(self) -> None:
-        """finish(): the window GPs whose rays disagree at the final estimate
-        (:func:`seqat.robust.disagreeing_points`), as Sim finds them: left out of
-        :meth:`solution` and named in :attr:`disagreeing`. Judged only with every ray of the
-        point in the window's factors (after the final re-opening, all within
-        ``reopen_max_age``); ground control is exempt."""
-        w, k = self._w, self.options.robust_scale
-        f = self._factors.in_window(w, keep_leaving=self._records and self._reopen_age > 0)
-        if f is None or k is None:
-            return
-        e_idx, p_idx = f.columns(w)
-        u2 = np.sum(f.residuals(w.x[e_idx], w.x[p_idx], self._cam) ** 2, axis=1) * f.w0
-        rays = np.bincount(f.pt)
-        self._disagreeing = {int(p) for p in disagreeing_points(u2, f.pt, k)
-                             if rays[p] == self._gp_nobs.get(int(p))
-                             and self._control_of(int(p)) is None}
-        self.disagreeing = [self._point_ids[p] for p in sorted(self._disagreeing)]
 
     def _relinearise_if_needed(self, threshold_px: float | None = None,
                                force: bool = False) -> None:

@@ -87,6 +87,7 @@ from seqat.types import (
     PointEstimate,
     Solution,
 )
+from seqat.undetermined import UndeterminedMixin
 from seqat.update import solve_update, update_cofactor
 from seqat.window import CAMERA, Key, Window, key_size
 
@@ -197,7 +198,7 @@ class SequentialOptions:
 
 
 class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin,
-                   CameraMixin, LateMixin):
+                   CameraMixin, LateMixin, UndeterminedMixin):
     """Seq-F / Seq-R sequential aerial triangulation of a stream of frames.
 
     Parameters
@@ -285,7 +286,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         #: Images whose rows sent the update beyond every prior (DIVERGED_SIGMAS): nav only.
         self.diverged: list[str] = []
         #: Points the data do not determine (singular information), taken out: point ids.
-        self.undetermined: list[str] = []
+        self._undetermined: dict[int, None] = {}  # GPs taken out as undetermined, in order
         self.rescued: list[str] = []  # GPs re-intersected robustly (relinearise)
         self.disagreeing: list[str] = []  # GPs whose rays disagree, not published (finish)
         self._disagreeing: set[int] = set()
@@ -337,8 +338,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                         self._reopen_departed()
                     self.finish_born = self._birth_at_finish()
                     self._final_relinearise()
-                    self._find_disagreeing()
                 self._hold_undetermined_camera()
+                self._find_disagreeing()
 
     def solution(self, *, smoothed: bool | None = None) -> Solution:
         """Estimates of every image and point so far (window and departed), with sigmas.
@@ -517,9 +518,10 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                               np.asarray(st.obs_sigma_px)[use], e_lin, res.gp[gp_row],
                               self._cam, self.options.robust_scale)
         self.initial_state = (keys, self._w.x.copy(), res.full_cofactor.copy())
-        if res.undetermined is not None and res.undetermined.any():
-            self._drop_undetermined([("p", int(j)) for j, bad
-                                     in zip(st.selected, res.undetermined, strict=True) if bad])
+        if res.undetermined is not None and res.undetermined.any():  # rows of weight 0 in L
+            und = [int(j) for j, bad in zip(st.selected, res.undetermined, strict=True) if bad]
+            self._factors.forget(set(und))
+            self._drop_undetermined([("p", j) for j in und])
         self.rejections.extend(sim.rejections)
         self.nav_downweighted.extend(sim.nav_downweighted)
         self._keep_nav_rows(np.arange(n), st.nav, res.nav_weight)
@@ -762,6 +764,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             self._img_points[j].append(p)
         for p in born:
             obs = self._pending.pop(p)
+            self._undetermined.pop(p, None)  # taken out earlier, determined now
             self._gp_count[p] = self._gp_nobs[p] = len(obs)
             self._gp_order.append(p)
             self._n_points += 1

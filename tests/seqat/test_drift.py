@@ -65,3 +65,64 @@ def test_a_singular_relinearisation_drops_a_few_points_or_is_skipped(
         assert len(est.undetermined) == n_points and len(tries) == 1
         assert est.relinearisations_skipped == skipped + 1
         assert all(k in w.offset for k in gps[:named])
+
+
+def _image_rows_removed(est: SequentialAT) -> np.ndarray:
+    """The window's information minus its image rows (its factors in the window): with no
+    image departed, the GPS/INS rows alone."""
+    from seqat.assembly import factor_information
+    from seqat.types import EOP_SIZE
+
+    w = est._w
+    rows = est._factors.in_window(w)
+    assert rows is not None and w.L is not None
+    e_idx, p_idx = rows.columns(w)
+    n = w.x.size
+    F = factor_information(rows.Je, rows.Jp, rows.w, rows.img,
+                           np.concatenate([e_idx, p_idx], axis=1), n)
+    L = w.L.toarray() if hasattr(w.L, "toarray") else np.asarray(w.L)
+    nav = np.zeros(n)
+    for key in w.keys:
+        if key[0] == "e":
+            row = est._nav_rows[key[1]]
+            nav[w.index(key)] = row[12:] / row[EOP_SIZE:12] ** 2
+    return (L - F.toarray()) - np.diag(nav)
+
+
+def test_an_undetermined_point_leaves_with_its_rays_and_can_come_back(
+        short_strip: SimulatedFlight) -> None:
+    """A GP taken out as undetermined takes its rays' information out of the window (Sim
+    gives its rows no weight), not only its own rows and columns of ``L``: those would
+    keep the rays' image blocks, a control point at a depth the data do not determine (on
+    Seneca's every second image 0.6 m between Seq-R and Sim). Its window rays wait again
+    among the pending ones, so finish() brings the point back when they determine it:
+    the finished Seq-F is then Sim's solution."""
+    from seqat.simultaneous import SimOptions, SimultaneousAT
+
+    opts = SequentialOptions(correlation_threshold=None, robust_scale=None,
+                             nav_robust_scale=None)
+    est = SequentialAT(short_strip.camera, opts)
+    for fr in list(short_strip.frames())[:20]:
+        est.add_frame(fr)
+    w = est._w
+    scale = float(np.abs(w.L.toarray() if hasattr(w.L, "toarray") else w.L).max())
+    assert np.abs(_image_rows_removed(est)).max() < 1e-9 * scale
+    gone = [k for k in w.keys if k[0] == "p"][:2]
+    rays = {k[1]: int(np.count_nonzero(est._factors.in_window(w).pt == k[1])) for k in gone}
+    est._drop_undetermined(gone)
+    assert np.abs(_image_rows_removed(est)).max() < 1e-9 * scale
+    assert est.undetermined == [est._point_ids[k[1]] for k in gone]
+    assert {p: len(est._pending[p]) for p in rays} == rays
+    for fr in list(short_strip.frames())[20:]:
+        est.add_frame(fr)
+    est.finish()
+    assert est.undetermined == []
+    sim = SimultaneousAT(short_strip.camera, SimOptions(robust_scale=None, nav_robust_scale=None),
+                         refit_every_frame=False)
+    for fr in short_strip.frames():
+        sim.add_frame(fr)
+    got, want = est.solution(), sim.solution()
+    assert {p.point_id for p in got.points} == {p.point_id for p in want.points}
+    a, b = np.array([e.eop for e in got.eops]), np.array([e.eop for e in want.eops])
+    np.testing.assert_allclose(a[:, :3], b[:, :3], rtol=0, atol=1e-5)
+    np.testing.assert_allclose(a[:, 3:], b[:, 3:], rtol=0, atol=1e-8)

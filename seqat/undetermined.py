@@ -1,0 +1,104 @@
+"""Tie points the sequential window leaves out: GPs the data do not determine (singular
+information), taken out with their rays, and those whose rays disagree at the final estimate.
+
+Mixed into :class:`seqat.sequential.SequentialAT` (its state lives there;
+docs/algorithm.md, *Robust loss (default) and undetermined points*).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from seqat.assembly import factor_information
+from seqat.information import window_matrix
+from seqat.robust import disagreeing_points
+from seqat.rows import gradient_from_factors
+from seqat.types import GP_SIZE, FloatArray
+from seqat.window import Key
+
+
+class UndeterminedMixin:
+    """Undetermined and disagreeing tie points of :class:`SequentialAT`."""
+
+    def _drop_undetermined(self, keys: list[Key]) -> None:
+        """GPs whose information became singular (every ray down-weighted by the robust loss,
+        or rays that no longer intersect): out of the window and of the solution, named in
+        :attr:`undetermined`. Their rays leave the window's information with them and wait
+        again among the pending ones: more rays, or finish(), may determine them."""
+        w = self._w
+        for k in keys:  # departure records may refer to them: they are constants now
+            self._dropped_value[k] = w.x[w.index(k)].copy()
+        gone = {k[1] for k in keys if k[0] == "p"}
+        pull = self._remove_rows_of(gone)
+        w.drop(keys)
+        self._factors.forget(gone)
+        for p in gone:
+            self._gp_count.pop(p, None)
+            self._orphans.discard(p)
+            self._undetermined[p] = None
+        self._gp_order = [p for p in self._gp_order if p not in gone]
+        self._n_points -= len(gone)
+        if pull:  # the window to the minimum without those rows: one solve
+            factor = w.factor()  # (may take out more undetermined GPs, each moved alike)
+            g = np.zeros(w.x.size)
+            for k, v in pull.items():
+                if k in w.offset:
+                    g[w.index(k)] -= v
+            delta = factor.solve(g)
+            w.x = w.x + delta
+            self._ssr = max(self._ssr - float(delta @ g), 0.0)
+
+    @property
+    def undetermined(self) -> list[str]:
+        """GPs taken out as undetermined and not born again (out of the solution)."""
+        return [self._point_ids[p] for p in self._undetermined]
+
+    def _remove_rows_of(self, points: set[int]) -> dict[Key, FloatArray]:
+        """Take the window rows of ``points`` out of ``L`` (their factors, as linearised:
+        ``L`` minus them is exact), as Sim gives an undetermined point's rows no weight;
+        their squared residuals leave σ0's sum, their rays return to the pending ones.
+        Returns their pull on the other keys (``J^T W r`` at the estimate, by key): the
+        estimate, the minimum with them, moves by ``L^-1`` of minus that.
+
+        Deleting the point's rows and columns of ``L`` alone would condition the window on
+        the point's value, which the data do not determine: its rays would hold the images
+        like a control point at an arbitrary depth (Seneca's every second image: Seq-R's
+        σZ 0.66 m against Sim's 0.85 m, and 0.6 m between them)."""
+        w = self._w
+        f = (self._factors.in_window(w, keep_leaving=self._records and self._reopen_age > 0)
+             if w.L is not None and points and not self._inverse else None)
+        sel = np.isin(f.pt, np.fromiter(points, dtype=np.int64)) if f is not None else None
+        if f is None or sel is None or not sel.any():
+            return {}
+        for j, p, uv, w0 in zip(f.img[sel], f.pt[sel], f.uv[sel], f.w0[sel], strict=True):
+            self._pending.setdefault(int(p), []).append((int(j), uv.copy(), float(w0**-0.5)))
+        e_idx, p_idx = f.columns(w)
+        cols = np.concatenate([e_idx, p_idx], axis=1)[sel]
+        Je, Jp, wt = f.Je[sel], f.Jp[sel], f.w[sel]
+        x = w.x
+        r = f.r_lin[sel] - (np.einsum("kri,ki->kr", Je, x[e_idx[sel]] - f.e_lin[sel])
+                            + np.einsum("kri,ki->kr", Jp, x[p_idx[sel]] - f.p_lin[sel]))
+        g = gradient_from_factors(Je, Jp, r, wt, cols, x.size)
+        self._ssr = max(self._ssr - float(np.sum(wt[:, None] * r**2)), 0.0)
+        self._redundancy -= 2 * int(np.count_nonzero(wt)) - GP_SIZE * len(set(f.pt[sel].tolist()))
+        w.L = window_matrix(w.L - factor_information(Je, Jp, wt, f.img[sel], cols, x.size))
+        w.changed()
+        return {k: g[w.index(k)] for k in w.keys if k[0] != "p" or k[1] not in points}
+
+    def _find_disagreeing(self) -> None:
+        """finish(): the window GPs whose rays disagree at the final estimate
+        (:func:`seqat.robust.disagreeing_points`), as Sim finds them: left out of
+        :meth:`solution` and named in :attr:`disagreeing`. Judged only with every ray of the
+        point in the window's factors (after the final re-opening, all within
+        ``reopen_max_age``); ground control is exempt."""
+        w, k = self._w, self.options.robust_scale
+        f = self._factors.in_window(w, keep_leaving=self._records and self._reopen_age > 0)
+        if f is None or k is None:
+            return
+        e_idx, p_idx = f.columns(w)
+        u2 = np.sum(f.residuals(w.x[e_idx], w.x[p_idx], self._cam) ** 2, axis=1) * f.w0
+        rays = np.bincount(f.pt)
+        self._disagreeing = {int(p) for p in disagreeing_points(u2, f.pt, k)
+                             if rays[p] == self._gp_nobs.get(int(p))
+                             and self._control_of(int(p)) is None}
+        self.disagreeing = [self._point_ids[p] for p in sorted(self._disagreeing)]
