@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from seqat.assembly import factor_information
-from seqat.information import window_matrix
+from seqat.information import RankDeficiency, window_matrix
 from seqat.robust import disagreeing_points
 from seqat.rows import gradient_from_factors
 from seqat.types import GP_SIZE, FloatArray
@@ -39,7 +39,10 @@ class UndeterminedMixin:
         self._gp_order = [p for p in self._gp_order if p not in gone]
         self._n_points -= len(gone)
         if pull:  # the window to the minimum without those rows: one solve
-            factor = w.factor()  # (may take out more undetermined GPs, each moved alike)
+            try:  # (may take out more undetermined GPs, each moved alike)
+                factor = w.factor()
+            except RankDeficiency:  # singular beyond GPs: as its caller would have met it
+                return
             g = np.zeros(w.x.size)
             for k, v in pull.items():
                 if k in w.offset:
