@@ -74,10 +74,13 @@ def robust_weight(u2: FloatArray, scale: float | None) -> FloatArray:
     return 1.0 / (1.0 + np.maximum(u2 - k2, 0.0) / k2)
 
 
-def disagreeing_points(u2: FloatArray, point: np.ndarray, scale: float | None) -> np.ndarray:
+def disagreeing_points(u2: FloatArray, point: np.ndarray, scale: float | None,
+                       sigma0: float = 1.0) -> np.ndarray:
     """The points (sorted, unique values of ``point``) with fewer than
     :data:`MIN_AGREEING_RAYS` rays within the loss's core (``u² <= k²``), from each ray's
     squared normalised residual ``u2`` and its point ``point`` (k,); none without a scale.
+    An a posteriori ``sigma0`` above 1 widens the core by that factor: image points whose
+    σ was set too small must not lose every two-ray point.
 
     Two rays, one of them a wrong match, meet where neither is right: the loss cannot tell
     which ray is wrong and leaves both beyond the core (each with half the mismatch across
@@ -88,7 +91,8 @@ def disagreeing_points(u2: FloatArray, point: np.ndarray, scale: float | None) -
     if scale is None or point.size == 0:
         return np.zeros(0, dtype=np.int64)
     pts, pos = np.unique(point, return_inverse=True)
-    inside = np.bincount(pos, weights=np.asarray(u2) <= scale**2, minlength=pts.size)
+    core = scale**2 * max(1.0, sigma0 if np.isfinite(sigma0) else 1.0) ** 2
+    inside = np.bincount(pos, weights=np.asarray(u2) <= core, minlength=pts.size)
     return pts[inside < MIN_AGREEING_RAYS]
 
 

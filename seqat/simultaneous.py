@@ -751,7 +751,7 @@ class SimultaneousAT:
         use = (pos[op] >= 0) & np.fromiter((ids[j] not in self.control for j in op), bool, op.size)
         oi, pt, uv, sg = oi[use], pos[op[use]], uv[use], sg[use]
         u2 = rloss.ray_u2(uv - project(res.eop[oi], res.gp[pt], self.camera_now), sg)
-        off = rloss.disagreeing_points(u2, pt, self.options.robust_scale)
+        off = rloss.disagreeing_points(u2, pt, self.options.robust_scale, res.sigma0)
         self.disagreeing = [ids[int(self._point_sel[j])] for j in off]
         return set(off.tolist())
 

@@ -101,7 +101,7 @@ class UndeterminedMixin:
         e_idx, p_idx = f.columns(w)
         u2 = np.sum(f.residuals(w.x[e_idx], w.x[p_idx], self._cam) ** 2, axis=1) * f.w0
         rays = np.bincount(f.pt)
-        self._disagreeing = {int(p) for p in disagreeing_points(u2, f.pt, k)
+        self._disagreeing = {int(p) for p in disagreeing_points(u2, f.pt, k, self.sigma0)
                              if rays[p] == self._gp_nobs.get(int(p))
                              and self._control_of(int(p)) is None}
         self.disagreeing = [self._point_ids[p] for p in sorted(self._disagreeing)]

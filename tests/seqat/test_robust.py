@@ -31,13 +31,16 @@ def test_weights_are_the_derivative_of_the_cost_and_one_inside_the_core() -> Non
 
 
 def test_a_point_needs_two_rays_within_the_core() -> None:
-    """disagreeing_points: fewer than two rays with u² <= k² (the core's edge included);
-    none without a scale (least squares)."""
+    """disagreeing_points: fewer than two rays with u² <= k² (the core's edge included),
+    the core widened by an a posteriori sigma0 above 1; none without a scale."""
     k = ROBUST_SCALE
     u2 = np.array([0.0, k**2, 50.0, 60.0, 1.0, 70.0, 4.0, 5.0, 80.0])
     point = np.array([7, 7, 3, 3, 5, 5, 9, 9, 9])
     np.testing.assert_array_equal(disagreeing_points(u2, point, k), [3, 5])
     assert disagreeing_points(u2, point, None).size == 0
+    # sigma0 2.7 (image sigma set too small): the core is 2.7 k; below 1 it stays k
+    np.testing.assert_array_equal(disagreeing_points(u2, point, k, 2.7), [5])
+    np.testing.assert_array_equal(disagreeing_points(u2, point, k, 0.5), [3, 5])
     assert disagreeing_points(np.zeros(0), np.zeros(0, dtype=np.int64), k).size == 0
 
 
