@@ -285,8 +285,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self._orphans: set[int] = set()  # window GPs no window image sees (ray rejected)
         #: Images whose rows sent the update beyond every prior (DIVERGED_SIGMAS): nav only.
         self.diverged: list[str] = []
-        #: Points the data do not determine (singular information), taken out: point ids.
-        self._undetermined: dict[int, None] = {}  # GPs taken out as undetermined, in order
+        #: Points the data do not determine (singular information), taken out, in order
+        self._undetermined: dict[int, None] = {}  # (point indices: see ``undetermined``)
         self.rescued: list[str] = []  # GPs re-intersected robustly (relinearise)
         self.disagreeing: list[str] = []  # GPs whose rays disagree, not published (finish)
         self._disagreeing: set[int] = set()
