@@ -340,6 +340,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                     self._final_relinearise()
                 self._hold_undetermined_camera()
                 self._find_disagreeing()
+                self._settle_ssr()
 
     def solution(self, *, smoothed: bool | None = None) -> Solution:
         """Estimates of every image and point so far (window and departed), with sigmas.
