@@ -749,7 +749,7 @@ class SimultaneousAT:
         pos[self._point_sel] = np.arange(self._point_sel.size)
         ids = self._cat.point_ids
         use = (pos[op] >= 0) & np.fromiter((ids[j] not in self.control for j in op), bool, op.size)
-        if res.undetermined is not None:  # those are left out already
+        if res.undetermined is not None and res.undetermined.any():  # left out already
             use &= ~res.undetermined[np.maximum(pos[op], 0)]
         oi, pt, uv, sg = oi[use], pos[op[use]], uv[use], sg[use]
         u2 = rloss.ray_u2(uv - project(res.eop[oi], res.gp[pt], self.camera_now), sg)

@@ -129,3 +129,13 @@ def test_damped_steps_reach_the_minimum_from_far_away(short_strip: SimulatedFlig
     np.testing.assert_allclose(got.eop, ref.eop, atol=1e-6)
     np.testing.assert_allclose(got.gp, ref.gp, atol=1e-6)
     assert got.weighted_ssr == pytest.approx(ref.weighted_ssr, rel=1e-9)
+
+
+def test_a_solution_before_any_point_is_adjusted(short_strip: SimulatedFlight) -> None:
+    """One image: its observations are not yet points of the block; the solution has the
+    image and no point (the rule on disagreeing rays has nothing to judge; it once indexed
+    an empty selection)."""
+    sim = SimultaneousAT(short_strip.camera, SimOptions())
+    sim.add_frame(next(short_strip.frames()))
+    sol = sim.solution()
+    assert len(sol.eops) == 1 and sol.points == () and sim.disagreeing == []
