@@ -51,7 +51,9 @@ class CameraMixin:
             h = idx[bad]
             Qh = cols[:, bad]
             Qhh = Qh[h]
-            w.x = w.x + Qh @ np.linalg.solve(Qhh, prior[bad] - w.x[h])
+            shift = np.linalg.solve(Qhh, prior[bad] - w.x[h])
+            self._ssr += float((prior[bad] - w.x[h]) @ shift)  # the cost of the condition
+            w.x = w.x + Qh @ shift
             w.x[h] = prior[bad]
             if w.L is not None:
                 w.L = add_block(w.L, h, np.diag(HOLD_WEIGHT * w.L.diagonal()[h]))

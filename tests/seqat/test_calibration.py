@@ -187,14 +187,16 @@ def test_calibration_options_are_checked() -> None:
         SelfCalibration(sigma={"f_px": -1.0})  # type: ignore[arg-type]
 
 
+@pytest.mark.parametrize("engine", ["information", "inverse"])
 def test_finished_seq_f_has_sims_sigma0_when_parameters_are_held(
-        strip: SimulatedFlight, strip_sim: Solution) -> None:
+        strip: SimulatedFlight, strip_sim: Solution, engine: str) -> None:
     """finish() holds what the flight did not determine at its prior (here f, the principal
-    point, p1, p2) and moves the window by their conditional; σ0's sum of squares is then
-    recomputed at the final estimate, as Sim sums it. Kept from the flight, the sum missed
-    the hold's cost: σ0 4.9e-4 below Sim's here (Seneca's every third image: 0.3 %)."""
+    point, p1, p2) and moves the window by their conditional, whose cost σ0's sum of squares
+    now takes; with the window holding everything (the information engine) the sum is then
+    recomputed at the final estimate, as Sim sums it. Without the hold's cost σ0 was 4.9e-4
+    below Sim's here (Seneca's every third image: 0.3 %)."""
     seq = SequentialAT(_prior(strip.camera), SequentialOptions(
-        correlation_threshold=None, calibration=SelfCalibration()))
+        correlation_threshold=None, calibration=SelfCalibration(), engine=engine))
     for f in strip.frames():
         seq.add_frame(f)
     seq.finish()
