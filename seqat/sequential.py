@@ -68,13 +68,7 @@ from seqat.relinearise import RelinearisationMixin
 from seqat.reports import RecordedRows, ReportMixin
 from seqat.robust import NAV_ROBUST_SCALE, ROBUST_SCALE, check_scale
 from seqat.rows import Factors, RowBuilder, add_information, snoop_update
-from seqat.simultaneous import (
-    Covariance,
-    SimOptions,
-    SimultaneousAT,
-    control_by_id,
-    free_nav_sigma,
-)
+from seqat.simultaneous import Covariance, SimOptions, SimultaneousAT, control_by_id, free_nav_sigma
 from seqat.types import (
     EOP_SIZE,
     GP_SIZE,
@@ -405,7 +399,9 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         )
 
     def window_solution(self) -> Solution:
-        """Current estimates of the window's images and GPs with sigmas: O(window), any time.
+        """Current estimates of the window's images and GPs with sigmas: O(window), any time;
+        not the GPs whose rays disagree at the last drift check (the live map's points, the
+        tracker's resection; docs/algorithm.md, *Points whose rays disagree*).
 
         During the initial stage the window is every image so far (the Sim solution).
         """
@@ -422,7 +418,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                 val[:3] += origin
                 val[3:] = wrap_angle(val[3:])
                 eops.append(EopEstimate(image_id=self._image_ids[k[1]], eop=val, sigma=sd[idx]))
-            elif k[0] == "p":
+            elif k[0] == "p" and k[1] not in self._disagreeing:
                 pts.append(
                     PointEstimate(
                         point_id=self._point_ids[k[1]],

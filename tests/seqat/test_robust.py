@@ -311,3 +311,21 @@ def test_an_astray_point_alone_relinearises_the_window_with_one_factorisation(
             astray_steps.append(made[0] - n0)
     assert astray_steps  # the case happened
     assert all(n == 1 for n in astray_steps), astray_steps
+
+
+@pytest.mark.parametrize(("shift", "hidden"), [((0.0, 40.0), True), ((40.0, 0.0), False)])
+def test_the_live_window_does_not_show_a_point_whose_rays_disagree(
+        short_strip: SimulatedFlight, shift: tuple[float, float], hidden: bool) -> None:
+    """During the flight window_solution() (the live map's points, the tracker's resection)
+    leaves out the GPs whose rays disagree at the last drift check, and only those: the
+    two-ray point with a wrong match across the epipolar line, while it is in the window;
+    moved along the line, or on the clean strip, no window GP is ever left out."""
+    for flight, pid in (_two_rays(short_strip, shift), (short_strip, None)):
+        est = SequentialAT(flight.camera, SequentialOptions())
+        left_out: set[str] = set()
+        for fr in flight.frames():
+            est.add_frame(fr)
+            if est._initial is None:
+                window = {est._point_ids[k[1]] for k in est._w.keys if k[0] == "p"}
+                left_out |= window - {p.point_id for p in est.window_solution().points}
+        assert left_out == ({pid} if hidden and pid is not None else set())
