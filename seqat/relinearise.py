@@ -17,7 +17,6 @@ from seqat.robust import (
     NAV_GROUPS,
     NAV_REPORT_WEIGHT,
     cauchy_weight,
-    disagreeing_points,
     nav_components,
     nav_groups_of,
     nav_report,
@@ -251,27 +250,6 @@ class RelinearisationMixin:
         n = np.bincount(pos[mine], minlength=pts.size)
         n_out = np.bincount(pos[mine & out], minlength=pts.size)
         return pts[(n >= ASTRAY_MIN_RAYS) & (2 * n_out > n)]
-
-    def _note_disagreeing(self, f: FactorSet, true: FloatArray) -> None:
-        """The window GPs whose rays disagree at the estimate of this drift check
-        (:func:`seqat.robust.disagreeing_points`, judged as finish() judges them: all their
-        rays in the window), left out of :meth:`window_solution` until the next check; only
-        points with a ray beyond the core are looked at (clean data: none)."""
-        k = self.options.robust_scale
-        self._disagreeing = set()
-        if k is None or f.pt.size == 0:
-            return
-        u2 = np.sum(true**2, axis=1) * f.w0
-        core = k**2 * max(1.0, self.sigma0 if np.isfinite(self.sigma0) else 1.0) ** 2
-        suspects = np.unique(f.pt[u2 > core])
-        if not suspects.size:
-            return
-        mine = np.isin(f.pt, suspects)
-        rays = np.bincount(f.pt[mine])
-        self._disagreeing = {int(p) for p in disagreeing_points(u2[mine], f.pt[mine], k,
-                                                                self.sigma0)
-                             if rays[p] == self._gp_nobs.get(int(p))
-                             and self._control_of(int(p)) is None}
 
     def _rescue_points(self, f: FactorSet, astray: np.ndarray, x: FloatArray,
                        e_idx: np.ndarray, p_idx: np.ndarray, wf: FloatArray,

@@ -12,7 +12,7 @@ import numpy as np
 from seqat.assembly import factor_information
 from seqat.information import RankDeficiency, window_matrix
 from seqat.robust import disagreeing_points
-from seqat.rows import gradient_from_factors
+from seqat.rows import FactorSet, gradient_from_factors
 from seqat.types import GP_SIZE, FloatArray
 from seqat.window import Key
 
@@ -89,19 +89,36 @@ class UndeterminedMixin:
         return {k: g[w.index(k)] for k in w.keys if k[0] != "p" or k[1] not in points}
 
     def _find_disagreeing(self) -> None:
-        """finish(): the window GPs whose rays disagree at the final estimate
-        (:func:`seqat.robust.disagreeing_points`), as Sim finds them: left out of
-        :meth:`solution` and named in :attr:`disagreeing`. Judged only with every ray of the
-        point in the window's factors (after the final re-opening, all within
-        ``reopen_max_age``); ground control is exempt."""
-        w, k = self._w, self.options.robust_scale
+        """finish(): the window GPs whose rays disagree at the final estimate, as Sim finds
+        them (:meth:`_note_disagreeing`): left out of :meth:`solution` and named in
+        :attr:`disagreeing`. Judged only with every ray of the point in the window's factors
+        (after the final re-opening, all within ``reopen_max_age``)."""
+        w = self._w
         f = self._factors.in_window(w, keep_leaving=self._records and self._reopen_age > 0)
-        if f is None or k is None:
+        if f is None:
             return
         e_idx, p_idx = f.columns(w)
-        u2 = np.sum(f.residuals(w.x[e_idx], w.x[p_idx], self._cam) ** 2, axis=1) * f.w0
-        rays = np.bincount(f.pt)
-        self._disagreeing = {int(p) for p in disagreeing_points(u2, f.pt, k, self.sigma0)
+        self._note_disagreeing(f, f.residuals(w.x[e_idx], w.x[p_idx], self._cam))
+        self.disagreeing = [self._point_ids[p] for p in sorted(self._disagreeing)]
+
+    def _note_disagreeing(self, f: FactorSet, true: FloatArray) -> None:
+        """The window GPs whose rays disagree at the estimate where the window's factors
+        have the residuals ``true`` (:func:`seqat.robust.disagreeing_points`; a drift check
+        during the flight, finish() at the end): only GPs all of whose rays are among the
+        factors, not ground control. Left out of :meth:`window_solution` until the next
+        check. Only points with a ray beyond the core are looked at (clean data: none)."""
+        k = self.options.robust_scale
+        self._disagreeing = set()
+        if k is None or f.pt.size == 0:
+            return
+        u2 = np.sum(true**2, axis=1) * f.w0
+        core = k**2 * max(1.0, self.sigma0 if np.isfinite(self.sigma0) else 1.0) ** 2
+        suspects = np.unique(f.pt[u2 > core])
+        if not suspects.size:
+            return
+        mine = np.isin(f.pt, suspects)
+        rays = np.bincount(f.pt[mine])
+        self._disagreeing = {int(p) for p in disagreeing_points(u2[mine], f.pt[mine], k,
+                                                                self.sigma0)
                              if rays[p] == self._gp_nobs.get(int(p))
                              and self._control_of(int(p)) is None}
-        self.disagreeing = [self._point_ids[p] for p in sorted(self._disagreeing)]
