@@ -429,7 +429,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                 )
         return Solution(
             eops=tuple(eops), points=tuple(pts), sigma0=self.sigma0, redundancy=self._redundancy,
-            camera=self.camera_estimate(),
+            camera=self.camera_estimate(), withheld=tuple(self._point_ids[p] for p in
+                                                          sorted(self._disagreeing)),
         )
 
     # ------------------------------------------------------------------ initial stage (Sim)

@@ -793,5 +793,5 @@ class SimultaneousAT:
             )
         return Solution(
             eops=tuple(eops), points=tuple(pts), sigma0=res.sigma0, redundancy=res.redundancy,
-            camera=self.camera_estimate(),
+            camera=self.camera_estimate(), withheld=tuple(self.disagreeing),
         )

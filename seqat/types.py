@@ -289,6 +289,8 @@ class Solution:
     redundancy: int
     #: The self-calibrated camera (None: the camera was fixed).
     camera: CameraEstimate | None = None
+    #: Ids of estimated points left out of ``points``: their rays disagree (seqat.robust).
+    withheld: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, kw_only=True)

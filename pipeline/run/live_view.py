@@ -204,6 +204,8 @@ class LiveEstimates:
             for p in points:
                 self._points[p.point_id] = (np.array(p.xyz_m, np.float64),
                                             np.array(p.sigma_m, np.float64), int(p.n_obs))
+            for pid in getattr(solution, "withheld", ()):
+                self._points.pop(pid, None)  # shown before its rays came to disagree
             self._sigma0 = float(update.sigma0) if math.isfinite(update.sigma0) else None
             self._stage = update.stage
 

@@ -327,5 +327,8 @@ def test_the_live_window_does_not_show_a_point_whose_rays_disagree(
             est.add_frame(fr)
             if est._initial is None:
                 window = {est._point_ids[k[1]] for k in est._w.keys if k[0] == "p"}
-                left_out |= window - {p.point_id for p in est.window_solution().points}
+                sol = est.window_solution()
+                hidden_now = window - {p.point_id for p in sol.points}
+                assert set(sol.withheld) == hidden_now  # named for the live map
+                left_out |= hidden_now
         assert left_out == ({pid} if hidden and pid is not None else set())

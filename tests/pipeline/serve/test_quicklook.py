@@ -151,3 +151,31 @@ def _state(est: LiveEstimates) -> tuple[object, ...]:
     with est._lock:
         return (list(est._order), dict(est._cameras), set(est._window), dict(est._points),
                 est._sigma0, est._stage, dict(est._latency))
+
+
+def test_live_estimates_drop_a_point_once_its_rays_disagree(tmp_path: Path) -> None:
+    """A ground point shown after one update and withheld by the next (its rays came to
+    disagree: ``Solution.withheld``) leaves the live estimates; the others stay."""
+    camera = PinholeCamera(f_px=800.0, cx_px=400.0, cy_px=300.0, width_px=800,
+                           height_px=600)
+    est = LiveEstimates(tmp_path / "out", crs_wkt="LOCAL_CS[\"m\"]", camera=camera,
+                        min_interval_s=0.0)
+    eop = SimpleNamespace(image_id="a", eop=np.array([0.0, 0, 500, 0, 0, 0]),
+                          sigma=np.full(6, 0.01))
+    point = {pid: SimpleNamespace(point_id=pid, xyz_m=np.array([x, 0.0, 0.0]),
+                                  sigma_m=np.full(3, 0.1), n_obs=2)
+             for pid, x in (("t1", 1.0), ("t2", 2.0))}
+
+    def update(points: tuple[str, ...], withheld: tuple[str, ...]) -> list[str]:
+        window = SimpleNamespace(eops=[eop], points=[point[p] for p in points],
+                                 withheld=withheld)
+        est.on_image(None, SimpleNamespace(eop=eop, sigma0=1.0, stage="sequential"),
+                     SimpleNamespace(window_solution=lambda: window))  # type: ignore[arg-type]
+        doc = est._document(*_state(est))
+        return list(doc["points"]["point"])  # type: ignore[index]
+
+    try:
+        assert update(("t1", "t2"), ()) == ["t1", "t2"]
+        assert update(("t2",), ("t1",)) == ["t2"]
+    finally:
+        est.close()
