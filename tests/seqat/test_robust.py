@@ -61,7 +61,8 @@ def _two_rays(f: SimulatedFlight, shift_px: tuple[float, float]) -> tuple[Simula
 @pytest.mark.parametrize("method", ["sim", "seq-r"])
 def test_a_point_whose_two_rays_disagree_is_not_published(short_strip: SimulatedFlight,
                                                           method: str) -> None:
-    """Two rays, one a wrong match 40 px across the epipolar line (the strip's x): the loss
+    """Two rays, one a wrong match 40 px across the epipolar line (image y; the lines run
+    along x, the strip's direction): the loss
     cannot tell which is wrong and the point would sit metres off; it is left out of the
     solution and named, by Sim and by the finished Seq-R alike. Moved along the epipolar
     line the mismatch is invisible (a wrong depth that fits both rays): kept. A clean
