@@ -134,11 +134,8 @@ class RelinearisationMixin:
         keys = [key for key in w.keys if key[0] == "e" and key[1] in self._nav_rows]
         if k is None or not keys:
             return False
-        rows = np.stack([self._nav_rows[key[1]] for key in keys])  # (m, 18)
-        nav, sigma, old = rows[:, :6], rows[:, 6:12], rows[:, 12:]
-        idx = w.indices(keys).reshape(-1, EOP_SIZE)
-        r = nav - w.x[idx]
-        r[:, 3:] = wrap_angle(r[:, 3:])
+        rows, idx, r = self._nav_residuals(keys)
+        sigma, old = rows[:, 6:12], rows[:, 12:]
         new = nav_weight(r, sigma, k)
         if not np.max(np.abs(new - old)) > FINAL_NAV_WEIGHT_TOLERANCE:
             return False
@@ -176,6 +173,22 @@ class RelinearisationMixin:
                 break
             self._relinearise_if_needed(FINAL_RELINEARISE_PX, force=True)
 
+    def _window_factors(self) -> FactorSet | None:
+        """The window's image-point factors (:meth:`Factors.in_window`); those of departed
+        keys set aside while they may re-open (departure records kept)."""
+        return self._factors.in_window(self._w,
+                                       keep_leaving=self._records and self._reopen_age > 0)
+
+    def _nav_residuals(self, keys: list[Key]) -> tuple[FloatArray, np.ndarray, FloatArray]:
+        """The GPS/INS rows ``L`` holds for the image ``keys`` (m, 18: observation, σ, weight
+        factors), their window indices (m, 6) and residuals ``nav - x`` (angles wrapped)."""
+        w = self._w
+        rows = np.stack([self._nav_rows[key[1]] for key in keys]).reshape(-1, 3 * EOP_SIZE)
+        idx = w.indices(keys).reshape(-1, EOP_SIZE)
+        r = rows[:, :EOP_SIZE] - w.x[idx]
+        r[:, 3:] = wrap_angle(r[:, 3:])
+        return rows, idx, r
+
     def _settle_ssr(self) -> None:
         """finish(): σ0's sum of squares recomputed at the final estimate when the window
         holds every image and point (Seq-F; Seq-R once the final re-opening brought every
@@ -190,16 +203,15 @@ class RelinearisationMixin:
                 or any(("p", p) not in w.offset for p in self._gp_order)
                 or any(i not in self._nav_rows for i in range(n))):
             return
-        f = self._factors.in_window(w, keep_leaving=self._records and self._reopen_age > 0)
+        f = self._window_factors()
         ssr = 0.0
         if f is not None:
             e_idx, p_idx = f.columns(w)
             ssr += float(np.sum(f.w[:, None] * f.residuals(w.x[e_idx], w.x[p_idx],
                                                             self._cam) ** 2))
-        rows = np.stack([self._nav_rows[i] for i in range(n)]) if n else np.zeros((0, 18))
-        d = rows[:, :EOP_SIZE] - w.x[w.indices([("e", i) for i in range(n)])].reshape(-1, 6)
-        d[:, 3:] = wrap_angle(d[:, 3:])
-        ssr += float(np.sum(rows[:, 12:] * (d / rows[:, EOP_SIZE:12]) ** 2))
+        if n:
+            rows, _, d = self._nav_residuals([("e", i) for i in range(n)])
+            ssr += float(np.sum(rows[:, 12:] * (d / rows[:, EOP_SIZE:12]) ** 2))
         calibration = self.options.calibration
         if self._cam_key is not None and calibration is not None:
             free = np.array([c not in self._camera_held for c in calibration.names])
@@ -232,16 +244,17 @@ class RelinearisationMixin:
                 self._drop_undetermined(keys)
         self.relinearisations_skipped += 1
 
-    def _astray_points(self, f: FactorSet, true: FloatArray) -> np.ndarray:
+    def _astray_points(self, f: FactorSet, u2: FloatArray) -> np.ndarray:
         """Window GPs (point indices) whose estimate most of their own rays disagree with:
         at least :data:`ASTRAY_MIN_RAYS` rays and more than half of them beyond the robust
         scale. A point born on a blunder (two rays, one wrong: an exact but wrong
         intersection) is such a point once good rays arrive: the redescending loss keeps it
-        where it is and down-weights them instead (a local minimum)."""
+        where it is and down-weights them instead (a local minimum). ``u2``: each factor's
+        squared normalised residual at the estimate."""
         k = self.options.robust_scale
         if k is None or f.pt.size == 0:
             return np.zeros(0, dtype=np.int64)
-        out = np.sum(true**2, axis=1) * f.w0 > k**2
+        out = u2 > k**2
         if not out.any():  # clean data: no ray beyond the scale, no point astray
             return np.zeros(0, dtype=np.int64)
         pts = np.unique(f.pt[out])  # only points with a ray out can be astray
@@ -334,7 +347,7 @@ class RelinearisationMixin:
         """
         w, opts = self._w, self.options
         assert opts.relinearise_px is not None
-        f = self._factors.in_window(w, keep_leaving=self._records and self._reopen_age > 0)
+        f = self._window_factors()
         if f is None:
             return
         e_idx, p_idx = f.columns(w)
@@ -346,8 +359,9 @@ class RelinearisationMixin:
         xe, xp = x[e_idx], x[p_idx]
         true = f.residuals(xe, xp, self._cam)
         self._drift_px = f.linearisation_error(xe, xp, self._cam, true)
-        astray = self._astray_points(f, true)
-        self._note_disagreeing(f, true)
+        u2 = np.sum(true**2, axis=1) * f.w0  # each ray's squared normalised residual
+        astray = self._astray_points(f, u2)
+        self._note_disagreeing(f, u2)
         # astray points are re-intersected first. One that no consensus moves re-linearises
         # the window again only once its rays changed (a new ray may move it or its weights):
         # on the same rays it re-linearised a 3900-parameter block window after every image,

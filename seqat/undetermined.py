@@ -68,8 +68,7 @@ class UndeterminedMixin:
         like a control point at an arbitrary depth (Seneca's every second image: Seq-R's
         σZ 0.66 m against Sim's 0.85 m, and 0.6 m between them)."""
         w = self._w
-        f = (self._factors.in_window(w, keep_leaving=self._records and self._reopen_age > 0)
-             if w.L is not None and points and not self._inverse else None)
+        f = self._window_factors() if w.L is not None and points and not self._inverse else None
         sel = np.isin(f.pt, np.fromiter(points, dtype=np.int64)) if f is not None else None
         if f is None or sel is None or not sel.any():
             return {}
@@ -79,8 +78,7 @@ class UndeterminedMixin:
         cols = np.concatenate([e_idx, p_idx], axis=1)[sel]
         Je, Jp, wt = f.Je[sel], f.Jp[sel], f.w[sel]
         x = w.x
-        r = f.r_lin[sel] - (np.einsum("kri,ki->kr", Je, x[e_idx[sel]] - f.e_lin[sel])
-                            + np.einsum("kri,ki->kr", Jp, x[p_idx[sel]] - f.p_lin[sel]))
+        r = f.predicted(x[e_idx], x[p_idx])[sel]  # the rows as linearised, at the estimate
         g = gradient_from_factors(Je, Jp, r, wt, cols, x.size)
         self._ssr = max(self._ssr - float(np.sum(wt[:, None] * r**2)), 0.0)
         self._redundancy -= 2 * int(np.count_nonzero(wt)) - GP_SIZE * len(set(f.pt[sel].tolist()))
@@ -94,24 +92,25 @@ class UndeterminedMixin:
         :attr:`disagreeing`. Judged only with every ray of the point in the window's factors
         (after the final re-opening, all within ``reopen_max_age``)."""
         w = self._w
-        f = self._factors.in_window(w, keep_leaving=self._records and self._reopen_age > 0)
+        f = self._window_factors()
         if f is None:
             return
         e_idx, p_idx = f.columns(w)
-        self._note_disagreeing(f, f.residuals(w.x[e_idx], w.x[p_idx], self._cam))
+        true = f.residuals(w.x[e_idx], w.x[p_idx], self._cam)
+        self._note_disagreeing(f, np.sum(true**2, axis=1) * f.w0)
         self.disagreeing = [self._point_ids[p] for p in sorted(self._disagreeing)]
 
-    def _note_disagreeing(self, f: FactorSet, true: FloatArray) -> None:
-        """The window GPs whose rays disagree at the estimate where the window's factors
-        have the residuals ``true`` (:func:`seqat.robust.disagreeing_points`; a drift check
-        during the flight, finish() at the end): only GPs all of whose rays are among the
-        factors, not ground control. Left out of :meth:`window_solution` until the next
-        check. Only points with a ray beyond the core are looked at (clean data: none)."""
+    def _note_disagreeing(self, f: FactorSet, u2: FloatArray) -> None:
+        """The window GPs whose rays disagree where the window's factors have the squared
+        normalised residuals ``u2`` (:func:`seqat.robust.disagreeing_points`; at a drift
+        check during the flight, at finish() in the end): only GPs all of whose rays are
+        among the factors, not ground control. Left out of :meth:`window_solution` until
+        the next check. Only points with a ray beyond the core are looked at (clean data:
+        none)."""
         k = self.options.robust_scale
         self._disagreeing = set()
         if k is None or f.pt.size == 0:
             return
-        u2 = np.sum(true**2, axis=1) * f.w0
         core = k**2 * max(1.0, self.sigma0 if np.isfinite(self.sigma0) else 1.0) ** 2
         suspects = np.unique(f.pt[u2 > core])
         if not suspects.size:
