@@ -748,7 +748,9 @@ class SimultaneousAT:
         pos = np.full(len(self._cat.point_ids), -1)
         pos[self._point_sel] = np.arange(self._point_sel.size)
         ids = self._cat.point_ids
-        use = (pos[op] >= 0) & np.fromiter((ids[j] not in self.control for j in op), bool, op.size)
+        use = pos[op] >= 0
+        if self.control:  # ground control is exempt
+            use &= np.fromiter((ids[j] not in self.control for j in op), bool, op.size)
         if res.undetermined is not None and res.undetermined.any():  # left out already
             use &= ~res.undetermined[np.maximum(pos[op], 0)]
         oi, pt, uv, sg = oi[use], pos[op[use]], uv[use], sg[use]
