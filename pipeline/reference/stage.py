@@ -109,13 +109,14 @@ def reference_input(run: RunFolder) -> tuple[ReferenceInput, int]:
 
     Initial EOPs are the run's estimates (nav where it has none); initial points the run's
     estimates, else a multi-ray intersection at those EOPs (ideal pixels). Points that
-    cannot be intersected are left out.
+    cannot be intersected are left out, and so are images with no position from either
+    (a GNSS dropout the run skipped).
 
     Returns
     -------
     ReferenceInput
     int
-        Observations left out (points without an initial value).
+        Observations left out (points without an initial value, images without a position).
     """
     nav = run.nav
     index = nav.index()
@@ -125,6 +126,16 @@ def reference_input(run: RunFolder) -> tuple[ReferenceInput, int]:
     for i, iid in enumerate(nav.image_ids):
         if iid in est and np.all(np.isfinite(run.eop.eop[est[iid]])):
             eop0[i] = run.eop.eop[est[iid]]
+    # An image neither the run nor the GPS placed (a GNSS dropout the run skipped) has no
+    # position to start from or to hold: the reference leaves it out, as the run did.
+    placed = np.all(np.isfinite(eop0[:, :3]), axis=1)
+    image_ids, nav_eop, n_unplaced = nav.image_ids, nav.eop, 0
+    if not placed.all():
+        image_ids = tuple(iid for iid, ok in zip(image_ids, placed, strict=True) if ok)
+        nav_eop, eop0 = nav_eop[placed], eop0[placed]
+        on = placed[obs_image]
+        n_unplaced = int(np.count_nonzero(~on))
+        obs_image, obs_point, uv = (np.cumsum(placed) - 1)[obs_image[on]], obs_point[on], uv[on]
     xyz0 = np.full((len(point_ids), 3), np.nan)
     pts = run.points.index()
     for j, pid in enumerate(point_ids):
@@ -145,7 +156,7 @@ def reference_input(run: RunFolder) -> tuple[ReferenceInput, int]:
     in_run = set(kept_ids)
     sel = ([k for k, p in enumerate(control.point_ids) if p in in_run]
            if control is not None else [])
-    data = ReferenceInput(camera=run.camera, image_ids=nav.image_ids, nav_eop=nav.eop,
+    data = ReferenceInput(camera=run.camera, image_ids=image_ids, nav_eop=nav_eop,
                           nav_sigma=np.asarray(run.nav_sigma, dtype=np.float64),
                           sigma_px=run.sigma_image_px, point_ids=kept_ids,
                           obs_image=obs_image[keep], obs_point=remap[obs_point[keep]],
@@ -156,7 +167,7 @@ def reference_input(run: RunFolder) -> tuple[ReferenceInput, int]:
                           else np.zeros((0, 3)),
                           control_sigma=control.sigma_m[sel] if control is not None
                           else np.zeros((0, 3)))
-    return data, int(np.count_nonzero(~keep))
+    return data, int(np.count_nonzero(~keep)) + n_unplaced
 
 
 def check_prior_geometry(data: ReferenceInput, prior: PriorKind) -> None:

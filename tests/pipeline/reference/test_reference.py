@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -283,6 +284,29 @@ def test_reference_stage_writes_readable_model_and_our_formats(sim_run: Path) ->
     # Same observations as the run's Sim: the reference reproduces it.
     run_eop = read_eop_csv(sim_run / "eop.csv")
     assert np.max(np.abs(eops.eop[:, :3] - run_eop.eop[:, :3])) <= AGREEMENT_POS_M
+
+
+def test_an_image_nothing_placed_is_left_out_of_the_reference(sim_run: Path,
+                                                               tmp_path: Path) -> None:
+    """A GNSS dropout the run skipped (no position in nav.csv, none in eop.csv, no
+    observation): the reference leaves the image out as the run did; its eop.csv holds no
+    NaN (it wrote NaN positions, which every reader of eop.csv refuses)."""
+    run = tmp_path / "run"
+    shutil.copytree(sim_run, run, ignore=shutil.ignore_patterns(REFERENCE_DIR))
+    gone = read_eop_csv(run / "eop.csv").image_ids[4]
+    for name in ("nav.csv", "eop.csv", "observations.csv"):
+        lines = (run / name).read_text().splitlines(keepends=True)
+        if name == "nav.csv":
+            lines = [",".join([f[0], f[1], "nan", "nan", "nan", *f[5:]])
+                     if f[0] == gone else ln for ln, f in ((ln, ln.split(",")) for ln in lines)]
+        else:
+            lines = [ln for ln in lines if not ln.startswith(gone + ",")]
+        (run / name).write_text("".join(lines))
+    run_reference(run)
+    eops = read_eop_csv(run / REFERENCE_DIR / "eop.csv")
+    run_eop = read_eop_csv(run / "eop.csv")
+    assert eops.image_ids == run_eop.image_ids and gone not in eops.image_ids
+    assert np.all(np.isfinite(eops.eop)) and np.all(np.isfinite(eops.sigma))
 
 
 def test_cli_reference_bad_input_is_exit_2_one_line(tmp_path: Path, sim_run: Path) -> None:
