@@ -361,7 +361,7 @@ class RelinearisationMixin:
         self._drift_px = f.linearisation_error(xe, xp, self._cam, true)
         u2 = np.sum(true**2, axis=1) * f.w0  # each ray's squared normalised residual
         astray = self._astray_points(f, u2)
-        self._note_disagreeing(f, u2)
+        self._note_disagreeing(f, u2, xe)
         # astray points are re-intersected first. One that no consensus moves re-linearises
         # the window again only once its rays changed (a new ray may move it or its weights):
         # on the same rays it re-linearised a 3900-parameter block window after every image,

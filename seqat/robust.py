@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from seqat.types import FloatArray
+from seqat.types import FloatArray, PinholeCamera
 
 #: Default robust scale (sigmas) of SimOptions and SequentialOptions.
 ROBUST_SCALE = 3.0
@@ -47,6 +47,15 @@ NAV_REPORT_WEIGHT = 0.9
 #: A tie point is published only while at least this many of its rays lie within the loss's
 #: core at the final estimate (:func:`disagreeing_points`).
 MIN_AGREEING_RAYS = 2
+#: Times Sim and the finished Seq-R adjust again without the tie points whose rays fit two
+#: places as well (:func:`ambiguous_points`).
+MAX_AMBIGUOUS_ROUNDS = 3
+#: ... a ray counts as left out by another answer only this many times the core's radius
+#: beyond it there: three noisy rays near the core's edge are one answer.
+CLEARLY_BEYOND = 2.0
+#: ... and points of more rays than this are not tested (their pairs grow as n²; a wrong
+#: pair against many good rays is no match).
+MAX_AMBIGUOUS_RAYS = 12
 
 
 def check_scale(name: str, value: float | None) -> None:
@@ -94,6 +103,108 @@ def disagreeing_points(u2: FloatArray, point: np.ndarray, scale: float | None,
     core = scale**2 * max(1.0, sigma0 if np.isfinite(sigma0) else 1.0) ** 2
     inside = np.bincount(pos, weights=np.asarray(u2) <= core, minlength=pts.size)
     return pts[inside < MIN_AGREEING_RAYS]
+
+
+def ambiguous_points(u2: FloatArray, point: np.ndarray, eop: FloatArray, uv_px: FloatArray,
+                     sigma_px: FloatArray, camera: PinholeCamera, scale: float | None,
+                     sigma0: float = 1.0) -> np.ndarray:
+    """The points (sorted) whose rays fit two places equally well.
+
+    Every pair of a point's rays is intersected and every ray of the point tested there:
+    the rays within the loss's core form that place's consensus. The point is ambiguous
+    when two of its largest consensuses are different answers: they share at most one ray,
+    and each leaves a ray of the other clearly beyond the core (:data:`CLEARLY_BEYOND`
+    times its radius; rays near the core's edge decide nothing). Three rays, one of them a
+    wrong match lying along the epipolar line of a good one, are such a point: the two
+    good rays meet at one place, the wrong one and the good one it lies along at another.
+    The loss keeps one pair and down-weights the third ray, and which pair it keeps
+    depends on where the adjustment started: the estimators adjust again without such a
+    point and do not publish it (docs/algorithm.md, *Points whose rays fit two places*).
+    A larger consensus wins: three good rays against a wrong pair are not ambiguous.
+
+    The test reads the EOPs only, not the point's estimate (which the loss's choice
+    moved), so that two estimators a few millimetres apart find the same points. Only
+    points of three rays or more (at most :data:`MAX_AMBIGUOUS_RAYS`) with a ray beyond the
+    core at the estimate are looked at (clean data: next to none).
+
+    Parameters
+    ----------
+    u2 : (k,) float
+        Each ray's squared normalised residual at the estimate (selects the points tested).
+    point : (k,) int
+        Each ray's point.
+    eop : (k, 6) float
+        The EOP of each ray's image at the estimate.
+    uv_px, sigma_px : (k, 2), (k,) float
+        Each ray's image point and its σ.
+    camera : PinholeCamera
+    scale, sigma0
+        The loss's scale (None: no core, nothing is ambiguous) and the a posteriori σ0 that
+        widens the core (as in :func:`disagreeing_points`).
+    """
+    from seqat.geometry import depth, intersect_rays, project
+
+    point = np.asarray(point, dtype=np.int64)
+    if scale is None or point.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    u2 = np.asarray(u2, dtype=np.float64)
+    core = scale**2 * max(1.0, sigma0 if np.isfinite(sigma0) else 1.0) ** 2
+    clear = CLEARLY_BEYOND**2 * core
+    pts, pos = np.unique(point, return_inverse=True)
+    count = np.bincount(pos, minlength=pts.size)
+    out = np.bincount(pos, weights=u2 > core, minlength=pts.size)
+    cand = np.flatnonzero((count >= 3) & (count <= MAX_AMBIGUOUS_RAYS) & (out > 0))
+    if not cand.size:
+        return np.zeros(0, dtype=np.int64)
+    order = np.argsort(pos, kind="stable")
+    start = np.cumsum(count) - count
+    # every pair of rays of each candidate (ray indices), and the point's rays for each pair
+    pa, pb, pp = [], [], []
+    for c in cand:
+        i, j = np.triu_indices(int(count[c]), 1)
+        pa.append(order[start[c] + i])
+        pb.append(order[start[c] + j])
+        pp.append(np.full(i.size, c))
+    a, b, pair_pt = (np.concatenate(v) for v in (pa, pb, pp))
+    m = a.size
+    eop = np.asarray(eop, dtype=np.float64).reshape(-1, 6)
+    uv_px = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
+    sigma_px = np.asarray(sigma_px, dtype=np.float64).reshape(-1)
+    ends = np.concatenate([a, b])
+    X, _ = intersect_rays(eop[ends], uv_px[ends], np.tile(np.arange(m), 2), m, camera)
+    ok = np.all(np.isfinite(X), axis=1)
+    X = np.nan_to_num(X)
+    ok &= np.all((depth(eop[ends], np.tile(X, (2, 1))) > 0).reshape(2, m), axis=0)
+    lens = count[pair_pt]
+    local = np.arange(int(lens.sum())) - np.repeat(np.cumsum(lens) - lens, lens)
+    rays = order[np.repeat(start[pair_pt], lens) + local]
+    pair_of = np.repeat(np.arange(m), lens)
+    u2_at = ray_u2(uv_px[rays] - project(eop[rays], X[pair_of], camera), sigma_px[rays])
+    front = depth(eop[rays], X[pair_of]) > 0
+    bit = np.left_shift(np.int64(1), local)
+    within = np.bincount(pair_of, weights=np.where((u2_at <= core) & front, bit, 0),
+                         minlength=m).astype(np.int64)  # each pair's consensus, as bits
+    beyond = np.bincount(pair_of, weights=np.where((u2_at > clear) | ~front, bit, 0),
+                         minlength=m).astype(np.int64)
+    size = np.bincount(pair_of, weights=(u2_at <= core) & front, minlength=m)
+    ambiguous = np.zeros(pts.size, dtype=bool)
+    for c in np.unique(pair_pt[ok]):
+        mine = np.flatnonzero(ok & (pair_pt == c))
+        best = mine[size[mine] == size[mine].max()]
+        sets = {(int(within[q]), int(beyond[q])) for q in best}  # distinct answers
+        ambiguous[c] = any(bin(w1 & w2).count("1") <= 1 and w1 & o2 and w2 & o1
+                           for w1, o1 in sets for w2, o2 in sets)
+    return pts[ambiguous]
+
+
+def withheld_points(u2: FloatArray, point: np.ndarray, eop: FloatArray, uv_px: FloatArray,
+                    sigma_px: FloatArray, camera: PinholeCamera, scale: float | None,
+                    sigma0: float = 1.0) -> np.ndarray:
+    """The points (sorted) the estimators do not publish: their rays disagree
+    (:func:`disagreeing_points`) or fit another place as well (:func:`ambiguous_points`);
+    the arguments are :func:`ambiguous_points`'s."""
+    return np.union1d(disagreeing_points(u2, point, scale, sigma0),
+                      ambiguous_points(u2, point, eop, uv_px, sigma_px, camera, scale, sigma0))
 
 
 def robust_cost(u2: FloatArray, scale: float | None) -> float:

@@ -284,6 +284,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         self.rescued: list[str] = []  # GPs re-intersected robustly (relinearise)
         self.disagreeing: list[str] = []  # GPs whose rays disagree, not published (finish)
         self._disagreeing: set[int] = set()
+        self._ambiguous: set[int] = set()  # GPs taken out at finish(): rays fit two places
         self._rescues: list[tuple[int, Key]] = []  # (records made before it, GP rescued)
         self._final_reopened: set[Key] = set()  # departed keys re-opened by finish()
         self.final_reopen_skipped = self.finish_born = 0  # finish(): not re-opened; born
@@ -332,6 +333,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                         self._reopen_departed()
                     self.finish_born = self._birth_at_finish()
                     self._final_relinearise()
+                    self._drop_ambiguous()
                 self._hold_undetermined_camera()
                 self._find_disagreeing()
                 self._settle_ssr()
@@ -380,7 +382,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
         pts = []
         for p in self._gp_order:
             if p in self._disagreeing:
-                continue  # its rays disagree (finish(): seqat.robust.disagreeing_points)
+                continue  # its rays disagree (finish(): seqat.robust.withheld_points)
             if ("p", p) in w.offset and ("p", p) not in realtime:
                 idx = w.index(("p", p))
                 xyz, sig, nobs = w.x[idx] + origin, sd[idx], self._gp_nobs[p]

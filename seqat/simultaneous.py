@@ -396,6 +396,7 @@ class SimultaneousAT(SnoopingMixin):
         self._gp_est: FloatArray = np.zeros((0, GP_SIZE))
         self._dirty = False
         self._rejected: set[int] = set()  # catalogue indices of observations rejected
+        self._ambiguous: set[int] = set()  # catalogue points held out: their rays fit two places
         #: Observations removed by data snooping: (image id, point id, w-test value).
         self.rejections: list[tuple[str, str, float]] = []
         #: GPS/INS groups down-weighted by data snooping: (image id, "position"/"attitude").
@@ -474,6 +475,7 @@ class SimultaneousAT(SnoopingMixin):
         start = need[ctrl]
         gp_init[ctrl[start]] = ctrl_xyz[start]
         usable = (counts >= min_rays) & np.all(np.isfinite(gp_init), axis=1)
+        usable[np.fromiter(self._ambiguous, dtype=np.int64, count=len(self._ambiguous))] = False
         # A new point must lie in front of every camera that sees it (a mismatch intersected
         # behind the cameras would make the normal equations indefinite).
         check = usable[op] & need[op]
@@ -540,9 +542,36 @@ class SimultaneousAT(SnoopingMixin):
                 break
             data, sel = more, more_sel
             res = self._adjust_and_keep(data, sel, eop0, gp0, covariance)
+        # Tie points whose rays fit two places as well (seqat.robust.ambiguous_points): which
+        # pair the loss keeps depends on the start, and with it a weakly tied image's pose
+        # (Seneca without every fifth image: 0.1 deg on the last one). They carry no
+        # information on the images: the block is adjusted again without them, as Seq-R's
+        # finish() takes their rows out (docs/algorithm.md, *Points whose rays fit two places*).
+        self._ambiguous = set()
+        for _ in range(rloss.MAX_AMBIGUOUS_ROUNDS):
+            found = self._ambiguous_points(res, data, sel)
+            if not found:
+                break
+            self._ambiguous |= found
+            data, sel, eop0, gp0, _ = self._block()
+            res = self._adjust_and_keep(data, sel, eop0, gp0, covariance)
         self._n_obs = np.bincount(data.obs_point, minlength=data.n_points)
         self._dirty = False
         return res
+
+    def _ambiguous_points(self, res: SimResult, data: BlockData, sel: np.ndarray) -> set[int]:
+        """Catalogue indices of the block's points (``sel``) whose rays fit two places as
+        well at ``res`` (:func:`seqat.robust.ambiguous_points`; ground control exempt)."""
+        k = self.options.robust_scale
+        if k is None or not data.obs_point.size:
+            return set()
+        img, pt = data.obs_image, data.obs_point
+        use = ~np.isin(pt, data.control_point)
+        img, pt, uv, sg = img[use], pt[use], data.obs_uv[use], data.obs_sigma_px[use]
+        u2 = rloss.ray_u2(uv - project(res.eop[img], res.gp[pt], self.camera_now), sg)
+        found = rloss.ambiguous_points(u2, pt, res.eop[img], uv, sg, self.camera_now, k,
+                                       res.sigma0)
+        return {int(sel[j]) for j in found}
 
     def _adjust_and_keep(self, data: BlockData, sel: np.ndarray, eop0: FloatArray,
                       gp0: FloatArray, covariance: Covariance) -> SimResult:
@@ -652,9 +681,8 @@ class SimultaneousAT(SnoopingMixin):
         )
 
     def _disagreeing_points(self, res: SimResult) -> set[int]:
-        """Block points (positions in the selection) whose rays disagree at ``res``
-        (:func:`seqat.robust.disagreeing_points`; ground control exempt), named in
-        :attr:`disagreeing`."""
+        """Block points (positions in the selection) not published at ``res``: their rays
+        disagree (:func:`seqat.robust.withheld_points`; control exempt); :attr:`disagreeing`."""
         _, oi, op, uv, sg = self._observations()
         pos = np.full(len(self._cat.point_ids), -1)
         pos[self._point_sel] = np.arange(self._point_sel.size)
@@ -666,8 +694,10 @@ class SimultaneousAT(SnoopingMixin):
             use &= ~res.undetermined[np.maximum(pos[op], 0)]
         oi, pt, uv, sg = oi[use], pos[op[use]], uv[use], sg[use]
         u2 = rloss.ray_u2(uv - project(res.eop[oi], res.gp[pt], self.camera_now), sg)
-        off = rloss.disagreeing_points(u2, pt, self.options.robust_scale, res.sigma0)
-        self.disagreeing = [ids[int(self._point_sel[j])] for j in off]
+        off = rloss.withheld_points(u2, pt, res.eop[oi], uv, sg, self.camera_now,
+                                    self.options.robust_scale, res.sigma0)
+        held = sorted(self._ambiguous)  # out of the block already (_solve)
+        self.disagreeing = [ids[int(j)] for j in sorted(held + self._point_sel[off].tolist())]
         return set(off.tolist())
 
     def solution(self) -> Solution:

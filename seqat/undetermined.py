@@ -11,9 +11,9 @@ import numpy as np
 
 from seqat.assembly import factor_information
 from seqat.information import RankDeficiency, window_matrix
-from seqat.robust import disagreeing_points
+from seqat.robust import MAX_AMBIGUOUS_ROUNDS, ambiguous_points, withheld_points
 from seqat.rows import FactorSet, gradient_from_factors
-from seqat.types import GP_SIZE, FloatArray
+from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 from seqat.window import Key
 
 
@@ -86,6 +86,48 @@ class UndeterminedMixin:
         w.changed()
         return {k: g[w.index(k)] for k in w.keys if k[0] != "p" or k[1] not in points}
 
+    def _drop_ambiguous(self) -> None:
+        """finish(), after the final re-linearisation: the window GPs whose rays fit another
+        place as well (:func:`seqat.robust.ambiguous_points`) leave with their rows
+        (:meth:`_drop_undetermined`) and the window is re-adjusted without them, as Sim adjusts
+        its block again without them: which pair of rays the loss keeps depends on the
+        start, and with it a weakly tied image's pose. Named in :attr:`disagreeing`.
+        Information engine only (the inverse engine cannot take rows out)."""
+        k = self.options.robust_scale
+        for _ in range(MAX_AMBIGUOUS_ROUNDS):
+            f = self._window_factors() if k is not None and not self._inverse else None
+            if f is None:
+                return
+            w = self._w
+            e_idx, p_idx = f.columns(w)
+            xe = w.x[e_idx]
+            u2 = np.sum(f.residuals(xe, w.x[p_idx], self._cam) ** 2, axis=1) * f.w0
+            mine = self._whole_suspects(f, u2)
+            found = [int(p) for p in ambiguous_points(
+                u2[mine], f.pt[mine], xe[mine, :EOP_SIZE], f.uv[mine],
+                1.0 / np.sqrt(f.w0[mine]), self._camera_now(), k, self.sigma0)]
+            if not found:
+                return
+            self._drop_undetermined([("p", p) for p in found])
+            for p in found:
+                self._undetermined.pop(p, None)
+                self._ambiguous.add(p)
+            self._final_relinearise()
+
+    def _whole_suspects(self, f: FactorSet, u2: FloatArray) -> np.ndarray:
+        """Mask of the factors of the window GPs with a ray beyond the core (at the squared
+        normalised residuals ``u2``) all of whose rays are among the factors, not control."""
+        k = self.options.robust_scale
+        assert k is not None
+        core = k**2 * max(1.0, self.sigma0 if np.isfinite(self.sigma0) else 1.0) ** 2
+        suspects = np.unique(f.pt[u2 > core])
+        if suspects.size:
+            rays = np.bincount(f.pt, minlength=int(suspects.max()) + 1)
+            suspects = np.array([p for p in suspects.tolist()
+                                 if rays[p] == self._gp_nobs.get(p)
+                                 and self._control_of(p) is None], dtype=np.int64)
+        return np.isin(f.pt, suspects)
+
     def _find_disagreeing(self) -> None:
         """finish(): the window GPs whose rays disagree at the final estimate, as Sim finds
         them (:meth:`_note_disagreeing`): left out of :meth:`solution` and named in
@@ -96,28 +138,26 @@ class UndeterminedMixin:
         if f is None:
             return
         e_idx, p_idx = f.columns(w)
-        true = f.residuals(w.x[e_idx], w.x[p_idx], self._cam)
-        self._note_disagreeing(f, np.sum(true**2, axis=1) * f.w0)
-        self.disagreeing = [self._point_ids[p] for p in sorted(self._disagreeing)]
+        xe = w.x[e_idx]
+        true = f.residuals(xe, w.x[p_idx], self._cam)
+        self._note_disagreeing(f, np.sum(true**2, axis=1) * f.w0, xe)
+        self.disagreeing = [self._point_ids[p]
+                            for p in sorted(self._disagreeing | self._ambiguous)]
 
-    def _note_disagreeing(self, f: FactorSet, u2: FloatArray) -> None:
+    def _note_disagreeing(self, f: FactorSet, u2: FloatArray, xe: FloatArray) -> None:
         """The window GPs whose rays disagree where the window's factors have the squared
-        normalised residuals ``u2`` (:func:`seqat.robust.disagreeing_points`; at a drift
-        check during the flight, at finish() in the end): only GPs all of whose rays are
-        among the factors, not ground control. Left out of :meth:`window_solution` until
-        the next check. Only points with a ray beyond the core are looked at (clean data:
-        none)."""
+        normalised residuals ``u2`` and their image blocks the values ``xe`` (k, 6 + c):
+        fewer than two rays within the core, or the rays beyond it agreeing with as many
+        elsewhere (:func:`seqat.robust.withheld_points`); at a drift check during the flight, at
+        finish() in the end. Only GPs all of whose rays are among the factors, not ground
+        control. Left out of :meth:`window_solution` until the next check. Only points with
+        a ray beyond the core are looked at (clean data: none)."""
         k = self.options.robust_scale
         self._disagreeing = set()
         if k is None or f.pt.size == 0:
             return
-        core = k**2 * max(1.0, self.sigma0 if np.isfinite(self.sigma0) else 1.0) ** 2
-        suspects = np.unique(f.pt[u2 > core])
-        if not suspects.size:
-            return
-        mine = np.isin(f.pt, suspects)
-        rays = np.bincount(f.pt[mine])
-        self._disagreeing = {int(p) for p in disagreeing_points(u2[mine], f.pt[mine], k,
-                                                                self.sigma0)
-                             if rays[p] == self._gp_nobs.get(int(p))
-                             and self._control_of(int(p)) is None}
+        mine = self._whole_suspects(f, u2)
+        if mine.any():
+            self._disagreeing = {int(p) for p in withheld_points(
+                u2[mine], f.pt[mine], xe[mine, :EOP_SIZE], f.uv[mine],
+                1.0 / np.sqrt(f.w0[mine]), self._camera_now(), k, self.sigma0)}
