@@ -82,7 +82,7 @@ def test_crs_round_trip_geographic_and_proj_strings(tmp_path: Path) -> None:
         x, y = (lon, lat) if "proj=utm" not in header else P1[:2]
         c = read_odm_gcp_list(write(tmp_path, odm(header, [
             f"{x!r} {y!r} {P1[2]} 1 2 img_0001.jpg g"])), UTM10, frame())
-        np.testing.assert_allclose(c.points[0].xyz_m, P1, atol=1e-6, err_msg=header)
+        np.testing.assert_allclose(c.points[0].xyz_m, P1, rtol=0, atol=1e-6, err_msg=header)
 
 
 def test_pixels_of_a_resized_file_scale_to_the_camera(tmp_path: Path) -> None:
@@ -121,7 +121,7 @@ def test_metashape_markers_xml(tmp_path: Path) -> None:
     path = write(tmp_path, metashape_xml(), "markers.xml")
     c = read_metashape_markers(path, UTM10, frame())
     assert [p.point_id for p in c.points] == ["gcp:point_1"]  # whitespace as _
-    np.testing.assert_allclose(c.points[0].xyz_m, P1, atol=1e-9)
+    np.testing.assert_allclose(c.points[0].xyz_m, P1, rtol=0, atol=1e-9)
     np.testing.assert_array_equal(c.points[0].sigma_m, [0.01, 0.01, 0.02])
     # pinned only; Metashape's (0.5, 0.5) pixel centre -> OpenCV's (0, 0)
     assert list(c.observations) == ["img_0001"]

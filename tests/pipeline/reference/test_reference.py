@@ -280,7 +280,7 @@ def test_reference_stage_writes_readable_model_and_our_formats(sim_run: Path) ->
     # The COLMAP model is in world coordinates, and agrees with eop.csv.
     image = rec.find_image_with_name(eops.image_ids[3])
     np.testing.assert_allclose(eop_from_rigid(image.cam_from_world())[:3], eops.eop[3, :3],
-                               atol=1e-6)
+                               rtol=0, atol=1e-6)
     # Same observations as the run's Sim: the reference reproduces it.
     run_eop = read_eop_csv(sim_run / "eop.csv")
     assert np.max(np.abs(eops.eop[:, :3] - run_eop.eop[:, :3])) <= AGREEMENT_POS_M
