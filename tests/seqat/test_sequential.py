@@ -339,7 +339,7 @@ def test_finished_seq_f_reaches_sims_robust_minimum(short_strip: SimulatedFlight
         return np.array([e.eop for e in seq.solution().eops]), seq.sigma0
 
     got, sigma0 = finished()
-    np.testing.assert_allclose(got[:, :3], ref[:, :3], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(got[:, :3], ref[:, :3], rtol=0, atol=5e-5)
     np.testing.assert_allclose(got[:, 3:], ref[:, 3:], atol=1e-6)
     assert sigma0 == pytest.approx(sim.solution().sigma0, rel=1e-4)
     monkeypatch.setattr(relinearise, "FINAL_ROBUST_ROUNDS", 1)
