@@ -68,7 +68,7 @@ def test_sequential_with_control_equals_sim(short_strip: SimulatedFlight, method
     assert np.max(np.abs(ea[:, 3:] - eb[:, 3:])) < 1e-8
     pa = {p.point_id: p for p in sim.points}
     for p in seq.points:
-        assert np.allclose(p.xyz_m, pa[p.point_id].xyz_m, atol=1e-5)
+        assert np.allclose(p.xyz_m, pa[p.point_id].xyz_m, rtol=0, atol=1e-5)
         assert np.allclose(p.sigma_m, pa[p.point_id].sigma_m, rtol=1e-4)
     assert seq.redundancy == sim.redundancy
     assert seq.sigma0 == pytest.approx(sim.sigma0, rel=1e-6)
