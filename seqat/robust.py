@@ -83,6 +83,12 @@ def robust_weight(u2: FloatArray, scale: float | None) -> FloatArray:
     return 1.0 / (1.0 + np.maximum(u2 - k2, 0.0) / k2)
 
 
+def core_u2(scale: float, sigma0: float = 1.0) -> float:
+    """The loss's core as a bound on a ray's ``u²``: ``k²``, widened to ``k² σ0²`` by an a
+    posteriori σ0 above 1 (image points whose σ was set too small)."""
+    return scale**2 * max(1.0, sigma0 if np.isfinite(sigma0) else 1.0) ** 2
+
+
 def disagreeing_points(u2: FloatArray, point: np.ndarray, scale: float | None,
                        sigma0: float = 1.0) -> np.ndarray:
     """The points (sorted, unique values of ``point``) with fewer than
@@ -100,7 +106,7 @@ def disagreeing_points(u2: FloatArray, point: np.ndarray, scale: float | None,
     if scale is None or point.size == 0:
         return np.zeros(0, dtype=np.int64)
     pts, pos = np.unique(point, return_inverse=True)
-    core = scale**2 * max(1.0, sigma0 if np.isfinite(sigma0) else 1.0) ** 2
+    core = core_u2(scale, sigma0)
     inside = np.bincount(pos, weights=np.asarray(u2) <= core, minlength=pts.size)
     return pts[inside < MIN_AGREEING_RAYS]
 
@@ -148,7 +154,7 @@ def ambiguous_points(u2: FloatArray, point: np.ndarray, eop: FloatArray, uv_px: 
     if scale is None or point.size == 0:
         return np.zeros(0, dtype=np.int64)
     u2 = np.asarray(u2, dtype=np.float64)
-    core = scale**2 * max(1.0, sigma0 if np.isfinite(sigma0) else 1.0) ** 2
+    core = core_u2(scale, sigma0)
     clear = CLEARLY_BEYOND**2 * core
     pts, pos = np.unique(point, return_inverse=True)
     count = np.bincount(pos, minlength=pts.size)

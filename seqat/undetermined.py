@@ -11,7 +11,7 @@ import numpy as np
 
 from seqat.assembly import factor_information
 from seqat.information import RankDeficiency, window_matrix
-from seqat.robust import MAX_AMBIGUOUS_ROUNDS, ambiguous_points, withheld_points
+from seqat.robust import MAX_AMBIGUOUS_ROUNDS, ambiguous_points, core_u2, withheld_points
 from seqat.rows import FactorSet, gradient_from_factors
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 from seqat.window import Key
@@ -98,10 +98,7 @@ class UndeterminedMixin:
             f = self._window_factors() if k is not None and not self._inverse else None
             if f is None:
                 return
-            w = self._w
-            e_idx, p_idx = f.columns(w)
-            xe = w.x[e_idx]
-            u2 = np.sum(f.residuals(xe, w.x[p_idx], self._cam) ** 2, axis=1) * f.w0
+            xe, u2 = self._at_estimate(f)
             mine = self._whole_suspects(f, u2)
             found = [int(p) for p in ambiguous_points(
                 u2[mine], f.pt[mine], xe[mine, :EOP_SIZE], f.uv[mine],
@@ -114,13 +111,19 @@ class UndeterminedMixin:
                 self._ambiguous.add(p)
             self._final_relinearise()
 
+    def _at_estimate(self, f: FactorSet) -> tuple[FloatArray, FloatArray]:
+        """The image blocks of the window's factors ``f`` at the estimate (k, 6 + c) and each
+        factor's squared normalised residual there (k,)."""
+        e_idx, p_idx = f.columns(self._w)
+        xe = self._w.x[e_idx]
+        return xe, np.sum(f.residuals(xe, self._w.x[p_idx], self._cam) ** 2, axis=1) * f.w0
+
     def _whole_suspects(self, f: FactorSet, u2: FloatArray) -> np.ndarray:
         """Mask of the factors of the window GPs with a ray beyond the core (at the squared
         normalised residuals ``u2``) all of whose rays are among the factors, not control."""
         k = self.options.robust_scale
         assert k is not None
-        core = k**2 * max(1.0, self.sigma0 if np.isfinite(self.sigma0) else 1.0) ** 2
-        suspects = np.unique(f.pt[u2 > core])
+        suspects = np.unique(f.pt[u2 > core_u2(k, self.sigma0)])
         if suspects.size:
             rays = np.bincount(f.pt, minlength=int(suspects.max()) + 1)
             suspects = np.array([p for p in suspects.tolist()
@@ -133,14 +136,11 @@ class UndeterminedMixin:
         them (:meth:`_note_disagreeing`): left out of :meth:`solution` and named in
         :attr:`disagreeing`. Judged only with every ray of the point in the window's factors
         (after the final re-opening, all within ``reopen_max_age``)."""
-        w = self._w
         f = self._window_factors()
         if f is None:
             return
-        e_idx, p_idx = f.columns(w)
-        xe = w.x[e_idx]
-        true = f.residuals(xe, w.x[p_idx], self._cam)
-        self._note_disagreeing(f, np.sum(true**2, axis=1) * f.w0, xe)
+        xe, u2 = self._at_estimate(f)
+        self._note_disagreeing(f, u2, xe)
         self.disagreeing = [self._point_ids[p]
                             for p in sorted(self._disagreeing | self._ambiguous)]
 
