@@ -74,6 +74,10 @@ class RobustnessRecord:
         Tie points with fewer than two rays within the robust loss's core at the final
         estimate (two rays, one a wrong match): left out of the solution
         (:func:`seqat.robust.disagreeing_points`).
+    off_surface_points : tuple[str, ...]
+        Tie points far above or below the surface their neighbours define, with no
+        neighbour at their height (a wrong match along the epipolar line): not published
+        (:func:`seqat.surface.off_surface_points`).
     final_reopen_skipped : int
         Seq-R: departed parameters that the final smoothing pass did not re-open for being
         too many (their RTS-smoothed values stand; 0: every one re-opened, or none departed).
@@ -96,13 +100,15 @@ class RobustnessRecord:
     diverged_images: tuple[str, ...] = ()
     rescued_points: tuple[str, ...] = ()
     disagreeing_points: tuple[str, ...] = ()
+    off_surface_points: tuple[str, ...] = ()
     final_reopen_skipped: int = 0
     nav_robust_scale: float | None = None
     nav_robust: tuple[NavRobust, ...] = ()
 
 
 def robustness_record(estimator: object, options: object, *, bridged: Sequence[str] = (),
-                      skipped: Sequence[str] = ()) -> RobustnessRecord:
+                      skipped: Sequence[str] = (),
+                      off_surface: Sequence[str] = ()) -> RobustnessRecord:
     """The record of a finished run.
 
     Parameters
@@ -113,6 +119,8 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
         Read: ``snooping_critical``, ``min_rays``.
     bridged, skipped : sequence of str
         Dropout image ids.
+    off_surface : sequence of str
+        Tie points the run left out as off the surface (``RunSession.off_surface``).
     """
     rejections = tuple(Rejection(image=i, point=p, w=round(float(w), 3))
                        for i, p, w in getattr(estimator, "rejections", ()))
@@ -128,6 +136,7 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
                             rescued_points=tuple(dict.fromkeys(getattr(estimator, "rescued",
                                                                        ()))),
                             disagreeing_points=tuple(getattr(estimator, "disagreeing", ())),
+                            off_surface_points=tuple(off_surface),
                             final_reopen_skipped=int(getattr(estimator, "final_reopen_skipped",
                                                              0)),
                             nav_robust_scale=getattr(options, "nav_robust_scale", None),
@@ -149,6 +158,7 @@ class RobustnessSummary:
     nav_robust: tuple[str, ...] = ()  # "image: group (weight)"
     points_disagreeing: int = 0  # tie points left out: fewer than two rays agree
     points_undetermined: int = 0  # tie points left out: singular information
+    points_off_surface: int = 0  # tie points left out: off the surface, no partner
 
 
 def summarise(record: Mapping[str, object]) -> RobustnessSummary | None:
@@ -173,7 +183,8 @@ def summarise(record: Mapping[str, object]) -> RobustnessSummary | None:
         nav_robust=tuple(f"{n['image']}: {n['group']} ({n['weight']:.2g})"
                          for n in rob.get("nav_robust") or ()),  # type: ignore[union-attr]
         points_disagreeing=len(rob.get("disagreeing_points") or ()),  # type: ignore[arg-type]
-        points_undetermined=len(rob.get("undetermined_points") or ()))  # type: ignore[arg-type]
+        points_undetermined=len(rob.get("undetermined_points") or ()),  # type: ignore[arg-type]
+        points_off_surface=len(rob.get("off_surface_points") or ()))  # type: ignore[arg-type]
 
 
 def robustness_rows(summary: RobustnessSummary) -> list[tuple[str, str]]:
@@ -187,8 +198,9 @@ def robustness_rows(summary: RobustnessSummary) -> list[tuple[str, str]]:
         ("GPS/INS groups down-weighted", ", ".join(summary.nav_downweighted) or "none"),
         ("GPS/INS groups down-weighted by the robust loss (weight)",
          ", ".join(summary.nav_robust) or "none"),
-        ("tie points left out: rays disagree / undetermined",
-         f"{summary.points_disagreeing} / {summary.points_undetermined}"),
+        ("tie points left out: rays disagree / undetermined / off the surface",
+         f"{summary.points_disagreeing} / {summary.points_undetermined} / "
+         f"{summary.points_off_surface}"),
         ("GNSS dropout images bridged / skipped",
          f"{summary.dropout_bridged} / {len(summary.dropout_skipped)}"
          + (f" ({', '.join(summary.dropout_skipped)})" if summary.dropout_skipped else "")),

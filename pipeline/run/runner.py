@@ -536,7 +536,8 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
                if iid in done_ids and flight.is_dropout(row)]
     dropouts = {iid for row, iid in enumerate(flight.nav.image_ids) if flight.is_dropout(row)}
     robustness = robustness_record(session.estimator, options, bridged=bridged,
-                                   skipped=[s.image for s in skipped if s.image in dropouts])
+                                   skipped=[s.image for s in skipped if s.image in dropouts],
+                                   off_surface=session.off_surface)
     inputs = dataclasses.replace(flight.inputs(), skipped=flight.skipped + tuple(skipped))
     return publish_run(out, session, solution, method=method, flight=str(flight.path),
                        inputs=inputs, options=options, final_only=final_only,

@@ -29,6 +29,7 @@ from pipeline.run.sources import PreparedFrame
 from pipeline.run.store import format_observation_lines
 from pipeline.tracking.options import TrackerOptions
 from pipeline.tracking.tracker import TrackerState
+from seqat.surface import without_off_surface
 from seqat.types import Frame, ImageUpdate, Solution
 
 
@@ -168,6 +169,9 @@ class RunSession:
         self._image_points: dict[str, list[str]] = {}
         self._late_points: dict[str, list[str]] = {}  # image -> late observations' points
         self.n_late = 0
+        #: Tie points of the final solution off the surface of their neighbours, not
+        #: published (:func:`seqat.surface.off_surface_points`).
+        self.off_surface: tuple[str, ...] = ()
         self._nav_ids: list[str] = []
         self._nav_times: list[float] = []
         self._nav_eops: list[np.ndarray] = []
@@ -279,13 +283,21 @@ class RunSession:
 
     # ----------------------------------------------------------------------------------------
     def finish(self) -> Solution:
-        """Final solution (sequential: the window re-linearised); listeners' ``on_finish``."""
+        """Final solution (sequential: the window re-linearised) without the tie points off
+        the surface (:attr:`off_surface`); listeners' ``on_finish``."""
         finish = getattr(self.estimator, "finish", None)
         if finish is not None:
             finish()
-        solution = self.estimator.solution()
+        solution = self._on_surface(self.estimator.solution())
         for listener in self.listeners:
             listener.on_finish(solution)
+        return solution
+
+    def _on_surface(self, solution: Solution) -> Solution:
+        """``solution`` without its tie points off the surface (ground control exempt),
+        named in :attr:`off_surface`."""
+        solution, self.off_surface = without_off_surface(
+            solution, getattr(self.estimator, "control", None) or ())
         return solution
 
     @property

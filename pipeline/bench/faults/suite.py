@@ -69,6 +69,7 @@ from seqat.geometry import wrap_angle
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
 from seqat.simultaneous import SimOptions, SimultaneousAT
+from seqat.surface import without_off_surface
 from seqat.types import EOP_SIZE, FloatArray, ImageUpdate
 
 
@@ -153,7 +154,7 @@ class _SimCase(Case):
                 frame = dataclasses.replace(frame, nav_sigma=np.full(EOP_SIZE, np.inf),
                                             initial_eop=last.eop[i])
             est.add_frame(frame)
-        sol = est.solution()
+        sol, _ = without_off_surface(est.solution(), est.control)  # as seqat run publishes
         img = {iid: i for i, iid in enumerate(self.image_ids)}
         pts = {pid: j for j, pid in enumerate(self.point_ids)}
         eop = np.full((len(self.image_ids), EOP_SIZE), np.nan)
@@ -168,7 +169,7 @@ class _SimCase(Case):
 
 def _outcome(est: SequentialAT, updates: Sequence[ImageUpdate], image_ids: Sequence[str],
              point_ids: Sequence[str], skipped: int) -> Outcome:
-    sol = est.solution()
+    sol, _ = without_off_surface(est.solution(), est.control)  # as seqat run publishes
     img = {iid: i for i, iid in enumerate(image_ids)}
     pts = {pid: j for j, pid in enumerate(point_ids)}
     eop = np.full((len(image_ids), EOP_SIZE), np.nan)

@@ -2,27 +2,87 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
+from pathlib import Path
 from types import SimpleNamespace
 
+import numpy as np
+import pytest
+
 from pipeline.run.robustness import robustness_record, robustness_rows, summarise
-from pipeline.run.store import to_jsonable
+from pipeline.run.runner import Method, run_flight
+from pipeline.run.store import read_points_csv, to_jsonable
+from pipeline.simulate.folder import write_simulated_flight
+from seqat.geometry import project
 from seqat.sequential import SequentialOptions
+from seqat.simulate import SimulatedFlight
+
+from ..sample_flight import SIM_CRS
 
 
 def test_points_left_out_reach_run_json_and_the_report() -> None:
     """The estimator's disagreeing and undetermined tie points are named in run.json and
     counted in the report's *Blunders and GNSS faults* table."""
     est = SimpleNamespace(disagreeing=["t1", "t2", "t3"], undetermined=["t9"])
-    record = robustness_record(est, SequentialOptions())
+    record = robustness_record(est, SequentialOptions(), off_surface=["t4", "t5"])
     assert record.disagreeing_points == ("t1", "t2", "t3")
     assert record.undetermined_points == ("t9",)
+    assert record.off_surface_points == ("t4", "t5")
     summary = summarise({"robustness": to_jsonable(record), "images": []})
     assert summary is not None
-    assert (summary.points_disagreeing, summary.points_undetermined) == (3, 1)
+    assert (summary.points_disagreeing, summary.points_undetermined,
+            summary.points_off_surface) == (3, 1, 2)
     rows = dict(robustness_rows(summary))
-    assert rows["tie points left out: rays disagree / undetermined"] == "3 / 1"
+    assert rows["tie points left out: rays disagree / undetermined / off the surface"] == (
+        "3 / 1 / 2")
     # a run.json written before the field: none
     old = to_jsonable(robustness_record(SimpleNamespace(), SequentialOptions()))
     del old["disagreeing_points"]
     summary = summarise({"robustness": old, "images": []})
     assert summary is not None and summary.points_disagreeing == 0
+
+
+def _wrong_depth(f: SimulatedFlight, down_m: float) -> tuple[SimulatedFlight, str]:
+    """A point of the strip's middle image cut to its first and last rays, the last a wrong
+    match on the point ``down_m`` further down the first ray: along the first ray's
+    epipolar line, so both rays meet exactly there (no ray test can see it)."""
+    counts = np.bincount(f.obs_point)
+    mid = len(f.image_ids) // 2
+    p = int(next(q for q in np.unique(f.obs_point[f.obs_image == mid]) if counts[q] >= 3))
+    rows = np.flatnonzero(f.obs_point == p)
+    X = f.truth_xyz[p]
+    ray = X - f.truth_eop[f.obs_image[rows[0]], :3]
+    uv = f.obs_uv.copy()
+    uv[rows[-1]] = project(f.truth_eop[f.obs_image[rows[-1]]][None],
+                           (X + down_m * ray / np.linalg.norm(ray))[None], f.camera)[0]
+    keep = np.ones(len(uv), dtype=bool)
+    keep[rows[1:-1]] = False
+    return dataclasses.replace(f, obs_image=f.obs_image[keep], obs_point=f.obs_point[keep],
+                               obs_uv=uv[keep]), f.point_ids[p]
+
+
+@pytest.mark.parametrize("method", [Method.SEQ_R, Method.SIM])
+def test_a_wrong_match_along_the_epipolar_line_is_not_published(
+        short_strip: SimulatedFlight, tmp_path: Path, method: Method) -> None:
+    """Two rays, the second a wrong match 100 m down the first ray: the rays agree and the
+    point sits 100 m under ground whose points are 6 m (σ) rough. The run does not
+    publish it (points.csv) and names it in run.json; 10 m down it is within that
+    roughness and kept, and the clean strip loses no point."""
+
+    def run(f: SimulatedFlight, name: str) -> tuple[set[str], list[str]]:
+        out = tmp_path / name / "out"
+        run_flight(write_simulated_flight(f, SIM_CRS, tmp_path / name / "flight"), out,
+                   method=method, progress=False)
+        rob = json.loads((out / "run.json").read_text(encoding="utf-8"))["robustness"]
+        return set(read_points_csv(out / "points.csv").point_ids), rob["off_surface_points"]
+
+    wrong, pid = _wrong_depth(short_strip, 100.0)
+    published, named = run(wrong, "wrong")
+    assert named == [pid] and pid not in published
+    assert published == set(wrong.point_ids[j] for j in np.unique(wrong.obs_point)) - {pid}
+    near, pid = _wrong_depth(short_strip, 10.0)
+    published, named = run(near, "near")
+    assert named == [] and pid in published
+    published, named = run(short_strip, "clean")
+    assert named == [] and published == set(short_strip.point_ids)
