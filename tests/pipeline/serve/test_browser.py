@@ -196,6 +196,7 @@ def test_page_reloads_only_the_tiles_a_new_revision_changed(browser: Any,
              " ? mosaicShown.revision : null;")
     tile_urls = ("return performance.getEntriesByType('resource').map(e => e.name)"
                  ".filter(n => n.includes('/tiles/'));")
+    settled = "return Object.values(tiles._tiles).every(t => t.el.complete);"
     try:
         add(0)
         add(1)
@@ -212,7 +213,12 @@ def test_page_reloads_only_the_tiles_a_new_revision_changed(browser: Any,
             on_map = browser.execute_script("return Object.keys(tiles._tiles).length;")
             add(2)
             doc = json.loads((out / "live" / "mosaic.json").read_text())
-            wait.until(lambda d: d.execute_script(shown) == doc["revision"])
+            # the page sets the changed tiles' src itself (Leaflet's isLoading() does not see
+            # them) and a resource is listed once loaded: wait for the new requests to end
+            wait.until(lambda d: d.execute_script(shown) == doc["revision"]
+                       and d.execute_script(settled)
+                       and len(d.execute_script(tile_urls)) > before,
+                       "no tile was reloaded for the new revision")
             frm, to, boxes = doc["xyz"]["changes"][-1]
             assert (frm, to) == (rev, doc["revision"])
             reloaded = browser.execute_script(tile_urls)[before:]
