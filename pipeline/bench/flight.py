@@ -180,15 +180,16 @@ def run_flight_bench(flight: Path | str, out: Path | str) -> FlightBench:
     runs = {m: out / m.value for m in (Method.SEQ_R, Method.SIM, Method.SEQ_F)}
     run_flight(flight, runs[Method.SEQ_R], method=Method.SEQ_R, progress=True)
     obs = runs[Method.SEQ_R] / "observations.csv"
-    for m in (Method.SIM, Method.SEQ_F):
-        run_flight(flight, runs[m], method=m, observations=obs, progress=True)
+    for m in (Method.SIM, Method.SEQ_F):  # the first run printed the flight's warnings
+        run_flight(flight, runs[m], method=m, observations=obs, progress=True,
+                   echo_warnings=False)
     seq_r, sim, seq_f = (read_run(runs[m]) for m in (Method.SEQ_R, Method.SIM, Method.SEQ_F))
     calibrated = seq_r.record.get("camera_estimate") is not None
     other = {m: out / f"{m.value}-{'fixed' if calibrated else 'selfcal'}"
              for m in (Method.SEQ_R, Method.SIM)}
     for m, path in other.items():
         run_flight(flight, path, method=m, observations=obs, progress=True,
-                   self_calibration=not calibrated)
+                   self_calibration=not calibrated, echo_warnings=False)
     o_seq_r, o_sim = read_run(other[Method.SEQ_R]), read_run(other[Method.SIM])
     colmap, colmap_eop = _colmap(runs[Method.SIM])
     o_at = [float(im["update_ms"]) for im in o_seq_r.record["images"]]  # type: ignore[index]

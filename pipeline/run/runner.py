@@ -340,13 +340,14 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                 final_only: bool, tracking_options: TrackerOptions | None,
                 truth: Truth | None, t_start: float, mode: str = "run",
                 stopped: str = "", robustness: RobustnessRecord | None = None,
-                control: GroundControl | None = None) -> RunSummary:
+                control: GroundControl | None = None, echo_warnings: bool = True) -> RunSummary:
     """Write the run folder (atomically, all files or none) and summarise the run."""
     extra = session.tie_point_warnings(solution)
-    if extra:
+    if extra and echo_warnings:
         console = Console(stderr=True, soft_wrap=True)
         for warning in extra:
             console.print(f"seqat: warning: {warning}", highlight=False, markup=False)
+    if extra:
         inputs = dataclasses.replace(inputs, warnings=(*inputs.warnings, *extra))
     eops, points = eop_table(solution.eops), point_table(solution.points)
     accuracy = (compare_with_truth(eops, points, truth.eop, truth.points, inputs.nav)
@@ -406,7 +407,8 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
                listeners: Sequence[ImageListener] = (), resume: bool = False,
                budget_ms: float | None = None,
                self_calibration: bool | None = None, gcp: Path | str | None = None,
-               gcp_sigma_m: tuple[float, float] | None = None) -> RunSummary:
+               gcp_sigma_m: tuple[float, float] | None = None,
+               echo_warnings: bool = True) -> RunSummary:
     """Adjust a flight folder with one method and write the results to ``out_dir``.
 
     Parameters
@@ -447,6 +449,9 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
         in place of the flight's own (``flight.yaml`` ``gcp:``, or ``gcp_list.txt`` in it).
     gcp_sigma_m : (float, float) or None
         Default σ (horizontal, vertical, metres) of the GCPs (``--gcp-sigma-m``).
+    echo_warnings : bool
+        Print the flight's warnings and skipped images on stderr (``False``: a benchmark's
+        further runs of a flight it has run once); ``run.json`` records them either way.
 
     Returns
     -------
@@ -506,10 +511,10 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
                                                       control=flight.control),
                              source=source, listeners=listeners, journal=journal, budget=budget)
         replay_journal(session, source, journal, contents)
-        for warning in flight.warnings:
-            console.print(f"seqat: warning: {warning}", highlight=False, markup=False)
-        for skip in flight.skipped:
-            console.print(f"seqat: skipped: {skip.reason}", highlight=False, markup=False)
+        for message in (*(f"warning: {w}" for w in flight.warnings),
+                        *(f"skipped: {skip.reason}" for skip in flight.skipped)):
+            if echo_warnings:  # run.json records them either way
+                console.print(f"seqat: {message}", highlight=False, markup=False)
         with _progress(console, progress) as bar:
             done = session.images + len(skipped)
             task = bar.add_task(method.value, total=len(flight.nav), completed=done, info="")
@@ -517,8 +522,9 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
                 if isinstance(prepared, SkippedImage):  # a GNSS dropout that was not bridged
                     journal.append_skip(prepared)
                     skipped.append(prepared)
-                    console.print(f"seqat: skipped: {prepared.reason}", highlight=False,
-                                  markup=False)
+                    if echo_warnings:
+                        console.print(f"seqat: skipped: {prepared.reason}", highlight=False,
+                                      markup=False)
                     bar.update(task, advance=1)
                     continue
                 live = session.add(prepared)
@@ -542,4 +548,5 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     return publish_run(out, session, solution, method=method, flight=str(flight.path),
                        inputs=inputs, options=options, final_only=final_only,
                        tracking_options=source.tracking_options, truth=truth, t_start=t_start,
-                       robustness=robustness, control=flight.control)
+                       robustness=robustness, control=flight.control,
+                       echo_warnings=echo_warnings)

@@ -6,6 +6,7 @@ import json
 import shutil
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
 from pipeline.cli import app
@@ -34,8 +35,8 @@ def test_long_skip_lines_are_not_wrapped(small_sim_dir: Path, tmp_path: Path) ->
     assert len(lines[0]) > 100
 
 
-def test_observations_outside_the_image_are_a_warning_in_run_json(small_sim_dir: Path,
-                                                                  tmp_path: Path) -> None:
+def test_observations_outside_the_image_are_a_warning_in_run_json(
+        small_sim_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     flight = Path(shutil.copytree(small_sim_dir, tmp_path / "flight"))
     lines = (flight / "observations.csv").read_text().splitlines(keepends=True)
     image, point, _, y = lines[5].strip().split(",")
@@ -53,6 +54,12 @@ def test_observations_outside_the_image_are_a_warning_in_run_json(small_sim_dir:
     assert doc["warnings"] == [expected]
     assert f"seqat: warning: {expected}\n" in result.stderr
     assert doc["totals"]["observations"] == len(lines) - 2
+    # a benchmark's further runs of the flight record the warning without printing it again
+    from pipeline.run.runner import run_flight
+
+    run_flight(flight, tmp_path / "again", progress=False, echo_warnings=False)
+    assert json.loads((tmp_path / "again" / "run.json").read_text())["warnings"] == [expected]
+    assert "seqat:" not in capsys.readouterr().err
 
 
 def test_corrupt_image_data_skips_the_image(tmp_path: Path) -> None:
