@@ -16,8 +16,8 @@ plan (X, Y):
 * the point departs from it by ``d = z − m``, against ``σ = hypot(s, σ_z)`` (σ_z: the
   point's own published σ);
 * it is off the surface when ``|d| > k σ`` (:data:`SURFACE_SIGMAS`) and no neighbour
-  lies nearer its height than the surface does (``|z_j − z| < |d| / 2``): two points on
-  one roof or one tree top hold each other up; a wrong match has no partner.
+  lies within half that departure of its height (``|z_j − z| < |d| / 2``): two points
+  on one roof or one tree top hold each other up; a wrong match has no partner.
 
 A real tie point can fail it: one point alone on a pole or a tree top, high above flat
 ground. The cost is one tie point not published; the EOPs are not affected.

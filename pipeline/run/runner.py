@@ -511,10 +511,11 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
                                                       control=flight.control),
                              source=source, listeners=listeners, journal=journal, budget=budget)
         replay_journal(session, source, journal, contents)
-        for message in (*(f"warning: {w}" for w in flight.warnings),
-                        *(f"skipped: {skip.reason}" for skip in flight.skipped)):
-            if echo_warnings:  # run.json records them either way
-                console.print(f"seqat: {message}", highlight=False, markup=False)
+        if echo_warnings:  # run.json records them either way
+            for warning in flight.warnings:
+                console.print(f"seqat: warning: {warning}", highlight=False, markup=False)
+            for skip in flight.skipped:
+                console.print(f"seqat: skipped: {skip.reason}", highlight=False, markup=False)
         with _progress(console, progress) as bar:
             done = session.images + len(skipped)
             task = bar.add_task(method.value, total=len(flight.nav), completed=done, info="")
