@@ -4,7 +4,9 @@ A run publishes its EOPs and ground points only at the end (``eop.csv``, ``point
 journal holds each frame as the estimator received it, not what it made of it. During a
 ``seqat watch`` :class:`LiveEstimates` (an image listener) keeps, after every update, the
 estimates of the window (``window_solution()``: O(window)) — every camera and ground point
-at its latest estimate with its a posteriori σ, departed ones as they left the window — and a
+at its latest estimate with its a posteriori σ, departed ones as they left the window; not
+the points off the surface of the others (:func:`seqat.surface.off_surface_points`, tested
+by the writer at every write, as the run's end leaves them out) — and a
 writer thread replaces ``OUT/live/estimates.json`` atomically with them (docs/formats.md,
 *Live run files*), at most every ``min_interval_s`` and always with the latest state, so the
 AT loop only copies a window's worth of numbers per image and never waits for a write.
@@ -39,6 +41,7 @@ from pipeline.common import jsonio
 from pipeline.common.atomic import atomic_write_text
 from pipeline.common.columns import LIVE_DIR, LIVE_ESTIMATES_FILE, LIVE_QUICKLOOK_DIR
 from seqat.geometry import rays_world
+from seqat.surface import off_surface_points
 from seqat.types import FloatArray, Frame, ImageUpdate, PinholeCamera, Solution
 
 #: ``format`` of ``estimates.json``.
@@ -295,6 +298,11 @@ class LiveEstimates:
         ids = list(points)
         xyz = np.array([points[i][0] for i in ids]).reshape(-1, 3)
         sig = np.array([points[i][1] for i in ids]).reshape(-1, 3)
+        off = off_surface_points(xyz, sig[:, 2])  # not shown: as the run will not publish them
+        if off.size:
+            keep = np.ones(len(ids), dtype=bool)
+            keep[off] = False
+            ids, xyz, sig = [i for i, k in zip(ids, keep, strict=True) if k], xyz[keep], sig[keep]
         return {
             "format": ESTIMATES_FORMAT, "version": 1, "updated_unix_s": round(time.time(), 3),
             "crs": self.crs_wkt, "images": len(order), "stage": stage,

@@ -179,3 +179,30 @@ def test_live_estimates_drop_a_point_once_its_rays_disagree(tmp_path: Path) -> N
         assert update(("t2",), ("t1",)) == ["t2"]
     finally:
         est.close()
+
+
+def test_live_estimates_do_not_show_a_point_off_the_surface(tmp_path: Path) -> None:
+    """A ground point 60 m under the others (a wrong match along the epipolar line) is not
+    in the live estimates, as the run's end will not publish it; the ground's points are."""
+    camera = PinholeCamera(f_px=800.0, cx_px=400.0, cy_px=300.0, width_px=800,
+                           height_px=600)
+    est = LiveEstimates(tmp_path / "out", crs_wkt="LOCAL_CS[\"m\"]", camera=camera,
+                        min_interval_s=0.0)
+    eop = SimpleNamespace(image_id="a", eop=np.array([0.0, 0, 500, 0, 0, 0]),
+                          sigma=np.full(6, 0.01))
+    rng = np.random.default_rng(1)
+    xyz = [(f"g{k}", x, y, 100.0 + rng.normal(0.0, 0.05))
+           for k, (x, y) in enumerate((x, y) for x in range(0, 50, 10) for y in range(0, 50, 10))]
+    xyz.append(("wrong", 21.0, 21.0, 40.0))
+    points = [SimpleNamespace(point_id=pid, xyz_m=np.array([x, y, z]), sigma_m=np.full(3, 0.1),
+                              n_obs=2) for pid, x, y, z in xyz]
+    window = SimpleNamespace(eops=[eop], points=points)
+    try:
+        est.on_image(None, SimpleNamespace(eop=eop, sigma0=1.0, stage="sequential"),
+                     SimpleNamespace(window_solution=lambda: window))  # type: ignore[arg-type]
+        doc = est._document(*_state(est))
+    finally:
+        est.close()
+    shown = doc["points"]  # type: ignore[index]
+    assert shown["point"] == [p[0] for p in xyz[:-1]]  # type: ignore[index]
+    assert len(shown["xyz_m"]) == len(shown["sigma_m"]) == len(shown["n_obs"]) == 25  # type: ignore[index,arg-type]
