@@ -67,9 +67,11 @@ def test_page_shows_tiles_cameras_and_status(browser: Any, served: Served,
     wait.until(lambda d: d.execute_script(
         "return Array.from(document.querySelectorAll('img.leaflet-tile-loaded'))"
         ".filter(i => i.src.includes('/tiles/') && i.naturalWidth === 256).length") > 0)
+    # the points come from their own request (/points.geojson), after or before the cameras
+    wait.until(lambda d: d.find_elements(By.CSS_SELECTOR, "path.seqat-point"),
+               "no tie point drawn")
     assert browser.find_element(By.ID, "state").text == "finished"
     assert browser.find_element(By.ID, "images").text == str(n_images)
-    assert browser.find_elements(By.CSS_SELECTOR, "path.seqat-point")
     logs = [e for e in browser.get_log("browser") if e.get("level") == "SEVERE"]
     assert logs == []
 
@@ -121,7 +123,9 @@ def test_page_shows_live_estimates_ellipses_and_stop_criterion(browser: Any,
         assert browser.find_element(By.ID, "lat_at").text == "8 ms"
         _check_quicklooks(browser, wait, 6)
         assert "points" in browser.find_element(By.ID, "stop").text
-        assert browser.find_elements(By.CSS_SELECTOR, "path.seqat-cell-todo")
+        # the coverage comes from its own request (/coverage.geojson)
+        wait.until(lambda d: d.find_elements(By.CSS_SELECTOR, "path.seqat-cell-todo"),
+                   "no coverage cell drawn")
         field = browser.find_element(By.ID, "stop_cm")
         field.clear()
         field.send_keys("100000", Keys.ENTER)
