@@ -153,30 +153,37 @@ def _state(est: LiveEstimates) -> tuple[object, ...]:
                 est._sigma0, est._stage, dict(est._latency))
 
 
-def test_live_estimates_drop_a_point_once_its_rays_disagree(tmp_path: Path) -> None:
-    """A ground point shown after one update and withheld by the next (its rays came to
-    disagree: ``Solution.withheld``) leaves the live estimates; the others stay."""
+def _one_image(tmp_path: Path) -> tuple[LiveEstimates, SimpleNamespace]:
+    """A live-estimates writer (the tests read its ``_document``, as the writer does) and
+    one image's EOP."""
     camera = PinholeCamera(f_px=800.0, cx_px=400.0, cy_px=300.0, width_px=800,
                            height_px=600)
     est = LiveEstimates(tmp_path / "out", crs_wkt="LOCAL_CS[\"m\"]", camera=camera,
                         min_interval_s=0.0)
     eop = SimpleNamespace(image_id="a", eop=np.array([0.0, 0, 500, 0, 0, 0]),
                           sigma=np.full(6, 0.01))
+    return est, eop
+
+
+def _shown(est: LiveEstimates, eop: SimpleNamespace, points: list[SimpleNamespace],
+           withheld: tuple[str, ...] = ()) -> dict[str, list[object]]:
+    """The points of the document after an update whose window holds ``points``."""
+    window = SimpleNamespace(eops=[eop], points=points, withheld=withheld)
+    est.on_image(None, SimpleNamespace(eop=eop, sigma0=1.0, stage="sequential"),
+                 SimpleNamespace(window_solution=lambda: window))  # type: ignore[arg-type]
+    return est._document(*_state(est))["points"]  # type: ignore[return-value]
+
+
+def test_live_estimates_drop_a_point_once_its_rays_disagree(tmp_path: Path) -> None:
+    """A ground point shown after one update and withheld by the next (its rays came to
+    disagree: ``Solution.withheld``) leaves the live estimates; the others stay."""
+    est, eop = _one_image(tmp_path)
     point = {pid: SimpleNamespace(point_id=pid, xyz_m=np.array([x, 0.0, 0.0]),
                                   sigma_m=np.full(3, 0.1), n_obs=2)
              for pid, x in (("t1", 1.0), ("t2", 2.0))}
-
-    def update(points: tuple[str, ...], withheld: tuple[str, ...]) -> list[str]:
-        window = SimpleNamespace(eops=[eop], points=[point[p] for p in points],
-                                 withheld=withheld)
-        est.on_image(None, SimpleNamespace(eop=eop, sigma0=1.0, stage="sequential"),
-                     SimpleNamespace(window_solution=lambda: window))  # type: ignore[arg-type]
-        doc = est._document(*_state(est))
-        return list(doc["points"]["point"])  # type: ignore[index]
-
     try:
-        assert update(("t1", "t2"), ()) == ["t1", "t2"]
-        assert update(("t2",), ("t1",)) == ["t2"]
+        assert _shown(est, eop, [point["t1"], point["t2"]])["point"] == ["t1", "t2"]
+        assert _shown(est, eop, [point["t2"]], withheld=("t1",))["point"] == ["t2"]
     finally:
         est.close()
 
@@ -184,25 +191,16 @@ def test_live_estimates_drop_a_point_once_its_rays_disagree(tmp_path: Path) -> N
 def test_live_estimates_do_not_show_a_point_off_the_surface(tmp_path: Path) -> None:
     """A ground point 60 m under the others (a wrong match along the epipolar line) is not
     in the live estimates, as the run's end will not publish it; the ground's points are."""
-    camera = PinholeCamera(f_px=800.0, cx_px=400.0, cy_px=300.0, width_px=800,
-                           height_px=600)
-    est = LiveEstimates(tmp_path / "out", crs_wkt="LOCAL_CS[\"m\"]", camera=camera,
-                        min_interval_s=0.0)
-    eop = SimpleNamespace(image_id="a", eop=np.array([0.0, 0, 500, 0, 0, 0]),
-                          sigma=np.full(6, 0.01))
+    est, eop = _one_image(tmp_path)
     rng = np.random.default_rng(1)
     xyz = [(f"g{k}", x, y, 100.0 + rng.normal(0.0, 0.05))
            for k, (x, y) in enumerate((x, y) for x in range(0, 50, 10) for y in range(0, 50, 10))]
     xyz.append(("wrong", 21.0, 21.0, 40.0))
     points = [SimpleNamespace(point_id=pid, xyz_m=np.array([x, y, z]), sigma_m=np.full(3, 0.1),
                               n_obs=2) for pid, x, y, z in xyz]
-    window = SimpleNamespace(eops=[eop], points=points)
     try:
-        est.on_image(None, SimpleNamespace(eop=eop, sigma0=1.0, stage="sequential"),
-                     SimpleNamespace(window_solution=lambda: window))  # type: ignore[arg-type]
-        doc = est._document(*_state(est))
+        shown = _shown(est, eop, points)
     finally:
         est.close()
-    shown = doc["points"]  # type: ignore[index]
-    assert shown["point"] == [p[0] for p in xyz[:-1]]  # type: ignore[index]
-    assert len(shown["xyz_m"]) == len(shown["sigma_m"]) == len(shown["n_obs"]) == 25  # type: ignore[index,arg-type]
+    assert shown["point"] == [p[0] for p in xyz[:-1]]
+    assert len(shown["xyz_m"]) == len(shown["sigma_m"]) == len(shown["n_obs"]) == 25
