@@ -29,6 +29,7 @@ from pipeline.reference.colmap_ba import (
     colmap_camera,
     eop_from_rigid,
     loss_of_run,
+    loss_weight,
     rigid_from_eop,
 )
 from pipeline.reference.stage import (
@@ -244,11 +245,32 @@ def test_robust_reference_follows_robust_sim_through_a_blunder(
     d = result.eop - sim_eop
     assert np.max(np.abs(d[:, :3])) <= ROBUST_AGREEMENT_POS_M
     assert np.max(np.degrees(np.abs(d[:, 3:]))) <= ROBUST_AGREEMENT_ATT_DEG
+    # sigma0 weighs each image point as Huber's final IRLS weight min(1, a / r) does: the
+    # blunder adds a r / sigma_px^2 = k r / sigma_px to the clean ssr, not its r^2 / sigma_px^2
+    # (which made it 5.4 here)
+    r_blunder = blunder[2] / data.sigma_px
+    expected = np.sqrt(clean.sigma0**2 + k * r_blunder / result.redundancy)
+    assert result.sigma0 == pytest.approx(expected, rel=0.01)
     ls = adjust_reference(data, ReferenceOptions(robust_loss=RobustLoss.TRIVIAL))
     ls_off = np.max(np.abs(ls.eop[:, :3] - clean_eop[:, :3]))
     for robust in (sim_eop, result.eop):
         off = np.max(np.abs(robust[:, :3] - clean_eop[:, :3]))
         assert off <= ROBUST_AGREEMENT_POS_M and 20 * off < ls_off
+
+
+@pytest.mark.parametrize("loss", list(RobustLoss))
+def test_loss_weight_is_the_derivative_of_ceres_loss(loss: RobustLoss) -> None:
+    """:func:`loss_weight` is rho'(s) of Ceres' own loss function (pyceres), s = r^2."""
+    import pyceres
+
+    a = 3.0
+    ceres = {RobustLoss.TRIVIAL: pyceres.TrivialLoss(), RobustLoss.HUBER: pyceres.HuberLoss(a),
+             RobustLoss.CAUCHY: pyceres.CauchyLoss(a),
+             RobustLoss.SOFT_L1: pyceres.SoftLOneLoss(a)}[loss]
+    r = np.array([0.0, 0.5, 2.9, 3.0, 3.1, 10.0, 200.0])
+    expected = [ceres.evaluate(float(x) ** 2)[1] for x in r]
+    # pyceres returns rho' to ~1e-8 relative (measured 2e-8 at r = 3.1)
+    np.testing.assert_allclose(loss_weight(loss, a, r), expected, rtol=1e-6)
 
 
 def test_position_prior_on_a_strip_is_refused(small_sim: SimulatedFlight) -> None:
