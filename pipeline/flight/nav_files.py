@@ -87,6 +87,10 @@ def _read_nav_rows(path: Path | str, columns: tuple[str, ...], *,
     if with_fix < MIN_IMAGES:
         what = "image(s)" if with_fix == len(ids) else f"of {len(ids)} image(s) with a position"
         raise InputDataError(f"{path}: {with_fix} {what}; at least {MIN_IMAGES} are needed")
+    if not np.isfinite(eop[:, 3]).any():  # no start value for any image's attitude
+        raise InputDataError(f"{path}: no row has an attitude ({', '.join(columns[5:8])} "
+                             "empty in every row); at least one is needed (a GPS-only flight "
+                             "is not supported)")
     return tuple(ids), np.asarray(times, dtype=np.float64), eop
 
 

@@ -573,8 +573,12 @@ def read_image_folder_nav(folder: Path | str, crs: str = "auto",
     with_fix = sum(1 for m in metas if m.has_position)
     if with_fix < MIN_IMAGES:
         extra = f" ({len(metas) - with_fix} without a position)" if with_fix < len(metas) else ""
+        why = ""
+        if skipped:  # what the first image left out lacks (the rest, counted)
+            more = f"; and {len(skipped) - 1} more" if len(skipped) > 1 else ""
+            why = f" (left out: {skipped[0][1]}{more})"
         raise InputDataError(f"{folder}: {with_fix} usable JPEG image(s) of {len(paths)}"
-                             f"{extra}; at least {MIN_IMAGES} are needed")
+                             f"{extra}; at least {MIN_IMAGES} are needed{why}")
     metas.sort(key=lambda m: (m.time_s is None, m.time_s or 0.0, m.path.name))
     boresight = boresight or BoresightConfig()
     fixes = np.array([_fix(m) if m.has_position else (np.nan, np.nan, np.nan)

@@ -70,6 +70,10 @@ BAD_INPUTS = [
     ("nav.csv", FLIGHT_FILES["nav.csv"], "image,time_s,x_m,y_m,z_m,omega_deg,phi_deg,kappa_deg\n"
      "img_1,0.0,500000.0,4090000.0,300.0,0.5,-0.25,90.0\n", InputDataError,
      "nav.csv: 1 image(s); at least 2 are needed"),
+    ("nav.csv", FLIGHT_FILES["nav.csv"], "image,time_s,x_m,y_m,z_m,omega_deg,phi_deg,kappa_deg\n"
+     "img_1,0.0,500000.0,4090000.0,300.0,,,\nimg_2,0.5,500005.0,4090000.0,300.2,nan,nan,nan\n",
+     InputDataError, "nav.csv: no row has an attitude (omega_deg, phi_deg, kappa_deg empty in "
+     "every row); at least one is needed"),
     ("nav.csv", "img_1,0.0", "img 1,0.0", InputDataError,
      "nav.csv:2: field 'image': expected an id (non-empty, no spaces, commas or quotes), "
      "got 'img 1'"),

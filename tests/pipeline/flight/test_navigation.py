@@ -296,7 +296,8 @@ def test_folder_without_gps_or_images(tmp_path: Path) -> None:
     with pytest.raises(InputDataError, match="IMG_0460.JPG: no GPS position"):
         read_image_folder_nav(folder)
     # skip_bad leaves the image out and says why; one usable image is still too few
-    with pytest.raises(InputDataError, match="1 usable JPEG image.*of 2"):
+    with pytest.raises(InputDataError, match=r"1 usable JPEG image.*of 2.* \(left out: "
+                                             r"IMG_0460.JPG: no GPS position"):
         read_image_folder_nav(folder, skip_bad=True)
     later = SENSEFLY_XMP.replace("17:39:35", "17:39:39")
     write_jpeg(folder / "c.jpg", lat=41.0354, xmp=later)
