@@ -26,6 +26,7 @@ from pipeline.common.columns import FLIGHT_YAML, IMAGES_DIR, OBS_FRAME_COLUMN, T
 from pipeline.common.csvio import CsvRow, read_csv
 from pipeline.common.paths import exists_as_anything, file_problem, folder_problem
 from pipeline.common.tables import GroundPoints, NavTable
+from pipeline.common.text import first_few
 from pipeline.flight.camera import PixelCorrector, frame_camera
 from pipeline.flight.consistency import check_one_camera, crs_area_warning, duplicate_images
 from pipeline.flight.dropout import dropout_sigma, predict_missing
@@ -50,6 +51,7 @@ from pipeline.flight.nav_files import (
 )
 from pipeline.flight.navigation import (
     MIN_IMAGES,
+    SKIPPED_NAMED,
     clashing_image_files,
     geodetic_to_eop,
     image_files,
@@ -73,8 +75,6 @@ from seqat.types import FloatArray, Frame, PinholeCamera
 FULL_FRAME_DIAGONAL_MM = 43.2666
 #: Relative aspect-ratio difference still taken as "the same camera, resized".
 ASPECT_TOLERANCE = 2e-3
-#: Images named in a warning that groups many (the rest are counted).
-MAX_NAMED = 5
 #: A file with more than this share of its observations outside the image is refused.
 MAX_OUTSIDE_FRACTION = 0.5
 
@@ -405,8 +405,9 @@ def read_flight(flight_dir: Path | str, *, gcp_file: Path | str | None = None,
             del metas[dup.image]  # its nav row goes with the images without metadata
         nav = _check_sizes(nav, metas, camera_config, skipped, warnings)
     if len(nav) < MIN_IMAGES:
+        left_out = first_few([s.reason for s in skipped], SKIPPED_NAMED, "; ")
         raise InputDataError(f"{folder}: {len(nav)} usable image(s); at least {MIN_IMAGES} are "
-                             f"needed (skipped: {'; '.join(s.reason for s in skipped)})")
+                             f"needed (skipped: {left_out})")
     crs_warning = crs_area_warning(crs, nav, source)
     if crs_warning is not None:
         warnings.append(crs_warning)
@@ -508,7 +509,8 @@ def _check_sizes(nav: NavTable, metas: dict[str, ImageMetadata], camera: CameraC
 
 def resampling_warnings(metas: Sequence[ImageMetadata], camera: CameraConfig) -> list[str]:
     """The warnings of images resampled to the camera (:func:`check_image_size`), one line
-    per size: an image alone in its own words, several named up to :data:`MAX_NAMED`."""
+    per size: an image alone in its own words, several named up to
+    :data:`pipeline.common.text.MAX_NAMED`."""
     by_size: dict[tuple[int, int], list[ImageMetadata]] = {}
     for meta in metas:
         by_size.setdefault((meta.width_px, meta.height_px), []).append(meta)
@@ -518,11 +520,9 @@ def resampling_warnings(metas: Sequence[ImageMetadata], camera: CameraConfig) ->
             out.append(str(check_image_size(group[0], camera)[1]))
             continue
         names = [m.path.name for m in group]
-        shown = ", ".join(names[:MAX_NAMED]) + (f" and {len(names) - MAX_NAMED} more"
-                                                if len(names) > MAX_NAMED else "")
-        out.append(f"{len(names)} images of {w} x {h} px ({shown}) differ from the camera's "
-                   f"{camera.width_px} x {camera.height_px} px; resampled to it (same aspect "
-                   "ratio)")
+        out.append(f"{len(names)} images of {w} x {h} px ({first_few(names)}) differ from the "
+                   f"camera's {camera.width_px} x {camera.height_px} px; resampled to it "
+                   "(same aspect ratio)")
     return out
 
 

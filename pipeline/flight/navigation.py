@@ -23,6 +23,7 @@ import pyproj
 from pyproj.exceptions import CRSError, ProjError
 
 from pipeline.common.tables import NavTable
+from pipeline.common.text import first_few
 from pipeline.flight.image_metadata import (
     AttitudeFrame,
     HeightKind,
@@ -47,6 +48,8 @@ UTM_ZONE_WIDTH_DEG = 6.0
 MIN_GEOID_SHIFT_M = 1e-6
 #: File suffixes read as images by :func:`read_image_folder_nav`.
 IMAGE_SUFFIXES = (".jpg", ".jpeg")
+#: Skipped images whose reason a "too few usable images" error gives (the rest are counted).
+SKIPPED_NAMED = 3
 
 #: Camera axes in the mount's reference frame (columns = camera x, y, z).
 #: ``nadir``: camera fixed to the airframe looking down, image top towards the nose, image
@@ -574,9 +577,8 @@ def read_image_folder_nav(folder: Path | str, crs: str = "auto",
     if with_fix < MIN_IMAGES:
         extra = f" ({len(metas) - with_fix} without a position)" if with_fix < len(metas) else ""
         why = ""
-        if skipped:  # what the first image left out lacks (the rest, counted)
-            more = f"; and {len(skipped) - 1} more" if len(skipped) > 1 else ""
-            why = f" (left out: {skipped[0][1]}{more})"
+        if skipped:  # why the first images were left out (the rest, counted)
+            why = f" (left out: {first_few([r for _, r in skipped], SKIPPED_NAMED, '; ')})"
         raise InputDataError(f"{folder}: {with_fix} usable JPEG image(s) of {len(paths)}"
                              f"{extra}; at least {MIN_IMAGES} are needed{why}")
     metas.sort(key=lambda m: (m.time_s is None, m.time_s or 0.0, m.path.name))

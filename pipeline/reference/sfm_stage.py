@@ -34,6 +34,7 @@ from pipeline.common.atomic import atomic_write_text, building_folder
 from pipeline.common.columns import EOP_FILE, REFERENCE_DIR, SFM_DIR
 from pipeline.common.csvio import format_csv_line
 from pipeline.common.outdir import output_errors
+from pipeline.common.text import first_few
 from pipeline.flight.navigation import image_files
 from pipeline.flight.schema import CameraConfig
 from pipeline.reference.sfm import (
@@ -132,10 +133,8 @@ def sfm_input(run: RunFolder, images_dir: Path | None = None) -> SfmInput:
     ids = run.nav.image_ids
     missing = [i for i in ids if i not in files]
     if missing:
-        listed = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5
-                                           else "")
         raise InputDataError(f"{folder}: {len(missing)} of the run's {len(ids)} images are "
-                             f"missing: {listed}")
+                             f"missing: {first_few(missing)}")
     z = run.points.xyz_m[:, 2]
     z = z[np.isfinite(z)]
     return SfmInput(image_dir=folder, image_ids=tuple(ids),

@@ -13,6 +13,7 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from pipeline.cli import app
+from pipeline.common.text import first_few
 from pipeline.flight.folder import read_flight
 from pipeline.flight.navigation import geodetic_to_eop, read_image_folder_nav
 from pipeline.run.resection import resect_attitude
@@ -295,3 +296,32 @@ def test_images_of_another_size_are_named_once_per_size(tmp_path: Path) -> None:
         "IMG_0464.jpg: size 800 x 600 px differs from the camera's 1000 x 750 px; resampled "
         "to it (same aspect ratio)"]
     assert np.isfinite(flight.nav.eop[:, 3:]).all()  # the resized files kept their XMP
+
+
+def test_too_few_usable_images_names_the_first_reasons_and_counts_the_rest(
+        tmp_path: Path) -> None:
+    """Every image but one of another aspect ratio: one line that gives the first reasons
+    (as the navigation's own "too few usable images" error does) and counts the rest, not
+    every reason of a long flight joined into one line."""
+    paths = _copy_images(tmp_path, 6)
+    resize_images(paths[1:], [(1000, 600)] * 5)
+    with pytest.raises(InputDataError) as err:
+        read_flight(tmp_path)
+    msg = str(err.value)
+    assert "\n" not in msg and ": 1 usable image(s); at least 2 are needed (skipped: " in msg
+    named = [p.name for p in paths[1:4]]
+    assert msg.endswith("another aspect ratio than the camera's 1000 x 750 px; and 2 more)")
+    assert all(f"{n}: size 1000 x 600 px" in msg for n in named)
+    assert paths[4].name not in msg and paths[5].name not in msg
+
+
+@pytest.mark.parametrize(("items", "limit", "sep", "expected"), [
+    (["a", "b"], 5, ", ", "a, b"),
+    (["a", "b", "c"], 2, ", ", "a, b and 1 more"),
+    (["a: x, y", "b: z", "c"], 1, "; ", "a: x, y; and 2 more"),
+    (["a"] * 3, 3, "; ", "a; a; a"),
+    ([], 3, ", ", ""),
+])
+def test_first_few_names_the_first_items_and_counts_the_rest(
+        items: list[str], limit: int, sep: str, expected: str) -> None:
+    assert first_few(items, limit, sep) == expected
