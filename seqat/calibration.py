@@ -181,6 +181,14 @@ class FreeCamera:
         intr[self.index] = values
         return self.base.with_intrinsics(intr)
 
+    def admissible(self, values: FloatArray) -> bool:
+        """The free parameters at ``values`` (c,) make a camera (finite, focal length > 0):
+        an iterate that leaves this domain is not a camera to project with."""
+        if not np.all(np.isfinite(values)):
+            return False
+        f = values[self.index == INTRINSICS.index("f_px")]
+        return bool(np.all(f > 0.0))
+
     def _camera_of(self, e_ext: FloatArray) -> PinholeCamera:
         if not self.size or e_ext.shape[0] == 0:
             return self.base

@@ -318,6 +318,16 @@ class RowBuilder:
         u2 = np.sum(self._true.reshape(-1, 2) ** 2, axis=1) / self.sigmas**2
         return bool(np.all(u2 <= self.robust_scale**2))
 
+    def support(self, image: int) -> tuple[int, int]:
+        """``(rays within the robust loss's core, rays)`` of ``image`` at the estimate of the
+        last :meth:`linearisation_error` (every ray within it without a robust loss)."""
+        mine = self.ids[:, 0] == image
+        n = int(np.count_nonzero(mine))
+        if self.robust_scale is None or n == 0:
+            return n, n
+        u2 = np.sum(self._true.reshape(-1, 2)[mine] ** 2, axis=1) / self.sigmas[mine] ** 2
+        return int(np.count_nonzero(u2 <= self.robust_scale**2)), n
+
     def settled(self) -> bool:
         """Called once the rows predict the estimate: their robust weights need no other
         iteration. Least-squares rows (the first iterate): when the estimate lies

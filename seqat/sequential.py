@@ -55,13 +55,14 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from seqat import snooping
-from seqat.births import BirthMixin, degenerate_points
+from seqat.births import BirthMixin
 from seqat.calibration import FreeCamera, SelfCalibration
 from seqat.camera_window import CameraMixin
 from seqat.departures import DEFAULT_MAX_WINDOW_IMAGES, Departure, DepartureMixin
 from seqat.errors import EstimationError
 from seqat.geometry import wrap_angle
 from seqat.information import window_matrix
+from seqat.iteration import IterationMixin
 from seqat.late import LateMixin
 from seqat.precision import sigma_scale
 from seqat.relinearise import RelinearisationMixin
@@ -82,7 +83,7 @@ from seqat.types import (
     Solution,
 )
 from seqat.undetermined import UndeterminedMixin
-from seqat.update import solve_update, update_cofactor
+from seqat.update import update_cofactor
 from seqat.window import CAMERA, Key, Window, key_size
 
 #: BLAS threads used by an update: the matrices are small (a few hundred), where OpenBLAS's
@@ -191,8 +192,8 @@ class SequentialOptions:
                               f"got {self.relinearise_iterations}")
 
 
-class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin,
-                   CameraMixin, LateMixin, UndeterminedMixin):
+class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMixin,
+                   ReportMixin, CameraMixin, LateMixin, UndeterminedMixin):
     """Seq-F / Seq-R sequential aerial triangulation of a stream of frames.
 
     Parameters
@@ -658,47 +659,21 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
             x1t = w.x[touched]
             # the inverse update and data snooping read the update's observation-space terms
             terms = self._inverse or opts.snooping_critical is not None
-            d1t = np.zeros(touched.size)
-            d2 = np.zeros(n2)
-            iterations = 0
-            degenerate: list[int] = []
-            while True:
-                iterations += 1
-                # the first iterate (at the start values: an INS 20 deg off) is least squares,
-                # the robust losses (rays, GPS/INS) from the second on: a bad start is no outlier
-                builder.robust = iterations > 1
-                rows = builder.rows(x1t, x2_0, d1t, d2)
-                try:
-                    sol = solve_update(Qtt, touched, rows, block=True, terms=terms)
-                except EstimationError:
-                    # a point being born that its rays no longer fix (an iterate sent it far
-                    # off): it waits for more rays; anything else is a real failure
-                    degenerate = degenerate_points(rows, len(born))
-                    if not degenerate:
-                        raise
-                    break
-                d1t, d2 = sol.delta1_touched, sol.delta2
-                degenerate = self._unstable_births(born, born_xyz, y12, y22, x1t + d1t,
-                                                   x2_0 + d2, col_of)
-                if degenerate:
-                    break
-                # Converged when the rows, linearised where they were, still describe the
-                # image points at the new estimate: re-linearising would move it by less.
-                # The first iterate is least squares: it is the robust one too when every
-                # image point there lies within the loss's core (weight 1; clean data).
-                if iterations >= opts.max_update_iterations or (
-                    builder.linearisation_error(x1t, x2_0, d1t, d2)
-                    < opts.iteration_tolerance_px
-                    and builder.settled()
-                ):
-                    break
+            it = self._iterate_update(builder, Qtt, touched, terms, x1t, x2_0, born, born_xyz,
+                                      y12, y22, col_of, i)
+            rows, d1t, d2, iterations, degenerate = (it.rows, it.d1t, it.d2, it.iterations,
+                                                     it.degenerate)
             if degenerate:
                 held.update(born[b] for b in degenerate)
                 continue
-            if not diverged and self._diverged(nav, nav_sigma, x2_0, d2, Qtt, d1t):
+            if it.wild and diverged:
+                raise EstimationError(f"image {frame.image_id!r}: the update left the models' "
+                                      "domain even without the image's rays")
+            if not diverged and (it.wild or self._diverged(nav, nav_sigma, x2_0, d2, Qtt, d1t)):
                 # The image's rows sent the solution far beyond every prior sigma (gross
-                # errors in most of its points): the image is carried by its GPS/INS alone
-                # and its rays are left out, named in ``diverged``.
+                # errors in most of its points), even from the held window's resection
+                # (seqat.iteration): the image is carried by its GPS/INS alone and its rays
+                # are left out, named in ``diverged``.
                 diverged = True
                 self.diverged.append(frame.image_id)
                 rejected_new.update(pts)
@@ -706,6 +681,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, ReportMixin
                     self._drop_pending_ray(p, i)
                 candidates = [p for p in candidates if p in self._pending]
                 continue
+            sol = it.sol
+            assert sol is not None
             if opts.snooping_critical is None or rounds >= MAX_SNOOPING_ROUNDS:
                 break
             rounds += 1

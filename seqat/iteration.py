@@ -1,0 +1,140 @@
+"""The iterations of one sequential update: Gauss-Newton on the new rows, with its guards.
+
+Mixed into :class:`seqat.sequential.SequentialAT` (its state lives there). Each iterate
+linearises the update's rows (:class:`seqat.rows.RowBuilder`) at the last iterate and solves
+Eq. 13-14 (:func:`seqat.update.solve_update`) until the rows describe the image points at the
+new estimate (docs/algorithm.md, *Diverged updates* and *A poor start*).
+
+A start far from the solution (an INS 20 deg off at a turn, no resection for lack of known
+points) can send the first, least-squares iterate out of the models' domain: on Seneca's
+every third image, IMG_0507's first iterate moved the self-calibrated focal length by
+-2709 px to a negative value, and the flight stopped (exit 2, "camera f_px must be a
+positive number": blamed on the input). And the robust loss, on from the second iterate,
+can keep a wrong minimum near such a start: every ray is then beyond its core, so it
+down-weights them all. An iterate outside the domain (not finite, a camera with a focal
+length <= 0, a failed solve) and a converged estimate that most of the new image's rays lie
+beyond the loss's core of are not kept: the update starts again from its start values with
+the window held (its cofactor taken as zero: a least-squares resection of the new image
+with the birth of its points), then iterates jointly from there. The second time, the
+image is diverged (its GPS/INS alone carries it, named).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from seqat.births import degenerate_points
+from seqat.errors import EstimationError
+from seqat.rows import RowBuilder
+from seqat.types import FloatArray
+from seqat.update import LinearRows, UpdateSolution, solve_update
+from seqat.window import Key
+
+
+@dataclass(frozen=True)
+class Iterated:
+    """What the iterations of one update ended with.
+
+    ``sol`` is the last solve (``None`` when it met a degenerate birth);
+    ``degenerate`` the born points (index in the update) to hold back; ``wild`` is True when
+    an iterate left the models' domain again after the window was held (the image diverged);
+    ``held`` whether the window was held first.
+    """
+
+    rows: LinearRows
+    sol: UpdateSolution | None
+    d1t: FloatArray
+    d2: FloatArray
+    iterations: int
+    degenerate: list[int]
+    wild: bool
+    held: bool
+
+
+class IterationMixin:
+    """:meth:`_iterate_update` for :class:`seqat.sequential.SequentialAT`."""
+
+    def _in_domain(self, x1t: FloatArray, d1t: FloatArray, d2: FloatArray,
+                   col_of: dict[Key, int]) -> bool:
+        """The iterate is finite and its camera a camera (focal length > 0). Far moves inside
+        the domain are left to the iterations (Gauss-Newton from a poor start comes back)
+        and to the final test, :meth:`_diverged`."""
+        if not (np.all(np.isfinite(d1t)) and np.all(np.isfinite(d2))):
+            return False
+        cam_key = self._cam_key  # type: ignore[attr-defined]
+        if cam_key is None:
+            return True
+        c, size = col_of[cam_key], self._cam.size  # type: ignore[attr-defined]
+        return self._cam.admissible(x1t[c:c + size] + d1t[c:c + size])  # type: ignore[attr-defined]
+
+    def _iterate_update(self, builder: RowBuilder, Qtt: FloatArray, touched: np.ndarray,
+                        terms: bool, x1t: FloatArray, x2_0: FloatArray, born: list[int],
+                        born_xyz: FloatArray,
+                        y12: list[tuple[int, int, FloatArray, float]],
+                        y22: list[tuple[int, FloatArray, float]],
+                        col_of: dict[Key, int], image: int) -> Iterated:
+        """Iterate the update (the window's block ``Qtt``, rows from ``builder``) until its
+        rows describe the image points at the estimate, at most ``max_update_iterations`` per
+        phase (held window, joint).
+
+        The first iterate of a phase is least squares, the robust losses (rays, GPS/INS)
+        from the second on: a bad start is no outlier."""
+        opts = self.options  # type: ignore[attr-defined]
+        d1t, d2 = np.zeros(touched.size), np.zeros(x2_0.size)
+        zero = np.zeros_like(Qtt)
+        hold: bool | None = None  # None: the window not held (yet); True: held; False: after
+        start = iterations = 0  # the iterations before this phase
+        while True:
+            iterations += 1
+            builder.robust = iterations - start > 1 and not hold
+            rows = builder.rows(x1t, x2_0, d1t, d2)
+            try:
+                step = solve_update(zero if hold else Qtt, touched, rows, block=True,
+                                    terms=terms)
+            except EstimationError:
+                # a point being born that its rays no longer fix (an iterate sent it far
+                # off): it waits for more rays; else the iterate left the models' domain
+                degenerate = degenerate_points(rows, len(born))
+                if degenerate:
+                    return Iterated(rows, None, d1t, d2, iterations, degenerate, False,
+                                    hold is not None)
+                step = None
+            if step is not None:
+                d1t, d2 = step.delta1_touched, step.delta2
+                degenerate = self._unstable_births(  # type: ignore[attr-defined]
+                    born, born_xyz, y12, y22, x1t + d1t, x2_0 + d2, col_of)
+                if degenerate:
+                    return Iterated(rows, step, d1t, d2, iterations, degenerate, False,
+                                    hold is not None)
+            if step is None or not self._in_domain(x1t, d1t, d2, col_of):
+                if hold is not None:
+                    return Iterated(rows, step, d1t, d2, iterations, [], True, True)
+                hold, start = True, iterations  # again from the start, the window held
+                d1t, d2 = np.zeros(touched.size), np.zeros(x2_0.size)
+                continue
+            # Converged when the rows, linearised where they were, still describe the image
+            # points at the new estimate: re-linearising would move it by less. The first
+            # iterate is least squares: it is the robust one too when every image point there
+            # lies within the loss's core (weight 1; clean data).
+            lin = builder.linearisation_error(x1t, x2_0, d1t, d2)
+            last = iterations - start >= opts.max_update_iterations
+            if hold:  # the resection, least squares: then the window too, from there
+                if last or lin < opts.iteration_tolerance_px:
+                    hold, start = False, iterations
+                continue
+            converged = lin < opts.iteration_tolerance_px and builder.settled()
+            if not (last or converged):
+                continue
+            # an estimate most of the image's rays reject as outliers: the robust loss may
+            # have kept a poor start (not asked of a single least-squares iterate: the
+            # paper's one linearisation)
+            inside, rays = (builder.support(image) if converged or builder.robust else (0, 0))
+            if 2 * inside < rays:
+                if hold is not None:
+                    return Iterated(rows, step, d1t, d2, iterations, [], True, True)
+                hold, start = True, iterations  # again from the start, the window held
+                d1t, d2 = np.zeros(touched.size), np.zeros(x2_0.size)
+                continue
+            return Iterated(rows, step, d1t, d2, iterations, [], False, hold is not None)
