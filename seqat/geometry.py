@@ -384,3 +384,48 @@ def attitude_axes(eop: FloatArray) -> FloatArray:
     """
     _, axes = _rotation_axes(np.atleast_2d(np.asarray(eop, dtype=np.float64)))
     return np.swapaxes(axes, 1, 2)
+
+
+def resect(eop0: FloatArray, X_world_m: FloatArray, uv_px: FloatArray, sigma_px: FloatArray,
+           camera: PinholeCamera, *, iterations: int = 30) -> FloatArray | None:
+    """Least-squares space resection: the EOP (6,) of one image from its rays to points of
+    known position, by Gauss-Newton from ``eop0`` (no prior, no robust loss; a step that
+    raises the cost is halved).
+
+    Returns None with fewer than 4 points, a singular system, a point behind the camera at
+    the end, or no convergence in ``iterations`` steps.
+    """
+    X = np.asarray(X_world_m, dtype=np.float64).reshape(-1, 3)
+    uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
+    w = np.repeat(1.0 / np.asarray(sigma_px, dtype=np.float64).reshape(-1) ** 2, 2)
+    k = X.shape[0]
+    if k < 4:
+        return None
+    eop = np.asarray(eop0, dtype=np.float64).copy()
+
+    def cost(e: FloatArray) -> float:
+        with np.errstate(all="ignore"):
+            r = (uv - project(np.broadcast_to(e, (k, 6)), X, camera)).ravel()
+        c = float(np.sum(w * r**2))
+        return c if np.isfinite(c) else np.inf
+
+    c = cost(eop)
+    for _ in range(iterations):
+        uv_hat, Je, _ = project_with_jacobians(np.broadcast_to(eop, (k, 6)), X, camera)
+        J = Je.reshape(2 * k, 6)
+        r = (uv - uv_hat).ravel()
+        try:
+            step = np.linalg.solve(J.T @ (w[:, None] * J), J.T @ (w * r))
+        except np.linalg.LinAlgError:
+            return None
+        for _ in range(30):
+            c_new = cost(eop + step)
+            if c_new <= c:
+                break
+            step = 0.5 * step
+        else:
+            return None
+        eop, c = eop + step, c_new
+        if np.max(np.abs(step[:3])) < 1e-6 and np.max(np.abs(step[3:])) < 1e-9:
+            return eop if np.all(depth(np.broadcast_to(eop, (k, 6)), X) > 0) else None
+    return None

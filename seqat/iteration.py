@@ -12,8 +12,9 @@ every third image, IMG_0507's first iterate moved the self-calibrated focal leng
 positive number": blamed on the input). And the robust loss, on from the second iterate,
 can keep a wrong minimum near such a start: every ray is then beyond its core, so it
 down-weights them all. An iterate outside the domain (not finite, a camera with a focal
-length <= 0, a failed solve) and a converged estimate that most of the new image's rays lie
-beyond the loss's core of are not kept: the update starts again from its start values with
+length <= 0, a failed solve) and a converged estimate that most of the new image's rays to
+known points lie far beyond the loss's core of (seqat.robust.unsupported_images) are not
+kept: the update starts again from its start values with
 the window held (its cofactor taken as zero: a least-squares resection of the new image
 with the birth of its points), then iterates jointly from there. The second time, the
 image is diverged (its GPS/INS alone carries it, named).
@@ -21,7 +22,7 @@ image is diverged (its GPS/INS alone carries it, named).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -37,10 +38,11 @@ from seqat.window import Key
 class Iterated:
     """What the iterations of one update ended with.
 
-    ``sol`` is the last solve (``None`` when it met a degenerate birth);
+    ``sol`` is the solve of ``rows`` (``None`` when it met a degenerate birth);
     ``degenerate`` the born points (index in the update) to hold back; ``wild`` is True when
-    an iterate left the models' domain again after the window was held (the image diverged);
-    ``held`` whether the window was held first.
+    the update failed again after the window was held, an iterate outside the models'
+    domain or an estimate most of the image's rays reject (the image diverges); ``held``
+    whether the window was held.
     """
 
     rows: LinearRows
@@ -48,9 +50,9 @@ class Iterated:
     d1t: FloatArray
     d2: FloatArray
     iterations: int
-    degenerate: list[int]
-    wild: bool
-    held: bool
+    degenerate: list[int] = field(default_factory=list)
+    wild: bool = False
+    held: bool = False
 
 
 class IterationMixin:
@@ -98,19 +100,20 @@ class IterationMixin:
                 # off): it waits for more rays; else the iterate left the models' domain
                 degenerate = degenerate_points(rows, len(born))
                 if degenerate:
-                    return Iterated(rows, None, d1t, d2, iterations, degenerate, False,
-                                    hold is not None)
+                    return Iterated(rows, None, d1t, d2, iterations, degenerate,
+                                    held=hold is not None)
                 step = None
             if step is not None:
                 d1t, d2 = step.delta1_touched, step.delta2
                 degenerate = self._unstable_births(  # type: ignore[attr-defined]
                     born, born_xyz, y12, y22, x1t + d1t, x2_0 + d2, col_of)
                 if degenerate:
-                    return Iterated(rows, step, d1t, d2, iterations, degenerate, False,
-                                    hold is not None)
+                    return Iterated(rows, step, d1t, d2, iterations, degenerate,
+                                    held=hold is not None)
             if step is None or not self._in_domain(x1t, d1t, d2, col_of):
                 if hold is not None:
-                    return Iterated(rows, step, d1t, d2, iterations, [], True, True)
+                    return Iterated(rows, step, d1t, d2, iterations, wild=True,
+                                    held=True)
                 hold, start = True, iterations  # again from the start, the window held
                 d1t, d2 = np.zeros(touched.size), np.zeros(x2_0.size)
                 continue
@@ -129,12 +132,14 @@ class IterationMixin:
                 continue
             # an estimate most of the image's rays reject as outliers: the robust loss may
             # have kept a poor start (not asked of a single least-squares iterate: the
-            # paper's one linearisation)
-            inside, rays = (builder.support(image) if converged or builder.robust else (0, 0))
-            if 2 * inside < rays:
-                if hold is not None:
-                    return Iterated(rows, step, d1t, d2, iterations, [], True, True)
-                hold, start = True, iterations  # again from the start, the window held
-                d1t, d2 = np.zeros(touched.size), np.zeros(x2_0.size)
-                continue
-            return Iterated(rows, step, d1t, d2, iterations, [], False, hold is not None)
+            # paper's one linearisation). Started again with the window held; if most rays
+            # reject that estimate too, the image diverges (named; its GPS/INS carries it).
+            if (converged or builder.robust) and builder.unsupported(image, born):
+                if hold is None:
+                    hold, start = True, iterations
+                    d1t, d2 = np.zeros(touched.size), np.zeros(x2_0.size)
+                    continue
+                return Iterated(rows, step, d1t, d2, iterations, wild=True,
+                                held=True)
+            return Iterated(rows, step, d1t, d2, iterations, held=hold is not None)
+

@@ -442,6 +442,11 @@ class RelinearisationMixin:
         else:  # an astray point alone, the rows not drifting
             budget = ASTRAY_RELINEARISE_STEPS
 
+        cam_idx = w.index(self._cam_key) if self._cam_key is not None else None
+
+        def admissible(z: FloatArray) -> bool:
+            return cam_idx is None or self._cam.admissible(z[cam_idx])
+
         def gauss_newton(step_px: float) -> None:
             """Gauss-Newton steps at the weights ``wf`` until a step moves no parameter more
             than RELINEARISE_TOLERANCE, or no image point more than ``step_px``; after
@@ -464,6 +469,9 @@ class RelinearisationMixin:
                 # linear would otherwise send it off)
                 for _ in range(MAX_STEP_HALVINGS):
                     trial = xk + delta
+                    if not admissible(trial):  # a focal length <= 0: no camera, no cost
+                        delta = 0.5 * delta
+                        continue
                     Hp_t = H_p_times(trial)
                     Je_t, Jp_t, r_t = f.evaluate(trial[e_idx], trial[p_idx], self._cam)
                     cost_t = 0.5 * float(np.sum(wf[:, None] * r_t**2)) + prior(trial, Hp_t)
@@ -509,6 +517,8 @@ class RelinearisationMixin:
         # (one sparse addition of their difference, exactly symmetric)
         H = (assembly.matrix(Je, Jp, wf) if assembly is not None else
              window_matrix(L + factor_information(Je, Jp, wf, f.img, cols, n, minus=J_old)))
+        if not admissible(xk + step):  # the model's minimum is no camera: stay at xk
+            step = np.zeros_like(xk)
         x_new = xk + step
         r_new = r - (np.einsum("kri,ki->kr", Je, step[e_idx])
                      + np.einsum("kri,ki->kr", Jp, step[p_idx]))  # rows as linearised

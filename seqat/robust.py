@@ -53,6 +53,10 @@ MAX_AMBIGUOUS_ROUNDS = 3
 #: ... a ray counts as left out by another answer only this many times the core's radius
 #: beyond it there: three noisy rays near the core's edge are one answer.
 CLEARLY_BEYOND = 2.0
+#: An image's ray counts against its estimate (:func:`unsupported_images`) this many times
+#: the core's radius beyond it: a poor start leaves its rays hundreds of sigmas off, wrong
+#: matches among good ones pull an image only a few sigmas off its rays.
+POOR_START_BEYOND = 10.0
 #: ... and points of more rays than this are not tested (their pairs grow as n²; a wrong
 #: pair against many good rays is no match).
 MAX_AMBIGUOUS_RAYS = 12
@@ -72,6 +76,27 @@ def ray_u2(res_px: FloatArray, sigma_px: FloatArray) -> FloatArray:
     """Squared normalised residual ``|v|² / σ²`` of each image point (k,), both coordinates."""
     res = np.asarray(res_px, dtype=np.float64).reshape(-1, 2)
     return np.sum(res**2, axis=1) / np.asarray(sigma_px, dtype=np.float64).reshape(-1) ** 2
+
+
+def unsupported_images(u2: FloatArray, image: np.ndarray, scale: float | None) -> np.ndarray:
+    """Images (the distinct values of ``image``, sorted) most of whose rays lie far beyond
+    the loss's core (``u > POOR_START_BEYOND scale``) at the estimate: an estimate its own
+    image points reject.
+
+    The redescending loss keeps such an estimate near a poor start (an INS tens of degrees
+    off: every ray is then hundreds of sigmas off and all are down-weighted) instead of where
+    the rays put the image (docs/algorithm.md, *A poor start*). Far beyond, not just beyond:
+    an image among many wrong matches may be a few sigmas off most of its rays and still
+    better than its GPS/INS. Without a loss: none.
+    """
+    image = np.asarray(image, dtype=np.int64).reshape(-1)
+    if scale is None or image.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    ids, pos = np.unique(image, return_inverse=True)
+    rays = np.bincount(pos, minlength=ids.size)
+    inside = np.bincount(pos, weights=np.asarray(u2).reshape(-1)
+                         <= (POOR_START_BEYOND * scale) ** 2, minlength=ids.size)
+    return ids[2 * inside < rays]
 
 
 def robust_weight(u2: FloatArray, scale: float | None) -> FloatArray:

@@ -34,6 +34,8 @@ from seqat.robust import (
     nav_outside,
     nav_weight,
     nav_within_core,
+    ray_u2,
+    unsupported_images,
 )
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 from seqat.update import SPARSE_ROWS_FROM, LinearRows, UpdateSolution
@@ -318,15 +320,16 @@ class RowBuilder:
         u2 = np.sum(self._true.reshape(-1, 2) ** 2, axis=1) / self.sigmas**2
         return bool(np.all(u2 <= self.robust_scale**2))
 
-    def support(self, image: int) -> tuple[int, int]:
-        """``(rays within the robust loss's core, rays)`` of ``image`` at the estimate of the
-        last :meth:`linearisation_error` (every ray within it without a robust loss)."""
-        mine = self.ids[:, 0] == image
-        n = int(np.count_nonzero(mine))
-        if self.robust_scale is None or n == 0:
-            return n, n
-        u2 = np.sum(self._true.reshape(-1, 2)[mine] ** 2, axis=1) / self.sigmas[mine] ** 2
-        return int(np.count_nonzero(u2 <= self.robust_scale**2)), n
+    def unsupported(self, image: int, born: Sequence[int] = ()) -> bool:
+        """Most of ``image``'s rays to points not being ``born`` (points other images
+        determine) lie far beyond the robust loss's core at the estimate of the last
+        :meth:`linearisation_error` (:func:`seqat.robust.unsupported_images`)."""
+        known = ~np.isin(self.ids[:, 1], np.asarray(born, dtype=np.int64))
+        mine = (self.ids[:, 0] == image) & known
+        if not mine.any():
+            return False
+        u2 = ray_u2(self._true.reshape(-1, 2)[mine], self.sigmas[mine])
+        return unsupported_images(u2, self.ids[mine, 0], self.robust_scale).size > 0
 
     def settled(self) -> bool:
         """Called once the rows predict the estimate: their robust weights need no other

@@ -525,6 +525,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
             self._drop_undetermined([("p", j) for j in und])
         self.rejections.extend(sim.rejections)
         self.nav_downweighted.extend(sim.nav_downweighted)
+        self.diverged.extend(sim.diverged)
         self._keep_nav_rows(np.arange(n), st.nav, res.nav_weight)
         self._initial = None
 

@@ -40,6 +40,7 @@ from seqat.normals import (
 )
 from seqat.precision import rms_point_sigma, sigma_scale
 from seqat.robust import ROBUST_SCALE, cauchy_weight
+from seqat.sim_restart import RestartMixin
 from seqat.sim_snooping import SnoopingMixin
 from seqat.types import (
     EOP_SIZE,
@@ -225,6 +226,9 @@ def adjust_block(
             dc = delta_r[EOP_SIZE * n :]
             new_cost, step = math.inf, 1.0
             for step in LINE_SEARCH_STEPS:
+                if not free_cam.admissible(cam_x + step * dc):  # a focal length <= 0: no camera
+                    new_cost = math.inf
+                    continue
                 new_cost = weighted_ssr(camera_at(cam_x + step * dc), data, eop + step * de,
                                         gp + step * delta_p, robust, calib, nav_robust)
                 if new_cost <= cost * (1.0 + COST_TOLERANCE):
@@ -360,7 +364,7 @@ class SimState:
     nav: tuple[FloatArray, FloatArray] | None = None  # GPS/INS (n, 6; local), its sigmas
 
 
-class SimultaneousAT(SnoopingMixin):
+class SimultaneousAT(SnoopingMixin, RestartMixin):
     """The Sim baseline as a streaming estimator: refit the whole block after each frame.
 
     Parameters
@@ -403,6 +407,13 @@ class SimultaneousAT(SnoopingMixin):
         self.nav_downweighted: list[tuple[str, str]] = []
         #: Tie points left out of the solution: their rays disagree (seqat.robust).
         self.disagreeing: list[str] = []
+        #: Images whose start made the block fail as they were added (refit_every_frame), or
+        #: most of whose rays rejected the solution from their start and from a resection:
+        #: carried by their GPS/INS, their rays left out (seqat.sim_restart).
+        self.diverged: list[str] = []
+        #: Images most of whose rays reject the last solution (:meth:`_note_unsupported`).
+        self._unsupported: list[str] = []
+        self._diverged: set[int] = set()
 
     @property
     def nav_robust(self) -> list[tuple[str, str, float]]:
@@ -429,7 +440,17 @@ class SimultaneousAT(SnoopingMixin):
         iterations = 0
         if self.refit_every_frame:
             cov = Covariance.BLOCKS if self.options.covariance_every_frame else Covariance.NONE
-            iterations = self._solve(cov).iterations
+            try:
+                iterations = self._solve(cov).iterations
+            except EstimationError:
+                # the block solved before this image: its start made it fail (a GPS/INS far
+                # off; docs/algorithm.md, *A poor start*). It is carried by its GPS/INS.
+                if i == 0:
+                    raise
+                self._leave_out([i])
+                iterations = self._solve(cov).iterations
+            if i > 0 and cat.image_ids[i] in self._unsupported:
+                iterations += self._start_again(i, cov)
         return self._update_record(frame, i, (time.perf_counter() - t0) * 1e3, iterations)
 
     def _observations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, FloatArray, FloatArray]:
@@ -438,6 +459,9 @@ class SimultaneousAT(SnoopingMixin):
         idx = np.arange(len(cat.obs_image))
         if self._rejected:
             idx = np.setdiff1d(idx, np.fromiter(self._rejected, dtype=np.int64))
+        if self._diverged:
+            idx = idx[~np.isin(np.asarray(cat.obs_image, dtype=np.int64)[idx],
+                               np.fromiter(self._diverged, dtype=np.int64))]
         oi = np.asarray(cat.obs_image, dtype=np.int64)[idx]
         op = np.asarray(cat.obs_point, dtype=np.int64)[idx]
         uv = np.asarray(cat.obs_uv, dtype=np.float64).reshape(-1, 2)[idx]
@@ -555,6 +579,7 @@ class SimultaneousAT(SnoopingMixin):
             self._ambiguous |= found
             data, sel, eop0, gp0, _ = self._block()
             res = self._adjust_and_keep(data, sel, eop0, gp0, covariance)
+        self._note_unsupported(res, data)
         self._n_obs = np.bincount(data.obs_point, minlength=data.n_points)
         self._dirty = False
         return res

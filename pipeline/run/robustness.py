@@ -66,7 +66,9 @@ class RobustnessRecord:
         solution instead of failing it (docs/algorithm.md).
     diverged_images : tuple[str, ...]
         Images whose rows sent the update beyond every prior sigma (gross errors in most of
-        their points): carried by their GPS/INS alone, their rays left out.
+        their points), left the models' domain, or most of whose rays reject their estimate
+        from the GPS/INS start and again from a resection: carried by their GPS/INS alone,
+        their rays left out (docs/algorithm.md, *A poor start*).
     rescued_points : tuple[str, ...]
         Tie points most of whose rays disagreed with their estimate (one born on a blunder),
         re-intersected robustly from their rays during a window re-linearisation.

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from seqat.calibration import FreeCamera, SelfCalibration
-from seqat.geometry import wrap_angle
+from seqat.geometry import project, resect, wrap_angle
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight
 from seqat.types import Frame
@@ -94,3 +94,39 @@ def test_a_camera_iterate_is_admissible_only_with_a_positive_finite_focal_length
     assert not cam.admissible(np.array([0.0, 0.1]))
     assert not cam.admissible(np.array([f, np.nan]))
     assert FreeCamera(short_strip.camera, np.array([3])).admissible(np.array([0.2]))
+
+
+@pytest.mark.parametrize(("k", "att_deg"), [(3, (0.0, 70.0, 0.0)), (1, (0.0, 0.0, 150.0))])
+def test_a_poor_start_in_the_initial_block_is_named_not_kept(
+        short_strip: SimulatedFlight, k: int, att_deg: tuple[float, float, float]) -> None:
+    """Self-calibration, an image of the initial Sim block with its INS far off: its pitch
+    70 deg off stopped the flight ("camera f_px must be a positive number", exit 2), its
+    heading 150 deg off too ("adjustment diverges"). Now Sim starts it again at its
+    least-squares resection, and as most of its rays still reject the solution, it is
+    carried by its GPS/INS and named in ``diverged``; the flight goes on as the clean one."""
+    f = short_strip
+    clean = _run(f, list(f.frames()), SelfCalibration())[1]
+    est, eop = _run(f, _poor_start(f, k, att_deg), SelfCalibration())
+    assert est.diverged == [f"img_{k + 1:04d}"]
+    others = np.arange(len(eop)) != k
+    assert _pos_rmse(eop[others], f.truth_eop[others]) <= 1.05 * _pos_rmse(
+        clean[others], f.truth_eop[others])
+
+
+def test_resection_recovers_a_pose_from_a_poor_start(short_strip: SimulatedFlight) -> None:
+    """Noise-free rays to known points: Gauss-Newton from 20 deg and 30 m off returns the
+    image's pose; fewer than 4 points, or points behind the camera, give none."""
+    f = short_strip
+    k = 20
+    rays = np.flatnonzero(f.obs_image == k)
+    X = f.truth_xyz[f.obs_point[rays]]
+    uv = project(np.broadcast_to(f.truth_eop[k], (rays.size, 6)), X, f.camera)
+    start = f.truth_eop[k] + np.array([30.0, -20.0, 10.0, *np.radians([20.0, -15.0, 20.0])])
+    eop = resect(start, X, uv, np.full(rays.size, 0.5), f.camera)
+    assert eop is not None
+    np.testing.assert_allclose(eop[:3], f.truth_eop[k, :3], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(wrap_angle(eop[3:] - f.truth_eop[k, 3:]), 0.0, atol=1e-9)
+    assert resect(start, X[:3], uv[:3], np.full(3, 0.5), f.camera) is None
+    below = f.truth_eop[k].copy()
+    below[2] = X[:, 2].min() - 100.0  # every point above the camera
+    assert resect(below, X, uv, np.full(rays.size, 0.5), f.camera) is None
