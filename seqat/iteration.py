@@ -14,9 +14,9 @@ can keep a wrong minimum near such a start: every ray is then beyond its core, s
 down-weights them all. An iterate outside the domain (not finite, a camera with a focal
 length <= 0, a failed solve) and a converged estimate that most of the new image's rays to
 known points lie far beyond the loss's core of (seqat.robust.unsupported_images) are not
-kept: the update starts again from its start values with
-the window held (its cofactor taken as zero: a least-squares resection of the new image
-with the birth of its points), then iterates jointly from there. The second time, the
+kept: the update starts again from its start values with the window held (its cofactor
+taken as zero: a least-squares resection of the new image with the birth of its points),
+then iterates jointly from there. The second time, the
 image is diverged (its GPS/INS alone carries it, named).
 """
 
@@ -41,8 +41,7 @@ class Iterated:
     ``sol`` is the solve of ``rows`` (``None`` when it met a degenerate birth);
     ``degenerate`` the born points (index in the update) to hold back; ``wild`` is True when
     the update failed again after the window was held, an iterate outside the models'
-    domain or an estimate most of the image's rays reject (the image diverges); ``held``
-    whether the window was held.
+    domain or an estimate most of the image's rays reject (the image diverges).
     """
 
     rows: LinearRows
@@ -52,7 +51,6 @@ class Iterated:
     iterations: int
     degenerate: list[int] = field(default_factory=list)
     wild: bool = False
-    held: bool = False
 
 
 class IterationMixin:
@@ -100,20 +98,17 @@ class IterationMixin:
                 # off): it waits for more rays; else the iterate left the models' domain
                 degenerate = degenerate_points(rows, len(born))
                 if degenerate:
-                    return Iterated(rows, None, d1t, d2, iterations, degenerate,
-                                    held=hold is not None)
+                    return Iterated(rows, None, d1t, d2, iterations, degenerate)
                 step = None
             if step is not None:
                 d1t, d2 = step.delta1_touched, step.delta2
                 degenerate = self._unstable_births(  # type: ignore[attr-defined]
                     born, born_xyz, y12, y22, x1t + d1t, x2_0 + d2, col_of)
                 if degenerate:
-                    return Iterated(rows, step, d1t, d2, iterations, degenerate,
-                                    held=hold is not None)
+                    return Iterated(rows, step, d1t, d2, iterations, degenerate)
             if step is None or not self._in_domain(x1t, d1t, d2, col_of):
                 if hold is not None:
-                    return Iterated(rows, step, d1t, d2, iterations, wild=True,
-                                    held=True)
+                    return Iterated(rows, step, d1t, d2, iterations, wild=True)
                 hold, start = True, iterations  # again from the start, the window held
                 d1t, d2 = np.zeros(touched.size), np.zeros(x2_0.size)
                 continue
@@ -139,7 +134,5 @@ class IterationMixin:
                     hold, start = True, iterations
                     d1t, d2 = np.zeros(touched.size), np.zeros(x2_0.size)
                     continue
-                return Iterated(rows, step, d1t, d2, iterations, wild=True,
-                                held=True)
-            return Iterated(rows, step, d1t, d2, iterations, held=hold is not None)
-
+                return Iterated(rows, step, d1t, d2, iterations, wild=True)
+            return Iterated(rows, step, d1t, d2, iterations)

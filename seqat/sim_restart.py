@@ -10,27 +10,31 @@ import numpy as np
 
 from seqat import robust as rloss
 from seqat.geometry import project, resect
-from seqat.types import GP_SIZE
+from seqat.types import EOP_SIZE, GP_SIZE
 
 if TYPE_CHECKING:
-    from seqat.normals import BlockData
-    from seqat.simultaneous import Covariance, SimResult
+    from seqat.simultaneous import Covariance
 
 
 class RestartMixin:
     """Unsupported images of :class:`seqat.simultaneous.SimultaneousAT` (its state lives
     there)."""
 
-    def _note_unsupported(self, res: SimResult, data: BlockData) -> None:
-        """Images most of whose rays lie beyond the loss's core at ``res``
-        (:func:`seqat.robust.unsupported_images`: the loss kept a poor GPS/INS start, or
-        most of the rays are wrong matches) are noted in ``_unsupported``
-        (docs/algorithm.md, *A poor start*)."""
-        img, pt = data.obs_image, data.obs_point
-        u2 = rloss.ray_u2(data.obs_uv - project(res.eop[img], res.gp[pt], self.camera_now),
-                          data.obs_sigma_px)
-        bad = rloss.unsupported_images(u2, img, self.options.robust_scale)
-        self._unsupported = [self._cat.image_ids[j] for j in bad]
+    def _rejected_by_rays(self, i: int) -> bool:
+        """Most of image ``i``'s rays in the last solution's block lie far beyond the loss's
+        core (:func:`seqat.robust.unsupported_images`): the loss kept a poor GPS/INS start,
+        or most of the rays are wrong matches (docs/algorithm.md, *A poor start*)."""
+        sel = self._point_sel
+        if sel.size == 0:
+            return False
+        _, oi, op, uv, sg = self._observations()
+        pos = np.minimum(np.searchsorted(sel, op), sel.size - 1)  # sel is sorted
+        mine = (oi == i) & (sel[pos] == op)
+        n = int(np.count_nonzero(mine))
+        u2 = rloss.ray_u2(uv[mine] - project(np.broadcast_to(self._eop_est[i], (n, EOP_SIZE)),
+                                             self._gp_est[pos[mine]], self.camera_now),
+                          sg[mine])
+        return rloss.unsupported_images(u2, oi[mine], self.options.robust_scale).size > 0
 
     def _start_again(self, i: int, cov: Covariance) -> int:
         """Image ``i``, just added, is one most of whose rays reject the solution: the
@@ -58,7 +62,7 @@ class RestartMixin:
         self._eop_est[i] = eop
         self._dirty = True
         iterations = self._solve(cov).iterations
-        if cat.image_ids[i] not in self._unsupported:
+        if not self._rejected_by_rays(i):
             return iterations
         self._leave_out([i])
         return iterations + self._solve(cov).iterations

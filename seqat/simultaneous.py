@@ -411,8 +411,6 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
         #: most of whose rays rejected the solution from their start and from a resection:
         #: carried by their GPS/INS, their rays left out (seqat.sim_restart).
         self.diverged: list[str] = []
-        #: Images most of whose rays reject the last solution (:meth:`_note_unsupported`).
-        self._unsupported: list[str] = []
         self._diverged: set[int] = set()
 
     @property
@@ -449,7 +447,7 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
                     raise
                 self._leave_out([i])
                 iterations = self._solve(cov).iterations
-            if i > 0 and cat.image_ids[i] in self._unsupported:
+            if i > 0 and self._rejected_by_rays(i):
                 iterations += self._start_again(i, cov)
         return self._update_record(frame, i, (time.perf_counter() - t0) * 1e3, iterations)
 
@@ -579,7 +577,6 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
             self._ambiguous |= found
             data, sel, eop0, gp0, _ = self._block()
             res = self._adjust_and_keep(data, sel, eop0, gp0, covariance)
-        self._note_unsupported(res, data)
         self._n_obs = np.bincount(data.obs_point, minlength=data.n_points)
         self._dirty = False
         return res
