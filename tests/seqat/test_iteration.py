@@ -71,8 +71,9 @@ def test_an_estimate_most_of_its_rays_reject_is_not_kept(short_strip: SimulatedF
     so) and named in ``diverged``; the other images keep the clean run's accuracy."""
     f, k = short_strip, 30
     clean = _run(f, list(f.frames()), calibration)[1]
-    est, eop = _run(f, _poor_start(f, k, (0.0, 0.0, 150.0)), calibration)
-    nav = _poor_start(f, k, (0.0, 0.0, 150.0))[k].nav_eop
+    frames = _poor_start(f, k, (0.0, 0.0, 150.0))
+    est, eop = _run(f, frames, calibration)
+    nav = frames[k].nav_eop
     err = eop[k] - f.truth_eop[k]
     good = np.all(np.abs(err[:3]) < 1.0) and np.all(np.degrees(np.abs(wrap_angle(err[3:]))) < 0.5)
     if not good:  # then named, and where its GPS/INS puts it
