@@ -261,9 +261,13 @@ def adjust_block(
                 continue
             converged = True
             break
-    if was_damped:
-        nrm, _, _ = linearise(cam, data, eop, gp, 0.0, robust, calib,
-                              nav_robust)  # the undamped system
+    if was_damped or not converged:
+        # the system at the estimate returned: undamped, and (unconverged) linearised where
+        # the estimate is, not one step before it. The sequential stage takes this normal
+        # matrix as its window's information and later subtracts the rays' rows from it as
+        # linearised at the estimate: a normal matrix from elsewhere left that difference
+        # indefinite (an initial block stopped 20 iterations short, camera self-calibrated)
+        nrm, _, _ = linearise(cam, data, eop, gp, 0.0, robust, calib, nav_robust)
     assert nrm is not None
     img, pt = data.obs_image, data.obs_point
     res_img = data.obs_uv - project(eop[img], gp[pt], cam)
@@ -438,6 +442,10 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
         iterations = 0
         if self.refit_every_frame:
             cov = Covariance.BLOCKS if self.options.covariance_every_frame else Covariance.NONE
+            if i > 0 and self._held_camera_start(i):
+                iterations = self._start_again(i, cov)
+                return self._update_record(frame, i, (time.perf_counter() - t0) * 1e3,
+                                           iterations)
             try:
                 iterations = self._solve(cov).iterations
             except EstimationError:

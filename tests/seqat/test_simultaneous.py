@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from seqat.geometry import intersect_rays, project
+from seqat.normals import full_normal, linearise
 from seqat.simulate import SimulatedFlight
 from seqat.simultaneous import BlockData, Covariance, SimOptions, SimultaneousAT, adjust_block
 
@@ -97,6 +98,24 @@ def test_block_and_full_cofactors_agree(short_strip: SimulatedFlight) -> None:
     Q = full.full_cofactor
     np.testing.assert_allclose(Q, Q.T, atol=1e-14)
     assert np.all(np.linalg.eigvalsh(Q) > 0)
+
+
+def test_an_unconverged_block_returns_the_normal_matrix_at_its_estimate(
+        short_strip: SimulatedFlight) -> None:
+    """Stopped by max_iterations, the block's normal matrix is the one at the estimate it
+    returns, not one Gauss-Newton step before (the sequential stage takes it as its
+    window's information and later takes the rays' rows out of it as linearised at the
+    estimate: the difference was indefinite, a self-calibrated initial block stopped the
+    flight)."""
+    data, eop0, gp0 = _local_block(short_strip)
+    eop0 = eop0 + np.array([2.0, -2.0, 1.0, 0.02, -0.02, 0.03])  # a few iterations away
+    opts = SimOptions(max_iterations=2)
+    res = adjust_block(short_strip.camera, data, eop0, gp0, opts, Covariance.FULL)
+    assert not res.converged and res.full_normal is not None
+    nrm, _, _ = linearise(short_strip.camera, data, res.eop, res.gp, 0.0, opts.robust_scale)
+    expected = full_normal(nrm, data.n_images, data.n_points)
+    scale = np.sqrt(np.outer(np.diagonal(expected), np.diagonal(expected)))
+    np.testing.assert_allclose(res.full_normal / scale, expected / scale, rtol=0, atol=1e-12)
 
 
 def test_adjust_block_rejects_non_finite_start(short_strip: SimulatedFlight) -> None:
