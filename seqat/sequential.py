@@ -242,7 +242,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         self._records = options.smoothing  # departure records (RTS smoothing, re-opening)
         self._initial: SimultaneousAT | None = SimultaneousAT(
             camera, sim_opts, refit_every_frame=options.snooping_critical is None,
-            control=control)
+            control=control, calibrate_on_export=True)
         self._origin: FloatArray | None = None
         # The camera as the rows see it: with self-calibration its free interior parameters
         # are the window block ``_cam_key`` (set by the initial stage).
@@ -327,6 +327,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         linearised on the way (Seq-F then equals Sim). One re-linearisation of the window,
         once per flight. No-op without ``relinearise_px``; :meth:`solution` itself never
         changes the state."""
+        if self._initial is not None:  # the flight ended in the initial block
+            self._initial.free_camera()
         if self._initial is None:
             with _BLAS.limit(limits=UPDATE_BLAS_THREADS, user_api="blas"):
                 if self.options.relinearise_px is not None:

@@ -328,6 +328,11 @@ def adjust_block(
     )
 
 
+#: :meth:`SimultaneousAT.export_state` solves again, from where the last solve stopped, up
+#: to this many times while it has not converged.
+EXPORT_MORE_SOLVES = 4
+
+
 def free_nav_sigma(sigma: FloatArray) -> FloatArray:
     """GPS/INS sigmas with the free components (inf, a dropout) replaced by a weak constraint
     (:data:`FREE_NAV_SIGMA`): an image the tie points do not determine keeps its starting
@@ -379,6 +384,11 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
         ``False`` only buffers frames; :meth:`solution` then solves once (``--final-only``).
     control : sequence of ControlPoint
         Ground control: points whose coordinates are observed (adjusted from one ray on).
+    calibrate_on_export : bool
+        Self-calibrating, the refits while the images arrive hold the camera at its prior;
+        :meth:`export_state` frees it, starting from the held solution (the initial block
+        of :class:`seqat.sequential.SequentialAT`: in a block of a few images the free
+        interior parameters absorb a poor GPS/INS start; docs/algorithm.md, *A poor start*).
     """
 
     def __init__(
@@ -388,10 +398,12 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
         *,
         refit_every_frame: bool = True,
         control: Sequence[ControlPoint] = (),
+        calibrate_on_export: bool = False,
     ) -> None:
         self.camera = camera
         self.options = options
         self.refit_every_frame = refit_every_frame
+        self._camera_held = calibrate_on_export  # until export_state
         self.control = control_by_id(control)
         #: The camera at the last solution (the prior ``camera`` until self-calibrated).
         self.camera_now = camera
@@ -442,21 +454,7 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
         iterations = 0
         if self.refit_every_frame:
             cov = Covariance.BLOCKS if self.options.covariance_every_frame else Covariance.NONE
-            if i > 0 and self._held_camera_start(i):
-                iterations = self._start_again(i, cov)
-                return self._update_record(frame, i, (time.perf_counter() - t0) * 1e3,
-                                           iterations)
-            try:
-                iterations = self._solve(cov).iterations
-            except EstimationError:
-                # the block solved before this image: its start made it fail (a GPS/INS far
-                # off; docs/algorithm.md, *A poor start*). It is carried by its GPS/INS.
-                if i == 0:
-                    raise
-                self._leave_out([i])
-                iterations = self._solve(cov).iterations
-            if i > 0 and self._rejected_by_rays(i):
-                iterations += self._start_again(i, cov)
+            iterations = self._refit(i, cov)
         return self._update_record(frame, i, (time.perf_counter() - t0) * 1e3, iterations)
 
     def _observations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, FloatArray, FloatArray]:
@@ -533,11 +531,27 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
         )
         return data, sel, self._eop_est, gp_init[sel], cat_idx[keep]
 
+    def free_camera(self) -> None:
+        """``calibrate_on_export``: free the camera now (the flight ended before the
+        export); the next solution self-calibrates."""
+        if self._camera_held:
+            self._camera_held, self._dirty = False, True
+
     def export_state(self, covariance: Covariance = Covariance.FULL) -> SimState:
         """Adjust the frames so far and return the solution with its observations."""
         if self._origin is None:
             raise EstimationError("no frames were added")
+        self.free_camera()
         res = self._solve(covariance)
+        # The sequential stage takes this solution for the minimum of its model (its
+        # information times its estimate is its information vector): from a solve stopped
+        # short, the first re-linearisation's kept information was wrong, and Seneca's
+        # window ran away (sigma0 2.5e13, no tie point left). The camera, freed only now,
+        # may need more iterations than the refits that had it free all along (Seneca: 35).
+        for _ in range(EXPORT_MORE_SOLVES):
+            if res.converged:
+                break
+            res = self._solve(covariance)
         cat = self._cat
         _, oi, op, uv, sg = self._observations()
         return SimState(
@@ -626,7 +640,7 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
         parameters the block does not determine, or not significantly different from their
         prior (:func:`seqat.calibration.to_hold`), are held at their prior and the block
         adjusted again without them."""
-        calibration = self.options.calibration
+        calibration = None if self._camera_held else self.options.calibration
         held: tuple[str, ...] = ()
         while True:
             calib = None
@@ -682,7 +696,11 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
             scale = sigma_scale(res.sigma0, res.redundancy)
             sigma0, red = res.sigma0, res.redundancy
             if res.eop_cofactor is not None:
-                sigma = np.sqrt(np.diagonal(res.eop_cofactor[i])) * scale
+                # a variance <= 0 is a block the data do not determine to rounding (a second
+                # image 60 deg off: reduced system of condition 1e14): no sigma yet, as
+                # before the first solution, not the root of a negative number
+                var = np.diagonal(res.eop_cofactor[i])
+                sigma = np.sqrt(np.where(var > 0, var, np.nan)) * scale
             if res.gp_cofactor is not None:
                 rms_gp = rms_point_sigma(np.diagonal(res.gp_cofactor, axis1=1, axis2=2) * scale**2)
         n_pts = int(self._point_sel.size)

@@ -158,3 +158,20 @@ def test_a_solution_before_any_point_is_adjusted(short_strip: SimulatedFlight) -
     sim.add_frame(next(short_strip.frames()))
     sol = sim.solution()
     assert len(sol.eops) == 1 and sol.points == () and sim.disagreeing == []
+
+
+def test_an_image_the_block_does_not_determine_has_no_sigma_not_a_negative_variance(
+        short_strip: SimulatedFlight) -> None:
+    """Two images, the second's INS 60 deg off in roll: the block's reduced system has
+    condition 1e14 and the second image's height cofactor came out -0.9 (its sigma the
+    root of a negative number: a RuntimeWarning, NaN). A variance <= 0 now gives no sigma
+    (NaN, as before the first solution); the others stay positive."""
+    frames = list(short_strip.frames())
+    nav = frames[1].nav_eop.copy()
+    nav[3] += np.radians(60.0)
+    frames[1] = dataclasses.replace(frames[1], nav_eop=nav, nav_sigma=np.array(
+        [5.0, 5.0, 5.0, *np.radians([10.0, 10.0, 10.0])]))
+    sim = SimultaneousAT(short_strip.camera, SimOptions())
+    for frame in frames[:2]:
+        sigma = sim.add_frame(frame).eop.sigma  # (RuntimeWarnings are errors in the suite)
+    assert np.all(np.isnan(sigma) | (sigma > 0))
