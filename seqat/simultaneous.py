@@ -669,8 +669,9 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
 
     @property
     def _calibration(self) -> SelfCalibration | None:
-        """The parameters the last solution estimated: the options' free ones but the held."""
-        cal = self.options.calibration
+        """The parameters the last solution estimated: the options' free ones but the held
+        (none while ``calibrate_on_export`` holds the camera)."""
+        cal = None if self._camera_held else self.options.calibration
         return cal.holding(self._held) if cal is not None and self._held else cal
 
     def camera_estimate(self) -> CameraEstimate | None:
