@@ -17,6 +17,13 @@ if TYPE_CHECKING:
     from seqat.simultaneous import Covariance
 
 
+#: An earlier image is tried as the culprit of a rejected one if it shares this many of its
+#: points (:meth:`RestartMixin._blame_earlier`) ...
+MIN_SHARED_POINTS = 3
+#: ... and at most this many earlier images are tried (each costs a solve of the block).
+MAX_BLAMED = 2
+
+
 class RestartMixin:
     """Unsupported images of :class:`seqat.simultaneous.SimultaneousAT` (its state lives
     there)."""
@@ -60,7 +67,8 @@ class RestartMixin:
                           sg[mine])
         return rloss.unsupported_images(u2, oi[mine], self.options.robust_scale).size > 0
 
-    def _start_again(self, i: int, cov: Covariance, *, rejected: bool = True) -> int:
+    def _start_again(self, i: int, cov: Covariance, *, rejected: bool = True,
+                     blame: bool = True) -> int:
         """Image ``i``, just added, is one most of whose rays reject the solution: the
         block is solved again with ``i`` started at its least-squares resection on the
         points the other images determine (:func:`seqat.geometry.resect`), as a sequential
@@ -68,7 +76,8 @@ class RestartMixin:
         reject that solution too, or no resection exists, ``i`` is carried by its GPS/INS
         (:meth:`_leave_out`). ``rejected`` False: not its rays but the block's failing to
         converge with ``i`` sent it here; without a resection the block stays as solved.
-        Returns the iterations of the solves."""
+        Before ``i`` is left out, an earlier image may take the blame (``blame``:
+        :meth:`_blame_earlier`). Returns the iterations of the solves."""
         cat = self._cat
         oi = np.asarray(cat.obs_image, dtype=np.int64)
         op = np.asarray(cat.obs_point, dtype=np.int64)
@@ -84,16 +93,70 @@ class RestartMixin:
         eop = resect(self._eop_est[i], X, uv, sigma, self.camera_now)
         if eop is None and not rejected:  # (a block that did not converge): as it is
             return 0
-        if eop is None:
-            self._leave_out([i])
-            return self._solve(cov).iterations
-        self._eop_est[i] = eop
-        self._dirty = True
-        iterations = self._solve(cov).iterations
-        if not self._rejected_by_rays(i):
-            return iterations
+        iterations = 0
+        if eop is not None:
+            self._eop_est[i] = eop
+            self._dirty = True
+            iterations = self._solve(cov).iterations
+            if not self._rejected_by_rays(i):
+                return iterations
+        if blame:
+            more = self._blame_earlier(i, cov)
+            if more is not None:
+                return iterations + more
         self._leave_out([i])
         return iterations + self._solve(cov).iterations
+
+    def _blame_earlier(self, i: int, cov: Covariance) -> int | None:
+        """Image ``i``'s rays reject the block even from a resection: is an earlier image's
+        poor start to blame? The earlier images sharing most of ``i``'s points (at least
+        :data:`MIN_SHARED_POINTS`, at most :data:`MAX_BLAMED` of them) are tried in turn:
+        the block solved without it (``i`` from its GPS/INS, the points it saw intersected
+        again); if ``i``'s rays then fit,
+        that image is started again at its resection on the block without it, and the
+        block is kept if both fit. Returns the solves' iterations, or None (nothing kept: ``i``
+        is to blame).
+
+        A second image 150 deg off in heading, in a block of two where any relative
+        orientation fits its two-ray points, ended 148 deg off, and its wrong points made
+        each of the next eight images diverge in its place (the 60-image strip, seed 12)."""
+        cat = self._cat
+        oi = np.asarray(cat.obs_image, dtype=np.int64)
+        op = np.asarray(cat.obs_point, dtype=np.int64)
+        seen = np.isin(op, op[oi == i])
+        shared = np.bincount(oi[seen], minlength=i + 1)[:i]
+        order = [int(j) for j in np.argsort(-shared, kind="stable")
+                 if shared[j] >= MIN_SHARED_POINTS and int(j) not in self._diverged]
+        before = self._state()
+        iterations = 0
+        for j in order[:MAX_BLAMED]:
+            self._leave_out([j])
+            # i from its GPS/INS, j's points intersected again from the other rays: not
+            # where j's poor start put them
+            self._eop_est[i] = np.asarray(cat.nav_eop)[i]
+            keep = ~np.isin(self._point_sel, op[oi == j])
+            self._point_sel, self._gp_est = self._point_sel[keep], self._gp_est[keep]
+            iterations += self._solve(cov).iterations
+            if not self._rejected_by_rays(i):
+                self._diverged.discard(j)  # back, from its resection on the others
+                self.diverged.remove(cat.image_ids[j])
+                iterations += self._start_again(j, cov, blame=False)
+                if (j not in self._diverged and i not in self._diverged
+                        and not self._rejected_by_rays(i)):
+                    return iterations
+            self._restore(before)
+        return None
+
+    def _state(self) -> dict[str, object]:
+        """The solver's state (the catalogue aside: solves only read it), its arrays and
+        containers copied."""
+        return {k: (v.copy() if isinstance(v, (np.ndarray, list, set, dict)) else v)
+                for k, v in vars(self).items() if k != "_cat"}
+
+    def _restore(self, state: dict[str, object]) -> None:
+        """Back to ``state`` (:meth:`_state`), which stays as it was."""
+        vars(self).update({k: (v.copy() if isinstance(v, (np.ndarray, list, set, dict))
+                               else v) for k, v in state.items()})
 
     def _leave_out(self, images: list[int]) -> None:
         """The ``images`` (catalogue indices) diverged: their rays left out, started again

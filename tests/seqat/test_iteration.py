@@ -12,7 +12,7 @@ import pytest
 from seqat.calibration import FreeCamera, SelfCalibration
 from seqat.geometry import project, resect, wrap_angle
 from seqat.sequential import SequentialAT, SequentialOptions
-from seqat.simulate import SimulatedFlight
+from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
 from seqat.types import Frame
 
 #: A consumer INS: attitude sigma 10 deg, position 5 m (the start below is 5-15 sigma off).
@@ -134,6 +134,27 @@ def test_a_poor_start_in_the_initial_block_ends_where_its_rays_put_it_or_is_name
     others = np.arange(len(eop)) != k
     assert _pos_rmse(eop[others], f.truth_eop[others]) <= 1.05 * _pos_rmse(
         clean_self_calibrated[others], f.truth_eop[others])
+
+
+def test_an_earlier_image_whose_poor_start_fails_the_next_ones_is_started_again() -> None:
+    """Seed 12, the second image's heading 150 deg off, fixed camera: in the block of two,
+    where any relative orientation fits its two-ray points, the image ended 148 deg off,
+    and its wrong points made each of the next eight images diverge in its place (named,
+    carried by their GPS/INS). Now, before an image whose rays reject the block is left
+    out, the earlier image that shares most of its points is tried as the culprit: the
+    block without it fits the new image, and the culprit, started again at its resection
+    on the others, fits too. No image diverges, the second ends where its rays put it."""
+    f = simulate_strip(StripSimConfig(n_images=60, n_points=48), seed=12)
+    k = 1
+    clean = _run(f, list(f.frames()), None)[1]
+    est, eop = _run(f, _poor_start(f, k, (0.0, 0.0, 150.0)), None)
+    assert est.diverged == []
+    err = eop[k] - f.truth_eop[k]
+    assert np.all(np.abs(err[:3]) < 1.5)
+    assert np.all(np.degrees(np.abs(wrap_angle(err[3:]))) < 0.5)
+    others = np.arange(len(eop)) != k
+    assert _pos_rmse(eop[others], f.truth_eop[others]) <= 1.05 * _pos_rmse(
+        clean[others], f.truth_eop[others])
 
 
 def test_resection_recovers_a_pose_from_a_poor_start(short_strip: SimulatedFlight) -> None:
