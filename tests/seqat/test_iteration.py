@@ -41,6 +41,22 @@ def _pos_rmse(eop: np.ndarray, truth: np.ndarray) -> float:
     return float(np.sqrt(np.mean((eop[:, :3] - truth[:, :3]) ** 2)))
 
 
+def _assert_recovered(flight: SimulatedFlight, eop: np.ndarray, k: int,
+                      pos_m: float = 1.0) -> None:
+    """Image ``k`` within ``pos_m`` and 0.5 deg of the truth on every axis."""
+    err = eop[k] - flight.truth_eop[k]
+    assert np.all(np.abs(err[:3]) < pos_m)
+    assert np.all(np.degrees(np.abs(wrap_angle(err[3:]))) < 0.5)
+
+
+def _assert_others_as_clean(flight: SimulatedFlight, eop: np.ndarray, k: int,
+                            clean: np.ndarray) -> None:
+    """The images but ``k`` within 5 % of the clean run's position RMSE."""
+    others = np.arange(len(eop)) != k
+    assert _pos_rmse(eop[others], flight.truth_eop[others]) <= 1.05 * _pos_rmse(
+        clean[others], flight.truth_eop[others])
+
+
 def test_an_iterate_outside_the_camera_domain_starts_again_with_the_window_held(
         short_strip: SimulatedFlight) -> None:
     """Self-calibration, image 25's INS 55 deg off on each axis: the first, least-squares
@@ -51,12 +67,8 @@ def test_an_iterate_outside_the_camera_domain_starts_again_with_the_window_held(
     clean = _run(f, list(f.frames()), SelfCalibration())[1]
     est, eop = _run(f, _poor_start(f, k, (55.0, 55.0, 55.0)), SelfCalibration())
     assert est.diverged == []
-    err = eop[k] - f.truth_eop[k]
-    assert np.all(np.abs(err[:3]) < 1.0)
-    assert np.all(np.degrees(np.abs(wrap_angle(err[3:]))) < 0.5)
-    others = np.arange(len(eop)) != k
-    assert _pos_rmse(eop[others], f.truth_eop[others]) <= 1.05 * _pos_rmse(
-        clean[others], f.truth_eop[others])
+    _assert_recovered(f, eop, k)
+    _assert_others_as_clean(f, eop, k, clean)
 
 
 @pytest.mark.parametrize("calibration", [None, SelfCalibration()], ids=["fixed", "self-cal"])
@@ -81,9 +93,7 @@ def test_an_estimate_most_of_its_rays_reject_is_not_kept(short_strip: SimulatedF
         np.testing.assert_allclose(eop[k, 3:], wrap_angle(nav[3:]), atol=np.radians(1.0))
         sigma = est.solution(smoothed=False).eops[k].sigma
         assert sigma[5] > np.radians(5.0)
-    others = np.arange(len(eop)) != k
-    assert _pos_rmse(eop[others], f.truth_eop[others]) <= 1.05 * _pos_rmse(
-        clean[others], f.truth_eop[others])
+    _assert_others_as_clean(f, eop, k, clean)
 
 
 def test_a_camera_iterate_is_admissible_only_with_a_positive_finite_focal_length(
@@ -128,12 +138,8 @@ def test_a_poor_start_in_the_initial_block_ends_where_its_rays_put_it_or_is_name
         assert est.diverged == [f"img_{k + 1:04d}"]
     else:
         assert est.diverged == []
-        err = eop[k] - f.truth_eop[k]
-        assert np.all(np.abs(err[:3]) < 1.0)
-        assert np.all(np.degrees(np.abs(wrap_angle(err[3:]))) < 0.5)
-    others = np.arange(len(eop)) != k
-    assert _pos_rmse(eop[others], f.truth_eop[others]) <= 1.05 * _pos_rmse(
-        clean_self_calibrated[others], f.truth_eop[others])
+        _assert_recovered(f, eop, k)
+    _assert_others_as_clean(f, eop, k, clean_self_calibrated)
 
 
 def test_an_earlier_image_whose_poor_start_fails_the_next_ones_is_started_again() -> None:
@@ -149,12 +155,8 @@ def test_an_earlier_image_whose_poor_start_fails_the_next_ones_is_started_again(
     clean = _run(f, list(f.frames()), None)[1]
     est, eop = _run(f, _poor_start(f, k, (0.0, 0.0, 150.0)), None)
     assert est.diverged == []
-    err = eop[k] - f.truth_eop[k]
-    assert np.all(np.abs(err[:3]) < 1.5)
-    assert np.all(np.degrees(np.abs(wrap_angle(err[3:]))) < 0.5)
-    others = np.arange(len(eop)) != k
-    assert _pos_rmse(eop[others], f.truth_eop[others]) <= 1.05 * _pos_rmse(
-        clean[others], f.truth_eop[others])
+    _assert_recovered(f, eop, k, pos_m=1.5)
+    _assert_others_as_clean(f, eop, k, clean)
 
 
 def test_resection_recovers_a_pose_from_a_poor_start(short_strip: SimulatedFlight) -> None:
