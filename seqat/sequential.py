@@ -484,6 +484,15 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         w.inverse = self._inverse
         w.relayout(keys)
         w.x = np.concatenate([res.eop.ravel(), cam_values, res.gp.ravel()])
+        ssr = res.weighted_ssr
+        if res.model_step is not None and res.full_normal is not None:
+            # a block stopped short of convergence: its rows are linearised at its estimate,
+            # the window starts at their model's minimum, as every later step assumes (its
+            # information times its estimate is its information vector); from the estimate
+            # itself the first re-linearisation's kept information was wrong and the window
+            # ran away (sigma0 2e7, or a focal length < 0)
+            w.x = w.x + res.model_step
+            ssr -= float(res.model_step @ (res.full_normal @ res.model_step))
         if self._inverse:
             w.Q = res.full_cofactor
         if self.options.smoothing or not self._inverse:
@@ -507,7 +516,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
                 self._pending.setdefault(j, []).append(
                     (i, np.asarray(uv, dtype=np.float64), float(s))
                 )
-        self._ssr, self._redundancy = res.weighted_ssr, res.redundancy
+        self._ssr, self._redundancy = max(ssr, 0.0), res.redundancy
         if self.options.relinearise_px is not None:
             sel_of = {int(j): k for k, j in enumerate(st.selected)}
             use = [k for k, j in enumerate(st.obs_point) if int(j) in sel_of]

@@ -112,10 +112,9 @@ class RestartMixin:
         poor start to blame? The earlier images sharing most of ``i``'s points (at least
         :data:`MIN_SHARED_POINTS`, at most :data:`MAX_BLAMED` of them) are tried in turn:
         the block solved without it (``i`` from its GPS/INS, the points it saw intersected
-        again); if ``i``'s rays then fit,
-        that image is started again at its resection on the block without it, and the
-        block is kept if both fit. Returns the solves' iterations, or None (nothing kept: ``i``
-        is to blame).
+        again); if ``i``'s rays then fit, that image is started again at its resection on
+        the block without it, and the block is kept if both fit. Returns the solves'
+        iterations, or None (nothing kept: ``i`` is to blame).
 
         A second image 150 deg off in heading, in a block of two where any relative
         orientation fits its two-ray points, ended 148 deg off, and its wrong points made

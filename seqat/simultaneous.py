@@ -148,6 +148,9 @@ class SimResult:
     camera_cofactor: FloatArray | None = None
     #: (n, g) robust weight factor of each image's GPS/INS groups (seqat.robust.NAV_GROUPS).
     nav_weight: FloatArray | None = None
+    #: Not converged: the step from the estimate to the minimum of the model linearised
+    #: there, over ``[EOPs, camera, GPs]`` (``full_normal``'s layout); None when converged.
+    model_step: FloatArray | None = None
 
 
 def adjust_block(
@@ -267,8 +270,13 @@ def adjust_block(
         # matrix as its window's information and later subtracts the rays' rows from it as
         # linearised at the estimate: a normal matrix from elsewhere left that difference
         # indefinite (an initial block stopped 20 iterations short, camera self-calibrated)
-        nrm, _, _ = linearise(cam, data, eop, gp, 0.0, robust, calib, nav_robust)
+        nrm, rhs, _ = linearise(cam, data, eop, gp, 0.0, robust, calib, nav_robust)
     assert nrm is not None
+    model_step = None
+    if not converged:  # where the model at the estimate has its minimum (Gauss-Newton's step)
+        delta_r = nrm.lu.solve(rhs)
+        step = np.concatenate([delta_r, back_substitute(nrm, delta_r).ravel()])
+        model_step = step if np.all(np.isfinite(step)) else None
     img, pt = data.obs_image, data.obs_point
     res_img = data.obs_uv - project(eop[img], gp[pt], cam)
     res_nav = eop_residual(data.nav_eop, eop)
@@ -325,6 +333,7 @@ def adjust_block(
         camera=cam,
         camera_cofactor=cam_cof,
         nav_weight=rloss.nav_groups_of(w_nav),
+        model_step=model_step,
     )
 
 
