@@ -326,7 +326,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         final window values are the minimum of the collinearity equations, not of rows
         linearised on the way (Seq-F then equals Sim). One re-linearisation of the window,
         once per flight. No-op without ``relinearise_px``; :meth:`solution` itself never
-        changes the state."""
+        changes the state. A flight that ended in the initial block frees its camera (held
+        while the block's images arrived: its solution then self-calibrates)."""
         if self._initial is not None:  # the flight ended in the initial block
             self._initial.free_camera()
         if self._initial is None:
