@@ -140,22 +140,18 @@ class RestartMixin:
                 self._diverged.discard(j)  # back, from its resection on the others
                 self.diverged.remove(cat.image_ids[j])
                 iterations += self._start_again(j, cov, blame=False)
-                if (j not in self._diverged and i not in self._diverged
-                        and not self._rejected_by_rays(i)):
+                if j not in self._diverged and not self._rejected_by_rays(i):
                     return iterations
             self._restore(before)
         return None
 
     def _state(self) -> dict[str, object]:
-        """The solver's state (the catalogue aside: solves only read it), its arrays and
-        containers copied."""
-        return {k: (v.copy() if isinstance(v, (np.ndarray, list, set, dict)) else v)
-                for k, v in vars(self).items() if k != "_cat"}
+        """The solver's state (the catalogue aside: solves only read it), copied."""
+        return _copied({k: v for k, v in vars(self).items() if k != "_cat"})
 
     def _restore(self, state: dict[str, object]) -> None:
         """Back to ``state`` (:meth:`_state`), which stays as it was."""
-        vars(self).update({k: (v.copy() if isinstance(v, (np.ndarray, list, set, dict))
-                               else v) for k, v in state.items()})
+        vars(self).update(_copied(state))
 
     def _leave_out(self, images: list[int]) -> None:
         """The ``images`` (catalogue indices) diverged: their rays left out, started again
@@ -164,3 +160,9 @@ class RestartMixin:
         self.diverged += [self._cat.image_ids[j] for j in images]
         self._eop_est[images] = np.asarray(self._cat.nav_eop)[images]
         self._dirty = True
+
+
+def _copied(state: dict[str, object]) -> dict[str, object]:
+    """``state`` with its arrays and containers copied (the solves change them in place)."""
+    return {k: (v.copy() if isinstance(v, (np.ndarray, list, set, dict)) else v)
+            for k, v in state.items()}
