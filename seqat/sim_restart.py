@@ -11,7 +11,7 @@ import numpy as np
 from seqat import robust as rloss
 from seqat.errors import EstimationError
 from seqat.geometry import project, resect
-from seqat.types import EOP_SIZE, GP_SIZE
+from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 
 if TYPE_CHECKING:
     from seqat.simultaneous import Covariance
@@ -22,6 +22,8 @@ if TYPE_CHECKING:
 MIN_SHARED_POINTS = 3
 #: ... and at most this many earlier images are tried (each costs a solve of the block).
 MAX_BLAMED = 2
+#: A resection is started also at the attitude of this many images sharing most points.
+RESECTION_NEIGHBOURS = 2
 
 
 class RestartMixin:
@@ -49,7 +51,36 @@ class RestartMixin:
             iterations += self._start_again(i, cov)
         elif i > 0 and was_converged and not res.converged and i not in self._diverged:
             iterations += self._start_again(i, cov, rejected=False)
+        elif i > 0 and self._lost_to_ambiguity(i):
+            # each of i's points fits two places: an earlier image's poor start may be
+            # the other place; if none is, the points stay out (the image untied)
+            iterations += self._blame_earlier(i, cov) or 0
         return iterations
+
+    def _lost_to_ambiguity(self, i: int) -> bool:
+        """Most of image ``i``'s points that could be tested (three rays or more), and at
+        least :data:`MIN_SHARED_POINTS`, were held out of the last solution as fitting two
+        places (:func:`seqat.robust.ambiguous_points`). Wrong matches make such points one
+        by one; most of an image's at once are the mark of a poor start in an image they
+        share: the block of images 1, 2 (45 deg off) and 3 took every point out, leaving
+        image 2 at its GPS/INS for the rest of the flight (docs/algorithm.md, *A poor
+        start*)."""
+        if not self._ambiguous:
+            return False
+        cat = self._cat
+        oi = np.asarray(cat.obs_image, dtype=np.int64)
+        op = np.asarray(cat.obs_point, dtype=np.int64)
+        rays = np.bincount(op, minlength=len(cat.point_ids))
+        mine = np.unique(op[oi == i])
+        mine = mine[rays[mine] >= 3]
+        held = np.isin(mine, np.fromiter(self._ambiguous, dtype=np.int64))
+        n = int(np.count_nonzero(held))
+        return n >= MIN_SHARED_POINTS and 2 * n > mine.size
+
+    def _unfit(self, i: int) -> bool:
+        """Image ``i``'s rays reject the block, or its points were held out as fitting
+        two places."""
+        return self._rejected_by_rays(i) or self._lost_to_ambiguity(i)
 
     def _rejected_by_rays(self, i: int) -> bool:
         """Most of image ``i``'s rays in the last solution's block lie far beyond the loss's
@@ -71,7 +102,7 @@ class RestartMixin:
                      blame: bool = True) -> int:
         """Image ``i``, just added, is one most of whose rays reject the solution: the
         block is solved again with ``i`` started at its least-squares resection on the
-        points the other images determine (:func:`seqat.geometry.resect`), as a sequential
+        points the other images determine (:meth:`_resect`), as a sequential
         update starts again with the window held (:mod:`seqat.iteration`). If most rays
         reject that solution too, or no resection exists, ``i`` is carried by its GPS/INS
         (:meth:`_leave_out`). ``rejected`` False: not its rays but the block's failing to
@@ -90,7 +121,7 @@ class RestartMixin:
         X = self._gp_est[[at[int(j)] for j in op[mine]]].reshape(-1, GP_SIZE)
         uv = np.asarray(cat.obs_uv, dtype=np.float64).reshape(-1, 2)[mine]
         sigma = np.asarray(cat.obs_sigma, dtype=np.float64)[mine]
-        eop = resect(self._eop_est[i], X, uv, sigma, self.camera_now)
+        eop = self._resect(i, X, uv, sigma)
         if eop is None and not rejected:  # (a block that did not converge): as it is
             return 0
         iterations = 0
@@ -107,14 +138,45 @@ class RestartMixin:
         self._leave_out([i])
         return iterations + self._solve(cov).iterations
 
+    def _resect(self, i: int, X: FloatArray, uv: FloatArray, sigma: FloatArray
+                ) -> FloatArray | None:
+        """Image ``i``'s least-squares resection on the points ``X`` (its rays ``uv``,
+        ``sigma``) with the lowest cost, started at its estimate and at the attitude of each
+        of the :data:`RESECTION_NEIGHBOURS` images sharing most of its points (a flight's
+        neighbours fly level alike; Gauss-Newton from 50 deg off on each axis ends at a
+        wrong minimum or behind the points); None if no start converges."""
+        cat = self._cat
+        oi = np.asarray(cat.obs_image, dtype=np.int64)
+        op = np.asarray(cat.obs_point, dtype=np.int64)
+        shared = np.bincount(oi[np.isin(op, op[oi == i])], minlength=len(cat.image_ids))
+        shared[i] = 0
+        if self._diverged:
+            shared[np.fromiter(self._diverged, dtype=np.int64)] = 0
+        starts = [self._eop_est[i]]
+        for j in np.argsort(-shared, kind="stable")[:RESECTION_NEIGHBOURS]:
+            if shared[j] > 0:
+                starts.append(np.concatenate([self._eop_est[i, :3], self._eop_est[j, 3:]]))
+        best, best_cost = None, np.inf
+        for start in starts:
+            eop = resect(start, X, uv, sigma, self.camera_now)
+            if eop is None:
+                continue
+            n = X.shape[0]
+            r = uv - project(np.broadcast_to(eop, (n, EOP_SIZE)), X, self.camera_now)
+            c = float(np.sum((r / sigma[:, None]) ** 2))
+            if c < best_cost:
+                best, best_cost = eop, c
+        return best
+
     def _blame_earlier(self, i: int, cov: Covariance) -> int | None:
-        """Image ``i``'s rays reject the block even from a resection: is an earlier image's
-        poor start to blame? The earlier images sharing most of ``i``'s points (at least
+        """Image ``i``'s rays reject the block even from a resection, or most of its points
+        fit two places (:meth:`_lost_to_ambiguity`): is an earlier image's poor start to
+        blame? The earlier images sharing most of ``i``'s points (at least
         :data:`MIN_SHARED_POINTS`, at most :data:`MAX_BLAMED` of them) are tried in turn:
         the block solved without it (``i`` from its GPS/INS, the points it saw intersected
-        again); if ``i``'s rays then fit, that image is started again at its resection on
-        the block without it, and the block is kept if both fit. Returns the solves'
-        iterations, or None (nothing kept: ``i`` is to blame).
+        again); if ``i`` then fits (:meth:`_unfit`), that image is started again at its
+        resection on the block without it, and the block is kept if both fit. Returns the
+        solves' iterations, or None (nothing kept: ``i`` is to blame).
 
         A second image 150 deg off in heading, in a block of two where any relative
         orientation fits its two-ray points, ended 148 deg off, and its wrong points made
@@ -135,12 +197,13 @@ class RestartMixin:
             self._eop_est[i] = np.asarray(cat.nav_eop)[i]
             keep = ~np.isin(self._point_sel, op[oi == j])
             self._point_sel, self._gp_est = self._point_sel[keep], self._gp_est[keep]
+            self._ambiguous = set()  # tested again without j
             iterations += self._solve(cov).iterations
-            if not self._rejected_by_rays(i):
+            if not self._unfit(i):
                 self._diverged.discard(j)  # back, from its resection on the others
                 self.diverged.remove(cat.image_ids[j])
                 iterations += self._start_again(j, cov, blame=False)
-                if j not in self._diverged and not self._rejected_by_rays(i):
+                if j not in self._diverged and not self._unfit(i):
                     return iterations
             self._restore(before)
         return None

@@ -159,6 +159,28 @@ def test_an_earlier_image_whose_poor_start_fails_the_next_ones_is_started_again(
     _assert_others_as_clean(f, eop, k, clean)
 
 
+@pytest.mark.parametrize(("att_deg", "calibration"), [
+    ((0.0, 45.0, 0.0), SelfCalibration()), ((50.0, 50.0, 50.0), None)],
+    ids=["pitch-45-self-cal", "50-each-axis-fixed"])
+def test_an_earlier_image_whose_points_all_fit_two_places_is_started_again(
+        att_deg: tuple[float, float, float], calibration: SelfCalibration | None) -> None:
+    """Seed 12, the second image's INS far off: the block of two ended it 20-28 deg off;
+    with the third image, every point the three share fitted two places (the pair of the
+    good images at one, the wrong image's ray with either at another) and was held out.
+    The block had no point left, and the second image stayed at its GPS/INS: at the end
+    40 deg off with a sigma of 2 deg (pitch 45), or 50 deg off on each axis, neither
+    named. Now an image most of whose points are held out that way makes the earlier images
+    sharing them suspects, and the suspect is started again at its resection on the others
+    (started also at its neighbours' attitude: from 50 deg off Gauss-Newton found none)."""
+    f = simulate_strip(StripSimConfig(n_images=60, n_points=48), seed=12)
+    k = 1
+    clean = _run(f, list(f.frames()), calibration)[1]
+    est, eop = _run(f, _poor_start(f, k, att_deg), calibration)
+    assert est.diverged == []
+    _assert_recovered(f, eop, k)
+    _assert_others_as_clean(f, eop, k, clean)
+
+
 def test_resection_recovers_a_pose_from_a_poor_start(short_strip: SimulatedFlight) -> None:
     """Noise-free rays to known points: Gauss-Newton from 20 deg and 30 m off returns the
     image's pose; fewer than 4 points, or points behind the camera, give none."""
