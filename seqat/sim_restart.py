@@ -22,6 +22,8 @@ if TYPE_CHECKING:
 MIN_SHARED_POINTS = 3
 #: ... and at most this many earlier images are tried (each costs a solve of the block).
 MAX_BLAMED = 2
+#: A diverged image is started again once the others determine this many of its points.
+MIN_READMIT_POINTS = 6
 #: A resection is started also at the attitude of this many images sharing most points.
 RESECTION_NEIGHBOURS = 2
 
@@ -55,6 +57,36 @@ class RestartMixin:
             # each of i's points fits two places: an earlier image's poor start may be
             # the other place; if none is, the points stay out (the image untied)
             iterations += self._blame_earlier(i, cov) or 0
+        if self._diverged:
+            iterations += self._readmit_diverged(cov)
+        return iterations
+
+    def _readmit_diverged(self, cov: Covariance) -> int:
+        """Images left out (:attr:`diverged`) are started again at their resection once
+        the other images determine more of their points (at least
+        :data:`MIN_READMIT_POINTS`) than when last tried, and kept if their rays fit. The
+        second image's heading 150 deg off could not be resected in the block of two (no
+        point seen by two others) and stayed out, carried by its GPS/INS, for the whole
+        flight; with the third image its points are determined. Returns the solves'
+        iterations."""
+        cat = self._cat
+        oi = np.asarray(cat.obs_image, dtype=np.int64)
+        op = np.asarray(cat.obs_point, dtype=np.int64)
+        out = np.fromiter(self._diverged, dtype=np.int64)
+        others = np.bincount(op[~np.isin(oi, out)], minlength=len(cat.point_ids))
+        iterations = 0
+        for j in sorted(self._diverged):
+            mine = op[oi == j]
+            n = int(np.count_nonzero((others[mine] >= 2) & np.isin(mine, self._point_sel)))
+            if n < MIN_READMIT_POINTS or self._readmit_tried.get(j, 0) >= n:
+                continue
+            before = self._state()
+            self._diverged.discard(j)
+            self.diverged.remove(cat.image_ids[j])
+            iterations += self._start_again(j, cov, blame=False)
+            if j in self._diverged:  # its rays still reject the block: as it was
+                self._restore(before)
+            self._readmit_tried[j] = n
         return iterations
 
     def _lost_to_ambiguity(self, i: int) -> bool:

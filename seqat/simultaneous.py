@@ -437,6 +437,7 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
         #: carried by their GPS/INS, their rays left out (seqat.sim_restart).
         self.diverged: list[str] = []
         self._diverged: set[int] = set()
+        self._readmit_tried: dict[int, int] = {}  # diverged image -> its points tried on
 
     @property
     def nav_robust(self) -> list[tuple[str, str, float]]:
