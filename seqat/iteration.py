@@ -16,8 +16,9 @@ length <= 0, a failed solve) and a converged estimate that most of the new image
 known points lie far beyond the loss's core of (seqat.robust.unsupported_images) are not
 kept: the update starts again from its start values with the window held (its cofactor
 taken as zero: a least-squares resection of the new image with the birth of its points),
-then iterates jointly from there. The second time, the
-image is diverged (its GPS/INS alone carries it, named).
+then iterates jointly from there; a second time the held phase starts from the attitude of
+the window's last image. The third time, the image is diverged (its GPS/INS alone carries
+it, named).
 """
 
 from __future__ import annotations
@@ -28,10 +29,15 @@ import numpy as np
 
 from seqat.births import degenerate_points
 from seqat.errors import EstimationError
+from seqat.geometry import wrap_angle
 from seqat.rows import RowBuilder
-from seqat.types import FloatArray
+from seqat.types import EOP_SIZE, FloatArray
 from seqat.update import LinearRows, UpdateSolution, solve_update
 from seqat.window import Key
+
+#: The held phase starts a last time at the window's last image's attitude when that lies
+#: this far from the image's start (degrees; closer, it is the same start).
+NEIGHBOUR_START_DEG = 5.0
 
 
 @dataclass(frozen=True)
@@ -84,6 +90,7 @@ class IterationMixin:
         opts = self.options  # type: ignore[attr-defined]
         d1t, d2 = np.zeros(touched.size), np.zeros(x2_0.size)
         zero = np.zeros_like(Qtt)
+        alt = self._neighbour_start(x2_0)  # a last start for the held phase
         hold: bool | None = None  # None: the window not held (yet); True: held; False: after
         start = iterations = 0  # the iterations before this phase
         while True:
@@ -107,10 +114,13 @@ class IterationMixin:
                 if degenerate:
                     return Iterated(rows, step, d1t, d2, iterations, degenerate)
             if step is None or not self._in_domain(x1t, d1t, d2, col_of):
-                if hold is not None:
+                if hold is not None and alt is None:
                     return Iterated(rows, step, d1t, d2, iterations, wild=True)
-                hold, start = True, iterations  # again from the start, the window held
-                d1t, d2 = np.zeros(touched.size), np.zeros(x2_0.size)
+                # again from the start, the window held; the second time from the attitude
+                # of the window's last image
+                d2 = np.zeros(x2_0.size) if hold is None else alt
+                alt = alt if hold is None else None
+                hold, start, d1t = True, iterations, np.zeros(touched.size)
                 continue
             # Converged when the rows, linearised where they were, still describe the image
             # points at the new estimate: re-linearising would move it by less. The first
@@ -130,9 +140,23 @@ class IterationMixin:
             # paper's one linearisation). Started again with the window held; if most rays
             # reject that estimate too, the image diverges (named; its GPS/INS carries it).
             if (converged or builder.robust) and builder.unsupported(image, born):
-                if hold is None:
-                    hold, start = True, iterations
-                    d1t, d2 = np.zeros(touched.size), np.zeros(x2_0.size)
+                if hold is None or alt is not None:
+                    d2 = np.zeros(x2_0.size) if hold is None else alt
+                    alt = alt if hold is None else None
+                    hold, start, d1t = True, iterations, np.zeros(touched.size)
                     continue
                 return Iterated(rows, step, d1t, d2, iterations, wild=True)
             return Iterated(rows, step, d1t, d2, iterations)
+
+    def _neighbour_start(self, x2_0: FloatArray) -> FloatArray | None:
+        """The step ``d2`` that starts the new image at the attitude of the window's last
+        image (a flight's consecutive images fly alike), if that lies more than
+        :data:`NEIGHBOUR_START_DEG` from its start; else None. Gauss-Newton from an INS
+        150 deg off in heading found no resection with the window held, from the previous
+        image's attitude it did."""
+        w, images = self._w, self._window_images  # type: ignore[attr-defined]
+        if not images or ("e", images[-1]) not in w.offset:
+            return None
+        d2 = np.zeros(x2_0.size)
+        d2[3:EOP_SIZE] = wrap_angle(w.x[w.index(("e", images[-1]))][3:] - x2_0[3:EOP_SIZE])
+        return d2 if np.degrees(np.abs(d2[3:EOP_SIZE])).max() > NEIGHBOUR_START_DEG else None
