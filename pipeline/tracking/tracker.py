@@ -7,7 +7,8 @@ When image ``i`` arrives (:meth:`Tracker.add_image`) the tracker
 2. predicts the ground footprint of ``i`` and of every held image from the nav EOPs (the four
    image corners intersected with the plane ``Z = ground_z_m``, ideal pinhole from
    ``fx_px, cx_px, cy_px``) and picks as candidates the up-to-``neighbours`` held images whose
-   footprint covers at least ``min_overlap`` of the footprint of ``i``, best overlap first;
+   footprint covers at least ``min_overlap`` of the footprint of ``i``, best overlap first
+   (none: the most recent images near in plan, :mod:`pipeline.tracking.footprint`);
 3. matches ``i`` against each candidate (FLANN kd-tree or brute force for SIFT, brute-force
    Hamming for ORB; ``knnMatch`` k = 2 and Lowe's ratio test; one match per feature of ``i``)
    and verifies the pair with ``USAC_MAGSAC`` on the fundamental matrix (or a homography) at
@@ -71,11 +72,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.tracking.decode import jpeg_scan_problem
+from pipeline.tracking.footprint import ground_footprint, near_in_plan
 from pipeline.tracking.late import emit_late, feature_sites, late_candidates, pair_ties
 from pipeline.tracking.matching import NewImageMatcher, ratio_matches
 from pipeline.tracking.options import MIN_MODEL_POINTS, TrackerOptions
 from seqat.errors import InputDataError
-from seqat.geometry import rays_world
 from seqat.types import EOP_SIZE, FloatArray, PinholeCamera
 
 #: The plane gate is never tighter than this many MAGSAC thresholds.
@@ -85,12 +86,6 @@ MIN_HEIGHT_M = 1.0
 #: Confidence and iteration cap of USAC_MAGSAC.
 RANSAC_CONFIDENCE = 0.999
 RANSAC_MAX_ITERATIONS = 10000
-#: A corner ray must point at least this much below the horizon to give a footprint (radians);
-#: flatter rays count as "horizon" and the image falls back to recency-based candidates.
-MIN_RAY_DEPRESSION_RAD = math.radians(5.0)
-#: A footprint corner farther than this multiple of the height above the plane counts as
-#: horizon too (an oblique corner would otherwise span kilometres).
-MAX_FOOTPRINT_RANGE_FACTOR = 20.0
 #: OpenCV's SIFT defaults (Lowe 2004): layers per octave, edge threshold, base blur.
 SIFT_OCTAVE_LAYERS = 3
 SIFT_EDGE_THRESHOLD = 10.0
@@ -486,47 +481,44 @@ class Tracker:
 
     # ----------------------------------------------------------------------------------------
     def _footprint(self, nav: FloatArray, plane_z: float) -> NDArray[np.float32] | None:
-        """Ground polygon (4, 2) of the image corners on ``Z = plane_z`` (local, CCW), or None."""
-        cam = self.camera
-        corners = np.array([[0.0, 0.0], [cam.width_px - 1.0, 0.0],
-                            [cam.width_px - 1.0, cam.height_px - 1.0],
-                            [0.0, cam.height_px - 1.0]])
-        rays = rays_world(np.tile(nav, (4, 1)), corners, self._pinhole)
-        height = nav[2] - plane_z
-        if height <= 0 or np.any(rays[:, 2] > -math.sin(MIN_RAY_DEPRESSION_RAD)):
-            return None
-        t = -height / rays[:, 2]
-        if np.any(t > MAX_FOOTPRINT_RANGE_FACTOR * height):
+        """Ground polygon (4, 2) of the image corners on ``Z = plane_z`` (local, CCW), or None
+        (:func:`pipeline.tracking.footprint.ground_footprint`)."""
+        xy = ground_footprint(nav, plane_z, self._pinhole)
+        if xy is None:
             return None
         if self._origin_xy is None:
             self._origin_xy = nav[:2].copy()
-        xy = nav[:2] + t[:, None] * rays[:, :2] - self._origin_xy
-        poly = xy.astype(np.float32)
+        poly = (xy - self._origin_xy).astype(np.float32)
         if cv2.contourArea(poly, oriented=True) < 0:
             poly = poly[::-1].copy()
         return poly
 
     def _select_candidates(self, nav: FloatArray, plane_z: float) -> list[_Candidate]:
-        """Held images to match, best predicted overlap first (at most ``neighbours``)."""
+        """Held images to match, best predicted overlap first (at most ``neighbours``); the
+        most recent ones where a footprint is unknown (horizon), or, when no footprint
+        overlaps, those whose nadir footprint would (:func:`near_in_plan`): in a sequence an
+        attitude far off (an INS glitch, a gimbal still turning) is likelier than a gap, and
+        a 45 deg pitch error left an image untied, at its INS."""
         opts = self.options
         new_fp = self._footprint(nav, plane_z)
-        recent = {h.image_id for h in self._held[-opts.neighbours:]}
         overlapping: list[_Candidate] = []
-        fallback: list[_Candidate] = []
+        unknown: set[str] = set()
         new_area = cv2.contourArea(new_fp) if new_fp is not None else 0.0
         for h in self._held:
             fp = self._footprint(h.nav_eop, plane_z) if new_fp is not None else None
             if new_fp is None or fp is None or new_area <= 0:
-                if h.image_id in recent:  # horizon: fall back to the most recent images
-                    fallback.append(_Candidate(held=h, overlap=math.nan))
+                unknown.add(h.image_id)
                 continue
             area, _ = cv2.intersectConvexConvex(new_fp, fp)
             overlap = float(area) / new_area
             if area > 0.0 and overlap >= opts.min_overlap:
                 h.last_overlap_seq = self._seq
                 overlapping.append(_Candidate(held=h, overlap=overlap))
+        fallback = [_Candidate(held=h, overlap=math.nan)
+                    for h in reversed(self._held[-opts.neighbours:])
+                    if h.image_id in unknown or not overlapping
+                    and near_in_plan(nav, h.nav_eop, plane_z, self._pinhole)]
         overlapping.sort(key=lambda c: (-c.overlap, -c.held.seq))
-        fallback.sort(key=lambda c: -c.held.seq)
         return (overlapping + fallback)[: opts.neighbours]
 
     # ----------------------------------------------------------------------------------------

@@ -283,6 +283,24 @@ def test_images_apart_by_nav_are_never_matched(texture: np.ndarray, sift_run: St
     assert not set(out.point_ids) & set(first.point_ids)
 
 
+def test_an_attitude_far_off_falls_back_to_the_recent_images_near_in_plan(
+        texture: np.ndarray, sift_run: StripRun) -> None:
+    """The third image's nav pitched 45 deg (an INS glitch): its predicted footprint lies
+    ~100 m ahead and overlaps no held image, so it had no candidate and no tie point (the
+    estimator kept it at its INS). Now the recent images whose nadir footprints would
+    overlap are matched, and its tracks continue theirs; an image 1 km away is still not
+    matched (above)."""
+    eops = sift_run.eops
+    tracker = Tracker(TrackerOptions(working_width_px=600), CAMERA)
+    first = [tracker.add_image(f"img{k}", render(texture, eops[k]), eops[k], 0.0)
+             for k in range(2)]
+    glitch = eops[2] + np.array([0, 0, 0, 0, np.radians(45.0), 0])
+    out = tracker.add_image("img2", render(texture, eops[2]), glitch, 0.0)
+    assert out.stats.candidates == ("img1", "img0")
+    assert out.stats.extended_tracks > 100  # of 200 emitted
+    assert len(set(out.point_ids) & set(first[1].point_ids)) > 100
+
+
 def test_horizon_falls_back_to_most_recent_images() -> None:
     cam = CameraConfig(model="PINHOLE", width_px=320, height_px=240, fx_px=300.0, fy_px=300.0,
                        cx_px=159.5, cy_px=119.5)
