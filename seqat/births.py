@@ -38,11 +38,18 @@ class BirthMixin:
 
     @staticmethod
     def _diverged(nav: FloatArray, nav_sigma: FloatArray, x2_0: FloatArray, d2: FloatArray,
-                  Q_tt: FloatArray, d1t: FloatArray) -> bool:
+                  Q_tt: FloatArray, d1t: FloatArray, rays_hold: bool = False) -> bool:
         """The update moved the new image or a touched window parameter by more than
-        :data:`DIVERGED_SIGMAS` of its prior sigma (GPS/INS; window cofactor, unscaled)."""
+        :data:`DIVERGED_SIGMAS` of its prior sigma (GPS/INS; window cofactor, unscaled).
+        ``rays_hold``: the new image's own rays fix its estimate (at least
+        :data:`seqat.rows.RAYS_OVER_NAV` of them to known points within the loss's core, most
+        of them): then its distance from the GPS/INS is the GPS/INS's error, not the
+        update's (an INS 150 deg off with a sigma of 0.1 deg named an image the tracker's
+        resection had placed on 161 rays)."""
         dev = x2_0[:EOP_SIZE] + d2[:EOP_SIZE] - nav
         dev[3:] = wrap_angle(dev[3:])
+        if rays_hold:
+            dev[:] = 0.0
         with np.errstate(divide="ignore", invalid="ignore"):
             z_new = np.abs(dev) / nav_sigma
             z_old = np.abs(d1t) / np.sqrt(np.diagonal(Q_tt)) if d1t.size else np.zeros(0)

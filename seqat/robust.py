@@ -324,6 +324,16 @@ def nav_outside(res: FloatArray, sigma: FloatArray, scale: float | None) -> np.n
     return np.zeros(u2.shape, dtype=bool) if scale is None else u2 > nav_dof() * scale**2
 
 
+def nav_far_beyond(res: FloatArray, sigma: FloatArray, scale: float | None) -> np.ndarray:
+    """(n, g) bool: the GPS/INS groups :data:`POOR_START_BEYOND` times the core's radius
+    beyond it (none without a scale): no GNSS jump for the loss to weigh but a GPS/INS that
+    is wrong (an INS 45 deg off with a sigma of 0.1 deg is 450 sigma off)."""
+    u2 = nav_u2(res, sigma)
+    if scale is None:
+        return np.zeros(u2.shape, dtype=bool)
+    return u2 > nav_dof() * (POOR_START_BEYOND * scale) ** 2
+
+
 def nav_within_core(res: FloatArray, sigma: FloatArray, scale: float | None) -> bool:
     """Every GPS/INS group within the loss's least-squares core (weight 1): the
     least-squares solution is the robust one."""

@@ -30,6 +30,7 @@ from seqat.information import (
 from seqat.robust import (
     NAV_GROUPS,
     cauchy_weight,
+    nav_far_beyond,
     nav_groups_of,
     nav_outside,
     nav_weight,
@@ -143,6 +144,9 @@ def add_information(L: WindowMatrix, touched: np.ndarray, rows: LinearRows) -> W
 #: A sequential update iterates until its GPS/INS groups' robust weights change less than
 #: this (IRLS; bounded by SequentialOptions.max_update_iterations).
 NAV_WEIGHT_TOLERANCE = 1e-3
+#: An image with this many rays to known points within the loss's core (most of its rays
+#: to them) is placed by its rays, whatever its GPS/INS says (RowBuilder.rays_hold).
+RAYS_OVER_NAV = 8
 
 
 class RowBuilder:
@@ -330,6 +334,29 @@ class RowBuilder:
             return False
         u2 = ray_u2(self._true.reshape(-1, 2)[mine], self.sigmas[mine])
         return unsupported_images(u2, self.ids[mine, 0], self.robust_scale).size > 0
+
+    def nav_loss_at(self, eop: FloatArray) -> None:
+        """The GPS/INS loss on, from the first robust iterate, for the groups far beyond
+        its core at ``eop`` (:func:`seqat.robust.nav_far_beyond`), a start the image's rays
+        gave (the tracker's resection on known points): that GPS/INS is wrong. Left to
+        :meth:`settled`, its least-squares pull (150 deg at a sigma of 0.1 deg) took the
+        image from its resection to the GPS/INS as the ray loss down-weighted the rays."""
+        res = self.nav - np.asarray(eop, dtype=np.float64)[:EOP_SIZE]
+        res[3:] = wrap_angle(res[3:])
+        self.nav_on |= nav_far_beyond(res, self.nav_sigma, self.nav_robust_scale)[0]
+
+    def rays_hold(self, image: int, born: Sequence[int] = ()) -> bool:
+        """At least :data:`RAYS_OVER_NAV` of ``image``'s rays to points not being ``born``
+        lie within the robust loss's core at the estimate of the last
+        :meth:`linearisation_error`, and they are most of them: its rays fix the image
+        (a resection), whatever its GPS/INS says. Never without a loss."""
+        if self.robust_scale is None:
+            return False
+        known = ~np.isin(self.ids[:, 1], np.asarray(born, dtype=np.int64))
+        mine = (self.ids[:, 0] == image) & known
+        u2 = ray_u2(self._true.reshape(-1, 2)[mine], self.sigmas[mine])
+        inside = int(np.count_nonzero(u2 <= self.robust_scale**2))
+        return inside >= RAYS_OVER_NAV and 2 * inside > u2.size
 
     def settled(self) -> bool:
         """Called once the rows predict the estimate: their robust weights need no other

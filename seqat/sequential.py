@@ -669,6 +669,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
                      (i, born[b])) for (b, uv, s) in y22]
             builder = RowBuilder(self._cam, t, n2, obs, nav, nav_sigma, opts.robust_scale,
                                  opts.nav_robust_scale, control=self._control_rows(born, t))
+            if frame.initial_eop is not None:  # a resection: a GPS/INS far off it is wrong
+                builder.nav_loss_at(init)
             x1t = w.x[touched]
             # the inverse update and data snooping read the update's observation-space terms
             terms = self._inverse or opts.snooping_critical is not None
@@ -682,7 +684,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
             if it.wild and diverged:
                 raise EstimationError(f"image {frame.image_id!r}: the update left the models' "
                                       "domain even without the image's rays")
-            if not diverged and (it.wild or self._diverged(nav, nav_sigma, x2_0, d2, Qtt, d1t)):
+            if not diverged and (it.wild or self._diverged(
+                    nav, nav_sigma, x2_0, d2, Qtt, d1t, builder.rays_hold(i, born))):
                 # The image's rows sent the solution far beyond every prior sigma (gross
                 # errors in most of its points), even from the held window's resection
                 # (seqat.iteration): the image is carried by its GPS/INS alone and its rays

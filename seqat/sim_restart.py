@@ -10,8 +10,8 @@ import numpy as np
 
 from seqat import robust as rloss
 from seqat.errors import EstimationError
-from seqat.geometry import project, resect
-from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
+from seqat.geometry import project, resect, wrap_angle
+from seqat.types import EOP_SIZE, GP_SIZE, FloatArray, Frame
 
 if TYPE_CHECKING:
     from seqat.simultaneous import Covariance
@@ -24,6 +24,9 @@ MIN_SHARED_POINTS = 3
 MAX_BLAMED = 2
 #: A diverged image is started again once the others determine this many of its points.
 MIN_READMIT_POINTS = 6
+#: A trial that needs the block to converge solves again from where a solve stopped this
+#: many times (the other images, pulled by a wrong GPS/INS, took 37 iterations to come back).
+TRIAL_MORE_SOLVES = 2
 #: A resection is started also at the attitude of this many images sharing most points.
 RESECTION_NEIGHBOURS = 2
 
@@ -83,11 +86,55 @@ class RestartMixin:
             before = self._state()
             self._diverged.discard(j)
             self.diverged.remove(cat.image_ids[j])
-            iterations += self._start_again(j, cov, blame=False)
-            if j in self._diverged:  # its rays still reject the block: as it was
+            try:
+                iterations += self._start_again(j, cov, blame=False)
+                for _ in range(TRIAL_MORE_SOLVES):
+                    if j in self._diverged or self._result is None or self._result.converged:
+                        break
+                    iterations += self._solve(cov).iterations  # on from where it stopped
+            except EstimationError:  # the block fails with it: as it was
+                self._leave_out([j])
+            if j in self._diverged or self._result is None or not self._result.converged:
                 self._restore(before)
             self._readmit_tried[j] = n
         return iterations
+
+    def _start_nav_sigma(self, frame: Frame, nav: FloatArray) -> FloatArray:
+        """The GPS/INS sigma the block takes for ``frame`` (``nav``: local): its own (the
+        free components weak, :func:`seqat.simultaneous.free_nav_sigma`), but a group far
+        beyond the loss's core at the start the image's rays gave (the tracker's resection,
+        ``initial_eop``) is left free (:meth:`_wrong_nav`)."""
+        from seqat.simultaneous import free_nav_sigma
+
+        sigma = free_nav_sigma(np.asarray(frame.nav_sigma, dtype=np.float64))
+        if frame.initial_eop is not None:
+            start = np.asarray(frame.initial_eop, dtype=np.float64).copy()
+            start[:3] -= self._origin
+            sigma = self._wrong_nav(frame.image_id, nav, sigma, start)
+        return sigma
+
+    def _wrong_nav(self, image_id: str, nav: FloatArray, sigma: FloatArray,
+                   start: FloatArray) -> FloatArray:
+        """``sigma`` with the GPS/INS groups far beyond the loss's core at ``start`` (a start
+        the image's rays gave: a resection; :func:`seqat.robust.nav_far_beyond`) left free,
+        and those groups named in :attr:`nav_downweighted`: that GPS/INS is wrong. Sim weighs
+        the GPS/INS by least squares until the block converges, and that pull (an INS 45 deg
+        off at a sigma of 0.1 deg) took an image from its resection back to the INS, the
+        block left it out, and started again at its resection it kept the block from
+        converging."""
+        from seqat.simultaneous import FREE_NAV_SIGMA
+
+        res = nav - start
+        res[3:] = wrap_angle(res[3:])
+        far = rloss.nav_far_beyond(res, sigma, self.options.nav_robust_scale)[0]
+        if not far.any():
+            return sigma
+        sigma = sigma.copy()
+        for (group, sl), out in zip(rloss.NAV_GROUPS, far, strict=True):
+            if out:
+                sigma[sl] = FREE_NAV_SIGMA[sl]
+                self.nav_downweighted.append((image_id, group))
+        return sigma
 
     def _lost_to_ambiguity(self, i: int) -> bool:
         """Most of image ``i``'s points that could be tested (three rays or more), and at
@@ -156,19 +203,76 @@ class RestartMixin:
         eop = self._resect(i, X, uv, sigma)
         if eop is None and not rejected:  # (a block that did not converge): as it is
             return 0
-        iterations = 0
+        wrong = np.zeros(len(rloss.NAV_GROUPS), dtype=bool)
         if eop is not None:
-            self._eop_est[i] = eop
-            self._dirty = True
-            iterations = self._solve(cov).iterations
-            if not self._rejected_by_rays(i):
-                return iterations
-        if blame:
-            more = self._blame_earlier(i, cov)
-            if more is not None:
-                return iterations + more
+            wrong = self._far_nav(i, eop)
+            kept = self._try_start(i, eop, cov, need_convergence=bool(wrong.any()))
+            if kept is not None:
+                return kept
+        # The image's own GPS/INS far from its resection (an INS 45 deg off at a sigma of
+        # 0.1 deg kept the block from converging, its wrong points made later images
+        # diverge): wrong, if the resection stands on points three other images or more
+        # determine; on two-ray points (a block of two fits any relative orientation) an
+        # earlier image is the likelier culprit, and the GPS/INS is suspected last.
+        firm = int(np.count_nonzero(others[op[mine]] >= 3)) >= MIN_READMIT_POINTS
+        for own in (firm, not firm):
+            if own and eop is not None and wrong.any():
+                kept = self._without_nav(i, eop, cov)
+                if kept is not None:
+                    return kept
+            elif not own and blame:
+                more = self._blame_earlier(i, cov)
+                if more is not None:
+                    return more
         self._leave_out([i])
-        return iterations + self._solve(cov).iterations
+        return self._solve(cov).iterations
+
+    def _without_nav(self, i: int, eop: FloatArray, cov: Covariance) -> int | None:
+        """:meth:`_try_start` at ``eop`` with image ``i``'s GPS/INS groups far from it left
+        free (:meth:`_wrong_nav`), needing the block to converge; None: as it was."""
+        cat = self._cat
+        before = self._state()
+        cat.nav_sigma[i] = self._wrong_nav(cat.image_ids[i], cat.nav_eop[i], cat.nav_sigma[i],
+                                           eop)
+        kept = self._try_start(i, eop, cov, need_convergence=True)
+        if kept is None:
+            self._restore(before)  # the sigma and its name in nav_downweighted
+        return kept
+
+    def _far_nav(self, i: int, start: FloatArray) -> np.ndarray:
+        """(g,) bool: image ``i``'s GPS/INS groups far beyond the loss's core at ``start``
+        (:func:`seqat.robust.nav_far_beyond`)."""
+        res = np.asarray(self._cat.nav_eop[i], dtype=np.float64) - start
+        res[3:] = wrap_angle(res[3:])
+        return rloss.nav_far_beyond(res, self._cat.nav_sigma[i], self.options.nav_robust_scale)[0]
+
+    def _try_start(self, i: int, eop: FloatArray, cov: Covariance, *,
+                   need_convergence: bool) -> int | None:
+        """The block solved with image ``i`` started at ``eop`` (a resection), kept if ``i``'s
+        rays fit (and the block converged, ``need_convergence``): the solve's iterations; else
+        the state as it was and None."""
+        before = self._state()
+        self._eop_est[i] = eop
+        self._dirty = True
+        if need_convergence:  # its points intersected again: not where its GPS/INS put them
+            cat = self._cat
+            seen = np.asarray(cat.obs_point)[np.asarray(cat.obs_image) == i]
+            keep = ~np.isin(self._point_sel, seen)
+            self._point_sel, self._gp_est = self._point_sel[keep], self._gp_est[keep]
+        try:
+            res = self._solve(cov)
+            iterations = res.iterations
+            for _ in range(TRIAL_MORE_SOLVES if need_convergence else 0):
+                if res.converged:
+                    break
+                res = self._solve(cov)  # on from where it stopped
+                iterations += res.iterations
+            if not self._rejected_by_rays(i) and (res.converged or not need_convergence):
+                return iterations
+        except EstimationError:  # the block fails from there too (a trial: not the end)
+            pass
+        self._restore(before)
+        return None
 
     def _resect(self, i: int, X: FloatArray, uv: FloatArray, sigma: FloatArray
                 ) -> FloatArray | None:
@@ -221,32 +325,48 @@ class RestartMixin:
         order = [int(j) for j in np.argsort(-shared, kind="stable")
                  if shared[j] >= MIN_SHARED_POINTS and int(j) not in self._diverged]
         before = self._state()
-        iterations = 0
         for j in order[:MAX_BLAMED]:
-            self._leave_out([j])
-            # i from its GPS/INS, j's points intersected again from the other rays: not
-            # where j's poor start put them
-            self._eop_est[i] = np.asarray(cat.nav_eop)[i]
-            keep = ~np.isin(self._point_sel, op[oi == j])
-            self._point_sel, self._gp_est = self._point_sel[keep], self._gp_est[keep]
-            self._ambiguous = set()  # tested again without j
-            iterations += self._solve(cov).iterations
-            if not self._unfit(i):
-                self._diverged.discard(j)  # back, from its resection on the others
-                self.diverged.remove(cat.image_ids[j])
-                iterations += self._start_again(j, cov, blame=False)
-                if j not in self._diverged and not self._unfit(i):
-                    return iterations
+            try:
+                kept = self._blame(i, j, cov)
+            except EstimationError:  # a solve of the trial failed: not the culprit
+                kept = None
+            if kept is not None:
+                return kept
             self._restore(before)
         return None
 
+    def _blame(self, i: int, j: int, cov: Covariance) -> int | None:
+        """One trial of :meth:`_blame_earlier`: ``j`` left out, then started again at its
+        resection; the solves' iterations if ``i`` and ``j`` fit, else None."""
+        cat = self._cat
+        oi = np.asarray(cat.obs_image, dtype=np.int64)
+        op = np.asarray(cat.obs_point, dtype=np.int64)
+        self._leave_out([j])
+        # i from its GPS/INS, j's points intersected again from the other rays: not where
+        # j's poor start put them
+        self._eop_est[i] = np.asarray(cat.nav_eop)[i]
+        keep = ~np.isin(self._point_sel, op[oi == j])
+        self._point_sel, self._gp_est = self._point_sel[keep], self._gp_est[keep]
+        self._ambiguous = set()  # tested again without j
+        iterations = self._solve(cov).iterations
+        if self._unfit(i):
+            return None
+        self._diverged.discard(j)  # back, from its resection on the others
+        self.diverged.remove(cat.image_ids[j])
+        iterations += self._start_again(j, cov, blame=False)
+        return iterations if j not in self._diverged and not self._unfit(i) else None
+
     def _state(self) -> dict[str, object]:
-        """The solver's state (the catalogue aside: solves only read it), copied."""
-        return _copied({k: v for k, v in vars(self).items() if k != "_cat"})
+        """The solver's state, copied: the catalogue aside (solves only read it) but for its
+        GPS/INS sigmas (a trial may leave a group free: :meth:`_without_nav`)."""
+        state = _copied({k: v for k, v in vars(self).items() if k != "_cat"})
+        state["_cat"] = list(self._cat.nav_sigma)
+        return state
 
     def _restore(self, state: dict[str, object]) -> None:
         """Back to ``state`` (:meth:`_state`), which stays as it was."""
-        vars(self).update(_copied(state))
+        vars(self).update(_copied({k: v for k, v in state.items() if k != "_cat"}))
+        self._cat.nav_sigma[:] = state["_cat"]  # type: ignore[index]
 
     def _leave_out(self, images: list[int]) -> None:
         """The ``images`` (catalogue indices) diverged: their rays left out, started again

@@ -454,7 +454,7 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
             self._origin = np.round(frame.nav_eop[:3])
         nav = frame.nav_eop.copy()
         nav[:3] -= self._origin
-        i = cat.add_frame(frame, nav, free_nav_sigma(frame.nav_sigma))
+        i = cat.add_frame(frame, nav, self._start_nav_sigma(frame, nav))
         init = nav
         if frame.initial_eop is not None:
             init = frame.initial_eop.copy()

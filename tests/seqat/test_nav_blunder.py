@@ -1,0 +1,109 @@
+"""A GPS/INS blunder: an image's INS attitude tens of degrees off with a sigma of 0.1 deg
+(docs/algorithm.md, *A poor start*, *A wrong GPS/INS*). Its rays, not its GPS/INS, place the
+image; the GPS/INS group is named (``nav_downweighted`` in the initial block, ``nav_robust``
+in the sequential stage), and no other image pays for it."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from seqat.geometry import wrap_angle
+from seqat.sequential import SequentialAT, SequentialOptions
+from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
+from seqat.types import Frame
+
+#: A strip dense enough for an image's rays to outweigh a tight INS (~40 rays per image).
+DENSE_STRIP = StripSimConfig(n_images=40, n_points=200)
+#: A tactical-grade INS: the attitude sigma the blunder is measured against.
+TIGHT_ATTITUDE_SIGMA = np.radians(0.1)
+
+
+@pytest.fixture(scope="module")
+def dense_strip() -> SimulatedFlight:
+    return simulate_strip(DENSE_STRIP, seed=11)
+
+
+@pytest.fixture(scope="module")
+def clean(dense_strip: SimulatedFlight) -> np.ndarray:
+    return _run(dense_strip, list(dense_strip.frames()))[1]
+
+
+def _blunder(flight: SimulatedFlight, k: int, att_deg: tuple[float, float, float],
+             resection: bool) -> list[Frame]:
+    """The flight's frames, image ``k``'s INS attitude ``att_deg`` off with a sigma of
+    0.1 deg; ``resection``: its start given near the truth, as the tracker's resection on
+    known points gives it (``initial_eop``)."""
+    frames = list(flight.frames())
+    f = frames[k]
+    nav = f.nav_eop.copy()
+    nav[3:] += np.radians(att_deg)
+    sigma = f.nav_sigma.copy()
+    sigma[3:] = TIGHT_ATTITUDE_SIGMA
+    start = (flight.truth_eop[k] + np.r_[0.2, -0.2, 0.1, np.radians([0.05, -0.05, 0.05])]
+             if resection else None)
+    frames[k] = dataclasses.replace(f, nav_eop=nav, nav_sigma=sigma, initial_eop=start)
+    return frames
+
+
+def _run(flight: SimulatedFlight, frames: list[Frame]) -> tuple[SequentialAT, np.ndarray]:
+    est = SequentialAT(flight.camera, SequentialOptions())
+    for frame in frames:
+        est.add_frame(frame)
+    return est, np.array([e.eop for e in est.solution(smoothed=False).eops])
+
+
+def _assert_placed_by_its_rays(flight: SimulatedFlight, eop: np.ndarray, clean: np.ndarray,
+                               k: int) -> None:
+    """Image ``k`` within 1 m and 0.2 deg of the truth, the others within 5 % of the clean
+    run's position r.m.s."""
+    err = eop[k] - flight.truth_eop[k]
+    assert np.all(np.abs(err[:3]) < 1.0)
+    assert np.all(np.degrees(np.abs(wrap_angle(err[3:]))) < 0.2)
+    others = np.arange(len(eop)) != k
+    rms = [float(np.sqrt(np.mean((e[others, :3] - flight.truth_eop[others, :3]) ** 2)))
+           for e in (eop, clean)]
+    assert rms[0] <= 1.05 * rms[1]
+
+
+@pytest.mark.parametrize(("k", "att_deg", "resection"), [
+    (3, (0.0, 45.0, 0.0), False), (3, (0.0, 45.0, 0.0), True), (1, (0.0, 0.0, 150.0), False),
+    (5, (0.0, 0.0, 90.0), False)],
+    ids=["4th-pitch-45", "4th-pitch-45-resected", "2nd-heading-150", "6th-heading-90"])
+def test_a_wrong_gps_ins_in_the_initial_block_is_left_free_and_named(
+        dense_strip: SimulatedFlight, clean: np.ndarray, k: int,
+        att_deg: tuple[float, float, float], resection: bool) -> None:
+    """Sim weighs the GPS/INS by least squares until the block converges. Before: the
+    fourth image's INS 45 deg off kept the block from converging and the flight ended with
+    18 images diverged, the image 44 deg off with a sigma of 0.3 deg (on a sparser strip:
+    "adjustment diverges", the flight stopped); the second image's heading 150 deg off
+    ended 150 deg off with a sigma of 0.1 deg, silently. Now a GPS/INS group far beyond
+    the loss's core at the image's resection on points three other images determine (or,
+    on two-ray points, the culprit's after the blame) is left free and named, and the
+    image is placed by its rays."""
+    f = dense_strip
+    est, eop = _run(f, _blunder(f, k, att_deg, resection))
+    image = f"img_{k + 1:04d}"
+    assert est.diverged == []
+    assert (image, "attitude") in est.nav_downweighted
+    assert [n for n in est.nav_downweighted if n[0] != image] == []
+    _assert_placed_by_its_rays(f, eop, clean, k)
+
+
+def test_a_wrong_gps_ins_in_the_sequential_stage_gives_way_to_the_resection(
+        dense_strip: SimulatedFlight, clean: np.ndarray) -> None:
+    """Image 31's INS heading 150 deg off at 0.1 deg, its start the tracker's resection:
+    the update's least-squares GPS/INS pull took the image from its resection to the INS as
+    the ray loss down-weighted the rays, and the image was named and carried by the INS.
+    Now the GPS/INS loss of a group far from a resection is on from the first robust
+    iterate, and an image its own rays fix (at least 8, most of them) is not diverged for
+    its distance from the GPS/INS: the image ends where its rays put it and the group is
+    named with weight ~0."""
+    f, k = dense_strip, 30
+    est, eop = _run(f, _blunder(f, k, (0.0, 0.0, 150.0), resection=True))
+    assert est.diverged == []
+    named = [(g, w) for image, g, w in est.nav_robust if image == f"img_{k + 1:04d}"]
+    assert [g for g, _ in named] == ["attitude"] and named[0][1] < 0.01
+    _assert_placed_by_its_rays(f, eop, clean, k)
