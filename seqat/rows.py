@@ -29,6 +29,7 @@ from seqat.information import (
 )
 from seqat.robust import (
     NAV_GROUPS,
+    POOR_START_BEYOND,
     cauchy_weight,
     nav_far_beyond,
     nav_groups_of,
@@ -335,27 +336,37 @@ class RowBuilder:
         u2 = ray_u2(self._true.reshape(-1, 2)[mine], self.sigmas[mine])
         return unsupported_images(u2, self.ids[mine, 0], self.robust_scale).size > 0
 
-    def nav_loss_at(self, eop: FloatArray) -> None:
+    def nav_loss_at(self, x1t: FloatArray, x2_0: FloatArray, image: int,
+                    born: Sequence[int] = ()) -> None:
         """The GPS/INS loss on, from the first robust iterate, for the groups far beyond
-        its core at ``eop`` (:func:`seqat.robust.nav_far_beyond`), a start the image's rays
-        gave (the tracker's resection on known points): that GPS/INS is wrong. Left to
-        :meth:`settled`, its least-squares pull (150 deg at a sigma of 0.1 deg) took the
-        image from its resection to the GPS/INS as the ray loss down-weighted the rays."""
-        res = self.nav - np.asarray(eop, dtype=np.float64)[:EOP_SIZE]
+        its core at the start ``(x1t, x2_0)`` (:func:`seqat.robust.nav_far_beyond`) when the
+        image's rays hold the start (:meth:`rays_hold`; the tracker's resection on known
+        points): that GPS/INS is wrong. Left to :meth:`settled`, its least-squares pull
+        (150 deg at a sigma of 0.1 deg) took the image from its resection to the GPS/INS as
+        the ray loss down-weighted the rays. A start its rays do not hold (6 deg off, the
+        GPS/INS right) changes nothing."""
+        res = self.nav - x2_0[:EOP_SIZE]
         res[3:] = wrap_angle(res[3:])
-        self.nav_on |= nav_far_beyond(res, self.nav_sigma, self.nav_robust_scale)[0]
+        far = nav_far_beyond(res, self.nav_sigma, self.nav_robust_scale)[0]
+        if far.any() and self.k:
+            z = np.concatenate([x1t, x2_0])
+            self._true = self.obs - self.cam.project(z[self.eidx], z[self.pidx]).ravel()
+            if self.rays_hold(image, born, POOR_START_BEYOND):
+                self.nav_on |= far
 
-    def rays_hold(self, image: int, born: Sequence[int] = ()) -> bool:
+    def rays_hold(self, image: int, born: Sequence[int] = (), beyond: float = 1.0) -> bool:
         """At least :data:`RAYS_OVER_NAV` of ``image``'s rays to points not being ``born``
-        lie within the robust loss's core at the estimate of the last
+        lie within ``beyond`` times the robust loss's core at the estimate of the last
         :meth:`linearisation_error`, and they are most of them: its rays fix the image
-        (a resection), whatever its GPS/INS says. Never without a loss."""
+        (a resection), whatever its GPS/INS says. Never without a loss. A start is held
+        within :data:`seqat.robust.POOR_START_BEYOND` (the test of
+        :func:`seqat.robust.unsupported_images`), an estimate within the core."""
         if self.robust_scale is None:
             return False
         known = ~np.isin(self.ids[:, 1], np.asarray(born, dtype=np.int64))
         mine = (self.ids[:, 0] == image) & known
         u2 = ray_u2(self._true.reshape(-1, 2)[mine], self.sigmas[mine])
-        inside = int(np.count_nonzero(u2 <= self.robust_scale**2))
+        inside = int(np.count_nonzero(u2 <= (beyond * self.robust_scale) ** 2))
         return inside >= RAYS_OVER_NAV and 2 * inside > u2.size
 
     def settled(self) -> bool:

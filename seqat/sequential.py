@@ -669,9 +669,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
                      (i, born[b])) for (b, uv, s) in y22]
             builder = RowBuilder(self._cam, t, n2, obs, nav, nav_sigma, opts.robust_scale,
                                  opts.nav_robust_scale, control=self._control_rows(born, t))
-            if frame.initial_eop is not None:  # a resection: a GPS/INS far off it is wrong
-                builder.nav_loss_at(init)
             x1t = w.x[touched]
+            builder.nav_loss_at(x1t, x2_0, i, born)  # a GPS/INS far from a resection start
             # the inverse update and data snooping read the update's observation-space terms
             terms = self._inverse or opts.snooping_critical is not None
             it = self._iterate_update(builder, Qtt, touched, terms, x1t, x2_0, born, born_xyz,
