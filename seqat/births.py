@@ -42,7 +42,7 @@ class BirthMixin:
         """The update moved the new image or a touched window parameter by more than
         :data:`DIVERGED_SIGMAS` of its prior sigma (GPS/INS; window cofactor, unscaled).
         ``rays_hold``: the new image's own rays fix its estimate (at least
-        :data:`seqat.rows.RAYS_OVER_NAV` of them to known points within the loss's core, most
+        :data:`seqat.robust.RAYS_OVER_NAV` of them to known points within the loss's core, most
         of them): then its distance from the GPS/INS is the GPS/INS's error, not the
         update's (an INS 150 deg off with a sigma of 0.1 deg named an image the tracker's
         resection had placed on 161 rays)."""

@@ -324,6 +324,12 @@ def nav_outside(res: FloatArray, sigma: FloatArray, scale: float | None) -> np.n
     return np.zeros(u2.shape, dtype=bool) if scale is None else u2 > nav_dof() * scale**2
 
 
+#: An image with this many rays to known points within the loss's core (most of its rays
+#: to them) is placed by its rays, whatever its GPS/INS says (RowBuilder.rays_hold; a start
+#: within POOR_START_BEYOND of it, RestartMixin._rays_hold).
+RAYS_OVER_NAV = 8
+
+
 def nav_far_beyond(res: FloatArray, sigma: FloatArray, scale: float | None) -> np.ndarray:
     """(n, g) bool: the GPS/INS groups :data:`POOR_START_BEYOND` times the core's radius
     beyond it (none without a scale): no GNSS jump for the loss to weigh but a GPS/INS that

@@ -30,6 +30,7 @@ from seqat.information import (
 from seqat.robust import (
     NAV_GROUPS,
     POOR_START_BEYOND,
+    RAYS_OVER_NAV,
     cauchy_weight,
     nav_far_beyond,
     nav_groups_of,
@@ -145,9 +146,6 @@ def add_information(L: WindowMatrix, touched: np.ndarray, rows: LinearRows) -> W
 #: A sequential update iterates until its GPS/INS groups' robust weights change less than
 #: this (IRLS; bounded by SequentialOptions.max_update_iterations).
 NAV_WEIGHT_TOLERANCE = 1e-3
-#: An image with this many rays to known points within the loss's core (most of its rays
-#: to them) is placed by its rays, whatever its GPS/INS says (RowBuilder.rays_hold).
-RAYS_OVER_NAV = 8
 
 
 class RowBuilder:

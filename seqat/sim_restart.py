@@ -115,25 +115,23 @@ class RestartMixin:
         return sigma
 
     def _rays_hold(self, frame: Frame, eop: FloatArray) -> bool:
-        """At least :data:`seqat.rows.RAYS_OVER_NAV` of ``frame``'s rays to points of the
+        """At least :data:`seqat.robust.RAYS_OVER_NAV` of ``frame``'s rays to points of the
         block lie within :data:`seqat.robust.POOR_START_BEYOND` times the loss's core at
         ``eop`` (local), and most of them: a start its rays hold (a resection), not one
         merely given (6 deg off, the GPS/INS right; :meth:`seqat.rows.RowBuilder.rays_hold`)."""
-        from seqat.rows import RAYS_OVER_NAV
-
         k = self.options.robust_scale
         at = {int(j): n for n, j in enumerate(self._point_sel)}
         idx = self._cat.point_index
         mine = [(at[idx[p]], n) for n, p in enumerate(frame.point_ids)
                 if p in idx and idx[p] in at]
-        if k is None or len(mine) < RAYS_OVER_NAV:
+        if k is None or len(mine) < rloss.RAYS_OVER_NAV:
             return False
         pos, obs = (np.array(v, dtype=np.int64) for v in zip(*mine, strict=True))
         r = np.asarray(frame.uv_px, dtype=np.float64)[obs] - project(
             np.broadcast_to(eop, (obs.size, EOP_SIZE)), self._gp_est[pos], self.camera_now)
         core = rloss.POOR_START_BEYOND * k * frame.sigma_px
         inside = int(np.count_nonzero(np.sum(r**2, axis=1) <= core**2))
-        return inside >= RAYS_OVER_NAV and 2 * inside > obs.size
+        return inside >= rloss.RAYS_OVER_NAV and 2 * inside > obs.size
 
     def _wrong_nav(self, image_id: str, nav: FloatArray, sigma: FloatArray,
                    start: FloatArray) -> FloatArray:
