@@ -516,8 +516,8 @@ class Tracker:
                 overlapping.append(_Candidate(held=h, overlap=overlap))
         fallback = [_Candidate(held=h, overlap=math.nan)
                     for h in reversed(self._held[-opts.neighbours:])
-                    if h.image_id in unknown or not overlapping
-                    and near_in_plan(nav, h.nav_eop, plane_z, self._pinhole)]
+                    if h.image_id in unknown
+                    or (not overlapping and near_in_plan(nav, h.nav_eop, plane_z, self._pinhole))]
         overlapping.sort(key=lambda c: (-c.overlap, -c.held.seq))
         return (overlapping + fallback)[: opts.neighbours]
 
