@@ -1,6 +1,8 @@
 """The refit of :class:`seqat.simultaneous.SimultaneousAT` as an image is added, and images
-most of whose rays reject the solution: named, started again at a resection, or carried by
-their GPS/INS (docs/algorithm.md, *A poor start*)."""
+most of whose rays reject the solution, or whose points all fit two places: started again at
+a resection, an earlier image blamed, their GPS/INS left free when a resection shows it
+wrong, or named and carried by their GPS/INS until the others determine their points
+(docs/algorithm.md, *A poor start*, *A wrong GPS/INS*)."""
 
 from __future__ import annotations
 
