@@ -10,8 +10,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from seqat.errors import InputDataError
 from seqat.types import FloatArray, Frame
+
+#: Sigma given to free GPS/INS components (Frame.nav_sigma inf): metres and radians.
+FREE_NAV_SIGMA = np.array([1e3, 1e3, 1e3, 1.0, 1.0, 1.0])
+
+
+def free_nav_sigma(sigma: FloatArray) -> FloatArray:
+    """GPS/INS sigmas with the free components (inf, a dropout) replaced by a weak constraint
+    (:data:`FREE_NAV_SIGMA`): an image the tie points do not determine keeps its starting
+    value with a sigma that says so, instead of a singular system."""
+    return np.where(np.isinf(sigma), FREE_NAV_SIGMA, sigma)
 
 
 @dataclass(eq=False)

@@ -90,7 +90,7 @@ class IterationMixin:
         opts = self.options  # type: ignore[attr-defined]
         d1t, d2 = np.zeros(touched.size), np.zeros(x2_0.size)
         zero = np.zeros_like(Qtt)
-        alt = self._neighbour_start(x2_0)  # a last start for the held phase
+        held = 0  # held phases started (_held_start)
         hold: bool | None = None  # None: the window not held (yet); True: held; False: after
         start = iterations = 0  # the iterations before this phase
         while True:
@@ -114,13 +114,11 @@ class IterationMixin:
                 if degenerate:
                     return Iterated(rows, step, d1t, d2, iterations, degenerate)
             if step is None or not self._in_domain(x1t, d1t, d2, col_of):
-                if hold is not None and alt is None:
+                again = self._held_start(held, x2_0)  # the window held, from a start again
+                if again is None:
                     return Iterated(rows, step, d1t, d2, iterations, wild=True)
-                # again from the start, the window held; the second time from the attitude
-                # of the window's last image
-                d2 = np.zeros(x2_0.size) if hold is None else alt
-                alt = alt if hold is None else None
-                hold, start, d1t = True, iterations, np.zeros(touched.size)
+                held, hold, start, d2 = held + 1, True, iterations, again
+                d1t = np.zeros(touched.size)
                 continue
             # Converged when the rows, linearised where they were, still describe the image
             # points at the new estimate: re-linearising would move it by less. The first
@@ -137,16 +135,24 @@ class IterationMixin:
                 continue
             # an estimate most of the image's rays reject as outliers: the robust loss may
             # have kept a poor start (not asked of a single least-squares iterate: the
-            # paper's one linearisation). Started again with the window held; if most rays
-            # reject that estimate too, the image diverges (named; its GPS/INS carries it).
+            # paper's one linearisation). Started again with the window held (_held_start);
+            # with no start left, the image diverges (named; its GPS/INS carries it).
             if (converged or builder.robust) and builder.unsupported(image, born):
-                if hold is None or alt is not None:
-                    d2 = np.zeros(x2_0.size) if hold is None else alt
-                    alt = alt if hold is None else None
-                    hold, start, d1t = True, iterations, np.zeros(touched.size)
-                    continue
-                return Iterated(rows, step, d1t, d2, iterations, wild=True)
+                again = self._held_start(held, x2_0)
+                if again is None:
+                    return Iterated(rows, step, d1t, d2, iterations, wild=True)
+                held, hold, start, d2 = held + 1, True, iterations, again
+                d1t = np.zeros(touched.size)
+                continue
             return Iterated(rows, step, d1t, d2, iterations)
+
+    def _held_start(self, held: int, x2_0: FloatArray) -> FloatArray | None:
+        """The step ``d2`` the update's next held phase starts from, after ``held`` of them:
+        the start values, then the attitude of the window's last image
+        (:meth:`_neighbour_start`); None: no start left (the image diverges)."""
+        if held == 0:
+            return np.zeros(x2_0.size)
+        return self._neighbour_start(x2_0) if held == 1 else None
 
     def _neighbour_start(self, x2_0: FloatArray) -> FloatArray | None:
         """The step ``d2`` that starts the new image at the attitude of the window's last

@@ -330,6 +330,17 @@ def nav_outside(res: FloatArray, sigma: FloatArray, scale: float | None) -> np.n
 RAYS_OVER_NAV = 8
 
 
+def rays_hold(u2: FloatArray, scale: float | None, beyond: float = 1.0) -> bool:
+    """At least :data:`RAYS_OVER_NAV` of an image's rays (their squared normalised residuals
+    ``u2``) lie within ``beyond`` times the loss's core, and they are most of them: the rays
+    fix the image (a resection), whatever its GPS/INS says. Never without a loss."""
+    u2 = np.asarray(u2, dtype=np.float64).reshape(-1)
+    if scale is None:
+        return False
+    inside = int(np.count_nonzero(u2 <= (beyond * scale) ** 2))
+    return inside >= RAYS_OVER_NAV and 2 * inside > u2.size
+
+
 def nav_far_beyond(res: FloatArray, sigma: FloatArray, scale: float | None) -> np.ndarray:
     """(n, g) bool: the GPS/INS groups :data:`POOR_START_BEYOND` times the core's radius
     beyond it (none without a scale): no GNSS jump for the loss to weigh but a GPS/INS that

@@ -27,10 +27,10 @@ from seqat.information import (
     sparse_entries,
     window_matrix,
 )
+from seqat.normals import eop_residual
 from seqat.robust import (
     NAV_GROUPS,
     POOR_START_BEYOND,
-    RAYS_OVER_NAV,
     cauchy_weight,
     nav_far_beyond,
     nav_groups_of,
@@ -38,6 +38,7 @@ from seqat.robust import (
     nav_weight,
     nav_within_core,
     ray_u2,
+    rays_hold,
     unsupported_images,
 )
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
@@ -343,8 +344,7 @@ class RowBuilder:
         (150 deg at a sigma of 0.1 deg) took the image from its resection to the GPS/INS as
         the ray loss down-weighted the rays. A start its rays do not hold (6 deg off, the
         GPS/INS right) changes nothing."""
-        res = self.nav - x2_0[:EOP_SIZE]
-        res[3:] = wrap_angle(res[3:])
+        res = eop_residual(self.nav[None], x2_0[None, :EOP_SIZE])
         far = nav_far_beyond(res, self.nav_sigma, self.nav_robust_scale)[0]
         if far.any() and self.k:
             z = np.concatenate([x1t, x2_0])
@@ -353,19 +353,14 @@ class RowBuilder:
                 self.nav_on |= far
 
     def rays_hold(self, image: int, born: Sequence[int] = (), beyond: float = 1.0) -> bool:
-        """At least :data:`RAYS_OVER_NAV` of ``image``'s rays to points not being ``born``
-        lie within ``beyond`` times the robust loss's core at the estimate of the last
-        :meth:`linearisation_error`, and they are most of them: its rays fix the image
-        (a resection), whatever its GPS/INS says. Never without a loss. A start is held
-        within :data:`seqat.robust.POOR_START_BEYOND` (the test of
+        """``image``'s rays to points not being ``born``, at the estimate of the last
+        :meth:`linearisation_error`, fix it (:func:`seqat.robust.rays_hold`). A start is held
+        within :data:`seqat.robust.POOR_START_BEYOND` times the core (the test of
         :func:`seqat.robust.unsupported_images`), an estimate within the core."""
-        if self.robust_scale is None:
-            return False
         known = ~np.isin(self.ids[:, 1], np.asarray(born, dtype=np.int64))
         mine = (self.ids[:, 0] == image) & known
         u2 = ray_u2(self._true.reshape(-1, 2)[mine], self.sigmas[mine])
-        inside = int(np.count_nonzero(u2 <= (beyond * self.robust_scale) ** 2))
-        return inside >= RAYS_OVER_NAV and 2 * inside > u2.size
+        return rays_hold(u2, self.robust_scale, beyond)
 
     def settled(self) -> bool:
         """Called once the rows predict the estimate: their robust weights need no other

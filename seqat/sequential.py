@@ -58,6 +58,7 @@ from seqat import snooping
 from seqat.births import BirthMixin
 from seqat.calibration import FreeCamera, SelfCalibration
 from seqat.camera_window import CameraMixin
+from seqat.catalogue import free_nav_sigma
 from seqat.departures import DEFAULT_MAX_WINDOW_IMAGES, Departure, DepartureMixin
 from seqat.errors import EstimationError
 from seqat.geometry import wrap_angle
@@ -69,7 +70,7 @@ from seqat.relinearise import RelinearisationMixin
 from seqat.reports import RecordedRows, ReportMixin
 from seqat.robust import NAV_ROBUST_SCALE, ROBUST_SCALE, check_scale
 from seqat.rows import Factors, RowBuilder, add_information, snoop_update
-from seqat.simultaneous import Covariance, SimOptions, SimultaneousAT, control_by_id, free_nav_sigma
+from seqat.simultaneous import Covariance, SimOptions, SimultaneousAT, control_by_id
 from seqat.types import (
     EOP_SIZE,
     GP_SIZE,

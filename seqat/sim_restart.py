@@ -11,12 +11,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from seqat import robust as rloss
+from seqat.catalogue import FREE_NAV_SIGMA, free_nav_sigma
 from seqat.errors import EstimationError
-from seqat.geometry import project, resect, wrap_angle
+from seqat.geometry import project, resect
+from seqat.normals import eop_residual
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray, Frame
 
 if TYPE_CHECKING:
-    from seqat.simultaneous import Covariance
+    from seqat.simultaneous import Covariance, SimResult
 
 
 #: An earlier image is tried as the culprit of a rejected one if it shares this many of its
@@ -31,6 +33,8 @@ MIN_READMIT_POINTS = 6
 TRIAL_MORE_SOLVES = 2
 #: A resection is started also at the attitude of this many images sharing most points.
 RESECTION_NEIGHBOURS = 2
+#: The key of the catalogue's GPS/INS sigmas in a state (RestartMixin._state).
+_CAT_NAV_SIGMA = "catalogue nav_sigma"
 
 
 class RestartMixin:
@@ -66,6 +70,18 @@ class RestartMixin:
             iterations += self._readmit_diverged(cov)
         return iterations
 
+    def _solve_on(self, cov: Covariance, res: SimResult, times: int) -> tuple[SimResult, int]:
+        """While ``res``, the last solution, has not converged, the block solved again from
+        where it stopped, at most ``times`` times; the last solution and the iterations the
+        further solves took."""
+        iterations = 0
+        for _ in range(times):
+            if res.converged:
+                break
+            res = self._solve(cov)
+            iterations += res.iterations
+        return res, iterations
+
     def _readmit_diverged(self, cov: Covariance) -> int:
         """Images left out (:attr:`diverged`) are started again at their resection once
         the other images determine more of their points (at least
@@ -90,10 +106,8 @@ class RestartMixin:
             self.diverged.remove(cat.image_ids[j])
             try:
                 iterations += self._start_again(j, cov, blame=False)
-                for _ in range(TRIAL_MORE_SOLVES):
-                    if j in self._diverged or self._result is None or self._result.converged:
-                        break
-                    iterations += self._solve(cov).iterations  # on from where it stopped
+                if j not in self._diverged and self._result is not None:
+                    iterations += self._solve_on(cov, self._result, TRIAL_MORE_SOLVES)[1]
             except EstimationError:  # the block fails with it: as it was
                 self._leave_out([j])
             if j in self._diverged or self._result is None or not self._result.converged:
@@ -103,11 +117,9 @@ class RestartMixin:
 
     def _start_nav_sigma(self, frame: Frame, nav: FloatArray) -> FloatArray:
         """The GPS/INS sigma the block takes for ``frame`` (``nav``: local): its own (the
-        free components weak, :func:`seqat.simultaneous.free_nav_sigma`), but a group far
+        free components weak, :func:`seqat.catalogue.free_nav_sigma`), but a group far
         beyond the loss's core at the start the image's rays gave (the tracker's resection,
         ``initial_eop``) is left free (:meth:`_wrong_nav`)."""
-        from seqat.simultaneous import free_nav_sigma
-
         sigma = free_nav_sigma(np.asarray(frame.nav_sigma, dtype=np.float64))
         if frame.initial_eop is not None:
             start = np.asarray(frame.initial_eop, dtype=np.float64).copy()
@@ -117,10 +129,10 @@ class RestartMixin:
         return sigma
 
     def _rays_hold(self, frame: Frame, eop: FloatArray) -> bool:
-        """At least :data:`seqat.robust.RAYS_OVER_NAV` of ``frame``'s rays to points of the
-        block lie within :data:`seqat.robust.POOR_START_BEYOND` times the loss's core at
-        ``eop`` (local), and most of them: a start its rays hold (a resection), not one
-        merely given (6 deg off, the GPS/INS right; :meth:`seqat.rows.RowBuilder.rays_hold`)."""
+        """``frame``'s rays to points of the block hold ``eop`` (local) within
+        :data:`seqat.robust.POOR_START_BEYOND` times the loss's core
+        (:func:`seqat.robust.rays_hold`): a start its rays hold (a resection), not one merely
+        given (6 deg off, the GPS/INS right)."""
         k = self.options.robust_scale
         at = {int(j): n for n, j in enumerate(self._point_sel)}
         idx = self._cat.point_index
@@ -131,9 +143,8 @@ class RestartMixin:
         pos, obs = (np.array(v, dtype=np.int64) for v in zip(*mine, strict=True))
         r = np.asarray(frame.uv_px, dtype=np.float64)[obs] - project(
             np.broadcast_to(eop, (obs.size, EOP_SIZE)), self._gp_est[pos], self.camera_now)
-        core = rloss.POOR_START_BEYOND * k * frame.sigma_px
-        inside = int(np.count_nonzero(np.sum(r**2, axis=1) <= core**2))
-        return inside >= rloss.RAYS_OVER_NAV and 2 * inside > obs.size
+        u2 = rloss.ray_u2(r, np.full(obs.size, frame.sigma_px))
+        return rloss.rays_hold(u2, k, rloss.POOR_START_BEYOND)
 
     def _wrong_nav(self, image_id: str, nav: FloatArray, sigma: FloatArray,
                    start: FloatArray) -> FloatArray:
@@ -144,11 +155,7 @@ class RestartMixin:
         off at a sigma of 0.1 deg) took an image from its resection back to the INS, the
         block left it out, and started again at its resection it kept the block from
         converging."""
-        from seqat.simultaneous import FREE_NAV_SIGMA
-
-        res = nav - start
-        res[3:] = wrap_angle(res[3:])
-        far = rloss.nav_far_beyond(res, sigma, self.options.nav_robust_scale)[0]
+        far = self._far_nav(nav, sigma, start)
         if not far.any():
             return sigma
         sigma = sigma.copy()
@@ -227,7 +234,7 @@ class RestartMixin:
             return 0
         wrong = np.zeros(len(rloss.NAV_GROUPS), dtype=bool)
         if eop is not None:
-            wrong = self._far_nav(i, eop)
+            wrong = self._far_nav(cat.nav_eop[i], cat.nav_sigma[i], eop)
             kept = self._try_start(i, eop, cov, need_convergence=bool(wrong.any()))
             if kept is not None:
                 return kept
@@ -261,12 +268,11 @@ class RestartMixin:
             self._restore(before)  # the sigma and its name in nav_downweighted
         return kept
 
-    def _far_nav(self, i: int, start: FloatArray) -> np.ndarray:
-        """(g,) bool: image ``i``'s GPS/INS groups far beyond the loss's core at ``start``
-        (:func:`seqat.robust.nav_far_beyond`)."""
-        res = np.asarray(self._cat.nav_eop[i], dtype=np.float64) - start
-        res[3:] = wrap_angle(res[3:])
-        return rloss.nav_far_beyond(res, self._cat.nav_sigma[i], self.options.nav_robust_scale)[0]
+    def _far_nav(self, nav: FloatArray, sigma: FloatArray, start: FloatArray) -> np.ndarray:
+        """(g,) bool: the GPS/INS groups (``nav``, ``sigma``) far beyond the loss's core at
+        ``start`` (:func:`seqat.robust.nav_far_beyond`)."""
+        res = eop_residual(np.asarray(nav, dtype=np.float64)[None], np.asarray(start)[None])
+        return rloss.nav_far_beyond(res, sigma, self.options.nav_robust_scale)[0]
 
     def _try_start(self, i: int, eop: FloatArray, cov: Covariance, *,
                    need_convergence: bool) -> int | None:
@@ -282,15 +288,10 @@ class RestartMixin:
             keep = ~np.isin(self._point_sel, seen)
             self._point_sel, self._gp_est = self._point_sel[keep], self._gp_est[keep]
         try:
-            res = self._solve(cov)
-            iterations = res.iterations
-            for _ in range(TRIAL_MORE_SOLVES if need_convergence else 0):
-                if res.converged:
-                    break
-                res = self._solve(cov)  # on from where it stopped
-                iterations += res.iterations
+            first = self._solve(cov)
+            res, more = self._solve_on(cov, first, TRIAL_MORE_SOLVES if need_convergence else 0)
             if not self._rejected_by_rays(i) and (res.converged or not need_convergence):
-                return iterations
+                return first.iterations + more
         except EstimationError:  # the block fails from there too (a trial: not the end)
             pass
         self._restore(before)
@@ -321,7 +322,7 @@ class RestartMixin:
                 continue
             n = X.shape[0]
             r = uv - project(np.broadcast_to(eop, (n, EOP_SIZE)), X, self.camera_now)
-            c = float(np.sum((r / sigma[:, None]) ** 2))
+            c = float(np.sum(rloss.ray_u2(r, sigma)))
             if c < best_cost:
                 best, best_cost = eop, c
         return best
@@ -382,13 +383,13 @@ class RestartMixin:
         """The solver's state, copied: the catalogue aside (solves only read it) but for its
         GPS/INS sigmas (a trial may leave a group free: :meth:`_without_nav`)."""
         state = _copied({k: v for k, v in vars(self).items() if k != "_cat"})
-        state["_cat"] = list(self._cat.nav_sigma)
+        state[_CAT_NAV_SIGMA] = list(self._cat.nav_sigma)
         return state
 
     def _restore(self, state: dict[str, object]) -> None:
         """Back to ``state`` (:meth:`_state`), which stays as it was."""
-        vars(self).update(_copied({k: v for k, v in state.items() if k != "_cat"}))
-        self._cat.nav_sigma[:] = state["_cat"]  # type: ignore[index]
+        vars(self).update(_copied({k: v for k, v in state.items() if k != _CAT_NAV_SIGMA}))
+        self._cat.nav_sigma[:] = state[_CAT_NAV_SIGMA]  # type: ignore[index]
 
     def _leave_out(self, images: list[int]) -> None:
         """The ``images`` (catalogue indices) diverged: their rays left out, started again

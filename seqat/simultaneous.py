@@ -73,8 +73,6 @@ COST_TOLERANCE = 1e-10
 CAMERA_TOLERANCE = 1e-6
 
 
-#: Sigma given to free GPS/INS components (Frame.nav_sigma inf): metres and radians.
-FREE_NAV_SIGMA = np.array([1e3, 1e3, 1e3, 1.0, 1.0, 1.0])
 #: Data snooping: at most this many reject-and-adjust rounds per solve.
 MAX_SNOOPING_ROUNDS = 30
 
@@ -342,13 +340,6 @@ def adjust_block(
 EXPORT_MORE_SOLVES = 4
 
 
-def free_nav_sigma(sigma: FloatArray) -> FloatArray:
-    """GPS/INS sigmas with the free components (inf, a dropout) replaced by a weak constraint
-    (:data:`FREE_NAV_SIGMA`): an image the tie points do not determine keeps its starting
-    value with a sigma that says so, instead of a singular system."""
-    return np.where(np.isinf(sigma), FREE_NAV_SIGMA, sigma)
-
-
 def control_by_id(control: Sequence[ControlPoint]) -> dict[str, ControlPoint]:
     """The control points by point id; an id given twice is an input error."""
     out: dict[str, ControlPoint] = {}
@@ -558,10 +549,7 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
         # short, the first re-linearisation's kept information was wrong, and Seneca's
         # window ran away (sigma0 2.5e13, no tie point left). The camera, freed only now,
         # may need more iterations than the refits that had it free all along (Seneca: 35).
-        for _ in range(EXPORT_MORE_SOLVES):
-            if res.converged:
-                break
-            res = self._solve(covariance)
+        res = self._solve_on(covariance, res, EXPORT_MORE_SOLVES)[0]
         cat = self._cat
         _, oi, op, uv, sg = self._observations()
         return SimState(

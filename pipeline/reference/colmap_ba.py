@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pipeline.flight.schema import CameraConfig
+from seqat.catalogue import free_nav_sigma
 from seqat.cvframe import (
     cv_pose_from_eop,
     eop_covariance_from_tangent,
@@ -59,7 +60,6 @@ from seqat.cvframe import (
 )
 from seqat.errors import ConfigError, EstimationError
 from seqat.geometry import wrap_angle
-from seqat.simultaneous import free_nav_sigma
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 
 if TYPE_CHECKING:
@@ -152,7 +152,7 @@ class ReferenceInput:
         Acquisition order.
     nav_eop : (n, 6) float
         GPS/INS EOPs (metres, radians): the priors. NaN (a GNSS dropout) takes Sim's free
-        prior: ``eop0`` with σ 1 km / 1 rad (:func:`seqat.simultaneous.free_nav_sigma`).
+        prior: ``eop0`` with σ 1 km / 1 rad (:func:`seqat.catalogue.free_nav_sigma`).
     nav_sigma : (6,) float
         Their standard deviations (metres, radians).
     sigma_px : float
