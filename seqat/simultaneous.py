@@ -729,7 +729,8 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
 
     def _disagreeing_points(self, res: SimResult) -> set[int]:
         """Block points (positions in the selection) not published at ``res``: their rays
-        disagree (:func:`seqat.robust.withheld_points`; control exempt); :attr:`disagreeing`."""
+        disagree (:func:`seqat.robust.withheld_points`) or barely spread
+        (:func:`seqat.robust.narrow_points`); control exempt; :attr:`disagreeing`."""
         _, oi, op, uv, sg = self._observations()
         pos = np.full(len(self._cat.point_ids), -1)
         pos[self._point_sel] = np.arange(self._point_sel.size)
@@ -741,8 +742,9 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
             use &= ~res.undetermined[np.maximum(pos[op], 0)]
         oi, pt, uv, sg = oi[use], pos[op[use]], uv[use], sg[use]
         u2 = rloss.ray_u2(uv - project(res.eop[oi], res.gp[pt], self.camera_now), sg)
-        off = rloss.withheld_points(u2, pt, res.eop[oi], uv, sg, self.camera_now,
-                                    self.options.robust_scale, res.sigma0)
+        off = np.union1d(rloss.withheld_points(u2, pt, res.eop[oi], uv, sg, self.camera_now,
+                                               self.options.robust_scale, res.sigma0),
+                         rloss.narrow_points(pt, res.eop[oi], uv, self.camera_now))
         held = sorted(self._ambiguous)  # out of the block already (_solve)
         self.disagreeing = [ids[int(j)] for j in sorted(held + self._point_sel[off].tolist())]
         return set(off.tolist())

@@ -289,7 +289,9 @@ class Solution:
     redundancy: int
     #: The self-calibrated camera (None: the camera was fixed).
     camera: CameraEstimate | None = None
-    #: Ids of estimated points left out of ``points``: their rays disagree (seqat.robust).
+    #: Ids of estimated points left out of ``points``: their rays disagree, meet elsewhere
+    #: in more rays or barely spread (seqat.robust.withheld_points, narrow_points), or they
+    #: lie off the surface (seqat.surface).
     withheld: tuple[str, ...] = ()
 
 

@@ -11,7 +11,13 @@ import numpy as np
 
 from seqat.assembly import factor_information
 from seqat.information import RankDeficiency, window_matrix
-from seqat.robust import MAX_AMBIGUOUS_ROUNDS, ambiguous_points, core_u2, withheld_points
+from seqat.robust import (
+    MAX_AMBIGUOUS_ROUNDS,
+    ambiguous_points,
+    core_u2,
+    narrow_points,
+    withheld_points,
+)
 from seqat.rows import FactorSet, gradient_from_factors
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 from seqat.window import Key
@@ -123,17 +129,22 @@ class UndeterminedMixin:
         normalised residuals ``u2``) all of whose rays are among the factors, not control."""
         k = self.options.robust_scale
         assert k is not None
-        suspects = np.unique(f.pt[u2 > core_u2(k, self.sigma0)])
-        if suspects.size:
-            rays = np.bincount(f.pt, minlength=int(suspects.max()) + 1)
-            suspects = np.array([p for p in suspects.tolist()
-                                 if rays[p] == self._gp_nobs.get(p)
-                                 and self._control_of(p) is None], dtype=np.int64)
-        return np.isin(f.pt, suspects)
+        return self._whole(f, np.unique(f.pt[u2 > core_u2(k, self.sigma0)]))
+
+    def _whole(self, f: FactorSet, points: np.ndarray) -> np.ndarray:
+        """Mask of the factors of those window GPs among ``points`` (sorted, distinct) all of
+        whose rays are among the factors ``f``, not control."""
+        if points.size:
+            rays = np.bincount(f.pt, minlength=int(points.max()) + 1)
+            points = np.array([p for p in points.tolist()
+                               if rays[p] == self._gp_nobs.get(p)
+                               and self._control_of(p) is None], dtype=np.int64)
+        return np.isin(f.pt, points)
 
     def _find_disagreeing(self) -> None:
         """finish(): the window GPs whose rays disagree at the final estimate, as Sim finds
-        them (:meth:`_note_disagreeing`): left out of :meth:`solution` and named in
+        them (:meth:`_note_disagreeing`), or barely spread (:func:`seqat.robust.narrow_points`,
+        whether or not the loss is on): left out of :meth:`solution` and named in
         :attr:`disagreeing`. Judged only with every ray of the point in the window's factors
         (after the final re-opening, all within ``reopen_max_age``)."""
         f = self._window_factors()
@@ -141,6 +152,9 @@ class UndeterminedMixin:
             return
         xe, u2 = self._at_estimate(f)
         self._note_disagreeing(f, u2, xe)
+        whole = self._whole(f, np.unique(f.pt))  # and the points whose rays barely spread
+        self._disagreeing |= {int(p) for p in narrow_points(
+            f.pt[whole], xe[whole, :EOP_SIZE], f.uv[whole], self._camera_now())}
         self.disagreeing = [self._point_ids[p]
                             for p in sorted(self._disagreeing | self._ambiguous)]
 

@@ -74,8 +74,9 @@ class RobustnessRecord:
         re-intersected robustly from their rays during a window re-linearisation.
     disagreeing_points : tuple[str, ...]
         Tie points with fewer than two rays within the robust loss's core at the final
-        estimate (two rays, one a wrong match): left out of the solution
-        (:func:`seqat.robust.disagreeing_points`).
+        estimate (two rays, one a wrong match), whose rays fit two places or another place
+        with more rays, or whose rays spread less than 1 degree: left out of the solution
+        (:func:`seqat.robust.withheld_points`, :func:`seqat.robust.narrow_points`).
     off_surface_points : tuple[str, ...]
         Tie points far above or below the surface their neighbours define, with no
         neighbour at their height (a wrong match along the epipolar line): not published

@@ -7,14 +7,17 @@ import dataclasses
 import numpy as np
 import pytest
 
-from seqat.geometry import project
+from seqat.geometry import intersect_rays, project
 from seqat.robust import (
+    MIN_PUBLISHED_RAY_ANGLE_DEG,
     ROBUST_SCALE,
     ambiguous_points,
+    astray_points,
     cauchy_cost,
     cauchy_weight,
     disagreeing_points,
     ray_u2,
+    withheld_points,
 )
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight
@@ -148,8 +151,8 @@ def test_a_point_whose_two_rays_disagree_is_not_published(short_strip: Simulated
     along x, the strip's direction): the loss
     cannot tell which is wrong and the point would sit metres off; it is left out of the
     solution and named, by Sim and by the finished Seq-R alike. Moved along the epipolar
-    line the mismatch is invisible (a wrong depth that fits both rays): kept. A clean
-    flight loses no point."""
+    line (away from parallel: the rays spread more) the mismatch is invisible (a wrong
+    depth that fits both rays): kept. A clean flight loses no point."""
 
     def run(f: SimulatedFlight) -> tuple[set[str], list[str]]:
         _, published, named = _finished(f, method)
@@ -159,10 +162,29 @@ def test_a_point_whose_two_rays_disagree_is_not_published(short_strip: Simulated
     published, named = run(across)
     assert named == [pid]
     assert published == set(short_strip.point_ids) - {pid}
-    published, named = run(_two_rays(short_strip, (40.0, 0.0))[0])
+    published, named = run(_two_rays(short_strip, (-40.0, 0.0))[0])
     assert named == [] and pid in published
     published, named = run(short_strip)
     assert named == [] and published == set(short_strip.point_ids)
+
+
+@pytest.mark.parametrize("method", ["sim", "seq-r"])
+def test_a_point_whose_rays_barely_spread_is_not_published(short_strip: SimulatedFlight,
+                                                           method: str) -> None:
+    """Two rays of consecutive images (5 m apart at 200 m: 1.4 degrees), the second moved
+    80 px along the epipolar line towards parallel: they still meet exactly, 0.5 degrees
+    apart, hundreds of metres from the ground. Left out and named by Sim and the finished
+    Seq-R (seqat.robust.MIN_PUBLISHED_RAY_ANGLE_DEG); the same point with its rays 1.4
+    degrees apart is published (the clean strip: the test above)."""
+    f, pid = _two_rays(short_strip, (80.0, 0.0))
+    p = f.point_ids.index(pid)
+    e = f.truth_eop[f.obs_image[f.obs_point == p]]
+    _, spread = intersect_rays(e, f.obs_uv[f.obs_point == p], np.zeros(2, dtype=np.int64), 1,
+                               f.camera)
+    assert 0.2 < np.degrees(spread[0]) < MIN_PUBLISHED_RAY_ANGLE_DEG
+    _, published, named = _finished(f, method)
+    assert named == [pid]
+    assert published == set(short_strip.point_ids) - {pid}
 
 
 def _wrong_ray_along_the_first(f: SimulatedFlight) -> tuple[SimulatedFlight, SimulatedFlight,
@@ -200,6 +222,30 @@ def test_a_point_whose_rays_fit_two_places_leaves_sim_and_the_finished_seq_r(
         assert published == published_ref
         np.testing.assert_allclose(eop[:, :3], eop_ref[:, :3], rtol=0, atol=atol_m)
         np.testing.assert_allclose(eop[:, 3:], eop_ref[:, 3:], rtol=0, atol=atol_rad)
+
+
+def test_a_point_left_on_a_wrong_pair_is_astray(short_strip: SimulatedFlight) -> None:
+    """Four rays, the first a wrong match on a point 15 m up the second ray: the first two
+    meet there, the last three at the true point. An estimate left at the wrong pair (the
+    loss down-weights the two later rays) is astray, not ambiguous (the larger consensus
+    wins); at the true point it is neither."""
+    f = short_strip
+    p, rows, _ = _cut_point(f, 4)
+    rows = rows[:4]
+    assert rows.size == 4
+    X = f.truth_xyz[p]
+    e = f.truth_eop[f.obs_image[rows]]
+    X_up = X + 15.0 * (e[1, :3] - X) / np.linalg.norm(e[1, :3] - X)
+    uv = project(e, np.repeat(X[None], 4, axis=0), f.camera)
+    uv[0] = project(e[:1], X_up[None], f.camera)[0]
+    sigma = np.full(4, f.sigma_px)
+    point = np.zeros(4, dtype=np.int64)
+    for at, astray in ((X_up, [0]), (X, [])):
+        u2 = ray_u2(uv - project(e, np.repeat(at[None], 4, axis=0), f.camera), sigma)
+        args = (u2, point, e, uv, sigma, f.camera, ROBUST_SCALE)
+        assert astray_points(*args).tolist() == astray
+        assert ambiguous_points(*args).tolist() == []
+        assert withheld_points(*args).tolist() == astray
 
 
 def _blunder(f: SimulatedFlight, px: float) -> SimulatedFlight:
