@@ -266,6 +266,22 @@ class RelinearisationMixin:
         n_out = np.bincount(pos[mine & out], minlength=pts.size)
         return pts[(n >= ASTRAY_MIN_RAYS) & (2 * n_out > n)]
 
+    def _restart_at(self, f: FactorSet, x: FloatArray, e_idx: np.ndarray, p_idx: np.ndarray,
+                    wf: FloatArray) -> FloatArray:
+        """Start the points of :attr:`_restart_points` (taken) at their values there (``x``
+        is changed in place) and weight their rows at that start; returns the weights."""
+        start, self._restart_points = self._restart_points, {}
+        rows = np.flatnonzero(np.isin(f.pt, np.fromiter(start, dtype=np.int64)))
+        first = dict(zip(f.pt[rows].tolist()[::-1], rows[::-1].tolist(), strict=True))
+        for p, xyz in start.items():
+            if p in first:  # (every one: the factors it was made from)
+                x[p_idx[first[p]]] = xyz
+        res = f.residuals(x[e_idx[rows]], x[p_idx[rows]], self._cam)
+        wf = wf.copy()
+        wf[rows] = f.w0[rows] * robust_weight(np.sum(res**2, axis=1) * f.w0[rows],
+                                              self.options.robust_scale)
+        return wf
+
     def _rescue_points(self, f: FactorSet, astray: np.ndarray, x: FloatArray,
                        e_idx: np.ndarray, p_idx: np.ndarray, wf: FloatArray,
                        rescues: list[tuple[int, Key]]) -> FloatArray:
@@ -372,6 +388,8 @@ class RelinearisationMixin:
         rescues: list[tuple[int, Key]] = []
         if astray.size:
             wf = self._rescue_points(f, astray, xk, e_idx, p_idx, wf, rescues)
+        if self._restart_points:  # finish(): points intersected anew (_intersect_anew)
+            wf = self._restart_at(f, xk, e_idx, p_idx, wf)
         rays = np.count_nonzero(f.pt[:, None] == astray[None, :], axis=0)
         tried = dict(zip(astray.tolist(), rays.tolist(), strict=True))
         if (self._drift_px <= limit and not force and not rescues

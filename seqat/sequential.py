@@ -233,7 +233,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
                                        snooping_critical=options.snooping_critical,
                                        robust_scale=options.robust_scale,
                                        nav_robust_scale=options.nav_robust_scale,
-                                       calibration=calibration)
+                                       calibration=calibration, untrust_pairs=False)
         if options.snooping_critical is not None:  # the initial block's points as births
             sim_opts = dataclasses.replace(sim_opts, min_ray_angle_deg=options.min_ray_angle_deg)
         # With data snooping the initial block is adjusted once, when complete: refits of its
@@ -287,6 +287,10 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         self.disagreeing: list[str] = []  # GPs whose rays disagree, not published (finish)
         self._disagreeing: set[int] = set()
         self._ambiguous: set[int] = set()  # GPs taken out at finish(): rays fit two places
+        self._untrusted: set[int] = set()  # ... two-ray GPs of a contaminated window
+        self._restart_points: dict[int, FloatArray] = {}  # the next re-linearisation's start
+        #: seqat.robust.contamination of the finished window (NaN: not judged)
+        self.contamination = float("nan")
         self._rescues: list[tuple[int, Key]] = []  # (records made before it, GP rescued)
         self._final_reopened: set[Key] = set()  # departed keys re-opened by finish()
         self.final_reopen_skipped = self.finish_born = 0  # finish(): not re-opened; born
@@ -338,6 +342,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
                         self._reopen_departed()
                     self.finish_born = self._birth_at_finish()
                     self._final_relinearise()
+                    self._drop_untrusted_pairs()
                     self._drop_ambiguous()
                 self._hold_undetermined_camera()
                 self._find_disagreeing()

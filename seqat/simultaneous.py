@@ -40,6 +40,7 @@ from seqat.normals import (
 )
 from seqat.precision import rms_point_sigma, sigma_scale
 from seqat.robust import ROBUST_SCALE, cauchy_weight
+from seqat.sim_points import PointChecksMixin
 from seqat.sim_restart import RestartMixin
 from seqat.sim_snooping import SnoopingMixin
 from seqat.types import (
@@ -100,6 +101,10 @@ class SimOptions:
     # A new point enters once its rays spread this much (0: any intersection, the paper).
     # With blunders a small spread lets a bad ray place the point anywhere along the others.
     min_ray_angle_deg: float = 0.0
+    # Leave every two-ray tie point out of the block when the points of three rays or more
+    # show many wrong matches (seqat.robust.untrusted_two_ray_points; Seq-R's initial block:
+    # off, its finish() judges them).
+    untrust_pairs: bool = True
     # Robust loss of the image points: least squares within this many sigma, a Cauchy tail
     # beyond (seqat/robust.py; on by default); None: least squares (the paper's estimator).
     robust_scale: float | None = ROBUST_SCALE
@@ -373,7 +378,7 @@ class SimState:
     nav: tuple[FloatArray, FloatArray] | None = None  # GPS/INS (n, 6; local), its sigmas
 
 
-class SimultaneousAT(SnoopingMixin, RestartMixin):
+class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
     """The Sim baseline as a streaming estimator: refit the whole block after each frame.
 
     Parameters
@@ -417,6 +422,10 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
         self._dirty = False
         self._rejected: set[int] = set()  # catalogue indices of observations rejected
         self._ambiguous: set[int] = set()  # catalogue points held out: their rays fit two places
+        self._untrusted: set[int] = set()  # ... two-ray points of a contaminated block
+        #: Fraction of the rays of points of three rays or more clearly beyond the robust
+        #: loss's core at the last solution (seqat.robust.contamination; NaN: not judged).
+        self.contamination = float("nan")
         #: Observations removed by data snooping: (image id, point id, w-test value).
         self.rejections: list[tuple[str, str, float]] = []
         #: GPS/INS groups down-weighted by data snooping: (image id, "position"/"attitude").
@@ -504,7 +513,8 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
         start = need[ctrl]
         gp_init[ctrl[start]] = ctrl_xyz[start]
         usable = (counts >= min_rays) & np.all(np.isfinite(gp_init), axis=1)
-        usable[np.fromiter(self._ambiguous, dtype=np.int64, count=len(self._ambiguous))] = False
+        held = self._ambiguous | self._untrusted
+        usable[np.fromiter(held, dtype=np.int64, count=len(held))] = False
         # A new point must lie in front of every camera that sees it (a mismatch intersected
         # behind the cameras would make the normal equations indefinite).
         check = usable[op] & need[op]
@@ -584,6 +594,16 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
                 break
             data, sel = more, more_sel
             res = self._adjust_and_keep(data, sel, eop0, gp0, covariance)
+        # Two-ray tie points of a block whose other points show many wrong matches
+        # (seqat.robust.untrusted_two_ray_points): adjusted again without them, the points
+        # intersected anew at the EOPs (the robust minimum they held is not left by
+        # re-weighting), before the points below are judged on that estimate
+        untrusted = self._untrusted_pairs(res, data, sel)
+        if untrusted != self._untrusted:
+            self._untrusted = untrusted
+            self._gp_est = np.full_like(self._gp_est, np.nan)
+            data, sel, eop0, gp0, _ = self._block()
+            res = self._adjust_and_keep(data, sel, eop0, gp0, covariance)
         # Tie points whose rays fit two places as well (seqat.robust.ambiguous_points): which
         # pair the loss keeps depends on the start, and with it a weakly tied image's pose
         # (Seneca without every fifth image: 0.1 deg on the last one). They carry no
@@ -600,20 +620,6 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
         self._n_obs = np.bincount(data.obs_point, minlength=data.n_points)
         self._dirty = False
         return res
-
-    def _ambiguous_points(self, res: SimResult, data: BlockData, sel: np.ndarray) -> set[int]:
-        """Catalogue indices of the block's points (``sel``) whose rays fit two places as
-        well at ``res`` (:func:`seqat.robust.ambiguous_points`; ground control exempt)."""
-        k = self.options.robust_scale
-        if k is None or not data.obs_point.size:
-            return set()
-        img, pt = data.obs_image, data.obs_point
-        use = ~np.isin(pt, data.control_point)
-        img, pt, uv, sg = img[use], pt[use], data.obs_uv[use], data.obs_sigma_px[use]
-        u2 = rloss.ray_u2(uv - project(res.eop[img], res.gp[pt], self.camera_now), sg)
-        found = rloss.ambiguous_points(u2, pt, res.eop[img], uv, sg, self.camera_now, k,
-                                       res.sigma0)
-        return {int(sel[j]) for j in found}
 
     def _adjust_and_keep(self, data: BlockData, sel: np.ndarray, eop0: FloatArray,
                       gp0: FloatArray, covariance: Covariance) -> SimResult:
@@ -726,28 +732,6 @@ class SimultaneousAT(SnoopingMixin, RestartMixin):
             iterations=iterations,
             eop=EopEstimate(image_id=frame.image_id, eop=eop, sigma=sigma),
         )
-
-    def _disagreeing_points(self, res: SimResult) -> set[int]:
-        """Block points (positions in the selection) not published at ``res``: their rays
-        disagree (:func:`seqat.robust.withheld_points`) or barely spread
-        (:func:`seqat.robust.narrow_points`); control exempt; :attr:`disagreeing`."""
-        _, oi, op, uv, sg = self._observations()
-        pos = np.full(len(self._cat.point_ids), -1)
-        pos[self._point_sel] = np.arange(self._point_sel.size)
-        ids = self._cat.point_ids
-        use = pos[op] >= 0
-        if self.control:  # ground control is exempt
-            use &= np.fromiter((ids[j] not in self.control for j in op), bool, op.size)
-        if res.undetermined is not None and res.undetermined.any():  # left out already
-            use &= ~res.undetermined[np.maximum(pos[op], 0)]
-        oi, pt, uv, sg = oi[use], pos[op[use]], uv[use], sg[use]
-        u2 = rloss.ray_u2(uv - project(res.eop[oi], res.gp[pt], self.camera_now), sg)
-        off = np.union1d(rloss.withheld_points(u2, pt, res.eop[oi], uv, sg, self.camera_now,
-                                               self.options.robust_scale, res.sigma0),
-                         rloss.narrow_points(pt, res.eop[oi], uv, self.camera_now))
-        held = sorted(self._ambiguous)  # out of the block already (_solve)
-        self.disagreeing = [ids[int(j)] for j in sorted(held + self._point_sel[off].tolist())]
-        return set(off.tolist())
 
     def solution(self) -> Solution:
         """Final estimates of every image and point with standard deviations; not the tie

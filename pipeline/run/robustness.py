@@ -10,6 +10,7 @@ module turns them into one typed record for ``run.json`` and reads it back for t
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -90,6 +91,14 @@ class RobustnessRecord:
     nav_robust : tuple[NavRobust, ...]
         The GPS/INS groups it down-weights (weight factor below
         :data:`seqat.robust.NAV_REPORT_WEIGHT`; a GNSS jump).
+    contamination : float or None
+        Fraction of the rays of the tie points of three rays or more clearly beyond the
+        robust loss's core in the final solution (:func:`seqat.robust.contamination`;
+        ``None``: not judged — no loss, no such point, or the inverse engine).
+    untrusted_points : tuple[str, ...]
+        The two-ray tie points left out of the final adjustment because ``contamination``
+        exceeds :data:`seqat.robust.MAX_CONTAMINATION` (wrong matches that two rays cannot
+        show; docs/algorithm.md, *Two-ray points of a contaminated flight*).
     """
 
     snooping_critical: float | None
@@ -107,6 +116,8 @@ class RobustnessRecord:
     final_reopen_skipped: int = 0
     nav_robust_scale: float | None = None
     nav_robust: tuple[NavRobust, ...] = ()
+    contamination: float | None = None
+    untrusted_points: tuple[str, ...] = ()
 
 
 def robustness_record(estimator: object, options: object, *, bridged: Sequence[str] = (),
@@ -144,7 +155,10 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
                                                              0)),
                             nav_robust_scale=getattr(options, "nav_robust_scale", None),
                             nav_robust=tuple(NavRobust(image=i, group=g, weight=w) for i, g, w
-                                             in getattr(estimator, "nav_robust", ())))
+                                             in getattr(estimator, "nav_robust", ())),
+                            contamination=(round(eps, 4) if math.isfinite(eps := float(
+                                getattr(estimator, "contamination", math.nan))) else None),
+                            untrusted_points=tuple(getattr(estimator, "untrusted", ())))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -162,6 +176,8 @@ class RobustnessSummary:
     points_disagreeing: int = 0  # tie points left out: fewer than two rays agree
     points_undetermined: int = 0  # tie points left out: singular information
     points_off_surface: int = 0  # tie points left out: off the surface, no partner
+    points_untrusted: int = 0  # two-ray tie points left out: a contaminated flight
+    contamination: float | None = None  # run.json robustness.contamination
 
 
 def summarise(record: Mapping[str, object]) -> RobustnessSummary | None:
@@ -187,7 +203,10 @@ def summarise(record: Mapping[str, object]) -> RobustnessSummary | None:
                          for n in rob.get("nav_robust") or ()),  # type: ignore[union-attr]
         points_disagreeing=len(rob.get("disagreeing_points") or ()),  # type: ignore[arg-type]
         points_undetermined=len(rob.get("undetermined_points") or ()),  # type: ignore[arg-type]
-        points_off_surface=len(rob.get("off_surface_points") or ()))  # type: ignore[arg-type]
+        points_off_surface=len(rob.get("off_surface_points") or ()),  # type: ignore[arg-type]
+        points_untrusted=len(rob.get("untrusted_points") or ()),  # type: ignore[arg-type]
+        contamination=(float(c) if isinstance(c := rob.get("contamination"), int | float)
+                       else None))
 
 
 def robustness_rows(summary: RobustnessSummary) -> list[tuple[str, str]]:
@@ -204,6 +223,9 @@ def robustness_rows(summary: RobustnessSummary) -> list[tuple[str, str]]:
         ("tie points left out: rays disagree / undetermined / off the surface",
          f"{summary.points_disagreeing} / {summary.points_undetermined} / "
          f"{summary.points_off_surface}"),
+        ("rays of tie points of 3+ rays clearly beyond the robust core; two-ray points "
+         "left out", ("not judged" if summary.contamination is None
+                      else f"{100 * summary.contamination:.1f} %; {summary.points_untrusted}")),
         ("GNSS dropout images bridged / skipped",
          f"{summary.dropout_bridged} / {len(summary.dropout_skipped)}"
          + (f" ({', '.join(summary.dropout_skipped)})" if summary.dropout_skipped else "")),

@@ -9,18 +9,21 @@ import pytest
 
 from seqat.geometry import intersect_rays, project
 from seqat.robust import (
+    MAX_CONTAMINATION,
     MIN_PUBLISHED_RAY_ANGLE_DEG,
     ROBUST_SCALE,
     ambiguous_points,
     astray_points,
     cauchy_cost,
     cauchy_weight,
+    contamination,
     disagreeing_points,
     ray_u2,
+    untrusted_two_ray_points,
     withheld_points,
 )
 from seqat.sequential import SequentialAT, SequentialOptions
-from seqat.simulate import SimulatedFlight
+from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
 from seqat.simultaneous import SimOptions, SimultaneousAT
 from seqat.types import PinholeCamera
 
@@ -491,3 +494,82 @@ def test_the_live_window_does_not_show_a_point_whose_rays_disagree(
                 assert set(sol.withheld) == hidden_now  # named for the live map
                 left_out |= hidden_now
         assert left_out == ({pid} if hidden and pid is not None else set())
+
+
+def test_contamination_counts_the_rays_of_points_of_three_rays_or_more(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Known answer: of the six rays of two three-ray points, one is clearly beyond the core
+    (6.1 σ with k = 3) and one beyond it but not clearly (4 σ): 1/6. The two-ray point's
+    ray far off does not count; below the threshold no two-ray point is untrusted, above
+    it every one is (the points with exactly two rays) but one in an image with fewer
+    than MIN_IMAGE_TIES rays in points of three rays or more."""
+    point = np.array([0, 0, 0, 1, 1, 1, 2, 2, 3, 3])
+    image = np.array([0, 1, 2, 0, 1, 2, 0, 1, 1, 3])
+    u2 = np.array([0.0, 6.1**2, 1.0, 4.0**2, 0.5, 0.2, 50.0**2, 0.0, 0.0, 0.0])
+    assert contamination(u2, point, 3.0) == pytest.approx(1 / 6)
+    assert np.isnan(contamination(u2, point, None))
+    assert np.isnan(contamination(u2[6:], point[6:], 3.0))
+    monkeypatch.setattr("seqat.robust.MIN_IMAGE_TIES", 2)  # images 0-2 have 2, image 3 none
+    found, eps = untrusted_two_ray_points(u2, point, image, 3.0)
+    assert eps == pytest.approx(1 / 6) and found.tolist() == [2]
+    clean = u2.copy()
+    clean[1] = 1.0
+    found, eps = untrusted_two_ray_points(clean, point, image, 3.0)
+    assert eps == 0.0 and found.size == 0
+    monkeypatch.setattr("seqat.robust.MIN_IMAGE_TIES", 3)  # no image has enough other ties
+    assert untrusted_two_ray_points(u2, point, image, 3.0)[0].size == 0
+
+
+def _contaminated(f: SimulatedFlight, fraction: float) -> tuple[SimulatedFlight, set[str]]:
+    """The strip with eight points cut to their first two rays and ``fraction`` of the
+    other points' rays moved 30-90 px in a seeded direction; and the two-ray points' ids."""
+    rng = np.random.default_rng(5)
+    counts = np.bincount(f.obs_point)
+    cut = rng.choice(np.flatnonzero(counts >= 3), size=8, replace=False)
+    keep = np.ones(f.obs_uv.shape[0], dtype=bool)
+    for p in cut:
+        keep[np.flatnonzero(f.obs_point == p)[2:]] = False
+    uv = f.obs_uv.copy()
+    long_rays = np.flatnonzero(keep & ~np.isin(f.obs_point, cut))
+    bad = rng.choice(long_rays, size=int(fraction * long_rays.size), replace=False)
+    angle = rng.uniform(0.0, 2.0 * np.pi, bad.size)
+    uv[bad] += rng.uniform(30.0, 90.0, bad.size)[:, None] * np.stack(
+        [np.cos(angle), np.sin(angle)], axis=1)
+    out = dataclasses.replace(f, obs_image=f.obs_image[keep], obs_point=f.obs_point[keep],
+                              obs_uv=uv[keep])
+    return out, {f.point_ids[int(p)] for p in cut}
+
+
+def test_a_contaminated_flight_leaves_its_two_ray_points_out() -> None:
+    """15 % of the rays of the points of three rays or more are wrong matches: Sim and the
+    finished Seq-R measure it (above seqat.robust.MAX_CONTAMINATION), leave every two-ray
+    point out of their final adjustment (named in ``untrusted``, not published) and end
+    at the same EOPs; with 2 % they keep and publish them. (The short strip with twice its
+    points: every image keeps MIN_IMAGE_TIES rays in the others.)"""
+    strip = simulate_strip(StripSimConfig(n_images=60, n_points=96), seed=11)
+    results = {}
+    for fraction in (0.15, 0.02):
+        f, pairs = _contaminated(strip, fraction)
+        for method in ("sim", "seq-r"):
+            if method == "sim":
+                est: SimultaneousAT | SequentialAT = SimultaneousAT(
+                    f.camera, SimOptions(), refit_every_frame=False)
+            else:
+                est = SequentialAT(f.camera, SequentialOptions())
+            for fr in f.frames():
+                est.add_frame(fr)
+            if isinstance(est, SequentialAT):
+                est.finish()
+            sol = est.solution()
+            published = {p.point_id for p in sol.points}
+            results[fraction, method] = np.array([e.eop for e in sol.eops])
+            if fraction > MAX_CONTAMINATION:
+                assert est.contamination > MAX_CONTAMINATION
+                assert set(est.untrusted) == pairs and not pairs & published
+            else:
+                assert est.contamination < MAX_CONTAMINATION
+                assert est.untrusted == [] and pairs <= published
+    for fraction in (0.15, 0.02):
+        sim, seq = results[fraction, "sim"], results[fraction, "seq-r"]
+        np.testing.assert_allclose(seq[:, :3], sim[:, :3], rtol=0, atol=5e-4)
+        np.testing.assert_allclose(seq[:, 3:], sim[:, 3:], rtol=0, atol=5e-6)
