@@ -92,7 +92,6 @@ class PointChecksMixin:
         self.disagreeing = [ids[int(j)] for j in sorted(held + self._point_sel[off].tolist())]
         return set(off.tolist())
 
-
     @property
     def untrusted(self) -> list[str]:
         """Two-ray tie points out of the block at the last solution (:meth:`_untrusted_pairs`)."""

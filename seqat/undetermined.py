@@ -130,7 +130,7 @@ class UndeterminedMixin:
         f = self._window_factors() if k is not None and not self._inverse else None
         if f is None:
             return
-        xe, u2 = self._at_estimate(f)
+        _, u2 = self._at_estimate(f)
         whole = self._whole(f, np.unique(f.pt))
         found, self.contamination = untrusted_two_ray_points(u2[whole], f.pt[whole],
                                                              f.img[whole], k, self.sigma0)

@@ -25,7 +25,7 @@ from seqat.robust import (
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
 from seqat.simultaneous import SimOptions, SimultaneousAT
-from seqat.types import PinholeCamera
+from seqat.types import PinholeCamera, Solution
 
 
 def test_weights_are_the_derivative_of_the_cost_and_one_inside_the_core() -> None:
@@ -109,9 +109,8 @@ def test_a_point_whose_outlying_ray_forms_another_pair_as_large_is_ambiguous() -
     assert ambiguous_points(u2, np.full(3, 5), eop[:3], uv, np.ones(3), cam, None).size == 0
 
 
-def _finished(f: SimulatedFlight, method: str) -> tuple[np.ndarray, set[str], list[str]]:
-    """EOPs, published point ids and the points named as disagreeing, of Sim or the finished
-    Seq-R on ``f`` with every default."""
+def _run(f: SimulatedFlight, method: str) -> tuple[SimultaneousAT | SequentialAT, Solution]:
+    """Sim or the finished Seq-R on ``f`` with every default, and its solution."""
     if method == "sim":
         est: SimultaneousAT | SequentialAT = SimultaneousAT(
             f.camera, SimOptions(), refit_every_frame=False)
@@ -121,7 +120,13 @@ def _finished(f: SimulatedFlight, method: str) -> tuple[np.ndarray, set[str], li
         est.add_frame(fr)
     if isinstance(est, SequentialAT):
         est.finish()
-    sol = est.solution()
+    return est, est.solution()
+
+
+def _finished(f: SimulatedFlight, method: str) -> tuple[np.ndarray, set[str], list[str]]:
+    """EOPs, published point ids and the points named as disagreeing, of Sim or the finished
+    Seq-R on ``f`` with every default."""
+    est, sol = _run(f, method)
     return (np.array([e.eop for e in sol.eops]), {p.point_id for p in sol.points},
             est.disagreeing)
 
@@ -551,16 +556,7 @@ def test_a_contaminated_flight_leaves_its_two_ray_points_out() -> None:
     for fraction in (0.15, 0.02):
         f, pairs = _contaminated(strip, fraction)
         for method in ("sim", "seq-r"):
-            if method == "sim":
-                est: SimultaneousAT | SequentialAT = SimultaneousAT(
-                    f.camera, SimOptions(), refit_every_frame=False)
-            else:
-                est = SequentialAT(f.camera, SequentialOptions())
-            for fr in f.frames():
-                est.add_frame(fr)
-            if isinstance(est, SequentialAT):
-                est.finish()
-            sol = est.solution()
+            est, sol = _run(f, method)
             published = {p.point_id for p in sol.points}
             results[fraction, method] = np.array([e.eop for e in sol.eops])
             if fraction > MAX_CONTAMINATION:
