@@ -223,9 +223,9 @@ def robustness_rows(summary: RobustnessSummary) -> list[tuple[str, str]]:
         ("tie points left out: rays disagree / undetermined / off the surface",
          f"{summary.points_disagreeing} / {summary.points_undetermined} / "
          f"{summary.points_off_surface}"),
-        ("rays of tie points of 3+ rays clearly beyond the robust core; two-ray points "
-         "left out", ("not judged" if summary.contamination is None
-                      else f"{100 * summary.contamination:.1f} %; {summary.points_untrusted}")),
+        ("contamination (rays of 3+ ray tie points clearly off) / two-ray points left out",
+         ("not judged" if summary.contamination is None
+          else f"{100 * summary.contamination:.1f} % / {summary.points_untrusted}")),
         ("GNSS dropout images bridged / skipped",
          f"{summary.dropout_bridged} / {len(summary.dropout_skipped)}"
          + (f" ({', '.join(summary.dropout_skipped)})" if summary.dropout_skipped else "")),

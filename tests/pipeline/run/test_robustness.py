@@ -22,8 +22,9 @@ from ..sample_flight import SIM_CRS
 
 
 def test_points_left_out_reach_run_json_and_the_report() -> None:
-    """The estimator's disagreeing and undetermined tie points are named in run.json and
-    counted in the report's *Blunders and GNSS faults* table."""
+    """The estimator's disagreeing, undetermined and untrusted tie points are named in
+    run.json and counted in the report's *Blunders and GNSS faults* table, with the
+    contamination that left the two-ray points out."""
     est = SimpleNamespace(disagreeing=["t1", "t2", "t3"], undetermined=["t9"])
     record = robustness_record(est, SequentialOptions(), off_surface=["t4", "t5"])
     assert record.disagreeing_points == ("t1", "t2", "t3")
@@ -36,11 +37,26 @@ def test_points_left_out_reach_run_json_and_the_report() -> None:
     rows = dict(robustness_rows(summary))
     assert rows["tie points left out: rays disagree / undetermined / off the surface"] == (
         "3 / 1 / 2")
-    # a run.json written before the field: none
+    assert rows["contamination (rays of 3+ ray tie points clearly off) / two-ray points "
+                "left out"] == "not judged"
+    # a contaminated flight: the fraction and the two-ray points left out
+    est = SimpleNamespace(contamination=0.21234, untrusted=["p1", "p2"])
+    record = robustness_record(est, SequentialOptions())
+    assert record.contamination == 0.2123 and record.untrusted_points == ("p1", "p2")
+    summary = summarise({"robustness": to_jsonable(record), "images": []})
+    assert summary is not None
+    assert dict(robustness_rows(summary))[
+        "contamination (rays of 3+ ray tie points clearly off) / two-ray points left out"
+    ] == "21.2 % / 2"
+    # not judged (NaN: no loss, no point of three rays): null in run.json
+    nan = robustness_record(SimpleNamespace(contamination=float("nan")), SequentialOptions())
+    assert nan.contamination is None and json.dumps(to_jsonable(nan))
+    # a run.json written before the fields: none
     old = to_jsonable(robustness_record(SimpleNamespace(), SequentialOptions()))
-    del old["disagreeing_points"]
+    del old["disagreeing_points"], old["contamination"], old["untrusted_points"]
     summary = summarise({"robustness": old, "images": []})
     assert summary is not None and summary.points_disagreeing == 0
+    assert summary.contamination is None and summary.points_untrusted == 0
 
 
 def _wrong_depth(f: SimulatedFlight, down_m: float) -> tuple[SimulatedFlight, str]:
