@@ -43,6 +43,11 @@ class Catalogue:
     #: (image index, point index) of every observation, to refuse a repeated one.
     pairs: set[tuple[int, int]] = field(default_factory=set)
 
+    def rays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Image and point index (int64 arrays) of every observation, in order."""
+        return (np.asarray(self.obs_image, dtype=np.int64),
+                np.asarray(self.obs_point, dtype=np.int64))
+
     def point(self, pid: str) -> int:
         """Index of point ``pid`` (a new one is numbered)."""
         j = self.point_index.get(pid)

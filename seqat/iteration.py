@@ -113,38 +113,33 @@ class IterationMixin:
                     born, born_xyz, y12, y22, x1t + d1t, x2_0 + d2, col_of)
                 if degenerate:
                     return Iterated(rows, step, d1t, d2, iterations, degenerate)
-            if step is None or not self._in_domain(x1t, d1t, d2, col_of):
-                again = self._held_start(held, x2_0)  # the window held, from a start again
-                if again is None:
-                    return Iterated(rows, step, d1t, d2, iterations, wild=True)
-                held, hold, start, d2 = held + 1, True, iterations, again
-                d1t = np.zeros(touched.size)
-                continue
-            # Converged when the rows, linearised where they were, still describe the image
-            # points at the new estimate: re-linearising would move it by less. The first
-            # iterate is least squares: it is the robust one too when every image point there
-            # lies within the loss's core (weight 1; clean data).
-            lin = builder.linearisation_error(x1t, x2_0, d1t, d2)
-            last = iterations - start >= opts.max_update_iterations
-            if hold:  # the resection, least squares: then the window too, from there
-                if last or lin < opts.iteration_tolerance_px:
-                    hold, start = False, iterations
-                continue
-            converged = lin < opts.iteration_tolerance_px and builder.settled()
-            if not (last or converged):
-                continue
-            # an estimate most of the image's rays reject as outliers: the robust loss may
-            # have kept a poor start (not asked of a single least-squares iterate: the
-            # paper's one linearisation). Started again with the window held (_held_start);
-            # with no start left, the image diverges (named; its GPS/INS carries it).
-            if (converged or builder.robust) and builder.unsupported(image, born):
-                again = self._held_start(held, x2_0)
-                if again is None:
-                    return Iterated(rows, step, d1t, d2, iterations, wild=True)
-                held, hold, start, d2 = held + 1, True, iterations, again
-                d1t = np.zeros(touched.size)
-                continue
-            return Iterated(rows, step, d1t, d2, iterations)
+            if step is not None and self._in_domain(x1t, d1t, d2, col_of):
+                # Converged when the rows, linearised where they were, still describe the
+                # image points at the new estimate: re-linearising would move it by less. The
+                # first iterate is least squares: it is the robust one too when every image
+                # point there lies within the loss's core (weight 1; clean data).
+                lin = builder.linearisation_error(x1t, x2_0, d1t, d2)
+                last = iterations - start >= opts.max_update_iterations
+                if hold:  # the resection, least squares: then the window too, from there
+                    if last or lin < opts.iteration_tolerance_px:
+                        hold, start = False, iterations
+                    continue
+                converged = lin < opts.iteration_tolerance_px and builder.settled()
+                if not (last or converged):
+                    continue
+                # an estimate most of the image's rays reject as outliers: the robust loss
+                # may have kept a poor start (not asked of a single least-squares iterate:
+                # the paper's one linearisation)
+                if not ((converged or builder.robust) and builder.unsupported(image, born)):
+                    return Iterated(rows, step, d1t, d2, iterations)
+            # out of the models' domain, or rejected by the image's rays: started again with
+            # the window held (_held_start); with no start left, the image diverges (named;
+            # its GPS/INS carries it)
+            again = self._held_start(held, x2_0)
+            if again is None:
+                return Iterated(rows, step, d1t, d2, iterations, wild=True)
+            held, hold, start, d2 = held + 1, True, iterations, again
+            d1t = np.zeros(touched.size)
 
     def _held_start(self, held: int, x2_0: FloatArray) -> FloatArray | None:
         """The step ``d2`` the update's next held phase starts from, after ``held`` of them:

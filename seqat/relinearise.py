@@ -272,10 +272,9 @@ class RelinearisationMixin:
         is changed in place) and weight their rows at that start; returns the weights."""
         start, self._restart_points = self._restart_points, {}
         rows = np.flatnonzero(np.isin(f.pt, np.fromiter(start, dtype=np.int64)))
-        first = dict(zip(f.pt[rows].tolist()[::-1], rows[::-1].tolist(), strict=True))
-        for p, xyz in start.items():
-            if p in first:  # (every one: the factors it was made from)
-                x[p_idx[first[p]]] = xyz
+        pts, at = np.unique(f.pt[rows], return_index=True)  # each point's first row
+        for p, row in zip(pts.tolist(), rows[at].tolist(), strict=True):
+            x[p_idx[row]] = start[p]
         res = f.residuals(x[e_idx[rows]], x[p_idx[rows]], self._cam)
         wf = wf.copy()
         wf[rows] = f.w0[rows] * robust_weight(np.sum(res**2, axis=1) * f.w0[rows],

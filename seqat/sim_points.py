@@ -30,6 +30,13 @@ class PointChecksMixin:
         u2 = rloss.ray_u2(uv - project(res.eop[img], res.gp[pt], self.camera_now), sg)
         return img, pt, uv, sg, u2
 
+    def _not_control(self, op: np.ndarray) -> np.ndarray:
+        """Mask of the rays (their catalogue points ``op``) of points not ground control."""
+        if not self.control:
+            return np.ones(op.size, dtype=bool)
+        ids = self._cat.point_ids
+        return np.fromiter((ids[j] not in self.control for j in op), bool, op.size)
+
     def _ambiguous_points(self, res: SimResult, data: BlockData, sel: np.ndarray) -> set[int]:
         """Catalogue indices of the block's points (``sel``) whose rays fit two places as
         well at ``res`` (:func:`seqat.robust.ambiguous_points`; ground control exempt)."""
@@ -59,8 +66,7 @@ class PointChecksMixin:
         pos = np.full(len(self._cat.point_ids), -1)
         pos[sel] = np.arange(sel.size)
         mine = (pos[op] >= 0) | np.isin(op, np.fromiter(self._untrusted, np.int64))
-        mine &= np.fromiter((self._cat.point_ids[j] not in self.control for j in op), bool,
-                            op.size)
+        mine &= self._not_control(op)
         oi, op, uv, sg = oi[mine], op[mine], uv[mine], sg[mine]
         u2 = np.zeros(op.size)
         inb = pos[op] >= 0
@@ -78,9 +84,7 @@ class PointChecksMixin:
         pos = np.full(len(self._cat.point_ids), -1)
         pos[self._point_sel] = np.arange(self._point_sel.size)
         ids = self._cat.point_ids
-        use = pos[op] >= 0
-        if self.control:  # ground control is exempt
-            use &= np.fromiter((ids[j] not in self.control for j in op), bool, op.size)
+        use = (pos[op] >= 0) & self._not_control(op)  # ground control is exempt
         if res.undetermined is not None and res.undetermined.any():  # left out already
             use &= ~res.undetermined[np.maximum(pos[op], 0)]
         oi, pt, uv, sg = oi[use], pos[op[use]], uv[use], sg[use]

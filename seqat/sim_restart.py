@@ -91,8 +91,7 @@ class RestartMixin:
         flight; with the third image its points are determined. Returns the solves'
         iterations."""
         cat = self._cat
-        oi = np.asarray(cat.obs_image, dtype=np.int64)
-        op = np.asarray(cat.obs_point, dtype=np.int64)
+        oi, op = cat.rays()
         out = np.fromiter(self._diverged, dtype=np.int64)
         others = np.bincount(op[~np.isin(oi, out)], minlength=len(cat.point_ids))
         iterations = 0
@@ -176,8 +175,7 @@ class RestartMixin:
         if not self._ambiguous:
             return False
         cat = self._cat
-        oi = np.asarray(cat.obs_image, dtype=np.int64)
-        op = np.asarray(cat.obs_point, dtype=np.int64)
+        oi, op = cat.rays()
         rays = np.bincount(op, minlength=len(cat.point_ids))
         mine = np.unique(op[oi == i])
         mine = mine[rays[mine] >= 3]
@@ -218,8 +216,7 @@ class RestartMixin:
         Before ``i`` is left out, an earlier image may take the blame (``blame``:
         :meth:`_blame_earlier`). Returns the iterations of the solves."""
         cat = self._cat
-        oi = np.asarray(cat.obs_image, dtype=np.int64)
-        op = np.asarray(cat.obs_point, dtype=np.int64)
+        oi, op = cat.rays()
         at = {int(j): k for k, j in enumerate(self._point_sel)}
         others = np.bincount(op[oi != i], minlength=len(cat.point_ids))
         mine = np.flatnonzero((oi == i) & (others[op] >= 2)
@@ -284,7 +281,8 @@ class RestartMixin:
         self._dirty = True
         if need_convergence:  # its points intersected again: not where its GPS/INS put them
             cat = self._cat
-            seen = np.asarray(cat.obs_point)[np.asarray(cat.obs_image) == i]
+            oi, op = cat.rays()
+            seen = op[oi == i]
             keep = ~np.isin(self._point_sel, seen)
             self._point_sel, self._gp_est = self._point_sel[keep], self._gp_est[keep]
         try:
@@ -305,8 +303,7 @@ class RestartMixin:
         neighbours fly level alike; Gauss-Newton from 50 deg off on each axis ends at a
         wrong minimum or behind the points); None if no start converges."""
         cat = self._cat
-        oi = np.asarray(cat.obs_image, dtype=np.int64)
-        op = np.asarray(cat.obs_point, dtype=np.int64)
+        oi, op = cat.rays()
         shared = np.bincount(oi[np.isin(op, op[oi == i])], minlength=len(cat.image_ids))
         shared[i] = 0
         if self._diverged:
@@ -341,8 +338,7 @@ class RestartMixin:
         orientation fits its two-ray points, ended 148 deg off, and its wrong points made
         each of the next eight images diverge in its place (the 60-image strip, seed 12)."""
         cat = self._cat
-        oi = np.asarray(cat.obs_image, dtype=np.int64)
-        op = np.asarray(cat.obs_point, dtype=np.int64)
+        oi, op = cat.rays()
         seen = np.isin(op, op[oi == i])
         shared = np.bincount(oi[seen], minlength=i + 1)[:i]
         order = [int(j) for j in np.argsort(-shared, kind="stable")
@@ -362,8 +358,7 @@ class RestartMixin:
         """One trial of :meth:`_blame_earlier`: ``j`` left out, then started again at its
         resection; the solves' iterations if ``i`` and ``j`` fit, else None."""
         cat = self._cat
-        oi = np.asarray(cat.obs_image, dtype=np.int64)
-        op = np.asarray(cat.obs_point, dtype=np.int64)
+        oi, op = cat.rays()
         self._leave_out([j])
         # i from its GPS/INS, j's points intersected again from the other rays: not where
         # j's poor start put them

@@ -72,10 +72,11 @@ class SnoopingMixin:
             return False
         cat = self._cat
         idx = np.fromiter(self._rejected, dtype=np.int64)
-        img = np.asarray(cat.obs_image, dtype=np.int64)[idx]
+        oi, op = cat.rays()
+        img = oi[idx]
         remap = np.full(len(cat.point_ids), -1)
         remap[sel] = np.arange(sel.size)
-        pt = remap[np.asarray(cat.obs_point, dtype=np.int64)[idx]]
+        pt = remap[op[idx]]
         ok = pt >= 0
         if not np.any(ok):
             return False

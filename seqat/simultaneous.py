@@ -470,14 +470,13 @@ class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
     def _observations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, FloatArray, FloatArray]:
         """Catalogue index, image, point, pixels and sigma of every observation not rejected."""
         cat = self._cat
-        idx = np.arange(len(cat.obs_image))
+        oi, op = cat.rays()
+        idx = np.arange(oi.size)
         if self._rejected:
             idx = np.setdiff1d(idx, np.fromiter(self._rejected, dtype=np.int64))
         if self._diverged:
-            idx = idx[~np.isin(np.asarray(cat.obs_image, dtype=np.int64)[idx],
-                               np.fromiter(self._diverged, dtype=np.int64))]
-        oi = np.asarray(cat.obs_image, dtype=np.int64)[idx]
-        op = np.asarray(cat.obs_point, dtype=np.int64)[idx]
+            idx = idx[~np.isin(oi[idx], np.fromiter(self._diverged, dtype=np.int64))]
+        oi, op = oi[idx], op[idx]
         uv = np.asarray(cat.obs_uv, dtype=np.float64).reshape(-1, 2)[idx]
         sg = np.asarray(cat.obs_sigma, dtype=np.float64)[idx]
         return idx, oi, op, uv, sg
