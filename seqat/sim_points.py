@@ -56,7 +56,7 @@ class PointChecksMixin:
         ground control exempt), else none.
         Not in Seq-R's initial block (``SimOptions.untrust_pairs``): its finish() judges
         them with the rest. The contamination is :attr:`contamination`."""
-        k = self.options.robust_scale
+        k = self._scale  # the configured scale: the contamination judges the data
         self.contamination = float("nan")
         if k is None or not self.options.untrust_pairs or not data.obs_point.size:
             return set()

@@ -11,6 +11,7 @@ Coordinates here are *local* (the caller subtracts an origin for conditioning).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Sequence
@@ -406,7 +407,8 @@ class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
         calibrate_on_export: bool = False,
     ) -> None:
         self.camera = camera
-        self.options = options
+        self.options = options  # its robust_scale: the one in force (_solve)
+        self._scale = options.robust_scale  # ... and the one configured
         self.refit_every_frame = refit_every_frame
         self._camera_held = calibrate_on_export  # until export_state
         self.control = control_by_id(control)
@@ -594,12 +596,15 @@ class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
             data, sel = more, more_sel
             res = self._adjust_and_keep(data, sel, eop0, gp0, covariance)
         # Two-ray tie points of a block whose other points show many wrong matches
-        # (seqat.robust.untrusted_two_ray_points): adjusted again without them, the points
-        # intersected anew at the EOPs (the robust minimum they held is not left by
-        # re-weighting), before the points below are judged on that estimate
+        # (seqat.robust.untrusted_two_ray_points): adjusted again without them and with the
+        # loss's core narrowed (seqat.robust.scale_in_force), the points intersected anew at
+        # the EOPs (the robust minimum they held is not left by re-weighting), before the
+        # points below are judged on that estimate
         untrusted = self._untrusted_pairs(res, data, sel)
-        if untrusted != self._untrusted:
+        scale = rloss.scale_in_force(self._scale, self.contamination)  # a narrower core?
+        if untrusted != self._untrusted or scale != self.options.robust_scale:
             self._untrusted = untrusted
+            self.options = dataclasses.replace(self.options, robust_scale=scale)
             self._gp_est = np.full_like(self._gp_est, np.nan)
             data, sel, eop0, gp0, _ = self._block()
             res = self._adjust_and_keep(data, sel, eop0, gp0, covariance)

@@ -7,6 +7,8 @@ docs/algorithm.md, *Robust loss (default) and undetermined points*).
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from seqat.assembly import factor_information
@@ -17,6 +19,7 @@ from seqat.robust import (
     ambiguous_points,
     core_u2,
     narrow_points,
+    scale_in_force,
     untrusted_two_ray_points,
     withheld_points,
 )
@@ -121,11 +124,13 @@ class UndeterminedMixin:
 
     def _drop_untrusted_pairs(self) -> None:
         """finish(), before :meth:`_drop_ambiguous`: when the window's points of three rays or
-        more show many wrong matches, every two-ray GP leaves with its rows and the window
-        is re-adjusted without them, as Sim adjusts its block again without them
-        (:func:`seqat.robust.untrusted_two_ray_points`; judged on the points all of whose
-        rays are in the window's factors, ground control exempt). The contamination is
-        :attr:`contamination`; the points, :attr:`untrusted`. Information engine only."""
+        more show many wrong matches, every two-ray GP leaves with its rows, the image
+        points' loss narrows its core (:func:`seqat.robust.scale_in_force`: ``options`` then
+        carry the scale in force) and the window is re-adjusted from its points intersected
+        anew, as Sim adjusts its block again (:func:`seqat.robust.untrusted_two_ray_points`;
+        judged on the points all of whose rays are in the window's factors, ground control
+        exempt). The contamination is :attr:`contamination`; the points, :attr:`untrusted`.
+        Information engine only."""
         k = self.options.robust_scale
         f = self._window_factors() if k is not None and not self._inverse else None
         if f is None:
@@ -134,8 +139,10 @@ class UndeterminedMixin:
         whole = self._whole(f, np.unique(f.pt))
         found, self.contamination = untrusted_two_ray_points(u2[whole], f.pt[whole],
                                                              f.img[whole], k, self.sigma0)
-        if not found.size:
+        scale = scale_in_force(k, self.contamination)
+        if not found.size and scale == k:
             return
+        self.options = dataclasses.replace(self.options, robust_scale=scale)
         self._drop_undetermined([("p", int(p)) for p in found])
         for p in found.tolist():
             self._undetermined.pop(p, None)

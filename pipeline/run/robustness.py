@@ -99,6 +99,10 @@ class RobustnessRecord:
         The two-ray tie points left out of the final adjustment because ``contamination``
         exceeds :data:`seqat.robust.MAX_CONTAMINATION` (wrong matches that two rays cannot
         show; docs/algorithm.md, *Two-ray points of a contaminated flight*).
+    final_robust_scale : float or None
+        The robust scale of the image points in the final adjustment: ``robust_scale``, or
+        :data:`seqat.robust.CONTAMINATED_SCALE` on such a flight (docs/algorithm.md, *The
+        loss of a contaminated flight*).
     """
 
     snooping_critical: float | None
@@ -118,6 +122,7 @@ class RobustnessRecord:
     nav_robust: tuple[NavRobust, ...] = ()
     contamination: float | None = None
     untrusted_points: tuple[str, ...] = ()
+    final_robust_scale: float | None = None
 
 
 def robustness_record(estimator: object, options: object, *, bridged: Sequence[str] = (),
@@ -158,7 +163,9 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
                                              in getattr(estimator, "nav_robust", ())),
                             contamination=(round(eps, 4) if math.isfinite(eps := float(
                                 getattr(estimator, "contamination", math.nan))) else None),
-                            untrusted_points=tuple(getattr(estimator, "untrusted", ())))
+                            untrusted_points=tuple(getattr(estimator, "untrusted", ())),
+                            final_robust_scale=getattr(getattr(estimator, "options", options),
+                                                       "robust_scale", None))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -178,6 +185,8 @@ class RobustnessSummary:
     points_off_surface: int = 0  # tie points left out: off the surface, no partner
     points_untrusted: int = 0  # two-ray tie points left out: a contaminated flight
     contamination: float | None = None  # run.json robustness.contamination
+    robust_scale: float | None = None  # ... robust_scale (σ; None: least squares)
+    final_robust_scale: float | None = None  # ... final_robust_scale
 
 
 def summarise(record: Mapping[str, object]) -> RobustnessSummary | None:
@@ -206,7 +215,17 @@ def summarise(record: Mapping[str, object]) -> RobustnessSummary | None:
         points_off_surface=len(rob.get("off_surface_points") or ()),  # type: ignore[arg-type]
         points_untrusted=len(rob.get("untrusted_points") or ()),  # type: ignore[arg-type]
         contamination=(float(c) if isinstance(c := rob.get("contamination"), int | float)
-                       else None))
+                       else None),
+        robust_scale=_scale(rob.get("robust_scale")),
+        final_robust_scale=_scale(rob.get("final_robust_scale", rob.get("robust_scale"))))
+
+
+def _scale(value: object) -> float | None:
+    return float(value) if isinstance(value, int | float) else None
+
+
+def _loss(scale: float | None) -> str:
+    return "least squares" if scale is None else f"{scale:g} σ"
 
 
 def robustness_rows(summary: RobustnessSummary) -> list[tuple[str, str]]:
@@ -226,6 +245,8 @@ def robustness_rows(summary: RobustnessSummary) -> list[tuple[str, str]]:
         ("contamination (rays of 3+ ray tie points clearly off) / two-ray points left out",
          ("not judged" if summary.contamination is None
           else f"{100 * summary.contamination:.1f} % / {summary.points_untrusted}")),
+        ("robust loss's core, configured / final adjustment",
+         f"{_loss(summary.robust_scale)} / {_loss(summary.final_robust_scale)}"),
         ("GNSS dropout images bridged / skipped",
          f"{summary.dropout_bridged} / {len(summary.dropout_skipped)}"
          + (f" ({', '.join(summary.dropout_skipped)})" if summary.dropout_skipped else "")),

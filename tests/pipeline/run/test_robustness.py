@@ -40,23 +40,34 @@ def test_points_left_out_reach_run_json_and_the_report() -> None:
     assert rows["contamination (rays of 3+ ray tie points clearly off) / two-ray points "
                 "left out"] == "not judged"
     # a contaminated flight: the fraction and the two-ray points left out
-    est = SimpleNamespace(contamination=0.21234, untrusted=["p1", "p2"])
+    assert rows["robust loss's core, configured / final adjustment"] == "3 σ / 3 σ"
+    est = SimpleNamespace(contamination=0.21234, untrusted=["p1", "p2"],
+                          options=SequentialOptions(robust_scale=2.0))  # narrowed core
     record = robustness_record(est, SequentialOptions())
     assert record.contamination == 0.2123 and record.untrusted_points == ("p1", "p2")
+    assert (record.robust_scale, record.final_robust_scale) == (3.0, 2.0)
     summary = summarise({"robustness": to_jsonable(record), "images": []})
     assert summary is not None
-    assert dict(robustness_rows(summary))[
+    rows = dict(robustness_rows(summary))
+    assert rows[
         "contamination (rays of 3+ ray tie points clearly off) / two-ray points left out"
     ] == "21.2 % / 2"
+    assert rows["robust loss's core, configured / final adjustment"] == "3 σ / 2 σ"
+    least = robustness_record(SimpleNamespace(), SequentialOptions(robust_scale=None))
+    summary = summarise({"robustness": to_jsonable(least), "images": []})
+    assert summary is not None and dict(robustness_rows(summary))[
+        "robust loss's core, configured / final adjustment"] == "least squares / least squares"
     # not judged (NaN: no loss, no point of three rays): null in run.json
     nan = robustness_record(SimpleNamespace(contamination=float("nan")), SequentialOptions())
     assert nan.contamination is None and json.dumps(to_jsonable(nan))
     # a run.json written before the fields: none
     old = to_jsonable(robustness_record(SimpleNamespace(), SequentialOptions()))
     del old["disagreeing_points"], old["contamination"], old["untrusted_points"]
+    del old["final_robust_scale"]
     summary = summarise({"robustness": old, "images": []})
     assert summary is not None and summary.points_disagreeing == 0
     assert summary.contamination is None and summary.points_untrusted == 0
+    assert summary.final_robust_scale == summary.robust_scale == 3.0  # the configured one
 
 
 def _wrong_depth(f: SimulatedFlight, down_m: float) -> tuple[SimulatedFlight, str]:
