@@ -43,7 +43,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -108,9 +108,9 @@ class ReferenceOptions:
         Also estimate fx, fy, cx, cy, k1, k2, p1, p2 (and k3 for a ``FULL_OPENCV`` camera).
     robust_loss : RobustLoss or None
         Loss of the reprojection residuals. ``None`` (the default): the run's own
-        (:func:`loss_of_run`): Huber at the run's ``robust_scale`` when the run was robust
-        (least squares within that many σ, as the run's loss; docs/algorithm.md, *Robust
-        loss*), least squares (``trivial``) when it was not.
+        (:func:`loss_of_run`): Huber at the run's final robust scale (:func:`run_loss_scale`)
+        when the run was robust (least squares within that many σ, as the run's loss;
+        docs/algorithm.md, *Robust loss*), least squares (``trivial``) when it was not.
     loss_scale_sigmas : float
         Scale of the robust loss in units of the image sigma.
     max_iterations : int
@@ -450,6 +450,18 @@ def loss_of_run(robust_scale: float | None) -> tuple[RobustLoss, float]:
     if robust_scale is None:
         return RobustLoss.TRIVIAL, ReferenceOptions().loss_scale_sigmas
     return RobustLoss.HUBER, float(robust_scale)
+
+
+def run_loss_scale(record: Mapping[str, object]) -> float | None:
+    """The image points' robust scale of a run's final adjustment (σ; ``None``: least
+    squares), from its ``run.json``: ``robustness.final_robust_scale`` (the configured
+    ``robust_scale``, narrowed on a contaminated flight: docs/algorithm.md, *The loss of a
+    contaminated flight*), or ``robust_scale`` for a run written before it."""
+    rob = record.get("robustness")
+    if not isinstance(rob, Mapping):
+        return None
+    scale = rob.get("final_robust_scale", rob.get("robust_scale"))
+    return float(scale) if isinstance(scale, int | float) else None
 
 
 def _prior_cost(kind: PriorKind, nav_local: FloatArray, cov: FloatArray | None,

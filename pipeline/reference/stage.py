@@ -39,6 +39,7 @@ from pipeline.reference.colmap_ba import (
     ReferenceResult,
     adjust_reference,
     loss_of_run,
+    run_loss_scale,
 )
 from pipeline.run.control import CONTROL_FILE, read_control_csv
 from pipeline.run.exports import image_file_names
@@ -304,9 +305,7 @@ def run_reference(out_dir: Path | str,
     out = Path(out_dir)
     run = read_run(out)
     if options.robust_loss is None:  # the run's own loss
-        rob = run.record.get("robustness")
-        scale = rob.get("robust_scale") if isinstance(rob, Mapping) else None
-        loss, k = loss_of_run(float(scale) if isinstance(scale, int | float) else None)
+        loss, k = loss_of_run(run_loss_scale(run.record))
         options = dataclasses.replace(options, robust_loss=loss, loss_scale_sigmas=k)
     data, left_out = reference_input(run)
     check_prior_geometry(data, options.prior)

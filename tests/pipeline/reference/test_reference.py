@@ -31,6 +31,7 @@ from pipeline.reference.colmap_ba import (
     loss_of_run,
     loss_weight,
     rigid_from_eop,
+    run_loss_scale,
 )
 from pipeline.reference.stage import (
     COLMAP_MODEL_DIR,
@@ -223,6 +224,17 @@ def test_colmap_bundle_adjustment_equals_sim(small_sim: SimulatedFlight) -> None
     assert result.covariance_status == "computed"
     sim_sigma = np.array([e.sigma for e in solution.eops])
     np.testing.assert_allclose(result.eop_sigma, sim_sigma, rtol=SIGMA_REL)
+
+
+def test_the_reference_takes_the_loss_of_the_runs_final_adjustment() -> None:
+    """run.json's final_robust_scale (a contaminated flight's narrower core) is the run's
+    loss; a run.json written before it gives its robust_scale; null: least squares."""
+    assert run_loss_scale({"robustness": {"robust_scale": 3.0,
+                                          "final_robust_scale": 2.0}}) == 2.0
+    assert run_loss_scale({"robustness": {"robust_scale": 3}}) == 3.0
+    assert run_loss_scale({"robustness": {"robust_scale": None,
+                                          "final_robust_scale": None}}) is None
+    assert run_loss_scale({}) is None
 
 
 def test_robust_reference_follows_robust_sim_through_a_blunder(
