@@ -59,6 +59,11 @@ CLEARLY_BEYOND = 2.0
 #: the core's radius beyond it: a poor start leaves its rays hundreds of sigmas off, wrong
 #: matches among good ones pull an image only a few sigmas off its rays.
 POOR_START_BEYOND = 10.0
+#: ... and an image is judged so on this many rays at least: fewer cannot tell a poor start
+#: from a wrong match or two (Seneca's own tie points with a fifth of them moved 10-100 px:
+#: images judged on one to five rays to known points were rejected and carried by their INS
+#: alone, 34 deg off; docs/algorithm.md, *A poor start*).
+MIN_JUDGED_RAYS = 6
 #: A tie point whose rays spread less than this (degrees, the largest angle between them at
 #: the final EOPs) is not published (:func:`narrow_points`): COLMAP filters its points at
 #: 1.5 degrees after bundle adjustment; no point is born under 1 degree during the flight
@@ -109,7 +114,8 @@ def unsupported_images(u2: FloatArray, image: np.ndarray, scale: float | None) -
     off: every ray is then hundreds of sigmas off and all are down-weighted) instead of where
     the rays put the image (docs/algorithm.md, *A poor start*). Far beyond, not just beyond:
     an image among many wrong matches may be a few sigmas off most of its rays and still
-    better than its GPS/INS. Without a loss: none.
+    better than its GPS/INS. An image with fewer than :data:`MIN_JUDGED_RAYS` rays is not
+    judged. Without a loss: none.
     """
     image = np.asarray(image, dtype=np.int64).reshape(-1)
     if scale is None or image.size == 0:
@@ -118,7 +124,7 @@ def unsupported_images(u2: FloatArray, image: np.ndarray, scale: float | None) -
     rays = np.bincount(pos, minlength=ids.size)
     inside = np.bincount(pos, weights=np.asarray(u2).reshape(-1)
                          <= (POOR_START_BEYOND * scale) ** 2, minlength=ids.size)
-    return ids[2 * inside < rays]
+    return ids[(2 * inside < rays) & (rays >= MIN_JUDGED_RAYS)]
 
 
 def robust_weight(u2: FloatArray, scale: float | None) -> FloatArray:

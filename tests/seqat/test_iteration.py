@@ -116,6 +116,30 @@ def test_an_image_whose_rays_are_all_wrong_is_named_and_carried_by_its_gps_ins(
     _assert_others_as_clean(f, eop, k, clean)
 
 
+def test_an_image_judged_on_too_few_rays_keeps_its_estimate(
+        short_strip: SimulatedFlight) -> None:
+    """Image 30 keeps three of its rays to points the earlier images determine, two of them
+    wrong matches 60 σ off, and its rays to new points. Most of three rays cannot tell a
+    poor start from two wrong matches (seqat.robust.MIN_JUDGED_RAYS): the estimate is kept,
+    not rejected three times with the image then carried by its GPS/INS and its rays left
+    out (Seneca's own tie points with a fifth of them wrong: 34 deg off). It ends where its
+    good ray and its GPS/INS put it."""
+    f, k = short_strip, 30
+    frames = list(f.frames())
+    seen = np.bincount(f.obs_point[f.obs_image < k], minlength=f.truth_xyz.shape[0])
+    pids = np.array([f.point_ids.index(p) for p in frames[k].point_ids])
+    known = np.flatnonzero(seen[pids] >= 2)
+    keep = seen[pids] < 2
+    keep[known[:3]] = True
+    uv = frames[k].uv_px.copy()
+    uv[known[:2]] += [[60.0 * f.sigma_px, 0.0], [0.0, -60.0 * f.sigma_px]]
+    frames[k] = dataclasses.replace(frames[k], point_ids=tuple(np.array(
+        frames[k].point_ids)[keep]), uv_px=uv[keep])
+    est, eop = _run(f, frames, None)
+    assert est.diverged == []
+    _assert_recovered(f, eop, k)
+
+
 def test_a_camera_iterate_is_admissible_only_with_a_positive_finite_focal_length(
         short_strip: SimulatedFlight) -> None:
     cam = FreeCamera(short_strip.camera, np.array([0, 3]))  # f_px and k1 free

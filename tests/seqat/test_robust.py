@@ -11,6 +11,7 @@ from seqat.geometry import intersect_rays, project
 from seqat.robust import (
     CONTAMINATED_SCALE,
     MAX_CONTAMINATION,
+    MIN_JUDGED_RAYS,
     MIN_PUBLISHED_RAY_ANGLE_DEG,
     ROBUST_SCALE,
     ambiguous_points,
@@ -21,6 +22,7 @@ from seqat.robust import (
     disagreeing_points,
     ray_u2,
     scale_in_force,
+    unsupported_images,
     untrusted_two_ray_points,
     withheld_points,
 )
@@ -525,6 +527,17 @@ def test_contamination_counts_the_rays_of_points_of_three_rays_or_more(
     assert eps == 0.0 and found.size == 0
     monkeypatch.setattr("seqat.robust.MIN_IMAGE_TIES", 3)  # no image has enough other ties
     assert untrusted_two_ray_points(u2, point, image, 3.0)[0].size == 0
+
+
+def test_an_image_is_judged_unsupported_on_six_rays_or_more() -> None:
+    """Known answers: most rays beyond POOR_START_BEYOND core radii rejects an image's
+    estimate only when it has MIN_JUDGED_RAYS rays or more; none without a loss."""
+    assert MIN_JUDGED_RAYS == 6
+    far, near = (11.0 * ROBUST_SCALE) ** 2, 1.0
+    image = np.array([0] * 5 + [1] * 6 + [2] * 6)
+    u2 = np.array([far] * 5 + [far] * 4 + [near] * 2 + [far] * 3 + [near] * 3)
+    assert unsupported_images(u2, image, ROBUST_SCALE).tolist() == [1]
+    assert unsupported_images(u2, image, None).size == 0
 
 
 def test_a_contaminated_flight_narrows_the_loss_core() -> None:
