@@ -205,7 +205,7 @@ def ambiguous_points(u2: FloatArray, point: np.ndarray, eop: FloatArray, uv_px: 
     return pts[np.asarray([c for c, a in answers.items() if _two_places(a)], dtype=np.int64)]
 
 
-def astray_points(u2: FloatArray, point: np.ndarray, eop: FloatArray, uv_px: FloatArray,
+def wrong_pair_points(u2: FloatArray, point: np.ndarray, eop: FloatArray, uv_px: FloatArray,
                   sigma_px: FloatArray, camera: PinholeCamera, scale: float | None,
                   sigma0: float = 1.0) -> np.ndarray:
     """The points (sorted) whose estimate is not where most of their rays meet: a pair of
@@ -236,7 +236,7 @@ def _two_places(answer: _Consensus) -> bool:
 
 def _elsewhere(answer: _Consensus) -> bool:
     """The largest consensus holds more rays than the estimate's core, one of them clearly
-    beyond it at the estimate (:func:`astray_points`)."""
+    beyond it at the estimate (:func:`wrong_pair_points`)."""
     sets, size, inside, beyond = answer
     return size > bin(inside).count("1") and any(w & beyond for w, _ in sets)
 
@@ -337,7 +337,7 @@ def withheld_points(u2: FloatArray, point: np.ndarray, eop: FloatArray, uv_px: F
                     sigma0: float = 1.0) -> np.ndarray:
     """The points (sorted) the estimators do not publish: their rays disagree
     (:func:`disagreeing_points`), fit another place as well (:func:`ambiguous_points`) or
-    better (:func:`astray_points`); the arguments are :func:`ambiguous_points`'s."""
+    better (:func:`wrong_pair_points`); the arguments are :func:`ambiguous_points`'s."""
     pts, answers = _pair_consensus(u2, point, eop, uv_px, sigma_px, camera, scale, sigma0)
     off = [c for c, a in answers.items() if _two_places(a) or _elsewhere(a)]
     return np.union1d(disagreeing_points(u2, point, scale, sigma0),

@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pipeline.flight.schema import CameraConfig
+from pipeline.run.robustness import final_robust_scale
 from seqat.catalogue import free_nav_sigma
 from seqat.cvframe import (
     cv_pose_from_eop,
@@ -458,10 +459,7 @@ def run_loss_scale(record: Mapping[str, object]) -> float | None:
     ``robust_scale``, narrowed on a contaminated flight: docs/algorithm.md, *The loss of a
     contaminated flight*), or ``robust_scale`` for a run written before it."""
     rob = record.get("robustness")
-    if not isinstance(rob, Mapping):
-        return None
-    scale = rob.get("final_robust_scale", rob.get("robust_scale"))
-    return float(scale) if isinstance(scale, int | float) else None
+    return final_robust_scale(rob) if isinstance(rob, Mapping) else None
 
 
 def _prior_cost(kind: PriorKind, nav_local: FloatArray, cov: FloatArray | None,

@@ -199,9 +199,8 @@ def summarise(record: Mapping[str, object]) -> RobustnessSummary | None:
     images = record.get("images") or []
     assert isinstance(rejections, list) and isinstance(nav, list) and isinstance(images, list)
     in_updates = sum(len(im.get("rejected") or ()) for im in images if isinstance(im, Mapping))
-    critical = rob.get("snooping_critical")
     return RobustnessSummary(
-        snooping_critical=float(critical) if isinstance(critical, int | float) else None,
+        snooping_critical=_number(rob.get("snooping_critical")),
         observations_rejected=len(rejections),
         observations_rejected_in_updates=in_updates,
         images_with_rejections=len({r["image"] for r in rejections}),
@@ -214,13 +213,19 @@ def summarise(record: Mapping[str, object]) -> RobustnessSummary | None:
         points_undetermined=len(rob.get("undetermined_points") or ()),  # type: ignore[arg-type]
         points_off_surface=len(rob.get("off_surface_points") or ()),  # type: ignore[arg-type]
         points_untrusted=len(rob.get("untrusted_points") or ()),  # type: ignore[arg-type]
-        contamination=(float(c) if isinstance(c := rob.get("contamination"), int | float)
-                       else None),
-        robust_scale=_scale(rob.get("robust_scale")),
-        final_robust_scale=_scale(rob.get("final_robust_scale", rob.get("robust_scale"))))
+        contamination=_number(rob.get("contamination")),
+        robust_scale=_number(rob.get("robust_scale")),
+        final_robust_scale=final_robust_scale(rob))
 
 
-def _scale(value: object) -> float | None:
+def final_robust_scale(robustness: Mapping[str, object]) -> float | None:
+    """The image points' robust scale of a run's final adjustment from its ``run.json``
+    ``robustness``: ``final_robust_scale``, or ``robust_scale`` for a run.json written
+    before that field (``None``: least squares)."""
+    return _number(robustness.get("final_robust_scale", robustness.get("robust_scale")))
+
+
+def _number(value: object) -> float | None:
     return float(value) if isinstance(value, int | float) else None
 
 

@@ -15,7 +15,6 @@ from seqat.robust import (
     MIN_PUBLISHED_RAY_ANGLE_DEG,
     ROBUST_SCALE,
     ambiguous_points,
-    astray_points,
     cauchy_cost,
     cauchy_weight,
     contamination,
@@ -25,6 +24,7 @@ from seqat.robust import (
     unsupported_images,
     untrusted_two_ray_points,
     withheld_points,
+    wrong_pair_points,
 )
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
@@ -236,11 +236,11 @@ def test_a_point_whose_rays_fit_two_places_leaves_sim_and_the_finished_seq_r(
         np.testing.assert_allclose(eop[:, 3:], eop_ref[:, 3:], rtol=0, atol=atol_rad)
 
 
-def test_a_point_left_on_a_wrong_pair_is_astray(short_strip: SimulatedFlight) -> None:
+def test_a_point_left_on_a_wrong_pair_is_withheld(short_strip: SimulatedFlight) -> None:
     """Four rays, the first a wrong match on a point 15 m up the second ray: the first two
     meet there, the last three at the true point. An estimate left at the wrong pair (the
-    loss down-weights the two later rays) is astray, not ambiguous (the larger consensus
-    wins); at the true point it is neither."""
+    loss down-weights the two later rays) is left on a wrong pair and withheld, not
+    ambiguous (the larger consensus wins); at the true point it is neither."""
     f = short_strip
     p, rows, _ = _cut_point(f, 4)
     rows = rows[:4]
@@ -252,12 +252,12 @@ def test_a_point_left_on_a_wrong_pair_is_astray(short_strip: SimulatedFlight) ->
     uv[0] = project(e[:1], X_up[None], f.camera)[0]
     sigma = np.full(4, f.sigma_px)
     point = np.zeros(4, dtype=np.int64)
-    for at, astray in ((X_up, [0]), (X, [])):
+    for at, expected in ((X_up, [0]), (X, [])):
         u2 = ray_u2(uv - project(e, np.repeat(at[None], 4, axis=0), f.camera), sigma)
         args = (u2, point, e, uv, sigma, f.camera, ROBUST_SCALE)
-        assert astray_points(*args).tolist() == astray
+        assert wrong_pair_points(*args).tolist() == expected
         assert ambiguous_points(*args).tolist() == []
-        assert withheld_points(*args).tolist() == astray
+        assert withheld_points(*args).tolist() == expected
 
 
 def _blunder(f: SimulatedFlight, px: float) -> SimulatedFlight:
