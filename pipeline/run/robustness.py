@@ -14,6 +14,8 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+from pipeline.run.final_check import FinalCheck
+
 
 @dataclass(frozen=True, kw_only=True)
 class Rejection:
@@ -103,6 +105,10 @@ class RobustnessRecord:
         The robust scale of the image points in the final adjustment: ``robust_scale``, or
         :data:`seqat.robust.CONTAMINATED_SCALE` on such a flight (docs/algorithm.md, *The
         loss of a contaminated flight*).
+    final_check : FinalCheck or None
+        The flight adjusted once more from its GPS/INS when the run finished, and whether
+        that replaced the run's solution (:mod:`pipeline.run.final_check`; ``None``: not
+        run — ``final_check: false``, or a Sim adjusting once at the end).
     """
 
     snooping_critical: float | None
@@ -123,11 +129,13 @@ class RobustnessRecord:
     contamination: float | None = None
     untrusted_points: tuple[str, ...] = ()
     final_robust_scale: float | None = None
+    final_check: FinalCheck | None = None
 
 
 def robustness_record(estimator: object, options: object, *, bridged: Sequence[str] = (),
                       skipped: Sequence[str] = (),
-                      off_surface: Sequence[str] = ()) -> RobustnessRecord:
+                      off_surface: Sequence[str] = (),
+                      final_check: FinalCheck | None = None) -> RobustnessRecord:
     """The record of a finished run.
 
     Parameters
@@ -140,6 +148,8 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
         Dropout image ids.
     off_surface : sequence of str
         Tie points the run left out as off the surface (``RunSession.off_surface``).
+    final_check : FinalCheck or None
+        ``RunSession.final_check``.
     """
     rejections = tuple(Rejection(image=i, point=p, w=round(float(w), 3))
                        for i, p, w in getattr(estimator, "rejections", ()))
@@ -165,7 +175,8 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
                                 getattr(estimator, "contamination", math.nan))) else None),
                             untrusted_points=tuple(getattr(estimator, "untrusted", ())),
                             final_robust_scale=getattr(getattr(estimator, "options", options),
-                                                       "robust_scale", None))
+                                                       "robust_scale", None),
+                            final_check=final_check)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -187,6 +198,7 @@ class RobustnessSummary:
     contamination: float | None = None  # run.json robustness.contamination
     robust_scale: float | None = None  # ... robust_scale (σ; None: least squares)
     final_robust_scale: float | None = None  # ... final_robust_scale
+    final_check: str = "not run"  # ... final_check, in words (check_summary)
 
 
 def summarise(record: Mapping[str, object]) -> RobustnessSummary | None:
@@ -215,7 +227,27 @@ def summarise(record: Mapping[str, object]) -> RobustnessSummary | None:
         points_untrusted=len(rob.get("untrusted_points") or ()),  # type: ignore[arg-type]
         contamination=_number(rob.get("contamination")),
         robust_scale=_number(rob.get("robust_scale")),
-        final_robust_scale=final_robust_scale(rob))
+        final_robust_scale=final_robust_scale(rob),
+        final_check=check_summary(rob.get("final_check")))
+
+
+def check_summary(check: object) -> str:
+    """``run.json`` ``robustness.final_check`` in words (the report's row)."""
+    if not isinstance(check, Mapping):
+        return "not run"
+    if check.get("failed"):
+        return f"no solution ({check['failed']}); the run's kept"
+    worst = _number(check.get("max_moved_sigma"))
+    moved = check.get("moved_images") or []
+    assert isinstance(moved, list)
+    if not moved:
+        return f"agrees (largest difference {worst or 0.0:.1f} σ)"
+    where = f"{len(moved)} image(s) up to {worst or 0.0:.0f} σ apart"
+    warm, cold = _number(check.get("sigma0_warm")), _number(check.get("sigma0_cold"))
+    fit = f"σ0 {warm:.4f} / {cold:.4f}" if warm is not None and cold is not None else ""
+    if check.get("adopted"):
+        return f"wrong minimum: {where}; published the adjustment from the GPS/INS ({fit})"
+    return f"{where}; the run's solution fits as well or better ({fit}), kept"
 
 
 def final_robust_scale(robustness: Mapping[str, object]) -> float | None:
@@ -252,6 +284,7 @@ def robustness_rows(summary: RobustnessSummary) -> list[tuple[str, str]]:
           else f"{100 * summary.contamination:.1f} % / {summary.points_untrusted}")),
         ("robust loss's core, configured / final adjustment",
          f"{_loss(summary.robust_scale)} / {_loss(summary.final_robust_scale)}"),
+        ("final check: the flight adjusted again from its GPS/INS", summary.final_check),
         ("GNSS dropout images bridged / skipped",
          f"{summary.dropout_bridged} / {len(summary.dropout_skipped)}"
          + (f" ({', '.join(summary.dropout_skipped)})" if summary.dropout_skipped else "")),

@@ -16,6 +16,7 @@ import enum
 import hashlib
 import time
 from collections.abc import Sequence
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -87,6 +88,9 @@ class EstimatorConfig:
 
     sequential: SequentialOptions = SequentialOptions()
     sim: SimOptions = SimOptions()
+    #: Adjust the flight once more from its GPS/INS when the run is finished, and publish
+    #: that if the run stopped in a wrong minimum (:mod:`pipeline.run.final_check`).
+    final_check: bool = True
 
 
 def load_estimator_config(path: Path | str) -> EstimatorConfig:
@@ -226,6 +230,13 @@ class RunSummary:
     stopped: str = ""
 
 
+def _finishing(console: Console, enabled: bool) -> AbstractContextManager[object]:
+    """A spinner while the run finishes (final re-linearisation, final check)."""
+    if not enabled:
+        return nullcontext()
+    return console.status("finishing: final adjustment and its check from the GPS/INS")
+
+
 def _progress(console: Console, enabled: bool) -> Progress:
     return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                     TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=console,
@@ -342,7 +353,7 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                 stopped: str = "", robustness: RobustnessRecord | None = None,
                 control: GroundControl | None = None, echo_warnings: bool = True) -> RunSummary:
     """Write the run folder (atomically, all files or none) and summarise the run."""
-    extra = session.tie_point_warnings(solution)
+    extra = session.tie_point_warnings(solution) + session.check_warnings()
     if extra and echo_warnings:
         console = Console(stderr=True, soft_wrap=True)
         for warning in extra:
@@ -509,7 +520,8 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
         session = RunSession(estimator=make_estimator(method, flight.camera, options,
                                                       final_only=final_only,
                                                       control=flight.control),
-                             source=source, listeners=listeners, journal=journal, budget=budget)
+                             source=source, listeners=listeners, journal=journal, budget=budget,
+                             final_check=config.final_check)
         replay_journal(session, source, journal, contents)
         if echo_warnings:  # run.json records them either way
             for warning in flight.warnings:
@@ -531,7 +543,8 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
                 live = session.add(prepared)
                 bar.update(task, advance=1,
                            info=f"{live.update_ms:7.1f} ms  window {live.window_images}")
-        solution = session.finish()
+        with _finishing(console, progress):
+            solution = session.finish()
     except SeqatError:
         journal.discard()  # deterministic: a resume would fail the same way
         release_output_folder(out, created)
@@ -544,7 +557,8 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     dropouts = {iid for row, iid in enumerate(flight.nav.image_ids) if flight.is_dropout(row)}
     robustness = robustness_record(session.estimator, options, bridged=bridged,
                                    skipped=[s.image for s in skipped if s.image in dropouts],
-                                   off_surface=session.off_surface)
+                                   off_surface=session.off_surface,
+                                   final_check=session.final_check)
     inputs = dataclasses.replace(flight.inputs(), skipped=flight.skipped + tuple(skipped))
     return publish_run(out, session, solution, method=method, flight=str(flight.path),
                        inputs=inputs, options=options, final_only=final_only,

@@ -24,6 +24,7 @@ import numpy as np
 
 from pipeline.common.tables import NavTable
 from pipeline.run.budget import BudgetEvent, LatencyBudget
+from pipeline.run.final_check import FinalCheck, FinalChecker, check_warnings
 from pipeline.run.journal import ImageRecord, Journal
 from pipeline.run.sources import PreparedFrame
 from pipeline.run.store import format_observation_lines
@@ -141,13 +142,21 @@ class RunSession:
         Adapts the Seq-R threshold between images.
     on_image : callable or None
         Called with each new image's :class:`ImageLive` (the watch display).
+    final_check : bool
+        When finished, adjust the flight once more from its GPS/INS and publish that if the
+        run stopped in a wrong minimum (:mod:`pipeline.run.final_check`).
     """
 
     def __init__(self, *, estimator: Estimator, source: FrameFeedback,
                  listeners: Sequence[ImageListener] = (), journal: Journal | None = None,
                  budget: LatencyBudget | None = None,
-                 on_image: Callable[[ImageLive, ImageUpdate], None] | None = None) -> None:
+                 on_image: Callable[[ImageLive, ImageUpdate], None] | None = None,
+                 final_check: bool = True) -> None:
         self.estimator = estimator
+        self._checker = FinalChecker.of(estimator) if final_check else None
+        #: The final check's record (None: not run).
+        self.final_check: FinalCheck | None = None
+        self._frames: list[Frame] = []  # every frame the estimator took, for the check
         self.source = source
         self.listeners = tuple(listeners)
         self.journal = journal
@@ -277,18 +286,26 @@ class RunSession:
         self._image_points.setdefault(frame.image_id, []).extend(frame.point_ids)
         self.n_observations += len(frame.point_ids) + frame.n_late
         self.n_late += frame.n_late
+        self._frames.append(frame)
         self._nav_ids.append(frame.image_id)
         self._nav_times.append(time_s)
         self._nav_eops.append(frame.nav_eop)
 
     # ----------------------------------------------------------------------------------------
     def finish(self) -> Solution:
-        """Final solution (sequential: the window re-linearised) without the tie points off
-        the surface (:attr:`off_surface`); listeners' ``on_finish``."""
+        """Final solution (sequential: the window re-linearised; the flight adjusted from
+        its GPS/INS instead when that found the run in a wrong minimum: :attr:`final_check`)
+        without the tie points off the surface (:attr:`off_surface`); listeners'
+        ``on_finish``."""
         finish = getattr(self.estimator, "finish", None)
         if finish is not None:
             finish()
-        solution = self._on_surface(self.estimator.solution())
+        solution = self.estimator.solution()
+        if self._checker is not None:
+            self.final_check, adopted, solution = self._checker.run(self._frames, solution)
+            if adopted is not None:  # its records (rejections, ...) are the run's now
+                self.estimator = adopted
+        solution = self._on_surface(solution)
         for listener in self.listeners:
             listener.on_finish(solution)
         return solution
@@ -321,6 +338,10 @@ class RunSession:
             warnings.append(f"{len(lonely) - MAX_IMAGE_WARNINGS} more image(s) without tie "
                             f"points (of {len(self._image_points)})")
         return warnings
+
+    def check_warnings(self) -> list[str]:
+        """The final check's warning, when it replaced the run's solution."""
+        return check_warnings(self.final_check)
 
     def late_summary(self, solution: Solution) -> dict[str, object]:
         """``run.json`` ``totals.late``: late observations received, the images that got
