@@ -157,6 +157,22 @@ class SimResult:
     model_step: FloatArray | None = None
 
 
+def _deviations(variances: FloatArray) -> FloatArray:
+    """Standard deviations of ``variances``; NaN for a variance <= 0: a block the data do not
+    determine to rounding (a second image 60 deg off: reduced system of condition 1e14; an
+    image of a least-squares block gone astray), no sigma rather than the root of a
+    negative number."""
+    return np.sqrt(np.where(variances > 0, variances, np.nan))
+
+
+def _accepted(new_cost: float, cost: float) -> bool:
+    """A step's cost ``new_cost`` lowers ``cost`` (to :data:`COST_TOLERANCE`) and is finite:
+    from a start outside the models' domain (a point behind a camera: ``cost`` inf) only a
+    step back into it is taken, never one that leaves the camera's (a focal length <= 0,
+    which a start of infinite cost let through: an iterate no camera can be made of)."""
+    return math.isfinite(new_cost) and new_cost <= cost * (1.0 + COST_TOLERANCE)
+
+
 def adjust_block(
     camera: PinholeCamera,
     data: BlockData,
@@ -238,12 +254,12 @@ def adjust_block(
                     continue
                 new_cost = weighted_ssr(camera_at(cam_x + step * dc), data, eop + step * de,
                                         gp + step * delta_p, robust, calib, nav_robust)
-                if new_cost <= cost * (1.0 + COST_TOLERANCE):
+                if _accepted(new_cost, cost):
                     break
-            if new_cost <= cost * (1.0 + COST_TOLERANCE) or damping >= MAX_DAMPING:
+            if _accepted(new_cost, cost) or damping >= MAX_DAMPING:
                 break
             damping = FIRST_DAMPING if damping == 0.0 else damping * DAMPING_FACTOR
-        if new_cost > cost * (1.0 + COST_TOLERANCE):
+        if not _accepted(new_cost, cost):
             raise EstimationError(f"adjustment diverges (cost {new_cost:.4g} > {cost:.4g} even "
                                   f"with damping {damping:g}, iteration {iterations})")
         de, delta_p, dc = step * de, step * delta_p, step * dc
@@ -709,7 +725,7 @@ class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
                 # image 60 deg off: reduced system of condition 1e14): no sigma yet, as
                 # before the first solution, not the root of a negative number
                 var = np.diagonal(res.eop_cofactor[i])
-                sigma = np.sqrt(np.where(var > 0, var, np.nan)) * scale
+                sigma = _deviations(var) * scale
             if res.gp_cofactor is not None:
                 rms_gp = rms_point_sigma(np.diagonal(res.gp_cofactor, axis1=1, axis2=2) * scale**2)
         n_pts = int(self._point_sel.size)
@@ -752,16 +768,14 @@ class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
         for i, iid in enumerate(self._cat.image_ids):
             e = res.eop[i].copy()
             e[:3] += origin  # type: ignore[operator]
-            eops.append(
-                EopEstimate(
-                    image_id=iid, eop=e, sigma=np.sqrt(np.diagonal(res.eop_cofactor[i])) * scale
-                )
-            )
+            eops.append(EopEstimate(image_id=iid, eop=e,
+                                    sigma=_deviations(np.diagonal(res.eop_cofactor[i])) * scale))
         pts = []
         und = res.undetermined
         off = self._disagreeing_points(res)
         for j, gi in enumerate(self._point_sel):
-            if (und is not None and und[j]) or j in off:
+            if ((und is not None and und[j]) or j in off
+                    or not np.all(np.diagonal(res.gp_cofactor[j]) > 0)):
                 continue  # the data do not determine it (docs/algorithm.md)
             pts.append(
                 PointEstimate(

@@ -126,6 +126,18 @@ def test_adjust_block_rejects_non_finite_start(short_strip: SimulatedFlight) -> 
         adjust_block(short_strip.camera, data, eop0, np.full_like(gp0, np.nan))
 
 
+def test_a_step_is_taken_only_into_the_models_domain() -> None:
+    # From a start of infinite cost (a point behind a camera) a step of infinite cost, such as
+    # one whose focal length is <= 0, was taken (inf <= inf): the next camera raised an input
+    # error in the middle of a solve (a least-squares Sim of the real flight's take-off).
+    from seqat.simultaneous import _accepted
+
+    assert not _accepted(np.inf, np.inf)
+    assert not _accepted(np.nan, 10.0)
+    assert _accepted(1e6, np.inf)
+    assert _accepted(10.0, 10.0) and not _accepted(11.0, 10.0)
+
+
 def test_damped_steps_reach_the_minimum_from_far_away(short_strip: SimulatedFlight) -> None:
     """Real flights start far from the solution: attitudes 8 deg off, points 20 m off.
 
@@ -175,3 +187,9 @@ def test_an_image_the_block_does_not_determine_has_no_sigma_not_a_negative_varia
     for frame in frames[:2]:
         sigma = sim.add_frame(frame).eop.sigma  # (RuntimeWarnings are errors in the suite)
     assert np.all(np.isnan(sigma) | (sigma > 0))
+    # the solution too (it took the root: a least-squares Sim of the real flight's take-off
+    # printed the warning and wrote NaN); a point is published only with positive variances
+    sol = sim.solution()
+    for e in sol.eops:
+        assert np.all(np.isnan(e.sigma) | (e.sigma > 0))
+    assert all(np.all(p.sigma_m > 0) for p in sol.points)
