@@ -6,10 +6,10 @@ the last one stopped. When a later image ties a part of the flight that its own 
 determined poorly to the rest (the take-off images of the real block flight, tied to a
 return strip by a dozen points over flat fields), the solve that follows can stop in a
 wrong minimum of the robust cost: on the real flight started at its 6th image, its first
-four images ended 7-14 m and 7 deg from where the whole flight puts them, 17 times their
-published sigma, in both Seq-R and the sequential Sim (docs/benchmarks.md, *A wrong
-minimum*). Gauss-Newton from there stays there; adjusting the flight once, started from its
-GPS/INS, does not.
+four images ended 7-14 m and 7 deg from where the whole flight puts them, 16 times the
+sigma of the flight adjusted at once, in both Seq-R and the sequential Sim
+(docs/benchmarks.md, *A wrong minimum*). Gauss-Newton from there stays there; adjusting the
+flight once, started from its GPS/INS, does not.
 
 So when the run is finished, the flight is adjusted once by Sim from the GPS/INS ("cold").
 Where every image agrees with the run within :data:`MOVED_SIGMA` of the cold sigmas, nothing
@@ -17,7 +17,8 @@ changes (the run's own solution is published). Otherwise the run's EOPs are adju
 same Sim ("warm": the run's minimum, at the cost Sim measures) and the cold solution replaces
 the run's when it fits the data better by :data:`MIN_GAIN` (in units of the variance of unit
 weight) without leaving out an image the warm one keeps. Its cost is one Sim adjustment of
-the flight (4-5 s for 70 images of the real flight), two when images moved.
+the flight (6.6 s for 70 images of the real flight, 3.2 s for the 384 of the paper's
+strip), two when images moved.
 """
 
 from __future__ import annotations
@@ -69,7 +70,9 @@ class FinalCheck:
         ``r_warm (sigma0_warm^2 / sigma0_cold^2 - 1)``: how much better the cold solution
         fits, in variances of unit weight (only when images moved).
     adopted : bool
-        The cold solution was published instead of the run's.
+        The cold solution was published instead of the run's: a gain above
+        :data:`MIN_GAIN`, no image diverged that the warm adjustment keeps, every sigma
+        finite.
     failed : str
         Why the cold (or warm) adjustment gave no solution; empty otherwise.
     """
@@ -116,7 +119,8 @@ class FinalChecker:
     def _adjust(self, frames: Sequence[Frame], start: dict[str, np.ndarray] | None,
                 ) -> tuple[SimultaneousAT, Solution]:
         """Sim, adjusting once, of ``frames`` started at ``start`` (image id -> EOP) or at
-        their GPS/INS (``None``; not at the run's resections, made from its estimates)."""
+        their GPS/INS (``None``; not at the run's resections, made from its estimates, but
+        for a GNSS dropout's, which has no GPS/INS to start from)."""
         sim = SimultaneousAT(self.camera, self.options, refit_every_frame=False,
                              control=self.control)
         for f in frames:
