@@ -30,8 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.run.accuracy import eop_differences
 from seqat.errors import SeqatError
-from seqat.geometry import wrap_angle
 from seqat.sequential import SequentialAT
 from seqat.simultaneous import SimOptions, SimultaneousAT
 from seqat.types import EOP_SIZE, ControlPoint, Frame, PinholeCamera, Solution
@@ -170,24 +170,16 @@ def moved_images(run: Solution, cold: Solution) -> tuple[tuple[str, ...], float]
     """The images of ``run`` whose EOP differs from ``cold``'s by more than
     :data:`MOVED_SIGMA` of ``cold``'s sigmas in some component (angles wrapped), in flight
     order, and the largest such ratio (0 when none is finite)."""
-    ref = {e.image_id: e for e in cold.eops}
-    moved: list[str] = []
-    worst = 0.0
-    for e in run.eops:
-        c = ref.get(e.image_id)
-        if c is None:
-            continue
-        d = np.asarray(e.eop, dtype=np.float64) - c.eop
-        d[3:EOP_SIZE] = wrap_angle(d[3:EOP_SIZE])
-        sigma = np.asarray(c.sigma, dtype=np.float64)
-        ok = np.isfinite(sigma) & (sigma > 0)
-        if not ok.any():
-            continue
-        z = float(np.max(np.abs(d[ok]) / sigma[ok]))
-        worst = max(worst, z)
-        if z > MOVED_SIGMA:
-            moved.append(e.image_id)
-    return tuple(moved), worst
+    rows, d_pos, d_att = eop_differences(
+        tuple(e.image_id for e in cold.eops), np.array([e.eop for e in cold.eops]),
+        tuple(e.image_id for e in run.eops), np.array([e.eop for e in run.eops]))
+    sigma = np.array([cold.eops[r].sigma for r in rows], dtype=np.float64).reshape(-1, EOP_SIZE)
+    sigma[:, 3:] = np.degrees(sigma[:, 3:])  # eop_differences gives degrees
+    d = np.abs(np.concatenate([d_pos, d_att], axis=1))
+    ok = np.isfinite(sigma) & (sigma > 0)
+    z = np.max(np.where(ok, d / np.where(ok, sigma, 1.0), 0.0), axis=1, initial=0.0)
+    moved = tuple(cold.eops[r].image_id for r in rows[z > MOVED_SIGMA])
+    return moved, float(z.max(initial=0.0))
 
 
 def fit_gain(warm: Solution, cold: Solution) -> float:
