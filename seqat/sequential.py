@@ -8,7 +8,8 @@ carried by one of two engines (``SequentialOptions.engine``, docs/algorithm.md, 
 recovers the cofactor blocks it needs from a Cholesky factorisation with the GPs eliminated
 (:mod:`seqat.information`); ``inverse`` is the paper's update of ``N^-1`` (Eq. 10-12).
 
-This module holds the options, the initial stage, the update step and the report; the window
+This module holds the initial stage and the update step (the options:
+:mod:`seqat.sequential_options`); the per-image report (:mod:`seqat.reports`), the window
 cut, departures and re-opening (:mod:`seqat.departures`), the window re-linearisation
 (:mod:`seqat.relinearise`) and the births of tie points (:mod:`seqat.births`) are mixed in.
 
@@ -49,17 +50,16 @@ import dataclasses
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from seqat import snooping
 from seqat.births import BirthMixin
-from seqat.calibration import FreeCamera, SelfCalibration
+from seqat.calibration import FreeCamera
 from seqat.camera_window import CameraMixin
 from seqat.catalogue import free_nav_sigma
-from seqat.departures import DEFAULT_MAX_WINDOW_IMAGES, Departure, DepartureMixin
+from seqat.departures import Departure, DepartureMixin
 from seqat.errors import EstimationError
 from seqat.geometry import wrap_angle
 from seqat.information import window_matrix
@@ -68,9 +68,9 @@ from seqat.late import LateMixin
 from seqat.precision import sigma_scale
 from seqat.relinearise import RelinearisationMixin
 from seqat.reports import RecordedRows, ReportMixin
-from seqat.robust import NAV_ROBUST_SCALE, ROBUST_SCALE, check_scale
 from seqat.rows import Factors, RowBuilder, add_information, snoop_update
-from seqat.simultaneous import Covariance, SimOptions, SimultaneousAT, control_by_id
+from seqat.sequential_options import SequentialOptions
+from seqat.simultaneous import Covariance, SimultaneousAT, control_by_id
 from seqat.types import (
     EOP_SIZE,
     GP_SIZE,
@@ -95,103 +95,6 @@ _BLAS = ThreadpoolController()
 
 #: Data snooping: at most this many reject-and-resolve rounds per image.
 MAX_SNOOPING_ROUNDS = 40
-
-#: Window engines (SequentialOptions.engine).
-ENGINES = ("information", "inverse")
-
-
-@dataclass(frozen=True, kw_only=True)
-class SequentialOptions:
-    """Options of the sequential estimator."""
-
-    correlation_threshold: float | None = 0.1  # None: Seq-F (no window cut)
-    # Seq-R: at most this many images in the window after an update, whatever their
-    # correlations (on a block flown on a weak GPS/INS the whole block stays correlated
-    # and the paper's rule never cuts; also the latency budget's last dial); None: the
-    # paper's rule alone (docs/algorithm.md, *Seq-R: the window*).
-    max_window_images: int | None = DEFAULT_MAX_WINDOW_IMAGES
-    initial_images: int = 10  # images adjusted simultaneously before the sequential stage
-    min_rays: int = 2  # a tie point is born once seen in this many window images
-    min_ray_angle_deg: float = 8.0  # ... and its rays spread at least this much (docs/algorithm.md)
-    max_update_iterations: int = 10  # 1 = the paper's single linearisation
-    iteration_tolerance_px: float = 0.01  # stop when the rows predict the new estimate this well
-    smoothing: bool = True  # Seq-R: keep RTS gains so solution() can smooth departed parameters
-    relinearise_px: float | None = 1.0  # re-linearise the window when its rows are this far off
-    relinearise_iterations: int = 20  # at most this many Gauss-Newton steps per re-linearisation
-    # Drift check (seed 003 §3.2): every this many images the window is re-adjusted from its
-    # observations whatever its linearisation error, and the change is reported (drift_m,
-    # drift_deg of ImageUpdate). None: only when the error exceeds relinearise_px.
-    drift_check_every: int | None = None
-    # Seq-R: a departed GP seen again, or a departed image holding a pending ray of a point
-    # being born, re-enters the window if it left at most this many images ago (0: never).
-    reopen_max_age: int = 1000
-    # Seq-R: departed parameters older than this many images are final: smoothed once more,
-    # then moved to a compact store or handed to the caller's sink, their records dropped.
-    # Memory stays flat with flight length. None: keep everything (exact RTS smoothing).
-    smoothing_lag: int | None = None
-    # Baarda's data snooping of each update's rows (w-test, critical value; 3.29 is
-    # alpha0 = 0.001 two-sided); None: off (the paper). docs/algorithm.md, "Blunders".
-    snooping_critical: float | None = None
-    # "information": the window's information matrix, Cholesky-factorised with its GPs
-    # eliminated after every update (numerically stable, rank checked); "inverse": the
-    # paper's update of the inverse normal matrix (Eq. 10-14). docs/algorithm.md, *Engines*.
-    engine: str = "information"
-    # Robust loss of the image points: least squares within this many sigma, a Cauchy tail
-    # beyond (seqat/robust.py; the initial Sim uses the same); None: least squares (the
-    # paper's estimator). On by default: one wrong tie point must not move the solution.
-    # docs/algorithm.md, *Robust loss*.
-    robust_scale: float | None = ROBUST_SCALE
-    nav_robust_scale: float | None = NAV_ROBUST_SCALE  # ... of the GPS/INS groups (σ per DoF)
-    # finish() re-opens the departed images and GPs (within reopen_max_age) and re-linearises
-    # them with the window: the final values are the nonlinear smoother's (real-time values:
-    # solution(smoothed=False)). Needs smoothing. docs/algorithm.md, *What the window costs*.
-    final_reopen: bool = True
-    # Self-calibration (seqat/calibration.py): the camera's free interior parameters are
-    # estimated with the EOPs, in the initial Sim and then in the window, which they never
-    # leave; None: the camera is fixed. docs/algorithm.md, *Self-calibration*.
-    calibration: SelfCalibration | None = None
-    sim: SimOptions = SimOptions()
-
-    def __post_init__(self) -> None:
-        from seqat.errors import ConfigError
-
-        check_scale("robust_scale", self.robust_scale)
-        check_scale("nav_robust_scale", self.nav_robust_scale)
-        if self.engine not in ENGINES:
-            raise ConfigError(f"engine: expected one of {', '.join(ENGINES)}, "
-                              f"got {self.engine!r}")
-        if self.correlation_threshold is not None and not 0 <= self.correlation_threshold <= 1:
-            raise ConfigError(f"correlation_threshold: expected a value in [0, 1] or null, "
-                              f"got {self.correlation_threshold!r}")
-        if self.max_window_images is not None and self.max_window_images < 2:
-            raise ConfigError(f"max_window_images: expected >= 2 or null, "
-                              f"got {self.max_window_images}")
-        if self.initial_images < 1:
-            raise ConfigError(f"initial_images: expected >= 1, got {self.initial_images}")
-        if self.min_rays < 2:
-            raise ConfigError(f"min_rays: expected >= 2, got {self.min_rays}")
-        if self.max_update_iterations < 1:
-            raise ConfigError(f"max_update_iterations: expected >= 1, "
-                              f"got {self.max_update_iterations}")
-        if self.relinearise_px is not None and not self.relinearise_px > 0:
-            raise ConfigError(f"relinearise_px: expected a positive number or null, "
-                              f"got {self.relinearise_px!r}")
-        if self.snooping_critical is not None and not self.snooping_critical > 0:
-            raise ConfigError(f"snooping_critical: expected a positive number or null, "
-                              f"got {self.snooping_critical!r}")
-        if self.smoothing_lag is not None and self.smoothing_lag < 10:
-            raise ConfigError(f"smoothing_lag: expected >= 10 images or null, "
-                              f"got {self.smoothing_lag}")
-        if self.reopen_max_age < 0:
-            raise ConfigError(f"reopen_max_age: expected >= 0, got {self.reopen_max_age}")
-        if self.drift_check_every is not None and (self.drift_check_every < 1
-                                                   or self.relinearise_px is None):
-            raise ConfigError("drift_check_every: expected >= 1 (and relinearise_px set), "
-                              f"got {self.drift_check_every}")
-        if self.relinearise_iterations < 1:
-            raise ConfigError(f"relinearise_iterations: expected >= 1, "
-                              f"got {self.relinearise_iterations}")
-
 
 class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMixin,
                    ReportMixin, CameraMixin, LateMixin, UndeterminedMixin):
@@ -229,11 +132,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         # later images may determine what the first few do not; the prior keeps it regular).
         calibration = (None if options.calibration is None else
                        dataclasses.replace(options.calibration, hold_undetermined=False))
-        sim_opts = dataclasses.replace(options.sim, min_rays=options.min_rays,
-                                       snooping_critical=options.snooping_critical,
-                                       robust_scale=options.robust_scale,
-                                       nav_robust_scale=options.nav_robust_scale,
-                                       calibration=calibration, untrust_pairs=False)
+        sim_opts = dataclasses.replace(options.sim_options(), calibration=calibration,
+                                       untrust_pairs=False)
         if options.snooping_critical is not None:  # the initial block's points as births
             sim_opts = dataclasses.replace(sim_opts, min_ray_angle_deg=options.min_ray_angle_deg)
         # With data snooping the initial block is adjusted once, when complete: refits of its

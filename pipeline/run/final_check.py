@@ -106,12 +106,7 @@ class FinalChecker:
                 return None
             opts = estimator.options
         elif isinstance(estimator, SequentialAT):
-            seq = estimator.options
-            opts = dataclasses.replace(seq.sim, min_rays=seq.min_rays,
-                                       snooping_critical=seq.snooping_critical,
-                                       robust_scale=seq.robust_scale,
-                                       nav_robust_scale=seq.nav_robust_scale,
-                                       calibration=seq.calibration)
+            opts = estimator.options.sim_options()
         else:
             return None
         return cls(estimator.camera, opts, tuple(estimator.control.values()))

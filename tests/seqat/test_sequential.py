@@ -409,3 +409,25 @@ def test_on_a_weak_gps_block_the_window_cap_bounds_what_the_correlations_do_not(
     assert max(capped) <= 12 + 1 and capped[-1] <= 12
     np.testing.assert_allclose(runs[12][1][:, :3], runs[None][1][:, :3], rtol=0, atol=1e-3)
     np.testing.assert_allclose(runs[12][1][:, 3:], runs[None][1][:, 3:], rtol=0, atol=1e-5)
+
+
+def test_sim_options_carry_every_choice_the_estimators_share() -> None:
+    """The initial block and the final check adjust with ``sim_options()``: every option
+    that SequentialOptions and SimOptions both have reaches it, set away from its default
+    (min_ray_angle_deg aside: the sequential births' screen, which the initial block takes
+    only with data snooping)."""
+    from seqat.calibration import SelfCalibration
+
+    changed = {"calibration": SelfCalibration(free=("f_px",)), "min_rays": 3,
+               "nav_robust_scale": 4.5, "robust_scale": None, "snooping_critical": 3.29}
+    shared = ({f.name for f in dataclasses.fields(SequentialOptions)}
+              & {f.name for f in dataclasses.fields(SimOptions)}) - {"min_ray_angle_deg"}
+    assert shared == set(changed)
+    sim = SequentialOptions(**changed, sim=SimOptions(max_iterations=7)).sim_options()
+    for name, value in changed.items():
+        assert getattr(sim, name) == value, name
+    assert sim.max_iterations == 7  # the rest of ``sim`` stays
+    est = SequentialAT(simulate_strip(StripSimConfig(n_images=3), 1).camera,
+                       SequentialOptions(**changed))
+    assert est._initial is not None and est._initial.options.min_rays == 3
+    assert est._initial.options.snooping_critical == 3.29
