@@ -73,6 +73,12 @@ COST_TOLERANCE = 1e-10
 #: Convergence of the camera's free interior parameters: correction below this fraction of
 #: each one's prior sigma.
 CAMERA_TOLERANCE = 1e-6
+#: The least-squares phase has settled, and the GPS/INS groups are judged for their loss,
+#: when an undamped step lowers the cost by less than this fraction (Ceres' default
+#: function_tolerance), though a point may still creep: under the rays' loss a two-ray
+#: point converged linearly, the steps' tolerances were met after 50 iterations, beyond
+#: ``max_iterations``, and a 5 m GNSS jump was never down-weighted (docs/algorithm.md).
+SETTLED_TOLERANCE = 1e-6
 
 
 #: Data snooping: at most this many reject-and-adjust rounds per solve.
@@ -267,6 +273,7 @@ def adjust_block(
         gp += delta_p
         cam_x = cam_x + dc
         cam = camera_at(cam_x)
+        settled = cost - new_cost <= SETTLED_TOLERANCE * cost
         cost = new_cost
         was_damped = damping > 0.0 or step < 1.0
         damping = damping / DAMPING_FACTOR if damping > MIN_DAMPING else 0.0
@@ -274,16 +281,18 @@ def adjust_block(
         max_ang = np.max(np.abs(de[:, 3:]), initial=0.0)
         # the camera: its correction small against its own prior sigma
         max_cam = np.max(np.abs(dc) / calib.sigma, initial=0.0) if c else 0.0  # type: ignore[union-attr]
-        if (not was_damped and max_pos < options.position_tolerance_m
-                and max_ang < options.angle_tolerance_rad and max_cam < CAMERA_TOLERANCE):
+        small = (max_pos < options.position_tolerance_m
+                 and max_ang < options.angle_tolerance_rad and max_cam < CAMERA_TOLERANCE)
+        if not was_damped and (small or (settled and nav_robust is None)):
             if nav_robust is None and not rloss.nav_within_core(
                     eop_residual(data.nav_eop, eop), data.nav_sigma, options.nav_robust_scale):
                 nav_robust = options.nav_robust_scale
                 cost = weighted_ssr(cam, data, eop, gp, robust, calib, nav_robust)
                 limit = iterations + options.max_iterations
                 continue
-            converged = True
-            break
+            if small:
+                converged = True
+                break
     if was_damped or not converged:
         # the system at the estimate returned: undamped, and (unconverged) linearised where
         # the estimate is, not one step before it. The sequential stage takes this normal
