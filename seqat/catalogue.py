@@ -8,12 +8,13 @@ image, so a late observation changes nothing but the moment it becomes known.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from seqat.errors import InputDataError
-from seqat.types import FloatArray, Frame
+from seqat.types import ControlPoint, FloatArray, Frame
 
 #: Sigma given to free GPS/INS components (Frame.nav_sigma inf): metres and radians.
 FREE_NAV_SIGMA = np.array([1e3, 1e3, 1e3, 1.0, 1.0, 1.0])
@@ -92,3 +93,13 @@ class Catalogue:
             self.obs_uv.append(uv)
             self.obs_sigma.append(frame.sigma_px)
         return i
+
+
+def control_by_id(control: Sequence[ControlPoint]) -> dict[str, ControlPoint]:
+    """The control points by point id; an id given twice is an input error."""
+    out: dict[str, ControlPoint] = {}
+    for cp in control:
+        if cp.point_id in out:
+            raise InputDataError(f"control point {cp.point_id!r} is given twice")
+        out[cp.point_id] = cp
+    return out

@@ -31,3 +31,11 @@ def rms_point_sigma(variances_m2: FloatArray) -> tuple[float, float, float]:
         return (float("nan"),) * 3  # type: ignore[return-value]
     rms = np.sqrt(np.mean(variances_m2, axis=0))
     return (float(rms[0]), float(rms[1]), float(rms[2]))
+
+
+def deviations(variances: FloatArray) -> FloatArray:
+    """Standard deviations of ``variances``; NaN for a variance <= 0: a block the data do not
+    determine to rounding (a second image 60 deg off: reduced system of condition 1e14; an
+    image of a least-squares block gone astray), no sigma rather than the root of a
+    negative number."""
+    return np.sqrt(np.where(variances > 0, variances, np.nan))

@@ -58,7 +58,7 @@ from seqat import snooping
 from seqat.births import BirthMixin
 from seqat.calibration import FreeCamera
 from seqat.camera_window import CameraMixin
-from seqat.catalogue import free_nav_sigma
+from seqat.catalogue import control_by_id, free_nav_sigma
 from seqat.departures import Departure, DepartureMixin
 from seqat.errors import EstimationError
 from seqat.geometry import wrap_angle
@@ -70,7 +70,7 @@ from seqat.relinearise import RelinearisationMixin
 from seqat.reports import RecordedRows, ReportMixin
 from seqat.rows import Factors, RowBuilder, add_information, snoop_update
 from seqat.sequential_options import SequentialOptions
-from seqat.simultaneous import Covariance, SimultaneousAT, control_by_id
+from seqat.simultaneous import Covariance, SimultaneousAT
 from seqat.types import (
     EOP_SIZE,
     GP_SIZE,

@@ -204,6 +204,37 @@ class RestartMixin:
                           sg[mine])
         return rloss.unsupported_images(u2, oi[mine], self.options.robust_scale).size > 0
 
+    def _rejected_images(self) -> list[int]:
+        """The images (catalogue indices, in flight order) most of whose rays in the last
+        solution's block lie far beyond the loss's core (:meth:`_rejected_by_rays`, for every
+        image at once), those left out (diverged) aside."""
+        sel = self._point_sel
+        if sel.size == 0:
+            return []
+        _, oi, op, uv, sg = self._observations()
+        pos = np.minimum(np.searchsorted(sel, op), sel.size - 1)  # sel is sorted
+        inb = sel[pos] == op
+        oi, pos = oi[inb], pos[inb]
+        u2 = rloss.ray_u2(uv[inb] - project(self._eop_est[oi], self._gp_est[pos],
+                                            self.camera_now), sg[inb])
+        bad = rloss.unsupported_images(u2, oi, self.options.robust_scale)
+        return [int(i) for i in bad if int(i) not in self._diverged]
+
+    def _start_rejected_again(self, cov: Covariance) -> None:
+        """After the last solve (:meth:`export_state`; :meth:`solution` of a Sim adjusting
+        once): each image whose rays reject the solution is started again
+        (:meth:`_start_again`), once, in flight order. A refit tests only the image just
+        added, an adjustment at the end none: a tight INS 45 deg off (sigma 0.1 deg) on the
+        second image of a strip, where a block of two fits it, kept that image at its INS to
+        the end with all its 73 rays rejected, sigma 0.1 deg, and nothing named
+        (docs/algorithm.md, *A poor start*). Not after each refit: in a block of two, where
+        any relative orientation fits, the image with the right INS looked rejected, was
+        left out, and every later image with it."""
+        tried: set[int] = set()
+        while todo := [i for i in self._rejected_images() if i not in tried]:
+            tried.add(todo[0])
+            self._start_again(todo[0], cov)
+
     def _start_again(self, i: int, cov: Covariance, *, rejected: bool = True,
                      blame: bool = True) -> int:
         """Image ``i``, just added, is one most of whose rays reject the solution: the

@@ -22,8 +22,8 @@ import numpy as np
 
 from seqat import robust as rloss
 from seqat.calibration import FreeCamera, SelfCalibration, correlation, to_hold
-from seqat.catalogue import Catalogue
-from seqat.errors import EstimationError, InputDataError
+from seqat.catalogue import Catalogue, control_by_id
+from seqat.errors import EstimationError
 from seqat.geometry import depth, intersect_rays, project
 from seqat.normals import (
     BlockData,
@@ -39,7 +39,7 @@ from seqat.normals import (
     linearise,
     weighted_ssr,
 )
-from seqat.precision import rms_point_sigma, sigma_scale
+from seqat.precision import deviations, rms_point_sigma, sigma_scale
 from seqat.robust import ROBUST_SCALE, cauchy_weight
 from seqat.sim_points import PointChecksMixin
 from seqat.sim_restart import RestartMixin
@@ -161,14 +161,6 @@ class SimResult:
     #: Not converged: the step from the estimate to the minimum of the model linearised
     #: there, over ``[EOPs, camera, GPs]`` (``full_normal``'s layout); None when converged.
     model_step: FloatArray | None = None
-
-
-def _deviations(variances: FloatArray) -> FloatArray:
-    """Standard deviations of ``variances``; NaN for a variance <= 0: a block the data do not
-    determine to rounding (a second image 60 deg off: reduced system of condition 1e14; an
-    image of a least-squares block gone astray), no sigma rather than the root of a
-    negative number."""
-    return np.sqrt(np.where(variances > 0, variances, np.nan))
 
 
 def _accepted(new_cost: float, cost: float) -> bool:
@@ -371,16 +363,6 @@ def adjust_block(
 EXPORT_MORE_SOLVES = 4
 
 
-def control_by_id(control: Sequence[ControlPoint]) -> dict[str, ControlPoint]:
-    """The control points by point id; an id given twice is an input error."""
-    out: dict[str, ControlPoint] = {}
-    for cp in control:
-        if cp.point_id in out:
-            raise InputDataError(f"control point {cp.point_id!r} is given twice")
-        out[cp.point_id] = cp
-    return out
-
-
 @dataclass(frozen=True, kw_only=True, eq=False)
 class SimState:
     """Everything a simultaneous solution knows, for handing over to the sequential stage.
@@ -579,7 +561,10 @@ class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
         if self._origin is None:
             raise EstimationError("no frames were added")
         self.free_camera()
-        res = self._solve(covariance)
+        self._solve(covariance)
+        self._start_rejected_again(covariance)
+        res = self._result
+        assert res is not None
         # The sequential stage takes this solution for the minimum of its model (its
         # information times its estimate is its information vector): from a solve stopped
         # short, the first re-linearisation's kept information was wrong, and Seneca's
@@ -734,7 +719,7 @@ class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
                 # image 60 deg off: reduced system of condition 1e14): no sigma yet, as
                 # before the first solution, not the root of a negative number
                 var = np.diagonal(res.eop_cofactor[i])
-                sigma = _deviations(var) * scale
+                sigma = deviations(var) * scale
             if res.gp_cofactor is not None:
                 rms_gp = rms_point_sigma(np.diagonal(res.gp_cofactor, axis1=1, axis2=2) * scale**2)
         n_pts = int(self._point_sel.size)
@@ -769,6 +754,8 @@ class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
             raise EstimationError("no frames were added")
         if self._dirty or self._result is None or self._result.eop_cofactor is None:
             self._solve(Covariance.BLOCKS)
+        if not self.refit_every_frame:  # (a refit tests each image as it comes: _refit)
+            self._start_rejected_again(Covariance.BLOCKS)
         res = self._result
         assert res is not None and res.eop_cofactor is not None and res.gp_cofactor is not None
         scale = sigma_scale(res.sigma0, res.redundancy)
@@ -778,7 +765,7 @@ class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
             e = res.eop[i].copy()
             e[:3] += origin  # type: ignore[operator]
             eops.append(EopEstimate(image_id=iid, eop=e,
-                                    sigma=_deviations(np.diagonal(res.eop_cofactor[i])) * scale))
+                                    sigma=deviations(np.diagonal(res.eop_cofactor[i])) * scale))
         pts = []
         und = res.undetermined
         off = self._disagreeing_points(res)

@@ -16,9 +16,12 @@ Where every image agrees with the run within :data:`MOVED_SIGMA` of the cold sig
 changes (the run's own solution is published). Otherwise the run's EOPs are adjusted by the
 same Sim ("warm": the run's minimum, at the cost Sim measures) and the cold solution replaces
 the run's when it fits the data better by :data:`MIN_GAIN` (in units of the variance of unit
-weight) without leaving out an image the warm one keeps. Its cost is one Sim adjustment of
-the flight (6.6 s for 70 images of the real flight, 3.2 s for the 384 of the paper's
-strip), two when images moved.
+weight) without leaving out an image the warm one keeps. When the warm adjustment itself
+leaves the run's EOPs (an image beyond :data:`MOVED_SIGMA` of its sigmas), the run is no
+minimum of Sim's cost at all (an image it carried by a wrong INS, its rays left out, which
+Sim places by its rays): the better fitting of the two adjustments is published, on the
+same condition. Its cost is one Sim adjustment of the flight (6.6 s for 70 images of the
+real flight, 3.2 s for the 384 of the paper's strip), two when images moved.
 """
 
 from __future__ import annotations
@@ -69,10 +72,16 @@ class FinalCheck:
     gain : float or None
         ``r_warm (sigma0_warm^2 / sigma0_cold^2 - 1)``: how much better the cold solution
         fits, in variances of unit weight (only when images moved).
+    warm_moved_images : tuple[str, ...]
+        Images the warm adjustment moved beyond :data:`MOVED_SIGMA` of its sigmas from the
+        run's EOPs it started at (the run is no minimum of Sim's cost there).
     adopted : bool
-        The cold solution was published instead of the run's: a gain above
-        :data:`MIN_GAIN`, no image diverged that the warm adjustment keeps, every sigma
-        finite.
+        An adjustment of the check was published instead of the run's solution: the cold
+        one with a gain above :data:`MIN_GAIN`, or, when the warm one left the run's EOPs,
+        the better fitting of the two; either only when it diverges no image the other
+        keeps and every sigma is finite.
+    published : str
+        ``"run"``, ``"cold"`` or ``"warm"``: whose solution the run's files hold.
     failed : str
         Why the cold (or warm) adjustment gave no solution; empty otherwise.
     """
@@ -83,7 +92,9 @@ class FinalCheck:
     sigma0_warm: float | None = None
     sigma0_cold: float | None = None
     gain: float | None = None
+    warm_moved_images: tuple[str, ...] = ()
     adopted: bool = False
+    published: str = "run"
     failed: str = ""
 
 
@@ -133,8 +144,8 @@ class FinalChecker:
         Returns
         -------
         (FinalCheck, SimultaneousAT or None, Solution)
-            The record; the cold adjustment's estimator and solution when adopted, else
-            ``None`` and ``solution``.
+            The record; the published adjustment's estimator and solution when one is
+            adopted, else ``None`` and ``solution``.
         """
         t0 = time.perf_counter()
         try:
@@ -153,12 +164,19 @@ class FinalChecker:
                               moved_images=moved, sigma0_cold=sol_c.sigma0,
                               failed=f"warm: {err}"), None, solution
         gain = fit_gain(sol_w, sol_c)
-        adopted = (gain > MIN_GAIN and set(cold.diverged) <= set(warm.diverged)
-                   and all(np.all(np.isfinite(e.sigma) & (e.sigma > 0)) for e in sol_c.eops))
+        left = moved_images(solution, sol_w)[0]
+        pick: tuple[str, SimultaneousAT, Solution, SimultaneousAT] | None = None
+        if gain > (0.0 if left else MIN_GAIN):
+            pick = ("cold", cold, sol_c, warm)
+        elif left:  # the run is no minimum: Sim from its own EOPs fits better
+            pick = ("warm", warm, sol_w, cold)
+        adopted = pick is not None and set(pick[1].diverged) <= set(pick[3].diverged) and all(
+            np.all(np.isfinite(e.sigma) & (e.sigma > 0)) for e in pick[2].eops)
         check = FinalCheck(seconds=time.perf_counter() - t0, max_moved_sigma=worst,
                            moved_images=moved, sigma0_warm=sol_w.sigma0,
-                           sigma0_cold=sol_c.sigma0, gain=gain, adopted=adopted)
-        return (check, cold, sol_c) if adopted else (check, None, solution)
+                           sigma0_cold=sol_c.sigma0, gain=gain, warm_moved_images=left,
+                           adopted=adopted, published=pick[0] if adopted and pick else "run")
+        return (check, pick[1], pick[2]) if adopted and pick else (check, None, solution)
 
 
 def moved_images(run: Solution, cold: Solution) -> tuple[tuple[str, ...], float]:
@@ -193,7 +211,11 @@ def check_warnings(check: FinalCheck | None) -> list[str]:
         return []
     n = len(check.moved_images)
     names = ", ".join(check.moved_images[:5]) + (f" and {n - 5} more" if n > 5 else "")
+    if check.published == "warm":
+        how = (f"the run's estimates adjusted again, which Sim moves from them (sigma0 "
+               f"{check.sigma0_warm:.4f}; from the GPS/INS {check.sigma0_cold:.4f})")
+    else:
+        how = (f"the flight adjusted from its GPS/INS, which fits the data better (sigma0 "
+               f"{check.sigma0_warm:.4f} -> {check.sigma0_cold:.4f})")
     return [f"final check: the sequential solution was in a wrong minimum ({n} image(s) up "
-            f"to {check.max_moved_sigma:.0f} sigma away: {names}); published the flight "
-            f"adjusted from its GPS/INS, which fits the data better (sigma0 "
-            f"{check.sigma0_warm:.4f} -> {check.sigma0_cold:.4f})"]
+            f"to {check.max_moved_sigma:.0f} sigma away: {names}); published {how}"]

@@ -239,14 +239,16 @@ def check_summary(check: object) -> str:
         return f"no solution ({check['failed']}); the run's kept"
     worst = _number(check.get("max_moved_sigma"))
     moved = check.get("moved_images") or []
-    assert isinstance(moved, list)
+    assert isinstance(moved, (list, tuple))
     if not moved:
         return f"agrees (largest difference {worst or 0.0:.1f} σ)"
     where = f"{len(moved)} image(s) up to {worst or 0.0:.0f} σ apart"
     warm, cold = _number(check.get("sigma0_warm")), _number(check.get("sigma0_cold"))
     fit = f"σ0 {warm:.4f} / {cold:.4f}" if warm is not None and cold is not None else ""
     if check.get("adopted"):
-        return f"wrong minimum: {where}; published the adjustment from the GPS/INS ({fit})"
+        whose = ("the run's estimates adjusted again" if check.get("published") == "warm"
+                 else "the adjustment from the GPS/INS")
+        return f"wrong minimum: {where}; published {whose} ({fit})"
     return f"{where}; the run's solution fits as well or better ({fit}), kept"
 
 

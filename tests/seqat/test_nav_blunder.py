@@ -70,8 +70,9 @@ def _assert_placed_by_its_rays(flight: SimulatedFlight, eop: np.ndarray, clean: 
 
 @pytest.mark.parametrize(("k", "att_deg", "resection"), [
     (3, (0.0, 45.0, 0.0), False), (3, (0.0, 45.0, 0.0), True), (1, (0.0, 0.0, 150.0), False),
-    (5, (0.0, 0.0, 90.0), False)],
-    ids=["4th-pitch-45", "4th-pitch-45-resected", "2nd-heading-150", "6th-heading-90"])
+    (5, (0.0, 0.0, 90.0), False), (1, (0.0, 45.0, 0.0), False), (2, (40.0, 0.0, 0.0), False)],
+    ids=["4th-pitch-45", "4th-pitch-45-resected", "2nd-heading-150", "6th-heading-90",
+         "2nd-pitch-45", "3rd-roll-40"])
 def test_a_wrong_gps_ins_in_the_initial_block_is_left_free_and_named(
         dense_strip: SimulatedFlight, clean: np.ndarray, k: int,
         att_deg: tuple[float, float, float], resection: bool) -> None:
@@ -82,7 +83,10 @@ def test_a_wrong_gps_ins_in_the_initial_block_is_left_free_and_named(
     ended 150 deg off with a sigma of 0.1 deg, silently. Now a GPS/INS group far beyond
     the loss's core at the image's resection on points three other images determine (or,
     on two-ray points, the culprit's after the blame) is left free and named, and the
-    image is placed by its rays."""
+    image is placed by its rays. The second image's pitch 45 deg off and the third's roll
+    40 deg off ended at their INS with all their rays rejected, unnamed (a block of two or
+    three fits a tight INS): now the initial block, when handed over, starts again every
+    image its rays reject."""
     f = dense_strip
     est, eop = _run(f, _blunder(f, k, att_deg, resection))
     image = f"img_{k + 1:04d}"
@@ -106,4 +110,28 @@ def test_a_wrong_gps_ins_in_the_sequential_stage_gives_way_to_the_resection(
     assert est.diverged == []
     named = [(g, w) for image, g, w in est.nav_robust if image == f"img_{k + 1:04d}"]
     assert [g for g, _ in named] == ["attitude"] and named[0][1] < 0.01
+    _assert_placed_by_its_rays(f, eop, clean, k)
+
+
+@pytest.mark.parametrize(("k", "att_deg"), [(1, (0.0, 45.0, 0.0)), (2, (40.0, 0.0, 0.0)),
+                                            (1, (0.0, 0.0, 90.0)), (20, (0.0, 0.0, 150.0))],
+                         ids=["2nd-pitch-45", "3rd-roll-40", "2nd-heading-90",
+                              "21st-heading-150"])
+def test_sim_adjusting_once_starts_again_the_images_their_rays_reject(
+        dense_strip: SimulatedFlight, clean: np.ndarray, k: int,
+        att_deg: tuple[float, float, float]) -> None:
+    """Sim adjusting the flight once, from its GPS/INS (``seqat run --method sim
+    --final-only``, and the final check's cold adjustment): before, the image stayed at its
+    wrong INS with all its rays rejected (44.8, 39.7 and 89.8 deg off, nothing named). Now
+    each image most of whose rays reject the solution is started again at its resection
+    and its GPS/INS group, far from it, is left free and named."""
+    from seqat.simultaneous import SimOptions, SimultaneousAT
+
+    f = dense_strip
+    sim = SimultaneousAT(f.camera, SimOptions(), refit_every_frame=False)
+    for frame in _blunder(f, k, att_deg, resection=False):
+        sim.add_frame(frame)
+    eop = np.array([e.eop for e in sim.solution().eops])
+    assert sim.diverged == []
+    assert sim.nav_downweighted == [(f"img_{k + 1:04d}", "attitude")]
     _assert_placed_by_its_rays(f, eop, clean, k)

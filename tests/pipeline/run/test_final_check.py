@@ -142,6 +142,48 @@ def test_a_check_that_fails_leaves_the_run_standing(monkeypatch: pytest.MonkeyPa
     assert check_summary(dataclasses.asdict(check)).startswith("no solution (cold: adjustment")
 
 
+@pytest.mark.parametrize(("warm_z", "sigma0_warm", "diverged", "published"), [
+    (0.0, 1.01, ((), ()), "run"),      # the run a minimum; cold better by 20 < 25: kept
+    (0.0, 1.2, ((), ()), "cold"),      # ... by 440: the cold one
+    (0.0, 1.2, ((), ("a",)), "run"),   # ... but it leaves out an image the warm one keeps
+    (5.0, 0.99, ((), ()), "warm"),     # Sim leaves the run's EOPs; warm fits better
+    (5.0, 1.01, ((), ()), "cold"),     # ... cold better, if only by 20
+    (5.0, 0.99, (("b",), ()), "run"),  # ... the warm one leaves out an image cold keeps
+], ids=["cold-not-better-enough", "cold", "cold-diverges-more", "warm", "cold-after-warm-left",
+        "warm-diverges-more"])
+def test_which_solution_the_check_publishes(monkeypatch: pytest.MonkeyPatch, warm_z: float,
+                                            sigma0_warm: float,
+                                            diverged: tuple[tuple[str, ...], ...],
+                                            published: str) -> None:
+    """Known answers of the decision: the cold adjustment (image b 10 sigma from the run)
+    replaces the run when it fits better than the warm one by more than MIN_GAIN; when the
+    warm one itself left the run's EOPs (``warm_z`` sigma), the better fitting of the two
+    is published; never one that leaves out an image the other keeps."""
+    from types import SimpleNamespace
+
+    cam = PinholeCamera(f_px=1000.0, cx_px=500.0, cy_px=400.0, width_px=1000, height_px=800)
+    checker = FinalChecker.of(SimultaneousAT(cam))
+    assert checker is not None
+    sig = [0.1] * 3 + [0.01] * 3
+    run = _solution([("a", [0.0] * 6, sig), ("b", [0.0] * 6, sig)])
+    cold = _solution([("a", [0.0] * 6, sig), ("b", [1.0] + [0.0] * 5, sig)], 1.0, 1000)
+    warm = _solution([("a", [0.0] * 6, sig), ("b", [0.1 * warm_z] + [0.0] * 5, sig)],
+                     sigma0_warm, 1000)
+    est = {None: SimpleNamespace(diverged=list(diverged[1])),
+           "warm": SimpleNamespace(diverged=list(diverged[0]))}
+    monkeypatch.setattr(checker, "_adjust", lambda frames, start: (
+        (est[None], cold) if start is None else (est["warm"], warm)))
+    check, adopted, solution = checker.run([], run)
+    assert check.moved_images == ("b",) and check.published == published
+    assert check.adopted == (published != "run")
+    assert check.warm_moved_images == (("b",) if warm_z > MOVED_SIGMA else ())
+    assert solution is {"run": run, "cold": cold, "warm": warm}[published]
+    assert adopted is {"run": None, "cold": est[None], "warm": est["warm"]}[published]
+    if published != "run":
+        assert check_warnings(check)[0].startswith("final check: the sequential solution was")
+        assert check_summary(dataclasses.asdict(check)).startswith("wrong minimum")
+
+
 def test_the_cold_start_is_the_gps_ins_but_for_a_dropout(monkeypatch: pytest.MonkeyPatch
                                                           ) -> None:
     cam = PinholeCamera(f_px=1000.0, cx_px=500.0, cy_px=400.0, width_px=1000, height_px=800)
