@@ -3,7 +3,8 @@
 :class:`Catalogue` keeps every frame's nav and image points, and the *late observations* a
 frame carries (observations of earlier images the tracker emitted only with this frame,
 docs/algorithm.md, *Late observations*): Sim takes them as ordinary observations of their
-image, so a late observation changes nothing but the moment it becomes known.
+image, so a late observation changes nothing but the moment it becomes known. Also
+:func:`control_by_id`, the ground control by point id (Sim and the sequential estimators).
 """
 
 from __future__ import annotations

@@ -179,6 +179,7 @@ def adjust_block(
     options: SimOptions = SimOptions(),
     covariance: Covariance = Covariance.BLOCKS,
     calib: CameraBlock | None = None,
+    nav_on: bool = False,
 ) -> SimResult:
     """Simultaneous adjustment by Gauss-Newton (seed 000 §2.1).
 
@@ -196,6 +197,9 @@ def adjust_block(
     calib : CameraBlock, optional
         Self-calibration: these interior parameters of ``camera`` (its values the initial
         ones) are estimated too, with their prior.
+    nav_on : bool
+        The GPS/INS loss from the first iteration: the start is a solution of the block
+        that found GPS/INS outliers (the datum set), not a least-squares phase first.
 
     Returns
     -------
@@ -224,8 +228,8 @@ def adjust_block(
     was_damped = False
     robust = options.robust_scale
     # GPS/INS least squares until converged (the datum), then robust if any is off (robust.py)
-    nav_robust: float | None = None
-    cost = weighted_ssr(cam, data, eop, gp, robust, calib)
+    nav_robust = options.nav_robust_scale if nav_on else None
+    cost = weighted_ssr(cam, data, eop, gp, robust, calib, nav_robust)
     limit = options.max_iterations
     iterations = 0
     while iterations < limit:
@@ -446,6 +450,7 @@ class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
         #: carried by their GPS/INS, their rays left out (seqat.sim_restart).
         self.diverged: list[str] = []
         self._diverged: set[int] = set()
+        self._nav_on = False  # this solve found GPS/INS outliers (_adjust_and_keep)
         self._readmit_tried: dict[int, int] = {}  # diverged image -> its points tried on
 
     @property
@@ -588,6 +593,7 @@ class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
 
     def _solve(self, covariance: Covariance) -> SimResult:
         critical = self.options.snooping_critical
+        self._nav_on = False  # its first adjustment: GPS/INS least squares first
         for rounds in range(MAX_SNOOPING_ROUNDS + 1):
             data, sel, eop0, gp0, cat_idx = self._block()
             res = self._adjust_and_keep(data, sel, eop0, gp0, covariance)
@@ -642,6 +648,9 @@ class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
         critical = self.options.snooping_critical
         res = self._adjust(data, eop0, gp0,
                            Covariance.FULL if critical is not None else covariance)
+        # the next solve of this _solve starts here: GPS/INS outliers found stay judged (a
+        # least-squares phase again pulled a 5 m jump back in, creeping past max_iterations)
+        self._nav_on = self._nav_on or bool(np.any(res.nav_weight < 1.0))  # type: ignore[operator]
         self._result, self._point_sel = res, sel
         self._eop_est, self._gp_est = res.eop.copy(), res.gp.copy()
         return res
@@ -668,7 +677,8 @@ class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
                 # start from the last estimate of the free parameters, the prior of the others
                 start = FreeCamera(self.camera, calib.index).at(
                     self.camera_now.intrinsics[calib.index])
-            res = adjust_block(start, data, eop0, gp0, self.options, covariance, calib)
+            res = adjust_block(start, data, eop0, gp0, self.options, covariance, calib,
+                               self._nav_on)
             if calib is None or calibration is None or not calibration.hold_undetermined:
                 break
             assert res.camera_cofactor is not None and res.camera is not None
