@@ -227,7 +227,8 @@ def adjust_block(
     damping = 0.0
     was_damped = False
     robust = options.robust_scale
-    # GPS/INS least squares until converged (the datum), then robust if any is off (robust.py)
+    # GPS/INS least squares until converged or settled (the datum), then robust if any is off
+    # (robust.py); robust from the start when ``nav_on``
     nav_robust = options.nav_robust_scale if nav_on else None
     cost = weighted_ssr(cam, data, eop, gp, robust, calib, nav_robust)
     limit = options.max_iterations
