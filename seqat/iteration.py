@@ -123,6 +123,9 @@ class IterationMixin:
                 if hold:  # the resection, least squares: then the window too, from there
                     if last or lin < opts.iteration_tolerance_px:
                         hold, start = False, iterations
+                        # a GPS/INS group far from the resection its rays hold is wrong (a
+                        # GNSS jump of 100 m): its loss on from the first robust iterate
+                        builder.nav_loss_at(x1t, x2_0 + d2, image, born)
                     continue
                 converged = lin < opts.iteration_tolerance_px and builder.settled()
                 if not (last or converged):

@@ -113,6 +113,27 @@ def test_a_wrong_gps_ins_in_the_sequential_stage_gives_way_to_the_resection(
     _assert_placed_by_its_rays(f, eop, clean, k)
 
 
+@pytest.mark.parametrize("jump_m", [20.0, 100.0])
+def test_a_gnss_jump_far_beyond_every_sigma_gives_way_to_the_rays(
+        dense_strip: SimulatedFlight, clean: np.ndarray, jump_m: float) -> None:
+    """Image 21's GNSS position ``jump_m`` off (sigma 0.3 m), no resection start (the
+    tracker resects the attitude at the GPS position, which fails there): 100 m sent the
+    update beyond 100 sigma of the GPS/INS from every start, and the image was diverged,
+    carried by the wrong position with its rays left out. Now the update's resection with
+    the window held turns the loss of the GPS/INS group far from it on, and the rays place
+    the image; the group is named with weight ~0."""
+    f, k = dense_strip, 20
+    frames = list(f.frames())
+    nav = frames[k].nav_eop.copy()
+    nav[:3] += jump_m * np.array([0.6, 0.8, 0.0])
+    frames[k] = dataclasses.replace(frames[k], nav_eop=nav)
+    est, eop = _run(f, frames)
+    assert est.diverged == []
+    named = [(g, w) for image, g, w in est.nav_robust if image == f"img_{k + 1:04d}"]
+    assert [g for g, _ in named] == ["position"] and named[0][1] < 0.01
+    _assert_placed_by_its_rays(f, eop, clean, k)
+
+
 @pytest.mark.parametrize(("k", "att_deg"), [(1, (0.0, 45.0, 0.0)), (2, (40.0, 0.0, 0.0)),
                                             (1, (0.0, 0.0, 90.0)), (20, (0.0, 0.0, 150.0))],
                          ids=["2nd-pitch-45", "3rd-roll-40", "2nd-heading-90",
