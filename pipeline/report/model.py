@@ -122,9 +122,12 @@ def camera_estimate_text(run: RunFolder) -> str:
     v, sg, prior = est["values"], est["sigma"], est["prior"]
     parts = [f"{n} {v[n]:.5g} ± {sg[n]:.2g} (prior {prior[n]:.5g})" for n in est["free"]]
     held = est.get("held") or []
+    because = "not determined, or not significant"
+    if not parts:  # every free parameter held: the camera as given
+        return f"self-calibration: every parameter held at the prior ({because}): " + (
+            ", ".join(held))
     text = "self-calibrated: " + ", ".join(parts)
-    return text + (f"; held at the prior (not determined, or not significant): "
-                   f"{', '.join(held)}" if held else "")
+    return text + (f"; held at the prior ({because}): {', '.join(held)}" if held else "")
 
 
 @dataclass(frozen=True, kw_only=True)

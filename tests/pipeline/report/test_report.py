@@ -17,7 +17,12 @@ from pipeline.flight.camera import pinhole_camera
 from pipeline.flight.folder import read_truth
 from pipeline.reference.stage import run_reference
 from pipeline.report.asprs import ASPRS_MIN_CHECKPOINTS, asprs_table
-from pipeline.report.model import REPORT_HTML, REPORT_JSON, precision_plateau
+from pipeline.report.model import (
+    REPORT_HTML,
+    REPORT_JSON,
+    camera_estimate_text,
+    precision_plateau,
+)
 from pipeline.report.stage import make_report
 from pipeline.run.budget import MIN_WINDOW_CAP
 from pipeline.run.runner import Method, run_flight
@@ -280,3 +285,22 @@ def test_check_point_pixel_outside_the_image_is_an_error(sim_flight: Path,
     finally:
         (sim_flight / CHECKPOINTS_FILE).unlink()
         obs.unlink()
+
+
+def test_camera_estimate_text_names_what_was_estimated_and_what_held() -> None:
+    """The report's camera line: the estimated parameters with sigma and prior, those held;
+    every parameter held reads as such (it read "self-calibrated: ; held ...")."""
+    from types import SimpleNamespace
+
+    def text(free: list[str], held: list[str]) -> str:
+        names = free + held
+        est = {"free": free, "held": held, "values": dict.fromkeys(names, 1000.0),
+               "sigma": dict.fromkeys(names, 2.0), "prior": dict.fromkeys(names, 999.0)}
+        return camera_estimate_text(SimpleNamespace(record={"camera_estimate": est}))  # type: ignore[arg-type]
+
+    assert text(["f_px"], ["k1"]) == ("self-calibrated: f_px 1000 ± 2 (prior 999); held at "
+                                      "the prior (not determined, or not significant): k1")
+    assert text(["f_px"], []) == "self-calibrated: f_px 1000 ± 2 (prior 999)"
+    assert text([], ["f_px", "k1"]) == ("self-calibration: every parameter held at the prior "
+                                        "(not determined, or not significant): f_px, k1")
+    assert camera_estimate_text(SimpleNamespace(record={})) == ""  # type: ignore[arg-type]
