@@ -124,7 +124,7 @@ class IterationMixin:
                     if last or lin < opts.iteration_tolerance_px:
                         hold, start = False, iterations
                         # a GPS/INS group far from the resection its rays hold is wrong (a
-                        # GNSS jump of 100 m): its loss on from the first robust iterate
+                        # GNSS jump of 100 m): its loss on from the next iterate
                         builder.nav_loss_at(x1t, x2_0 + d2, image, born)
                     continue
                 converged = lin < opts.iteration_tolerance_px and builder.settled()

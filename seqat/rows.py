@@ -182,7 +182,9 @@ class RowBuilder:
 
     The attribute ``robust`` (set by the caller per iteration: the first one is least
     squares) switches the robust losses; ``nav_on`` holds the GPS/INS groups whose loss
-    :meth:`settled` has turned on.
+    :meth:`settled` or :meth:`nav_loss_at` has turned on, ``nav_wrong`` those of them
+    :meth:`nav_loss_at` found wrong before any iterate: their loss applies to the
+    least-squares iterates too.
     """
 
     def __init__(
@@ -204,6 +206,8 @@ class RowBuilder:
         self.robust = True
         # the GPS/INS loss per group: on once the rows have converged without it (settled)
         self.nav_on = np.zeros(len(NAV_GROUPS), dtype=bool)
+        # ... and those found wrong at a start the rays hold (nav_loss_at): on from there
+        self.nav_wrong = np.zeros(len(NAV_GROUPS), dtype=bool)
         self.nav, self.nav_sigma = nav, nav_sigma
         y2 = [o for o in obs if o[4]]
         y3 = [o for o in obs if not o[4]]
@@ -260,8 +264,9 @@ class RowBuilder:
         dz[3:] = wrap_angle(dz[3:])
         nav_end = 2 * k + EOP_SIZE
         ell[2 * k : nav_end] = dz
+        on = self.nav_on if self.robust else self.nav_wrong
         self.w[2 * k : nav_end] = self.w0[2 * k : nav_end] * nav_weight(
-            dz, self.nav_sigma, self.nav_robust_scale if self.robust else None, self.nav_on)[0]
+            dz, self.nav_sigma, self.nav_robust_scale if on.any() else None, on)[0]
         # ground control: surveyed - current coordinates of each new control point (A = I)
         for q, (col, xyz, _) in enumerate(self.control):
             r = nav_end + GP_SIZE * q + np.arange(GP_SIZE)
@@ -337,12 +342,15 @@ class RowBuilder:
 
     def nav_loss_at(self, x1t: FloatArray, x2_0: FloatArray, image: int,
                     born: Sequence[int] = ()) -> None:
-        """The GPS/INS loss on, from the first robust iterate, for the groups far beyond
-        its core at the start ``(x1t, x2_0)`` (:func:`seqat.robust.nav_far_beyond`) when the
-        image's rays hold the start (:meth:`rays_hold`; the tracker's resection on known
-        points): that GPS/INS is wrong. Left to :meth:`settled`, its least-squares pull
-        (150 deg at a sigma of 0.1 deg) took the image from its resection to the GPS/INS as
-        the ray loss down-weighted the rays. A start its rays do not hold (6 deg off, the
+        """The GPS/INS loss on, from the next iterate (least squares or not), for the
+        groups far beyond its core at the start ``(x1t, x2_0)``
+        (:func:`seqat.robust.nav_far_beyond`) when the image's rays hold the start
+        (:meth:`rays_hold`; the tracker's resection on known points): that GPS/INS is wrong.
+        Left to :meth:`settled`, its least-squares pull (150 deg at a sigma of 0.1 deg) took
+        the image from its resection to the GPS/INS as the ray loss down-weighted the rays;
+        left to the first robust iterate, the least-squares one before it (90 deg) moved a
+        self-calibrated focal length by -2800 px, and ten iterates did not come back (the
+        image diverged, carried by its INS). A start its rays do not hold (6 deg off, the
         GPS/INS right) changes nothing."""
         res = eop_residual(self.nav[None], x2_0[None, :EOP_SIZE])
         far = nav_far_beyond(res, self.nav_sigma, self.nav_robust_scale)[0]
@@ -351,6 +359,7 @@ class RowBuilder:
             self._true = self.obs - self.cam.project(z[self.eidx], z[self.pidx]).ravel()
             if self.rays_hold(image, born, POOR_START_BEYOND):
                 self.nav_on |= far
+                self.nav_wrong |= far
 
     def rays_hold(self, image: int, born: Sequence[int] = (), beyond: float = 1.0) -> bool:
         """``image``'s rays to points not being ``born``, at the estimate of the last

@@ -10,6 +10,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from seqat.calibration import SelfCalibration
 from seqat.geometry import wrap_angle
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
@@ -111,6 +112,33 @@ def test_a_wrong_gps_ins_in_the_sequential_stage_gives_way_to_the_resection(
     named = [(g, w) for image, g, w in est.nav_robust if image == f"img_{k + 1:04d}"]
     assert [g for g, _ in named] == ["attitude"] and named[0][1] < 0.01
     _assert_placed_by_its_rays(f, eop, clean, k)
+
+
+@pytest.mark.parametrize(("k", "att_deg"), [(20, (0.0, 0.0, 90.0)), (30, (0.0, 0.0, 150.0)),
+                                            (25, (30.0, 30.0, 30.0))],
+                         ids=["21st-heading-90", "31st-heading-150", "26th-30-each-axis"])
+def test_a_wrong_gps_ins_gives_way_to_the_resection_with_the_camera_free(
+        dense_strip: SimulatedFlight, k: int, att_deg: tuple[float, float, float]) -> None:
+    """Self-calibration, image ``k``'s INS far off at 0.1 deg, its start the tracker's
+    resection: the GPS/INS loss came on from the first robust iterate only, so the
+    least-squares iterate before it pulled the image towards its INS and the free camera
+    with it (a flight folder's 21st image, 90 deg: 17 deg and the focal length -2800 px);
+    ten iterates did not come back, and the image was diverged and carried by its INS, 90 or
+    150 deg off with a sigma of 0.1 deg, until the final check. A group found wrong at a
+    start the rays hold is now weighed by its loss from the first iterate: the update itself
+    (the real-time estimate, not only the final one) places the image by its rays."""
+    f = dense_strip
+    est = SequentialAT(f.camera, SequentialOptions(calibration=SelfCalibration()))
+    frames = _blunder(f, k, att_deg, resection=True)
+    updates = [est.add_frame(frame) for frame in frames]
+    assert est.diverged == []
+    live = updates[k]  # the image's own update
+    err = live.eop.eop - f.truth_eop[k]
+    assert np.all(np.abs(err[:3]) < 1.0)
+    assert np.all(np.degrees(np.abs(wrap_angle(err[3:]))) < 0.2)
+    assert live.observations_used >= 0.9 * len(frames[k].point_ids)
+    named = [(g, w) for image, g, w in est.nav_robust if image == f"img_{k + 1:04d}"]
+    assert [g for g, _ in named] == ["attitude"] and named[0][1] < 0.01
 
 
 @pytest.mark.parametrize("jump_m", [20.0, 100.0])
