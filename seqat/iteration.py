@@ -143,6 +143,7 @@ class IterationMixin:
                 return Iterated(rows, step, d1t, d2, iterations, wild=True)
             held, hold, start, d2 = held + 1, True, iterations, again
             d1t = np.zeros(touched.size)
+            builder.resect_without_far_nav(x2_0 + d2)
 
     def _held_start(self, held: int, x2_0: FloatArray) -> FloatArray | None:
         """The step ``d2`` the update's next held phase starts from, after ``held`` of them:

@@ -487,8 +487,10 @@ def nav_outside(res: FloatArray, sigma: FloatArray, scale: float | None) -> np.n
 
 #: An image with this many rays to known points within the loss's core (most of its rays
 #: to them) is placed by its rays, whatever its GPS/INS says (RowBuilder.rays_hold; a start
-#: within POOR_START_BEYOND of it, RestartMixin._rays_hold).
-RAYS_OVER_NAV = 8
+#: within POOR_START_BEYOND of it, RestartMixin._rays_hold). Six: a resection's redundancy
+#: of six, the tracker's own minimum for one (pipeline/run/resection.py); at 8 an image of
+#: a sparse strip resected on seven rays within 2.3 sigma was carried by an INS 90 deg off.
+RAYS_OVER_NAV = 6
 
 
 def rays_hold(u2: FloatArray, scale: float | None, beyond: float = 1.0) -> bool:

@@ -208,6 +208,8 @@ class RowBuilder:
         self.nav_on = np.zeros(len(NAV_GROUPS), dtype=bool)
         # ... and those found wrong at a start the rays hold (nav_loss_at): on from there
         self.nav_wrong = np.zeros(len(NAV_GROUPS), dtype=bool)
+        # (nav_on, nav_wrong) before a held resection weighed its far groups by their loss
+        self._before_resection: tuple[np.ndarray, np.ndarray] | None = None
         self.nav, self.nav_sigma = nav, nav_sigma
         y2 = [o for o in obs if o[4]]
         y3 = [o for o in obs if not o[4]]
@@ -352,6 +354,9 @@ class RowBuilder:
         self-calibrated focal length by -2800 px, and ten iterates did not come back (the
         image diverged, carried by its INS). A start its rays do not hold (6 deg off, the
         GPS/INS right) changes nothing."""
+        if self._before_resection is not None:  # the resection's trial ends here
+            self.nav_on, self.nav_wrong = self._before_resection
+            self._before_resection = None
         res = eop_residual(self.nav[None], x2_0[None, :EOP_SIZE])
         far = nav_far_beyond(res, self.nav_sigma, self.nav_robust_scale)[0]
         if far.any() and self.k:
@@ -360,6 +365,21 @@ class RowBuilder:
             if self.rays_hold(image, born, POOR_START_BEYOND):
                 self.nav_on |= far
                 self.nav_wrong |= far
+
+    def resect_without_far_nav(self, x2: FloatArray) -> None:
+        """A resection with the window held starts at ``x2``: the GPS/INS groups far beyond
+        their core there (:func:`seqat.robust.nav_far_beyond`) are weighed by their loss
+        until it ends, where :meth:`nav_loss_at` judges them at the resection. A resection
+        is the rays' estimate: in least squares, an INS 90 deg off at 0.1 deg (900 sigma)
+        outweighed an image's seven rays and held the resection 10 deg from where they put
+        it, 70-150 px off each, so that the rays could not be seen to hold it and the image
+        was diverged and carried by its INS. A group the rays do not then show wrong is
+        weighed as before."""
+        res = eop_residual(self.nav[None], x2[None, :EOP_SIZE])
+        far = nav_far_beyond(res, self.nav_sigma, self.nav_robust_scale)[0]
+        if self._before_resection is None:
+            self._before_resection = (self.nav_on.copy(), self.nav_wrong.copy())
+        self.nav_wrong = self.nav_wrong | far
 
     def rays_hold(self, image: int, born: Sequence[int] = (), beyond: float = 1.0) -> bool:
         """``image``'s rays to points not being ``born``, at the estimate of the last

@@ -141,6 +141,38 @@ def test_a_wrong_gps_ins_gives_way_to_the_resection_with_the_camera_free(
     assert [g for g, _ in named] == ["attitude"] and named[0][1] < 0.01
 
 
+@pytest.mark.parametrize("att_deg", [(0.0, 0.0, 90.0), (30.0, 30.0, 30.0)],
+                         ids=["heading-90", "30-each-axis"])
+def test_a_wrong_gps_ins_gives_way_to_a_resection_on_seven_rays(
+        att_deg: tuple[float, float, float]) -> None:
+    """A sparse strip (~10 rays per image), the 31st image's INS far off at 0.1 deg, its
+    start an attitude resection 1 deg off (the tracker's, at the GPS position): seven rays
+    to known points, 75-96 sigma off at that start, so the GPS/INS was not found wrong
+    there, and the update's resection with the window held was a least-squares compromise
+    with an INS 900 sigma away (10 deg from where the rays put it). The image was diverged
+    and carried by its INS, with the INS's sigma. Now the held resection weighs a group far
+    from its start by its loss, and six rays within the core (most of them) hold an image:
+    the update places it by its rays, the group named."""
+    f = simulate_strip(StripSimConfig(n_images=60, n_points=48), seed=11)
+    k = 30
+    frames = list(f.frames())
+    nav = frames[k].nav_eop.copy()
+    nav[3:] += np.radians(att_deg)
+    sigma = frames[k].nav_sigma.copy()
+    sigma[3:] = TIGHT_ATTITUDE_SIGMA
+    start = f.truth_eop[k] + np.r_[-0.3, 0.1, 0.0, np.radians([-0.1, 0.9, 0.5])]
+    frames[k] = dataclasses.replace(frames[k], nav_eop=nav, nav_sigma=sigma,
+                                    initial_eop=start)
+    est = SequentialAT(f.camera, SequentialOptions())
+    updates = [est.add_frame(frame) for frame in frames]
+    assert est.diverged == []
+    err = updates[k].eop.eop - f.truth_eop[k]
+    assert np.all(np.abs(err[:3]) < 1.0)
+    assert np.all(np.degrees(np.abs(wrap_angle(err[3:]))) < 0.2)
+    named = [(g, w) for image, g, w in est.nav_robust if image == f"img_{k + 1:04d}"]
+    assert [g for g, _ in named] == ["attitude"] and named[0][1] < 0.01
+
+
 @pytest.mark.parametrize("jump_m", [20.0, 100.0])
 def test_a_gnss_jump_far_beyond_every_sigma_gives_way_to_the_rays(
         dense_strip: SimulatedFlight, clean: np.ndarray, jump_m: float) -> None:
