@@ -183,8 +183,9 @@ class RowBuilder:
     The attribute ``robust`` (set by the caller per iteration: the first one is least
     squares) switches the robust losses; ``nav_on`` holds the GPS/INS groups whose loss
     :meth:`settled` or :meth:`nav_loss_at` has turned on, ``nav_wrong`` those of them
-    :meth:`nav_loss_at` found wrong before any iterate: their loss applies to the
-    least-squares iterates too.
+    :meth:`nav_loss_at` found wrong before any iterate, ``nav_trial`` those a held
+    resection weighs by their loss until it is judged (:meth:`resect_without_far_nav`):
+    the loss of these two applies to the least-squares iterates too.
     """
 
     def __init__(
@@ -208,8 +209,8 @@ class RowBuilder:
         self.nav_on = np.zeros(len(NAV_GROUPS), dtype=bool)
         # ... and those found wrong at a start the rays hold (nav_loss_at): on from there
         self.nav_wrong = np.zeros(len(NAV_GROUPS), dtype=bool)
-        # (nav_on, nav_wrong) before a held resection weighed its far groups by their loss
-        self._before_resection: tuple[np.ndarray, np.ndarray] | None = None
+        # ... and those a held resection weighs by their loss until nav_loss_at judges them
+        self.nav_trial = np.zeros(len(NAV_GROUPS), dtype=bool)
         self.nav, self.nav_sigma = nav, nav_sigma
         y2 = [o for o in obs if o[4]]
         y3 = [o for o in obs if not o[4]]
@@ -266,7 +267,7 @@ class RowBuilder:
         dz[3:] = wrap_angle(dz[3:])
         nav_end = 2 * k + EOP_SIZE
         ell[2 * k : nav_end] = dz
-        on = self.nav_on if self.robust else self.nav_wrong
+        on = self.nav_on if self.robust else self.nav_wrong | self.nav_trial
         self.w[2 * k : nav_end] = self.w0[2 * k : nav_end] * nav_weight(
             dz, self.nav_sigma, self.nav_robust_scale if on.any() else None, on)[0]
         # ground control: surveyed - current coordinates of each new control point (A = I)
@@ -354,11 +355,8 @@ class RowBuilder:
         self-calibrated focal length by -2800 px, and ten iterates did not come back (the
         image diverged, carried by its INS). A start its rays do not hold (6 deg off, the
         GPS/INS right) changes nothing."""
-        if self._before_resection is not None:  # the resection's trial ends here
-            self.nav_on, self.nav_wrong = self._before_resection
-            self._before_resection = None
-        res = eop_residual(self.nav[None], x2_0[None, :EOP_SIZE])
-        far = nav_far_beyond(res, self.nav_sigma, self.nav_robust_scale)[0]
+        self.nav_trial[:] = False  # a held resection's trial ends here
+        far = self._nav_far_beyond(x2_0)
         if far.any() and self.k:
             z = np.concatenate([x1t, x2_0])
             self._true = self.obs - self.cam.project(z[self.eidx], z[self.pidx]).ravel()
@@ -375,11 +373,13 @@ class RowBuilder:
         it, 70-150 px off each, so that the rays could not be seen to hold it and the image
         was diverged and carried by its INS. A group the rays do not then show wrong is
         weighed as before."""
+        self.nav_trial |= self._nav_far_beyond(x2)
+
+    def _nav_far_beyond(self, x2: FloatArray) -> np.ndarray:
+        """(g,) bool: the GPS/INS groups far beyond their core with the new image at ``x2``
+        (:func:`seqat.robust.nav_far_beyond`)."""
         res = eop_residual(self.nav[None], x2[None, :EOP_SIZE])
-        far = nav_far_beyond(res, self.nav_sigma, self.nav_robust_scale)[0]
-        if self._before_resection is None:
-            self._before_resection = (self.nav_on.copy(), self.nav_wrong.copy())
-        self.nav_wrong = self.nav_wrong | far
+        return nav_far_beyond(res, self.nav_sigma, self.nav_robust_scale)[0]
 
     def rays_hold(self, image: int, born: Sequence[int] = (), beyond: float = 1.0) -> bool:
         """``image``'s rays to points not being ``born``, at the estimate of the last

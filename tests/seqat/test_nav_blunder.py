@@ -32,19 +32,21 @@ def clean(dense_strip: SimulatedFlight) -> np.ndarray:
     return _run(dense_strip, list(dense_strip.frames()))[1]
 
 
+#: A resection start near the truth (m, rad), as the tracker's on known points gives it.
+RESECTION_OFFSET = np.r_[0.2, -0.2, 0.1, np.radians([0.05, -0.05, 0.05])]
+
+
 def _blunder(flight: SimulatedFlight, k: int, att_deg: tuple[float, float, float],
-             resection: bool) -> list[Frame]:
+             resection: bool, start_offset: np.ndarray = RESECTION_OFFSET) -> list[Frame]:
     """The flight's frames, image ``k``'s INS attitude ``att_deg`` off with a sigma of
-    0.1 deg; ``resection``: its start given near the truth, as the tracker's resection on
-    known points gives it (``initial_eop``)."""
+    0.1 deg; ``resection``: its start (``initial_eop``) ``start_offset`` from the truth."""
     frames = list(flight.frames())
     f = frames[k]
     nav = f.nav_eop.copy()
     nav[3:] += np.radians(att_deg)
     sigma = f.nav_sigma.copy()
     sigma[3:] = TIGHT_ATTITUDE_SIGMA
-    start = (flight.truth_eop[k] + np.r_[0.2, -0.2, 0.1, np.radians([0.05, -0.05, 0.05])]
-             if resection else None)
+    start = flight.truth_eop[k] + start_offset if resection else None
     frames[k] = dataclasses.replace(f, nav_eop=nav, nav_sigma=sigma, initial_eop=start)
     return frames
 
@@ -56,13 +58,25 @@ def _run(flight: SimulatedFlight, frames: list[Frame]) -> tuple[SequentialAT, np
     return est, np.array([e.eop for e in est.solution(smoothed=False).eops])
 
 
+def _assert_near_truth(flight: SimulatedFlight, eop_k: np.ndarray, k: int) -> None:
+    """Image ``k``'s EOP ``eop_k`` within 1 m and 0.2 deg of the truth."""
+    err = eop_k - flight.truth_eop[k]
+    assert np.all(np.abs(err[:3]) < 1.0)
+    assert np.all(np.degrees(np.abs(wrap_angle(err[3:]))) < 0.2)
+
+
+def _assert_named(est: SequentialAT, k: int, group: str) -> None:
+    """Image ``k``'s GPS/INS ``group``, and it alone, reported in ``nav_robust`` with a
+    weight under 0.01."""
+    named = [(g, w) for image, g, w in est.nav_robust if image == f"img_{k + 1:04d}"]
+    assert [g for g, _ in named] == [group] and named[0][1] < 0.01
+
+
 def _assert_placed_by_its_rays(flight: SimulatedFlight, eop: np.ndarray, clean: np.ndarray,
                                k: int) -> None:
     """Image ``k`` within 1 m and 0.2 deg of the truth, the others within 5 % of the clean
     run's position r.m.s."""
-    err = eop[k] - flight.truth_eop[k]
-    assert np.all(np.abs(err[:3]) < 1.0)
-    assert np.all(np.degrees(np.abs(wrap_angle(err[3:]))) < 0.2)
+    _assert_near_truth(flight, eop[k], k)
     others = np.arange(len(eop)) != k
     rms = [float(np.sqrt(np.mean((e[others, :3] - flight.truth_eop[others, :3]) ** 2)))
            for e in (eop, clean)]
@@ -109,8 +123,7 @@ def test_a_wrong_gps_ins_in_the_sequential_stage_gives_way_to_the_resection(
     f, k = dense_strip, 30
     est, eop = _run(f, _blunder(f, k, (0.0, 0.0, 150.0), resection=True))
     assert est.diverged == []
-    named = [(g, w) for image, g, w in est.nav_robust if image == f"img_{k + 1:04d}"]
-    assert [g for g, _ in named] == ["attitude"] and named[0][1] < 0.01
+    _assert_named(est, k, "attitude")
     _assert_placed_by_its_rays(f, eop, clean, k)
 
 
@@ -133,12 +146,9 @@ def test_a_wrong_gps_ins_gives_way_to_the_resection_with_the_camera_free(
     updates = [est.add_frame(frame) for frame in frames]
     assert est.diverged == []
     live = updates[k]  # the image's own update
-    err = live.eop.eop - f.truth_eop[k]
-    assert np.all(np.abs(err[:3]) < 1.0)
-    assert np.all(np.degrees(np.abs(wrap_angle(err[3:]))) < 0.2)
+    _assert_near_truth(f, live.eop.eop, k)
     assert live.observations_used >= 0.9 * len(frames[k].point_ids)
-    named = [(g, w) for image, g, w in est.nav_robust if image == f"img_{k + 1:04d}"]
-    assert [g for g, _ in named] == ["attitude"] and named[0][1] < 0.01
+    _assert_named(est, k, "attitude")
 
 
 @pytest.mark.parametrize("att_deg", [(0.0, 0.0, 90.0), (30.0, 30.0, 30.0)],
@@ -155,22 +165,13 @@ def test_a_wrong_gps_ins_gives_way_to_a_resection_on_seven_rays(
     the update places it by its rays, the group named."""
     f = simulate_strip(StripSimConfig(n_images=60, n_points=48), seed=11)
     k = 30
-    frames = list(f.frames())
-    nav = frames[k].nav_eop.copy()
-    nav[3:] += np.radians(att_deg)
-    sigma = frames[k].nav_sigma.copy()
-    sigma[3:] = TIGHT_ATTITUDE_SIGMA
-    start = f.truth_eop[k] + np.r_[-0.3, 0.1, 0.0, np.radians([-0.1, 0.9, 0.5])]
-    frames[k] = dataclasses.replace(frames[k], nav_eop=nav, nav_sigma=sigma,
-                                    initial_eop=start)
+    frames = _blunder(f, k, att_deg, resection=True,
+                      start_offset=np.r_[-0.3, 0.1, 0.0, np.radians([-0.1, 0.9, 0.5])])
     est = SequentialAT(f.camera, SequentialOptions())
     updates = [est.add_frame(frame) for frame in frames]
     assert est.diverged == []
-    err = updates[k].eop.eop - f.truth_eop[k]
-    assert np.all(np.abs(err[:3]) < 1.0)
-    assert np.all(np.degrees(np.abs(wrap_angle(err[3:]))) < 0.2)
-    named = [(g, w) for image, g, w in est.nav_robust if image == f"img_{k + 1:04d}"]
-    assert [g for g, _ in named] == ["attitude"] and named[0][1] < 0.01
+    _assert_near_truth(f, updates[k].eop.eop, k)
+    _assert_named(est, k, "attitude")
 
 
 @pytest.mark.parametrize("jump_m", [20.0, 100.0])
@@ -189,8 +190,7 @@ def test_a_gnss_jump_far_beyond_every_sigma_gives_way_to_the_rays(
     frames[k] = dataclasses.replace(frames[k], nav_eop=nav)
     est, eop = _run(f, frames)
     assert est.diverged == []
-    named = [(g, w) for image, g, w in est.nav_robust if image == f"img_{k + 1:04d}"]
-    assert [g for g, _ in named] == ["position"] and named[0][1] < 0.01
+    _assert_named(est, k, "position")
     _assert_placed_by_its_rays(f, eop, clean, k)
 
 
