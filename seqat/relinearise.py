@@ -349,7 +349,8 @@ class RelinearisationMixin:
                 wf[rows] = f.w0[rows] * robust_weight(u2_cand, k)
         return wf
 
-    def _relinearise(self, threshold_px: float | None = None, force: bool = False) -> None:
+    def _relinearise(self, threshold_px: float | None = None, force: bool = False,
+                     reset_weights: bool = False) -> None:
         """Re-linearise the window when its rows no longer describe the image points.
 
         Old rows were linearised where the estimate stood when they arrived; when later data
@@ -361,6 +362,8 @@ class RelinearisationMixin:
         observations (taken out at their old linearisation) and the rest (the marginalised
         prior of the departed parameters and the linear GPS/INS rows, kept), and the own
         rows are linearised anew at each iterate. ``Q``, ``L`` and σ0 follow.
+        ``reset_weights``: the robust weights start again from least squares (the old rows
+        still come out at the weights they went in with; seqat/second_start.py).
         """
         w, opts = self._w, self.options
         assert opts.relinearise_px is not None
@@ -383,7 +386,7 @@ class RelinearisationMixin:
         # the window again only once its rays changed (a new ray may move it or its weights):
         # on the same rays it re-linearised a 3900-parameter block window after every image,
         # 0.1-0.6 s each (docs/algorithm.md, *Robust loss*: points born on a blunder)
-        xk, wf = x.copy(), f.w
+        xk, wf = x.copy(), (f.w0.copy() if reset_weights else f.w)
         rescues: list[tuple[int, Key]] = []
         if astray.size:
             wf = self._rescue_points(f, astray, xk, e_idx, p_idx, wf, rescues)

@@ -69,6 +69,7 @@ from seqat.precision import sigma_scale
 from seqat.relinearise import RelinearisationMixin
 from seqat.reports import RecordedRows, ReportMixin
 from seqat.rows import Factors, RowBuilder, add_information, snoop_update
+from seqat.second_start import SecondStartMixin
 from seqat.sequential_options import SequentialOptions
 from seqat.simultaneous import Covariance, SimultaneousAT
 from seqat.types import (
@@ -97,7 +98,7 @@ _BLAS = ThreadpoolController()
 MAX_SNOOPING_ROUNDS = 40
 
 class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMixin,
-                   ReportMixin, CameraMixin, LateMixin, UndeterminedMixin):
+                   ReportMixin, CameraMixin, LateMixin, UndeterminedMixin, SecondStartMixin):
     """Seq-F / Seq-R sequential aerial triangulation of a stream of frames.
 
     Parameters
@@ -210,6 +211,13 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         self._drift_px = self._drift_m = self._drift_deg = float("nan")
         self.recorded: list[RecordedRows] | None = [] if record else None
         self.initial_state: tuple[list[Key], FloatArray, FloatArray] | None = None
+        # A second start during the flight (seqat/second_start.py): the window's EOPs and
+        # sigmas after the last update, updates left to try one, images after whose update
+        # one was kept, and how many were tried.
+        self._eop_before: tuple[list[int], FloatArray, FloatArray] | None = None
+        self._second_start_left = 0
+        self.second_starts: list[str] = []
+        self.second_starts_tried = 0
 
     # ------------------------------------------------------------------ public API
     @property
@@ -673,6 +681,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         if opts.relinearise_px is not None:
             check = opts.drift_check_every is not None and i % opts.drift_check_every == 0
             self._relinearise_if_needed(force=check)
+            self._second_start(frame.image_id)
         if opts.smoothing_lag is not None:
             self._finalise_old(i)
         self._prune_dormant(i)

@@ -62,6 +62,11 @@ class SequentialOptions:
     # them with the window: the final values are the nonlinear smoother's (real-time values:
     # solution(smoothed=False)). Needs smoothing. docs/algorithm.md, *What the window costs*.
     final_reopen: bool = True
+    # After an update that moved earlier window images beyond 3 sigma, the window is adjusted
+    # again from least-squares weights, the undetermined camera parameters held, and kept
+    # when it fits better (seqat/second_start.py; docs/algorithm.md, *A second start during
+    # the flight*). Information engine with relinearise_px only.
+    second_start: bool = True
     # Self-calibration (seqat/calibration.py): the camera's free interior parameters are
     # estimated with the EOPs, in the initial Sim and then in the window, which they never
     # leave; None: the camera is fixed. docs/algorithm.md, *Self-calibration*.
