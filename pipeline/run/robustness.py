@@ -87,6 +87,12 @@ class RobustnessRecord:
     final_reopen_skipped : int
         Seq-R: departed parameters that the final smoothing pass did not re-open for being
         too many (their RTS-smoothed values stand; 0: every one re-opened, or none departed).
+    second_starts : tuple[str, ...]
+        Seq-R: images after whose update a second start of the window was kept (it fitted
+        better; docs/algorithm.md, *A second start during the flight*).
+    second_starts_tried : int
+        Seq-R: second starts tried (after an update that moved earlier images beyond 3 σ,
+        and the updates after it).
     nav_robust_scale : float or None
         Robust loss of the GPS/INS groups (sigmas per degree of freedom; ``None``: least
         squares).
@@ -124,6 +130,8 @@ class RobustnessRecord:
     disagreeing_points: tuple[str, ...] = ()
     off_surface_points: tuple[str, ...] = ()
     final_reopen_skipped: int = 0
+    second_starts: tuple[str, ...] = ()
+    second_starts_tried: int = 0
     nav_robust_scale: float | None = None
     nav_robust: tuple[NavRobust, ...] = ()
     contamination: float | None = None
@@ -135,7 +143,8 @@ class RobustnessRecord:
 def robustness_record(estimator: object, options: object, *, bridged: Sequence[str] = (),
                       skipped: Sequence[str] = (),
                       off_surface: Sequence[str] = (),
-                      final_check: FinalCheck | None = None) -> RobustnessRecord:
+                      final_check: FinalCheck | None = None,
+                      flown: object = None) -> RobustnessRecord:
     """The record of a finished run.
 
     Parameters
@@ -150,7 +159,11 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
         Tie points the run left out as off the surface (``RunSession.off_surface``).
     final_check : FinalCheck or None
         ``RunSession.final_check``.
+    flown : SequentialAT or SimultaneousAT, optional
+        The estimator the images went through (``RunSession.flown``), when the final check
+        replaced ``estimator``: read for what happened during the flight (second starts).
     """
+    flown = estimator if flown is None else flown
     rejections = tuple(Rejection(image=i, point=p, w=round(float(w), 3))
                        for i, p, w in getattr(estimator, "rejections", ()))
     nav = tuple(NavDownweight(image=i, group=g)
@@ -168,6 +181,8 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
                             off_surface_points=tuple(off_surface),
                             final_reopen_skipped=int(getattr(estimator, "final_reopen_skipped",
                                                              0)),
+                            second_starts=tuple(getattr(flown, "second_starts", ())),
+                            second_starts_tried=int(getattr(flown, "second_starts_tried", 0)),
                             nav_robust_scale=getattr(options, "nav_robust_scale", None),
                             nav_robust=tuple(NavRobust(image=i, group=g, weight=w) for i, g, w
                                              in getattr(estimator, "nav_robust", ())),

@@ -558,7 +558,7 @@ def run_flight(flight_dir: Path | str, out_dir: Path | str, *, method: Method = 
     robustness = robustness_record(session.estimator, options, bridged=bridged,
                                    skipped=[s.image for s in skipped if s.image in dropouts],
                                    off_surface=session.off_surface,
-                                   final_check=session.final_check)
+                                   final_check=session.final_check, flown=session.flown)
     inputs = dataclasses.replace(flight.inputs(), skipped=flight.skipped + tuple(skipped))
     return publish_run(out, session, solution, method=method, flight=str(flight.path),
                        inputs=inputs, options=options, final_only=final_only,

@@ -156,6 +156,9 @@ class RunSession:
         self._checker = FinalChecker.of(estimator) if final_check else None
         #: The final check's record (None: not run).
         self.final_check: FinalCheck | None = None
+        #: The estimator the images went through (``estimator`` may become the final
+        #: check's adjustment): its real-time records (second starts) stay the run's.
+        self.flown = estimator
         self._frames: list[Frame] = []  # every frame the estimator took, for the check
         self.source = source
         self.listeners = tuple(listeners)
