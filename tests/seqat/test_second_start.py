@@ -9,7 +9,6 @@ start during the flight*); here the mechanics, on a seeded self-calibrating bloc
 from __future__ import annotations
 
 import copy
-import dataclasses
 
 import numpy as np
 import pytest
@@ -19,15 +18,8 @@ from seqat.calibration import SelfCalibration
 from seqat.errors import EstimationError
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
-from seqat.types import EOP_SIZE, PinholeCamera
-
-DISTORTION = (-0.08, 0.02, 2e-4, -3e-4, 0.0)
-
-
-def _prior(true: PinholeCamera) -> PinholeCamera:
-    """The "EXIF" camera: f 1 % and cx 5 px off, no distortion."""
-    return dataclasses.replace(true, f_px=true.f_px * 1.01, cx_px=true.cx_px + 5.0,
-                               k1=0.0, k2=0.0, p1=0.0, p2=0.0, k3=0.0)
+from seqat.types import EOP_SIZE
+from tests.seqat.test_calibration import DISTORTION, _prior
 
 
 @pytest.fixture(scope="module")
