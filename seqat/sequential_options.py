@@ -62,10 +62,10 @@ class SequentialOptions:
     # them with the window: the final values are the nonlinear smoother's (real-time values:
     # solution(smoothed=False)). Needs smoothing. docs/algorithm.md, *What the window costs*.
     final_reopen: bool = True
-    # After an update that moved earlier window images beyond 3 sigma, the window is adjusted
-    # again from least-squares weights, the undetermined camera parameters held, and kept
-    # when it fits better (seqat/second_start.py; docs/algorithm.md, *A second start during
-    # the flight*). Information engine with relinearise_px only.
+    # After an update that moved earlier window images beyond 3 sigma, a window whose camera
+    # parameters are undetermined is adjusted again from least-squares weights with them
+    # held, and kept when it fits better (seqat/second_start.py; docs/algorithm.md, *A
+    # second start during the flight*). Information engine, relinearise_px, self-calibration.
     second_start: bool = True
     # Self-calibration (seqat/calibration.py): the camera's free interior parameters are
     # estimated with the EOPs, in the initial Sim and then in the window, which they never

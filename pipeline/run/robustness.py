@@ -92,7 +92,7 @@ class RobustnessRecord:
         better; docs/algorithm.md, *A second start during the flight*).
     second_starts_tried : int
         Seq-R: second starts tried (after an update that moved earlier images beyond 3 σ,
-        and the updates after it).
+        and the updates after it, when the window left camera parameters undetermined).
     nav_robust_scale : float or None
         Robust loss of the GPS/INS groups (sigmas per degree of freedom; ``None``: least
         squares).
