@@ -15,6 +15,9 @@ re-linearised to finish()'s tolerance — were needed to leave it.
 from __future__ import annotations
 
 import copy
+import dataclasses
+import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -22,7 +25,7 @@ from seqat.calibration import undetermined
 from seqat.errors import EstimationError
 from seqat.geometry import wrap_angle
 from seqat.relinearise import FINAL_RELINEARISE_PX
-from seqat.types import EOP_SIZE, FloatArray
+from seqat.types import EOP_SIZE, FloatArray, ImageUpdate
 
 #: An update "jumped" when it moved an earlier window image by more than this many of that
 #: image's sigma before the update (each EOP component; a priori units scaled by
@@ -35,6 +38,15 @@ JUMP_SIGMAS = 3.0
 #: one is not always enough (on the subset, those after the link's update and the next stayed
 #: in the wrong minimum; the third left it).
 SECOND_START_UPDATES = 8
+
+
+@dataclass(frozen=True)
+class SecondStart:
+    """A second start tried after the update of ``image_id``: kept or not, its time (ms)."""
+
+    image_id: str
+    kept: bool
+    ms: float
 
 
 class SecondStartMixin:
@@ -71,18 +83,11 @@ class SecondStartMixin:
         s = sd[keep]
         return bool(np.any((s > 0.0) & (np.abs(d) > JUMP_SIGMAS * s)))
 
-    def _second_start(self, image_id: str) -> None:
-        """After an update (and its re-linearisation): when it jumped, and on the next
-        :data:`SECOND_START_UPDATES` - 1 updates, if the window leaves camera parameters
-        undetermined, they are locked at their prior and the window is adjusted again from
-        least-squares weights to finish()'s tolerance, then released and adjusted again.
-        Kept when σ0 is lower than the window's before (named in :attr:`second_starts`);
-        otherwise the estimator is restored whole. Information engine with
-        re-linearisation only.
-
-        With the camera determined there is nothing to hold, and a trial from least-squares
-        weights alone was measured to gain nothing on the real flight's subsets at up to
-        3.6 s per update (docs/benchmarks.md, *A second start during the flight*)."""
+    def _arm_second_start(self, image_id: str) -> None:
+        """After an update's re-linearisation: when the update jumped, a second start is due
+        after it and after the next :data:`SECOND_START_UPDATES` - 1 updates
+        (:meth:`refine` tries it)."""
+        self._second_start_due = None
         if not self._second_start_possible():
             return
         if self._jumped():
@@ -90,9 +95,31 @@ class SecondStartMixin:
         if self._second_start_left <= 0:
             return
         self._second_start_left -= 1
+        self._second_start_due = image_id
+
+    def _second_start(self) -> SecondStart | None:
+        """:meth:`refine`: the second start the last update made due, if the window leaves camera
+        parameters undetermined: they are locked at their prior and the window is adjusted
+        again from least-squares weights to finish()'s tolerance, then released and adjusted
+        again. Kept when σ0 is lower than the window's before (named in
+        :attr:`second_starts`); otherwise the estimator is restored whole. None: none tried.
+        Information engine with re-linearisation only.
+
+        It runs after the update, so the image's estimate is out before it (a real-time
+        caller publishes it first): it costs Gauss-Newton on the whole window to
+        convergence, 0.1-1 s on the real flight's subsets, and stopped earlier it does not
+        leave the wrong minimum (docs/algorithm.md, *A second start during the flight*).
+
+        With the camera determined there is nothing to hold, and a trial from least-squares
+        weights alone was measured to gain nothing on the real flight's subsets at up to
+        3.6 s per update (docs/benchmarks.md, *A second start during the flight*)."""
+        image_id, self._second_start_due = self._second_start_due, None
+        if image_id is None:
+            return None
+        t0 = time.perf_counter()
         hold = self._undetermined_camera()
         if hold is None:
-            return
+            return None
         before = self.sigma0
         saved = self._save_state()
         self.second_starts_tried += 1
@@ -105,10 +132,20 @@ class SecondStartMixin:
                         and np.all(np.isfinite(self._w.x)))
         except (EstimationError, np.linalg.LinAlgError):
             kept = False  # a trial that meets a singular window is not a solution
-        if not kept:
+        if kept:
+            self.second_starts.append(image_id)
+            self._remember_window_eops(self._w.q_diagonal())  # the next jump is from here
+        else:
             self._restore_state(saved)
-            return
-        self.second_starts.append(image_id)
+        return SecondStart(image_id=image_id, kept=kept, ms=(time.perf_counter() - t0) * 1e3)
+
+    def refined(self, update: ImageUpdate) -> ImageUpdate:
+        """``update`` with the outcome of :meth:`refine` run now (unchanged if none)."""
+        outcome = self.refine()  # type: ignore[attr-defined]
+        if outcome is None:
+            return update
+        return dataclasses.replace(update, second_start="kept" if outcome.kept else "not kept",
+                                   second_start_ms=outcome.ms)
 
     def _second_start_possible(self) -> bool:
         """On, the information engine, re-linearisation, and a self-calibrated camera

@@ -69,7 +69,7 @@ from seqat.precision import sigma_scale
 from seqat.relinearise import RelinearisationMixin
 from seqat.reports import RecordedRows, ReportMixin
 from seqat.rows import Factors, RowBuilder, add_information, snoop_update
-from seqat.second_start import SecondStartMixin
+from seqat.second_start import SecondStart, SecondStartMixin
 from seqat.sequential_options import SequentialOptions
 from seqat.simultaneous import Covariance, SimultaneousAT
 from seqat.types import (
@@ -216,6 +216,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         # one was kept, and how many were tried.
         self._eop_before: tuple[list[int], FloatArray, FloatArray] | None = None
         self._second_start_left = 0
+        self._second_start_due: str | None = None  # the image after whose update one is due
         self.second_starts: list[str] = []
         self.second_starts_tried = 0
 
@@ -226,12 +227,22 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         r = self._redundancy
         return float(np.sqrt(self._ssr / r)) if r > 0 else float("nan")
 
-    def add_frame(self, frame: Frame) -> ImageUpdate:
-        """Add the next image and update the triangulation."""
+    def add_frame(self, frame: Frame, *, refine: bool = True) -> ImageUpdate:
+        """Add the next image and update the triangulation. ``refine``: then run the
+        refinement the update made due (:meth:`refine`, named in the update returned); a
+        real-time caller passes False and calls :meth:`refine` once the image's estimate is
+        out."""
         with _BLAS.limit(limits=UPDATE_BLAS_THREADS, user_api="blas"):
             if self._initial is not None:
                 return self._add_initial(frame)
-            return self._add_sequential(frame)
+            update = self._add_sequential(frame)
+        return self.refined(update) if refine else update
+
+    def refine(self) -> SecondStart | None:
+        """Work the last update made due that can wait until its image's estimate is out:
+        a second start (seqat/second_start.py), its outcome returned; None: nothing done."""
+        with _BLAS.limit(limits=UPDATE_BLAS_THREADS, user_api="blas"):
+            return self._second_start()
 
     def finish(self) -> None:
         """After the last image: re-adjust the window by Gauss-Newton to convergence (steps
@@ -681,7 +692,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         if opts.relinearise_px is not None:
             check = opts.drift_check_every is not None and i % opts.drift_check_every == 0
             self._relinearise_if_needed(force=check)
-            self._second_start(frame.image_id)
+            self._arm_second_start(frame.image_id)
         if opts.smoothing_lag is not None:
             self._finalise_old(i)
         self._prune_dormant(i)

@@ -341,3 +341,7 @@ class ImageUpdate:
     #: Late observations of earlier images the frame carried that the estimator used (as
     #: pending rays or rows); those it could not use are in ``observations_skipped``.
     late_used: int = 0
+    #: A second start tried after this update (seqat/second_start.py), once the update was
+    #: out: "kept" or "not kept" ("" none), and its time (ms; not in ``update_ms``).
+    second_start: str = ""
+    second_start_ms: float = float("nan")

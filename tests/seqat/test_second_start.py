@@ -121,7 +121,9 @@ def test_a_trial_that_fails_leaves_the_estimator_as_it_was(flown: SequentialAT,
         raise EstimationError("singular")
 
     monkeypatch.setattr(est, "_relinearise", singular)
-    est._second_start("IMG")
+    est._arm_second_start("IMG")
+    outcome = est.refine()
+    assert outcome is not None and outcome.image_id == "IMG" and not outcome.kept
     assert est.second_starts_tried == 1 and not est.second_starts
     assert est._second_start_left == 1
     np.testing.assert_array_equal(est._w.x, x0)
@@ -134,8 +136,10 @@ def test_a_trial_is_kept_only_when_it_fits_better(flown: SequentialAT) -> None:
     est = copy.deepcopy(flown)
     before = est.sigma0
     est._second_start_left = 1
-    est._second_start("IMG")
-    assert est.second_starts_tried == 1
+    est._arm_second_start("IMG")
+    outcome = est.refine()
+    assert est.second_starts_tried == 1 and est.refine() is None  # once per update
+    assert outcome is not None and outcome.kept == bool(est.second_starts) and outcome.ms > 0
     if est.second_starts:
         assert est.sigma0 < before
     else:
@@ -154,8 +158,8 @@ def test_no_trial_without_an_undetermined_camera(block: SimulatedFlight) -> None
     assert est._eop_before is None  # not watched
     x0 = est._w.x.copy()
     est._second_start_left = 3
-    est._second_start("IMG")
-    assert est.second_starts_tried == 0
+    est._arm_second_start("IMG")
+    assert est.refine() is None and est.second_starts_tried == 0
     np.testing.assert_array_equal(est._w.x, x0)
     # self-calibrated, every parameter determined (f held out of the free ones)
     cal = SelfCalibration(free=("k1", "k2"))
@@ -165,6 +169,29 @@ def test_no_trial_without_an_undetermined_camera(block: SimulatedFlight) -> None
     assert est._eop_before is not None and est._undetermined_camera() is None
     x0 = est._w.x.copy()
     est._second_start_left = 3
-    est._second_start("IMG")
+    est._arm_second_start("IMG")
+    assert est.refine() is None
     assert est.second_starts_tried == 0 and est._second_start_left == 2
     np.testing.assert_array_equal(est._w.x, x0)
+
+
+def test_the_update_is_out_before_the_trial(block: SimulatedFlight) -> None:
+    """The trial runs after the update (a real-time caller publishes the image's estimate
+    first): ``add_frame(refine=False)`` leaves it due for :meth:`refine`; ``add_frame``
+    runs it and names it in the update, whose estimate is the one before it."""
+    frames = list(block.frames())
+    est = SequentialAT(_prior(block.camera), SequentialOptions(calibration=SelfCalibration()))
+    for f in frames[:-1]:
+        est.add_frame(f)
+    est._second_start_left = 1  # as after a jump
+    later = copy.deepcopy(est)
+    now = est.add_frame(frames[-1])
+    out = later.add_frame(frames[-1], refine=False)
+    assert out.second_start == "" and np.isnan(out.second_start_ms)
+    assert later._second_start_due == frames[-1].image_id and later.second_starts_tried == 0
+    outcome = later.refine()
+    assert outcome is not None and later._second_start_due is None
+    assert now.second_start == ("kept" if outcome.kept else "not kept")
+    assert now.second_start_ms > 0 and est.second_starts_tried == 1
+    np.testing.assert_array_equal(now.eop.eop, out.eop.eop)  # the update's, not the trial's
+    np.testing.assert_array_equal(est._w.x, later._w.x)
