@@ -208,6 +208,10 @@ class RunSummary:
         Images left out.
     stopped : str
         Why a watch stopped (``idle``, ``interrupted``); empty for a run.
+    second_start_ms : TimingStats or None
+        Second starts tried after updates (Seq-R, ``ImageUpdate.second_start``): their
+        times; None when none was tried.
+    second_starts_tried, second_starts_kept : int
     """
 
     method: Method
@@ -228,6 +232,9 @@ class RunSummary:
     budget: BudgetReport | None = None
     skipped: tuple[SkippedImage, ...] = ()
     stopped: str = ""
+    second_start_ms: TimingStats | None = None
+    second_starts_tried: int = 0
+    second_starts_kept: int = 0
 
 
 def _finishing(console: Console, enabled: bool) -> AbstractContextManager[object]:
@@ -368,6 +375,8 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
     timing_seq = TimingStats.from_samples([u.update_ms for u in updates if u.stage == "sequential"])
     latencies = [x.latency_ms for x in session.live if x.latency_ms is not None]
     latency = TimingStats.from_samples(latencies) if latencies else None
+    trials = [u for u in updates if u.second_start]
+    trial_ms = TimingStats.from_samples([u.second_start_ms for u in trials]) if trials else None
     budget = session.budget.report() if session.budget is not None else None
     totals = RunTotals(images=len(solution.eops), points=len(solution.points),
                        observations=session.n_observations, update_ms=timing,
@@ -375,7 +384,7 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                        wall_s=time.perf_counter() - t_start, sigma0=solution.sigma0,
                        redundancy=solution.redundancy, accuracy=accuracy, latency_ms=latency,
                        journal_ms=TimingStats.from_samples(session.journal_ms),
-                       late=session.late_summary(solution))
+                       late=session.late_summary(solution), second_start_ms=trial_ms)
     record = RunRecord(method=method.value, flight=flight, inputs=inputs, options=options,
                        final_only=final_only, images=tuple(updates), totals=totals,
                        tracking_options=tracking_options, tracking=tuple(session.tracking),
@@ -394,7 +403,9 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                       redundancy=solution.redundancy, update_ms=timing,
                       sequential_update_ms=timing_seq, wall_s=time.perf_counter() - t_start,
                       accuracy=accuracy, replayed=session.replayed, latency_ms=latency,
-                      budget=budget, skipped=inputs.skipped, stopped=stopped)
+                      budget=budget, skipped=inputs.skipped, stopped=stopped,
+                      second_start_ms=trial_ms, second_starts_tried=len(trials),
+                      second_starts_kept=sum(u.second_start == "kept" for u in trials))
 
 
 def flight_inputs(flight: Flight) -> list[Path]:

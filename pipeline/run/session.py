@@ -195,8 +195,9 @@ class RunSession:
         frame = prepared.frame
         threshold = _threshold(self.estimator)
         update = self._update(frame)
-        latency = (None if prepared.ready_s is None
+        latency = (None if prepared.ready_s is None  # the image's estimate is out
                    else (time.time() - prepared.ready_s) * 1e3)
+        update = self._refined(update)
         event: BudgetEvent | None = None
         if self.budget is not None:
             self.budget.arrived(prepared.ready_s)
@@ -237,7 +238,7 @@ class RunSession:
         frame = record.frame
         _set_threshold(self.estimator, record.threshold)
         self.source.replay(frame)
-        update = dataclasses.replace(self._update(frame),
+        update = dataclasses.replace(self._refined(self._update(frame)),
                                      update_ms=float(record.live["update_ms"]))  # type: ignore[arg-type]
         if self.budget is not None:
             self.budget.account(update.stage, float(record.live["prep_ms"])  # type: ignore[arg-type]
@@ -263,11 +264,23 @@ class RunSession:
             self.source.set_max_features(event.new_features)
 
     def _update(self, frame: Frame) -> ImageUpdate:
-        update = self.estimator.add_frame(frame)
+        """The estimator's update of ``frame``, given to the tracker and the listeners (the
+        live map): the image's estimate is out. The refinement it made due follows
+        (:meth:`_refined`)."""
+        if hasattr(self.estimator, "refined"):
+            update = self.estimator.add_frame(frame, refine=False)  # type: ignore[call-arg]
+        else:
+            update = self.estimator.add_frame(frame)
         self.source.feedback(update, self.estimator)
         for listener in self.listeners:
             listener.on_image(frame, update, self.estimator)
         return update
+
+    def _refined(self, update: ImageUpdate) -> ImageUpdate:
+        """``update`` and the refinement it made due, run now (``SequentialAT.refined``: a
+        second start, named in the update; its time is not the update's)."""
+        refined = getattr(self.estimator, "refined", None)
+        return update if refined is None else refined(update)
 
     def _keep(self, update: ImageUpdate, live: ImageLive, tracking: Mapping[str, object] | None,
               time_s: float, observed_px: np.ndarray, frame: Frame,

@@ -241,6 +241,8 @@ class RunTotals:
     #: late observations: ``observations``, ``images`` (that got some),
     #: ``images_tied_only_by_late`` (RunSession.late_summary)
     late: Mapping[str, object] | None = None
+    #: second starts tried after updates (``images[].second_start_ms``); None: none
+    second_start_ms: TimingStats | None = None
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

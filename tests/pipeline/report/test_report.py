@@ -244,6 +244,19 @@ def test_latency_table_adds_the_live_ortho_to_the_end_to_end_time() -> None:
     assert post.ortho == "after the run" and "ortho: AT update -> mosaic" not in names
     assert {s.stage: s for s in post.stages}["end to end"].max_ms == 2.0 + 90.0 + 12.0
     assert latency_table(record, None).ortho == "none"
+    assert not any(s.stage.startswith("second start") for s in table.stages)
+
+
+def test_latency_table_lists_second_starts_beside_the_update() -> None:
+    """A second start runs once the image's estimate is out: listed, not end to end."""
+    from pipeline.run.latency import latency_table
+
+    record = {"images": [{"image_id": f"i{k}", "update_ms": 10.0,
+                          "second_start_ms": 500.0 if k == 1 else None} for k in range(3)]}
+    stages = {s.stage: s for s in latency_table(record, None).stages}
+    trial = stages["second start (after the AT update)"]
+    assert trial.images == 1 and trial.max_ms == 500.0
+    assert stages["end to end"].max_ms == 10.0
 
 
 def test_check_points_without_observations_make_a_report(sim_flight: Path,
