@@ -324,7 +324,7 @@ def _live_section(live: LiveOperation) -> list[str]:
     rows: list[tuple[object, ...]] = [
         ("mode" + (f" (resumed: {live.replayed_images} images replayed from the journal)"
                    if live.replayed_images else ""), live.mode, "", ""),
-        ("processing per image: tracking + update (ms)", live.processing_ms_median,
+        ("processing per image: tracking + update + second start (ms)", live.processing_ms_median,
          live.processing_ms_p95, live.processing_ms_max)]
     if live.latency_ms_median is not None:
         rows.append(("end-to-end latency: input complete → estimate (ms)",

@@ -161,10 +161,10 @@ class RealTime:
 class LiveOperation:
     """How the main run kept up (``run.json`` ``mode``, ``images[].live``, ``latency_budget``).
 
-    ``processing_ms_*``: tracking + update per image; ``latency_ms_*``: input complete ->
-    estimate (watch mode only, else None); ``budget_mode``: ``fixed``, ``keep-up`` or None (no
-    budget); ``threshold_changes``: the latency budget's events (image, old and new threshold
-    and features, measured ms, reason).
+    ``processing_ms_*``: tracking + update (+ a second start after it) per image;
+    ``latency_ms_*``: input complete -> estimate (watch mode only, else None);
+    ``budget_mode``: ``fixed``, ``keep-up`` or None (no budget); ``threshold_changes``: the
+    latency budget's events (image, old and new threshold and features, measured ms, reason).
     """
 
     mode: str
