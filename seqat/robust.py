@@ -332,6 +332,22 @@ def narrow_points(point: np.ndarray, eop: FloatArray, uv_px: FloatArray,
     return pts[spread < np.radians(MIN_PUBLISHED_RAY_ANGLE_DEG)]
 
 
+def uninformative_points(u2: FloatArray, point: np.ndarray, eop: FloatArray, uv_px: FloatArray,
+                         sigma_px: FloatArray, camera: PinholeCamera, scale: float | None,
+                         sigma0: float = 1.0) -> np.ndarray:
+    """The points (sorted) Sim and the finished Seq-R adjust again without: their rays
+    disagree (:func:`disagreeing_points`) or fit another place as well
+    (:func:`ambiguous_points`); the arguments are :func:`ambiguous_points`'s.
+
+    Neither carries information on the images, and where the redescending loss leaves
+    either depends on the start: a point of two rays, one a wrong match, is cheapest on
+    either ray with the whole mismatch on the other (two minima), so that Sim and Seq-R,
+    each in one of them, stood 37 mm and 0.028° r.m.s. apart on a subset of the real flight
+    (docs/algorithm.md, *Points whose rays disagree*)."""
+    return np.union1d(disagreeing_points(u2, point, scale, sigma0),
+                      ambiguous_points(u2, point, eop, uv_px, sigma_px, camera, scale, sigma0))
+
+
 def withheld_points(u2: FloatArray, point: np.ndarray, eop: FloatArray, uv_px: FloatArray,
                     sigma_px: FloatArray, camera: PinholeCamera, scale: float | None,
                     sigma0: float = 1.0) -> np.ndarray:

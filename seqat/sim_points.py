@@ -38,14 +38,15 @@ class PointChecksMixin:
         return np.fromiter((ids[j] not in self.control for j in op), bool, op.size)
 
     def _ambiguous_points(self, res: SimResult, data: BlockData, sel: np.ndarray) -> set[int]:
-        """Catalogue indices of the block's points (``sel``) whose rays fit two places as
-        well at ``res`` (:func:`seqat.robust.ambiguous_points`; ground control exempt)."""
+        """Catalogue indices of the block's points (``sel``) whose rays disagree or fit two
+        places as well at ``res`` (:func:`seqat.robust.uninformative_points`; ground
+        control exempt)."""
         k = self.options.robust_scale
         if k is None or not data.obs_point.size:
             return set()
         img, pt, uv, sg, u2 = self._block_u2(res, data)
-        found = rloss.ambiguous_points(u2, pt, res.eop[img], uv, sg, self.camera_now, k,
-                                       res.sigma0)
+        found = rloss.uninformative_points(u2, pt, res.eop[img], uv, sg, self.camera_now, k,
+                                           res.sigma0)
         return {int(sel[j]) for j in found}
 
     def _untrusted_pairs(self, res: SimResult, data: BlockData, sel: np.ndarray) -> set[int]:

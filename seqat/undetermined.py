@@ -16,10 +16,10 @@ from seqat.geometry import depth, intersect_rays
 from seqat.information import RankDeficiency, window_matrix
 from seqat.robust import (
     MAX_AMBIGUOUS_ROUNDS,
-    ambiguous_points,
     core_u2,
     narrow_points,
     scale_in_force,
+    uninformative_points,
     untrusted_two_ray_points,
     withheld_points,
 )
@@ -111,7 +111,7 @@ class UndeterminedMixin:
                 return
             xe, u2 = self._at_estimate(f)
             mine = self._whole_suspects(f, u2)
-            found = [int(p) for p in ambiguous_points(
+            found = [int(p) for p in uninformative_points(
                 u2[mine], f.pt[mine], xe[mine, :EOP_SIZE], f.uv[mine],
                 1.0 / np.sqrt(f.w0[mine]), self._camera_now(), k, self.sigma0)]
             if not found:
