@@ -48,8 +48,7 @@ test: $(STAMP) sysdeps
 # no FMA): results must not depend on the CPU (docs/algorithm.md, *BLAS kernels*).
 test-kernels: $(STAMP)
 	OPENBLAS_CORETYPE=Sandybridge $(BIN)/python -m pytest -q -p no:cacheprovider \
-		tests/seqat/test_information.py tests/seqat/test_robust.py \
-		tests/seqat/test_sequential.py tests/pipeline/bench/test_bench_faults.py
+		tests/seqat tests/pipeline/bench/test_bench_faults.py
 
 bench: $(STAMP) sysdeps
 	$(BIN)/seqat bench configs/paper_sim.yaml --out out/bench --seed 1 --seed 2 --seed 3 \

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import scipy.sparse
 
+from seqat.relinearise import RELINEARISE_TOLERANCE
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
 from seqat.simultaneous import SimOptions, SimultaneousAT
@@ -352,5 +353,7 @@ def test_finish_born_points_are_kept_with_their_weight(sigma_px: float) -> None:
     got, want = est.solution(), sim.solution()
     assert len(got.points) == len(want.points)
     a, b = np.array([e.eop for e in got.eops]), np.array([e.eop for e in want.eops])
+    # to finish()'s step tolerance (RELINEARISE_TOLERANCE, 1e-7 m / rad): 2e-8 rad apart with
+    # OpenBLAS's Sandy Bridge kernel (the defect this guards against: 7e-4 rad)
     np.testing.assert_allclose(a[:, :3], b[:, :3], rtol=0, atol=1e-5)
-    np.testing.assert_allclose(a[:, 3:], b[:, 3:], rtol=0, atol=1e-8)
+    np.testing.assert_allclose(a[:, 3:], b[:, 3:], rtol=0, atol=RELINEARISE_TOLERANCE)

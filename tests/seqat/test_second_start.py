@@ -66,9 +66,15 @@ def test_a_lock_released_at_once_leaves_the_window_where_it_was(flown: Sequentia
     assert np.max(moved[eops]) > 1e-2 and np.max(moved[h]) > 10.0  # m, px
     assert est._ssr > ssr0
     est._release_camera(lock)
-    # back to rounding (the lock is 1e4 times the camera's information: measured 1e-7 of
-    # the move); without the condition's multiplier nothing would move back
-    assert np.all(np.abs(w.x - x0) <= 1e-5 * moved + 1e-12)
+    # back to rounding, of each kind of parameter against its largest move (the lock is 1e4
+    # times the camera's information: measured 7e-8 of the move with this machine's BLAS
+    # kernel, 9e-7 with OpenBLAS's Sandy Bridge one); without the condition's multiplier
+    # nothing would move back
+    back = np.abs(w.x - x0)
+    ie = eops.reshape(-1, EOP_SIZE)
+    pts = w.indices([k for k in w.keys if k[0] == "p"])
+    for idx in (ie[:, :3].ravel(), ie[:, 3:].ravel(), h, pts):
+        assert np.max(back[idx]) <= 1e-5 * np.max(moved[idx])
     assert est._ssr == pytest.approx(ssr0, rel=1e-6)
 
 
