@@ -354,8 +354,9 @@ def run_fault_bench(out_dir: Path, *, seeds: Sequence[int] = (1, 2, 3),
     out_dir = Path(out_dir)
     strip_cfg = _strip_config(Path(strip_config), options) if "strip" in cases else None
     if "rendered" in cases and not (Path(rendered_flight) / "truth").is_dir():
-        raise ConfigError(f"bench faults: {rendered_flight}: not a flight folder with truth/ "
-                          "(--rendered)")
+        what = ("not a flight folder with truth/" if Path(rendered_flight).is_dir()
+                else "no such folder (relative paths are from the working directory)")
+        raise ConfigError(f"bench faults: {rendered_flight}: {what} (--rendered)")
     t_start, load_start = time.perf_counter(), load_average()
     setups: list[FaultSetup] = []
     runs: list[FaultRun] = []

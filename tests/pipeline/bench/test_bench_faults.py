@@ -144,6 +144,9 @@ def test_fault_bench_rejects_bad_arguments(tmp_path: Path) -> None:
         run_fault_bench(tmp_path, seeds=(), progress=False)
     with pytest.raises(ConfigError, match="truth"):
         run_fault_bench(tmp_path, cases=("rendered",), rendered_flight=tmp_path, progress=False)
+    with pytest.raises(ConfigError, match="no such folder"):  # a relative default elsewhere
+        run_fault_bench(tmp_path, cases=("rendered",), rendered_flight=tmp_path / "nope",
+                        progress=False)
 
 
 def test_cli_bench_faults_bad_case_exits_2(tmp_path: Path) -> None:
