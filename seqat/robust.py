@@ -49,8 +49,8 @@ NAV_REPORT_WEIGHT = 0.9
 #: A tie point is published only while at least this many of its rays lie within the loss's
 #: core at the final estimate (:func:`disagreeing_points`).
 MIN_AGREEING_RAYS = 2
-#: Times Sim and the finished Seq-R adjust again without the tie points whose rays fit two
-#: places as well (:func:`ambiguous_points`).
+#: Times Sim and the finished Seq-R adjust again without the tie points whose rays disagree
+#: or fit two places as well (:func:`uninformative_points`).
 MAX_AMBIGUOUS_ROUNDS = 3
 #: ... a ray counts as left out by another answer only this many times the core's radius
 #: beyond it there: three noisy rays near the core's edge are one answer.

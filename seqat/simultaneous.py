@@ -435,7 +435,7 @@ class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
         self._gp_est: FloatArray = np.zeros((0, GP_SIZE))
         self._dirty = False
         self._rejected: set[int] = set()  # catalogue indices of observations rejected
-        self._ambiguous: set[int] = set()  # catalogue points held out: their rays fit two places
+        self._ambiguous: set[int] = set()  # catalogue points held out: uninformative_points
         self._untrusted: set[int] = set()  # ... two-ray points of a contaminated block
         #: Fraction of the rays of points of three rays or more clearly beyond the robust
         #: loss's core at the last solution (seqat.robust.contamination; NaN: not judged).
@@ -625,11 +625,12 @@ class SimultaneousAT(SnoopingMixin, RestartMixin, PointChecksMixin):
             self._gp_est = np.full_like(self._gp_est, np.nan)
             data, sel, eop0, gp0, _ = self._block()
             res = self._adjust_and_keep(data, sel, eop0, gp0, covariance)
-        # Tie points whose rays fit two places as well (seqat.robust.ambiguous_points): which
-        # pair the loss keeps depends on the start, and with it a weakly tied image's pose
-        # (Seneca without every fifth image: 0.1 deg on the last one). They carry no
-        # information on the images: the block is adjusted again without them, as Seq-R's
-        # finish() takes their rows out (docs/algorithm.md, *Points whose rays fit two places*).
+        # Tie points whose rays disagree or fit two places as well
+        # (seqat.robust.uninformative_points): which ray or pair the loss keeps depends on the
+        # start, and with it a weakly tied image's pose (Seneca without every fifth image: 0.1
+        # deg on the last one). They carry no information on the images: the block is
+        # adjusted again without them, as Seq-R's finish() takes their rows out
+        # (docs/algorithm.md, *Points whose rays disagree*, *... fit two places*).
         self._ambiguous = set()
         for _ in range(rloss.MAX_AMBIGUOUS_ROUNDS):
             found = self._ambiguous_points(res, data, sel)

@@ -98,12 +98,13 @@ class UndeterminedMixin:
         return {k: g[w.index(k)] for k in w.keys if k[0] != "p" or k[1] not in points}
 
     def _drop_ambiguous(self) -> None:
-        """finish(), after the final re-linearisation: the window GPs whose rays fit another
-        place as well (:func:`seqat.robust.ambiguous_points`) leave with their rows
-        (:meth:`_drop_undetermined`) and the window is re-adjusted without them, as Sim adjusts
-        its block again without them: which pair of rays the loss keeps depends on the
-        start, and with it a weakly tied image's pose. Named in :attr:`disagreeing`.
-        Information engine only (the inverse engine cannot take rows out)."""
+        """finish(), after the final re-linearisation: the window GPs whose rays disagree or
+        fit another place as well (:func:`seqat.robust.uninformative_points`) leave with
+        their rows (:meth:`_drop_undetermined`) and the window is re-adjusted without them,
+        as Sim adjusts its block again without them: which ray or pair of rays the loss keeps
+        depends on the start, and with it a weakly tied image's pose. Named in
+        :attr:`disagreeing`. Information engine only (the inverse engine cannot take rows
+        out)."""
         k = self.options.robust_scale
         for _ in range(MAX_AMBIGUOUS_ROUNDS):
             f = self._window_factors() if k is not None and not self._inverse else None
