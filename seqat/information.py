@@ -27,12 +27,11 @@ negative variances downstream.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
 import scipy.linalg
 import scipy.sparse
 
+from seqat import kernels
 from seqat.dense import take_columns
 from seqat.errors import EstimationError
 from seqat.types import GP_SIZE, FloatArray
@@ -48,22 +47,6 @@ SPARSE_FROM = 200_000
 #: A GP block whose largest eigenvalue is below this fraction of the median GP's carries next
 #: to no information (its rays all down-weighted to nothing by the robust loss).
 WEAK_TOLERANCE = 1e-6
-#: A large window's eliminated points are taken in groups of up to this many (in the order of
-#: the first row they touch): a group's columns of ``L_RP`` / ``B`` are made dense on the
-#: union of their rows and go through one BLAS product (:func:`point_column_groups`).
-POINTS_PER_GROUP = 64
-#: ... split while a group's product would cost this many times its points' own products
-#: (points far apart in the flight share few rows; a group of them would multiply zeros).
-GROUP_WASTE = 4.0
-#: ... unless the product is this small (m^2 k): a group's bookkeeping (~20 numpy calls)
-#: then costs more than the zeros it multiplies.
-GROUP_SPLIT_FROM = 200_000
-#: The Schur product ``L_RP D^-1 L_PR`` goes by groups of points when their columns hold at
-#: least this many rows on average (points seen by 5 or more images), else by one sparse
-#: product: measured in the windows of three flights (2026-12-04), grouped ÷ sparse time
-#: 1.1 at 23 rows (100-image block), 0.93 at 34 (196-image block), 0.13 at 100 (strip with
-#: long tracks).
-GROUPED_FROM_ROWS = 30
 
 
 class RankDeficiency(EstimationError):
@@ -219,53 +202,6 @@ def gather_parts(L: FloatArray | SparseMatrix, r_idx: np.ndarray, p_idx: np.ndar
     return D, L_RR, L_RP
 
 
-def point_column_groups(C: scipy.sparse.csc_array, pts: np.ndarray,
-                        ) -> Iterator[tuple[np.ndarray, np.ndarray, FloatArray]]:
-    """The eliminated points ``pts`` (positions in P) in groups, with their columns of ``C``
-    (r x 3 np, CSC without duplicate entries) made dense on the rows they touch.
-
-    Yields ``(sel, rows, block)``: ``sel`` positions in ``pts`` (k,), ``rows`` the sorted
-    union of the rows of their columns (m,), ``block = C[rows, cols]`` (m, 3 k) with the
-    columns of ``pts[sel]`` point by point. Points with no row are left out (they add
-    nothing). Points are ordered by the first row they touch, so that a group is points
-    seen by the same images (a strip's neighbours share most rows); a group whose
-    product (m^2 k) would cost more than :data:`GROUP_WASTE` times its points' own (sum of
-    m_p^2) is split in halves. The Schur product ``L_RP D^-1 L_PR`` and the points'
-    marginals ``B_p^T Q_RR B_p`` then cost a few dense BLAS products per group instead of a
-    sparse product or a gather of ``Q_RR`` per point (a long-track strip: 108 ms and 87 ms
-    per update; docs/algorithm.md, *Engines*)."""
-    ptr, ind, val = C.indptr, C.indices, C.data
-    n_rows = C.shape[0]
-    if ind.size == 0 or pts.size == 0:
-        return
-    cols = pts[:, None] * GP_SIZE + np.arange(GP_SIZE)  # (k, 3)
-    start, lens = ptr[cols], ptr[cols + 1] - ptr[cols]
-    # sorted rows per column: its first entry is its first row (n_rows: no row)
-    first = np.where(lens > 0, ind[np.minimum(start, ind.size - 1)], n_rows).min(axis=1)
-    own = lens.max(axis=1).astype(np.float64) ** 2  # a point's own product, m_p^2
-    order = np.argsort(first, kind="stable")
-    order = order[first[order] < n_rows]
-    todo = [order[a:a + POINTS_PER_GROUP] for a in range(0, order.size, POINTS_PER_GROUP)]
-    todo.reverse()
-    while todo:
-        sel = todo.pop()
-        ln, st = lens[sel].ravel(), start[sel].ravel()
-        at = np.repeat(st - np.cumsum(ln) + ln, ln) + np.arange(int(ln.sum()))
-        hit = ind[at]
-        mark = np.zeros(n_rows, dtype=bool)
-        mark[hit] = True
-        rows = np.flatnonzero(mark)  # the union of the group's rows, sorted, without a sort
-        work = rows.size**2 * sel.size
-        if sel.size > 1 and work > max(GROUP_WASTE * own[sel].sum(), GROUP_SPLIT_FROM):
-            h = sel.size // 2
-            todo += [sel[h:], sel[:h]]
-            continue
-        local = np.cumsum(mark)[hit] - 1
-        block = np.zeros((rows.size, GP_SIZE * sel.size))
-        block[local, np.repeat(np.arange(ln.size), ln)] = val[at]
-        yield sel, rows, block
-
-
 def _canonical_csc(M: FloatArray | SparseMatrix) -> scipy.sparse.csc_array:
     """``M`` by columns, rows sorted and no duplicate entries."""
     out = scipy.sparse.csc_array(M)
@@ -345,21 +281,18 @@ class InformationFactor:
                 (self.Dinv.ravel(), np.repeat(k.reshape(npt, GP_SIZE), GP_SIZE, axis=0).ravel(),
                  np.arange(0, GP_SIZE * GP_SIZE * npt + 1, GP_SIZE)),
                 shape=(GP_SIZE * npt, GP_SIZE * npt))
-            # kept by columns (a point's three): what the groups, Q[touched, touched] and the
-            # products read, one copy each (a departure record keeps its factor)
+            # kept by columns (a point's three): what the kernels, Q[touched, touched] and
+            # the products read, one copy each (a departure record keeps its factor)
             self.L_RP = _canonical_csc(L_RP)
             self.B = _canonical_csc(self.L_RP @ Dinv_blocks)
-            if self.L_RP.nnz >= GROUPED_FROM_ROWS * GP_SIZE * npt:  # long tracks
-                BL = self._schur_product(self.L_RP, r)
-            else:
-                BL = (self.B @ self.L_RP.T).toarray()
+            BL = self._schur_product(r)
         else:
             B = np.matmul(L_RP.reshape(r, npt, GP_SIZE).transpose(1, 0, 2),
                           self.Dinv).transpose(1, 0, 2).reshape(r, GP_SIZE * npt)
             if L_RP.size > SPARSE_FROM:
                 self.L_RP = _canonical_csc(L_RP)
                 self.B = _canonical_csc(B)
-                BL = (self.B @ self.L_RP.T).toarray()
+                BL = self._schur_product(r)
             else:
                 self.L_RP, self.B = L_RP, B
                 BL = B @ L_RP.T
@@ -373,17 +306,12 @@ class InformationFactor:
             S = L_RR - BL
         self._chol(S)
 
-    def _schur_product(self, L_RP: scipy.sparse.csc_array, r: int) -> FloatArray:
-        """``L_RP D^-1 L_PR`` (r x r, dense) of a large window, by groups of points
-        (:func:`point_column_groups`): one ``B_g L_g^T`` per group on its rows."""
-        out = np.zeros((r, r))
-        npt = self.Dinv.shape[0]
-        for sel, rows, Lg in point_column_groups(L_RP, np.arange(npt)):
-            k = sel.size
-            Bg = np.matmul(Lg.reshape(-1, k, GP_SIZE).transpose(1, 0, 2),
-                           self.Dinv[sel]).transpose(1, 0, 2).reshape(-1, GP_SIZE * k)
-            out[np.ix_(rows, rows)] += Bg @ Lg.T
-        return out
+    def _schur_product(self, r: int) -> FloatArray:
+        """``L_RP D^-1 L_PR`` (r x r, dense, exactly symmetric) of a large window, point by
+        point on the rows each point's columns of the sparse ``L_RP`` hold
+        (:func:`seqat.kernels.schur_product`)."""
+        C = self.L_RP
+        return kernels.schur_product(C.indptr, C.indices, C.data, self.Dinv, r)
 
     def _chol(self, S: FloatArray) -> None:
         r = S.shape[0]
@@ -512,20 +440,12 @@ class InformationFactor:
 
     def _sparse_point_quadratic(self, pts: np.ndarray, *, full: bool) -> FloatArray:
         """``B_p^T Q_RR B_p`` of the eliminated points ``pts`` (positions in P) for a sparse
-        ``B``: (len(pts), 3, 3), or with ``full`` False its diagonal (len(pts), 3). Each group
-        of points (:func:`point_column_groups`) reads the block of ``Q_RR`` on the rows its
-        columns of ``B`` live on: ``W = Q_RR[rows, rows] B_g``, then ``B_p^T W_p`` per point."""
-        Q = self._q_rr()
-        extra = np.zeros((pts.size, GP_SIZE, GP_SIZE) if full else (pts.size, GP_SIZE))
-        for sel, rows, Bg in point_column_groups(self._by_columns("B"), pts):
-            k = sel.size
-            W = Q[np.ix_(rows, rows)] @ Bg
-            if full:
-                extra[sel] = np.einsum("rpi,rpj->pij", Bg.reshape(-1, k, GP_SIZE),
-                                       W.reshape(-1, k, GP_SIZE))
-            else:
-                extra[sel] = np.einsum("ij,ij->j", Bg, W).reshape(k, GP_SIZE)
-        return extra
+        ``B``: (len(pts), 3, 3), or with ``full`` False its diagonal (len(pts), 3). Each point
+        reads the block of ``Q_RR`` on the rows its columns of ``B`` live on
+        (:func:`seqat.kernels.point_quadratic`)."""
+        B = self._by_columns("B")
+        extra = kernels.point_quadratic(B.indptr, B.indices, B.data, self._q_rr(), pts)
+        return extra if full else np.einsum("pii->pi", extra)
 
     def block(self, idx: np.ndarray) -> FloatArray:
         """``Q[idx, idx]``, (k, k), without the n x k columns :meth:`columns` forms.

@@ -108,9 +108,9 @@ def test_diagonal_blocks_equal_the_dense_inverse(sparse: bool,
 
 def test_point_marginals_read_per_point_blocks_even_when_its_columns_differ(
         monkeypatch: pytest.MonkeyPatch) -> None:
-    """The eliminated points' variances are ``D^-1 + B_p^T Q_RR B_p`` read group by group
+    """The eliminated points' variances are ``D^-1 + B_p^T Q_RR B_p`` read point by point
     from ``Q_RR``: equal to the dense formula, also for a point whose three columns of ``B``
-    have different rows and with groups of one point."""
+    have different rows."""
     import scipy.sparse
 
     import seqat.information as information
@@ -127,8 +127,6 @@ def test_point_marginals_read_per_point_blocks_even_when_its_columns_differ(
     Qrr = np.linalg.inv(Qrr)
     want = np.einsum("ij,ij->j", B, Qrr @ B).reshape(-1, 3)
     np.testing.assert_allclose(f._point_extra(), want, rtol=1e-9, atol=1e-15)
-    monkeypatch.setattr(information, "POINTS_PER_GROUP", 1)
-    np.testing.assert_allclose(f._point_extra(), want, rtol=1e-9, atol=1e-15)
     # a departure's 3 x 3 blocks (diagonal_blocks) by the same per-point reads, point 1 too
     pts = np.array([0, 1, 5, 20])
     Bp = B.reshape(B.shape[0], -1, 3)
@@ -139,63 +137,20 @@ def test_point_marginals_read_per_point_blocks_even_when_its_columns_differ(
         np.testing.assert_array_equal(blk, blk.T)
 
 
-@pytest.mark.parametrize(("per_group", "waste", "split_from"),
-                         [(64, 4.0, 200_000), (3, 4.0, 0), (5, 0.0, 0), (64, 1e9, 1e12)])
-def test_point_column_groups_cover_every_point_once_with_its_exact_columns(
-        per_group: int, waste: float, split_from: float,
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    """Each point with a row appears in exactly one group, its three columns of ``C`` dense on
-    the group's rows (the union of its points' rows) and zero elsewhere; a point without rows
-    is left out. Also with groups split down to single points and never split."""
-    import scipy.sparse
-
-    import seqat.information as information
-    from seqat.information import point_column_groups
-
-    monkeypatch.setattr(information, "POINTS_PER_GROUP", per_group)
-    monkeypatch.setattr(information, "GROUP_WASTE", waste)
-    monkeypatch.setattr(information, "GROUP_SPLIT_FROM", split_from)
-    rng = np.random.default_rng(13)
-    r, npt = 40, 23
-    C = np.zeros((r, 3 * npt))
-    for p in range(npt):  # a track of images: a run of rows, or two runs (a return)
-        a = rng.integers(0, r - 8)
-        rows = np.r_[a:a + rng.integers(2, 8)]
-        if p % 4 == 0:
-            rows = np.r_[rows, rng.integers(0, r, 3)]
-        C[np.ix_(rows, np.arange(3 * p, 3 * p + 3))] = rng.standard_normal((rows.size, 3))
-    C[:, 9:12] = 0.0  # point 3: no row in R
-    C[C[:, 13] != 0, 13] = 0.0  # point 4: its second column has no rows at all
-    C[np.flatnonzero(C[:, 15])[0], 15] = 0.0  # point 5: its columns differ by a row
-    Cs = scipy.sparse.csc_array(C)
-    pts = np.array([0, 3, 4, 5, 6, 7, 11, 12, 19, 20, 21, 22])
-    seen: list[int] = []
-    for sel, rows, block in point_column_groups(Cs, pts):
-        assert np.all(np.diff(rows) > 0)
-        cols = (pts[sel][:, None] * 3 + np.arange(3)).ravel()
-        np.testing.assert_array_equal(block, C[np.ix_(rows, cols)])
-        others = np.setdiff1d(np.arange(r), rows)
-        assert not np.any(C[np.ix_(others, cols)])
-        seen += pts[sel].tolist()
-    assert sorted(seen) == sorted(set(pts.tolist()) - {3})
-
-
-@pytest.mark.parametrize("grouped", [False, True])
+@pytest.mark.parametrize("sparse_l", [False, True])
 def test_sparse_window_factor_equals_the_dense_inverse(
-        grouped: bool, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A large window's ``L`` (sparse): the Schur product by groups of points or by one sparse
-    product, and the points' marginals by groups, give the dense inverse."""
+        sparse_l: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A large window (``L`` sparse, or dense with a large ``L_RP``): the Schur product and
+    the points' marginals point by point (seqat.kernels) give the dense inverse."""
     import scipy.sparse
 
     import seqat.information as information
 
     monkeypatch.setattr(information, "SPARSE_FROM", 0)
-    monkeypatch.setattr(information, "GROUPED_FROM_ROWS", 0 if grouped else 10**9)
-    monkeypatch.setattr(information, "POINTS_PER_GROUP", 4)
     rng = np.random.default_rng(17)
     L, gp = _window_like(rng, n_e=5, n_p=30, coupled=3)
     Q = np.linalg.inv(L)
-    f = InformationFactor(scipy.sparse.csr_array(L), gp)
+    f = InformationFactor(scipy.sparse.csr_array(L) if sparse_l else L, gp)
     assert scipy.sparse.issparse(f.B)
     np.testing.assert_allclose(f.diagonal(), np.diagonal(Q), rtol=1e-9)
     b = rng.standard_normal(L.shape[0])

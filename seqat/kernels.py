@@ -1,0 +1,177 @@
+"""Compiled point-by-point kernels of the ground points' elimination (numba).
+
+A window's eliminated ground point couples to the few images (and the camera) that see it:
+its three columns of ``L_RP`` hold ``m`` non-zero rows (6 per ray), so the Schur product
+``L_RP D^-1 L_PR`` and the points' marginals ``B_p^T Q_RR B_p`` cost ``O(sum m^2)`` taken
+point by point, as a bundle adjuster's Schur eliminator takes them (Ceres'
+``SchurEliminator``). In numpy a point costs some ten calls of microseconds each, which is
+why the large windows went through sparse or grouped BLAS products instead, at the price of
+products over zeros (points of different strips share no rows); compiled, the per-point loop
+costs its flops (docs/algorithm.md, *Engines*).
+
+The loops add in a fixed order (points in turn, rows in storage order) and without
+``fastmath`` (no reassociation, no fused multiply-add): the results do not depend on the CPU
+or on a BLAS kernel. Each kernel is compiled once for int64 indices and float64 values, at
+import (cached on disk beside this file, so only the first import compiles: ~1 s).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from seqat.types import FloatArray
+
+_INDEX = "int64[::1]"
+_VALUES = "float64[::1]"
+
+
+@njit(f"int64({_INDEX}, {_INDEX}, {_VALUES}, int64, int64[::1], int64[::1], float64[:, ::1])",
+      cache=True, nogil=True)
+def _gather(indptr, indices, data, p, pos, rows, Lp):  # noqa: ANN001, ANN202
+    """Point ``p``'s three columns of a CSC matrix made dense on their rows: ``Lp[:m]``
+    (m, 3), ``rows[:m]`` the row numbers, in order of first appearance; ``pos`` maps row ->
+    local index (-1: not gathered) and is left set for the caller to reset."""
+    m = 0
+    for c in range(3):
+        col = 3 * p + c
+        for k in range(indptr[col], indptr[col + 1]):
+            i = indices[k]
+            a = pos[i]
+            if a < 0:
+                a = m
+                pos[i] = m
+                rows[m] = i
+                Lp[m, 0] = 0.0
+                Lp[m, 1] = 0.0
+                Lp[m, 2] = 0.0
+                m += 1
+            Lp[a, c] += data[k]
+    return m
+
+
+@njit(f"void({_INDEX}, {_INDEX}, {_VALUES}, float64[:, :, ::1], float64[:, ::1])",
+      cache=True, nogil=True)
+def _schur(indptr, indices, data, Dinv, out):  # noqa: ANN001, ANN202
+    r = out.shape[0]
+    npt = Dinv.shape[0]
+    most = 0  # the most rows a point can have: its three columns' entries
+    for p in range(npt):
+        most = max(most, indptr[3 * p + 3] - indptr[3 * p])
+    pos = np.full(r, -1, np.int64)
+    rows = np.empty(r, np.int64)
+    Lp = np.empty((r, 3))
+    Bp = np.empty((r, 3))
+    V = np.empty((most, most))
+    Lt = np.empty((3, most))
+    run_at = np.empty(most, np.int64)
+    run_len = np.empty(most, np.int64)
+    for p in range(npt):
+        m = _gather(indptr, indices, data, p, pos, rows, Lp)
+        D = Dinv[p]
+        for a in range(m):  # B_p = L_p D_p^-1
+            for j in range(3):
+                Bp[a, j] = Lp[a, 0] * D[0, j] + Lp[a, 1] * D[1, j] + Lp[a, 2] * D[2, j]
+        for a in range(m):  # L_p^T, so that a row of V reads contiguous memory
+            Lt[0, a] = Lp[a, 0]
+            Lt[1, a] = Lp[a, 1]
+            Lt[2, a] = Lp[a, 2]
+        for a in range(m):  # V = B_p L_p^T: the upper triangle by rows
+            b0, b1, b2 = Bp[a, 0], Bp[a, 1], Bp[a, 2]
+            Va = V[a]
+            for b in range(a, m):
+                Va[b] = b0 * Lt[0, b] + b1 * Lt[1, b] + b2 * Lt[2, b]
+        for a in range(m):  # ... mirrored: exactly symmetric
+            for b in range(a):
+                V[a, b] = V[b, a]
+        nrun = 0  # the rows in runs of consecutive numbers (an image's six EOPs at least)
+        b = 0
+        while b < m:
+            e = b + 1
+            while e < m and rows[e] == rows[e - 1] + 1:
+                e += 1
+            run_at[nrun] = b
+            run_len[nrun] = e - b
+            nrun += 1
+            b = e
+        for a in range(m):  # added row by row, run by run (slices: vector instructions)
+            out_a = out[rows[a]]
+            Va = V[a]
+            for k in range(nrun):
+                at, n = run_at[k], run_len[k]
+                seg = out_a[rows[at]:rows[at] + n]  # a view: added in place, no temporary
+                seg += Va[at:at + n]
+        for a in range(m):
+            pos[rows[a]] = -1
+
+
+@njit(f"void({_INDEX}, {_INDEX}, {_VALUES}, float64[:, ::1], {_INDEX}, float64[:, :, ::1])",
+      cache=True, nogil=True)
+def _quadratic(indptr, indices, data, Q, pts, out):  # noqa: ANN001, ANN202
+    r = Q.shape[0]
+    pos = np.full(r, -1, np.int64)
+    rows = np.empty(r, np.int64)
+    Bp = np.empty((r, 3))
+    for t in range(pts.shape[0]):
+        m = _gather(indptr, indices, data, pts[t], pos, rows, Bp)
+        # sum over a, b of B[a, i] Q[a, b] B[b, j]: the diagonal terms, then each pair a < b
+        # once (Q symmetric) for both of its orders
+        s00 = s01 = s02 = s11 = s12 = s22 = 0.0
+        for a in range(m):
+            Qa = Q[rows[a]]
+            a0, a1, a2 = Bp[a, 0], Bp[a, 1], Bp[a, 2]
+            q = Qa[rows[a]]
+            s00 += q * a0 * a0
+            s01 += q * a0 * a1
+            s02 += q * a0 * a2
+            s11 += q * a1 * a1
+            s12 += q * a1 * a2
+            s22 += q * a2 * a2
+            w0 = w1 = w2 = 0.0  # sum over b > a of Q[a, b] B[b]
+            for b in range(a + 1, m):
+                q = Qa[rows[b]]
+                w0 += q * Bp[b, 0]
+                w1 += q * Bp[b, 1]
+                w2 += q * Bp[b, 2]
+            s00 += 2.0 * a0 * w0
+            s11 += 2.0 * a1 * w1
+            s22 += 2.0 * a2 * w2
+            s01 += a0 * w1 + a1 * w0
+            s02 += a0 * w2 + a2 * w0
+            s12 += a1 * w2 + a2 * w1
+        out[t, 0, 0] = s00
+        out[t, 1, 1] = s11
+        out[t, 2, 2] = s22
+        out[t, 0, 1] = out[t, 1, 0] = s01
+        out[t, 0, 2] = out[t, 2, 0] = s02
+        out[t, 1, 2] = out[t, 2, 1] = s12
+        for a in range(m):
+            pos[rows[a]] = -1
+
+
+def _csc(indptr: np.ndarray, indices: np.ndarray,
+         data: FloatArray) -> tuple[np.ndarray, np.ndarray, FloatArray]:
+    """The CSC arrays as the kernels take them (scipy's int32 indices widened)."""
+    return (np.ascontiguousarray(indptr, dtype=np.int64),
+            np.ascontiguousarray(indices, dtype=np.int64),
+            np.ascontiguousarray(data, dtype=np.float64))
+
+
+def schur_product(indptr: np.ndarray, indices: np.ndarray, data: FloatArray,
+                  Dinv: FloatArray, r: int) -> FloatArray:
+    """``L_RP D^-1 L_PR`` (r, r), exactly symmetric, of ``L_RP`` (r, 3 np) given by its CSC
+    arrays (no duplicate entries) and the points' ``D_p^-1`` (np, 3, 3, symmetric)."""
+    out = np.zeros((r, r))
+    _schur(*_csc(indptr, indices, data), np.ascontiguousarray(Dinv, dtype=np.float64), out)
+    return out
+
+
+def point_quadratic(indptr: np.ndarray, indices: np.ndarray, data: FloatArray,
+                    Q: FloatArray, pts: np.ndarray) -> FloatArray:
+    """``B_p^T Q B_p`` (len(pts), 3, 3), exactly symmetric, of the points ``pts`` (positions
+    in P) of ``B`` (r, 3 np) given by its CSC arrays (no duplicate entries); ``Q`` (r, r)
+    symmetric (only its rows are read, one per row of ``B_p``)."""
+    out = np.empty((np.size(pts), 3, 3))
+    _quadratic(*_csc(indptr, indices, data), np.ascontiguousarray(Q, dtype=np.float64),
+               np.ascontiguousarray(pts, dtype=np.int64), out)
+    return out
