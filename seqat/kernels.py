@@ -127,12 +127,28 @@ def _quadratic(indptr, indices, data, Q, pts, out):  # noqa: ANN001, ANN202
             s11 += q * a1 * a1
             s12 += q * a1 * a2
             s22 += q * a2 * a2
-            w0 = w1 = w2 = 0.0  # sum over b > a of Q[a, b] B[b]
-            for b in range(a + 1, m):
+            # w = sum over b > a of Q[a, b] B[b], in two interleaved partial sums (two
+            # chains of dependent adds run at once; still a fixed order)
+            w0 = w1 = w2 = u0 = u1 = u2 = 0.0
+            b = a + 1
+            while b + 1 < m:
                 q = Qa[rows[b]]
                 w0 += q * Bp[b, 0]
                 w1 += q * Bp[b, 1]
                 w2 += q * Bp[b, 2]
+                q = Qa[rows[b + 1]]
+                u0 += q * Bp[b + 1, 0]
+                u1 += q * Bp[b + 1, 1]
+                u2 += q * Bp[b + 1, 2]
+                b += 2
+            if b < m:
+                q = Qa[rows[b]]
+                w0 += q * Bp[b, 0]
+                w1 += q * Bp[b, 1]
+                w2 += q * Bp[b, 2]
+            w0 += u0
+            w1 += u1
+            w2 += u2
             s00 += 2.0 * a0 * w0
             s11 += 2.0 * a1 * w1
             s22 += 2.0 * a2 * w2
