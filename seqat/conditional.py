@@ -141,12 +141,19 @@ class Departure:
     gain_width: int  # |W| at departure
     splits: tuple[tuple[np.ndarray, FloatArray, np.ndarray], ...] = ()
 
-    def rts_gain(self) -> FloatArray:
-        """``J`` (|F|, |W|)."""
+    def departure_gain(self) -> FloatArray:
+        """``J`` as the record left (|F0|, |W0|): before any split. It never changes while the
+        record lives (a split replaces the record and keeps its ``L_FS`` and factor)."""
         G = np.zeros((self.coupling.shape[0], self.gain_width))
         if self.coupling.shape[1]:
             G[:, self.coupling_cols] = Conditional(self.conditional.base).gain(
                 self.coupling.toarray())
+        return G
+
+    def rts_gain(self, departure_gain: FloatArray | None = None) -> FloatArray:
+        """``J`` (|F|, |W|): :meth:`departure_gain` (or the one given, the same kept by the
+        caller) with the splits applied."""
+        G = self.departure_gain() if departure_gain is None else departure_gain
         for m_idx, K, r_idx in self.splits:
             G = split_gain(G, m_idx, K, r_idx)
         return G

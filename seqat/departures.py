@@ -52,6 +52,9 @@ from seqat.window import (
 #: 0.39 s at 56). The paper strip (25), Seneca (70) and the rendered blocks (<= 70) are not
 #: cut by it (docs/benchmarks.md, *A block on a weak GPS/INS*).
 DEFAULT_MAX_WINDOW_IMAGES = 70
+#: The departure records' gains kept for re-openings (:meth:`DepartureMixin._departure_gain`)
+#: take at most this many bytes (a record's gain is |F| x |blanket|: ~0.2-3 MB on a block).
+GAIN_CACHE_BYTES = 64 * 2**20
 #: finish() re-opens the departed keys through their records only when they are at most this
 #: many parameters: they join the reduced system densely (their conditional prior couples
 #: them), so the final re-linearisation costs O(size^3) per step (Seneca: 1281 parameters,
@@ -517,6 +520,7 @@ class DepartureMixin:
             if dep is not None and dep.at >= cutoff:
                 break
             self._departures[r] = None
+            self._gains.pop(r, None)
             r += 1
         self._first_record = r
         # rescues that only records now finalised were made before (flat memory)
@@ -674,7 +678,7 @@ class DepartureMixin:
                                    for k in members])
             JK = buf[:, cols].copy()
             buf[:, cols] = 0.0
-            G = dep.rts_gain()[src]
+            G = dep.rts_gain(self._departure_gain(rec, dep))[src]
             const += JK @ (dep.x_leaving[src] - G @ dep.x_staying)
             C += dep.conditional.quadratic(src, JK)
             JG = JK @ G
@@ -702,6 +706,26 @@ class DepartureMixin:
                 const += buf[:, c : c + val.size] @ val
         mean = const + J @ w.x
         return mean, J, C
+
+    def _departure_gain(self, rec: int, dep: Departure) -> FloatArray:
+        """Record ``rec``'s :meth:`Departure.departure_gain`, kept for the next re-openings
+        while the kept ones stay under :data:`GAIN_CACHE_BYTES` (the least recently used
+        leave first).
+
+        Successive re-openings on a block walk the same chain of records (the previous
+        strip's), each forming the same gain by a solve with one column per parameter of
+        its blanket: ~12 records per re-opening, 1011 solves and 1.26 s of a 204-image
+        flight's updates, 106 solves with the gains kept (docs/benchmarks.md, *Compiled
+        point kernels*)."""
+        gains = self._gains
+        G = gains.pop(rec, None)
+        if G is None:
+            G = dep.departure_gain()
+        gains[rec] = G  # the most recent last
+        total = sum(g.nbytes for g in gains.values())
+        while total > GAIN_CACHE_BYTES and len(gains) > 1:
+            total -= gains.pop(next(iter(gains))).nbytes
+        return G
 
     def _split_records(self, keys: list[Key]) -> None:
         """Re-opened keys become conditioning keys of the departure records they left with.

@@ -155,20 +155,25 @@ class SecondStartMixin:
 
     def _save_state(self) -> dict:
         """A deep copy of the estimator's state (the caller's sink and the recorded rows
-        are references, not state)."""
-        keep = (self._sink, self.recorded, self._w.on_singular)
-        self._sink, self.recorded, self._w.on_singular = None, None, None
+        are references, not state; the records' kept gains are a cache, not copied)."""
+        keep = (self._sink, self.recorded, self._w.on_singular, self._gains)
+        self._sink, self.recorded, self._w.on_singular, self._gains = None, None, None, {}
         try:
             return copy.deepcopy(self.__dict__)
         finally:
-            self._sink, self.recorded, self._w.on_singular = keep
+            self._sink, self.recorded, self._w.on_singular, self._gains = keep
 
     def _restore_state(self, saved: dict) -> None:
         sink, recorded, tried = self._sink, self.recorded, self.second_starts_tried
+        gains = self._gains
         self.__dict__.clear()
         self.__dict__.update(saved)
         self._sink, self.recorded, self.second_starts_tried = sink, recorded, tried
         self._w.on_singular = self._drop_undetermined
+        # a record's departure gain does not change while it lives (splits keep it); the
+        # records the trial added are gone with it, and their numbers will be reused
+        n = len(self._departures)
+        self._gains = {r: g for r, g in gains.items() if r < n}
 
     def _undetermined_camera(self) -> tuple[np.ndarray, FloatArray] | None:
         """The camera parameters the window does not determine
