@@ -721,6 +721,7 @@ class DepartureMixin:
         G = gains.pop(rec, None)
         if G is None:
             G = dep.departure_gain()
+            G.setflags(write=False)  # shared by the re-openings to come: read only
         gains[rec] = G  # the most recent last
         total = sum(g.nbytes for g in gains.values())
         while total > GAIN_CACHE_BYTES and len(gains) > 1:
