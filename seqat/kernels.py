@@ -63,7 +63,6 @@ def _schur(indptr, indices, data, Dinv, out):  # noqa: ANN001, ANN202
     Lp = np.empty((r, 3))
     Bp = np.empty((r, 3))
     V = np.empty((most, most))
-    Lt = np.empty((3, most))
     run_at = np.empty(most, np.int64)
     run_len = np.empty(most, np.int64)
     for p in range(npt):
@@ -72,15 +71,11 @@ def _schur(indptr, indices, data, Dinv, out):  # noqa: ANN001, ANN202
         for a in range(m):  # B_p = L_p D_p^-1
             for j in range(3):
                 Bp[a, j] = Lp[a, 0] * D[0, j] + Lp[a, 1] * D[1, j] + Lp[a, 2] * D[2, j]
-        for a in range(m):  # L_p^T, so that a row of V reads contiguous memory
-            Lt[0, a] = Lp[a, 0]
-            Lt[1, a] = Lp[a, 1]
-            Lt[2, a] = Lp[a, 2]
         for a in range(m):  # V = B_p L_p^T: the upper triangle by rows
             b0, b1, b2 = Bp[a, 0], Bp[a, 1], Bp[a, 2]
             Va = V[a]
             for b in range(a, m):
-                Va[b] = b0 * Lt[0, b] + b1 * Lt[1, b] + b2 * Lt[2, b]
+                Va[b] = b0 * Lp[b, 0] + b1 * Lp[b, 1] + b2 * Lp[b, 2]
         for a in range(m):  # ... mirrored: exactly symmetric
             for b in range(a):
                 V[a, b] = V[b, a]
