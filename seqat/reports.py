@@ -71,7 +71,6 @@ class ReportMixin:
         # first the variances: factorising may drop a GP the data do not determine
         # (Window.on_singular), which moves the offsets read below
         diag = w.q_diagonal()
-        self._remember_window_eops(diag)  # what the next update's jump is measured against
         scale = sigma_scale(self.sigma0, self._redundancy)
         idx = w.index(("e", i))
         eop = w.x[idx].copy()

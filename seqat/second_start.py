@@ -52,12 +52,13 @@ class SecondStart:
 class SecondStartMixin:
     """The second start of :class:`seqat.sequential.SequentialAT`."""
 
-    def _remember_window_eops(self, diag: FloatArray) -> None:
-        """After an update's report: each window image's EOP and its sigma (``diag``, the
-        window's cofactor diagonal), what the next update's jump is measured against."""
+    def _remember_window_eops(self) -> None:
+        """After an update's refinement (:meth:`refine`): each window image's EOP and its
+        sigma, what the next update's jump is measured against."""
         if not self._second_start_possible():
             return
         w = self._w
+        diag = w.q_diagonal()
         keys = [k for k in w.keys if k[0] == "e"]
         if not keys:
             self._eop_before = None
@@ -134,14 +135,20 @@ class SecondStartMixin:
             kept = False  # a trial that meets a singular window is not a solution
         if kept:
             self.second_starts.append(image_id)
-            self._remember_window_eops(self._w.q_diagonal())  # the next jump is from here
+            self._remember_window_eops()  # the next jump is from here
         else:
             self._restore_state(saved)
         return SecondStart(image_id=image_id, kept=kept, ms=(time.perf_counter() - t0) * 1e3)
 
     def refined(self, update: ImageUpdate) -> ImageUpdate:
-        """``update`` with the outcome of :meth:`refine` run now (unchanged if none)."""
+        """``update`` with what :meth:`refine`, run now, did after it: the drift check and
+        re-linearisation, its time (``refine_ms``) and a second start's outcome (unchanged
+        if nothing was due)."""
+        if self._refine_due is None or self._refine_due[0] != update.image_id:
+            return update
         outcome = self.refine()  # type: ignore[attr-defined]
+        update = dataclasses.replace(update, drift_px=self._drift_px, drift_m=self._drift_m,
+                                     drift_deg=self._drift_deg, refine_ms=self._refine_ms)
         if outcome is None:
             return update
         return dataclasses.replace(update, second_start="kept" if outcome.kept else "not kept",

@@ -218,6 +218,9 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         self._eop_before: tuple[list[int], FloatArray, FloatArray] | None = None
         self._second_start_left = 0
         self._second_start_due: str | None = None  # the image after whose update one is due
+        # what the last update left for refine(): its image's id and index
+        self._refine_due: tuple[str, int] | None = None
+        self._refine_ms = float("nan")  # the last refinement's time, its second start included
         self.second_starts: list[str] = []
         self.second_starts_tried = 0
 
@@ -236,14 +239,40 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         with _BLAS.limit(limits=UPDATE_BLAS_THREADS, user_api="blas"):
             if self._initial is not None:
                 return self._add_initial(frame)
-            update = self._add_sequential(frame)
+            t0 = time.perf_counter()
+            self._refine(second_start=False)  # the last update's, if its caller did not
+            update = dataclasses.replace(self._add_sequential(frame),
+                                         update_ms=(time.perf_counter() - t0) * 1e3)
         return self.refined(update) if refine else update
 
     def refine(self) -> SecondStart | None:
-        """Work the last update made due that can wait until its image's estimate is out:
-        a second start (seqat/second_start.py), its outcome returned; None: nothing done."""
+        """Work the last update made due that can wait until its image's estimate is out
+        (docs/algorithm.md, *After the estimate is out*): the drift check and the window's
+        re-linearisation, the smoothing lag's and the dormant factors' housekeeping, and a
+        second start (seqat/second_start.py), whose outcome is returned; None: no second
+        start. Left undone, it runs first in the next :meth:`add_frame` (but for the
+        second start, which is then not tried), so the estimates do not depend on it."""
         with _BLAS.limit(limits=UPDATE_BLAS_THREADS, user_api="blas"):
-            return self._second_start()
+            return self._refine(second_start=True)
+
+    def _refine(self, *, second_start: bool) -> SecondStart | None:
+        due, self._refine_due = self._refine_due, None
+        t0 = time.perf_counter()
+        if due is not None:
+            image_id, i = due
+            opts = self.options
+            self._drift_px = self._drift_m = self._drift_deg = float("nan")
+            if opts.relinearise_px is not None:
+                check = opts.drift_check_every is not None and i % opts.drift_check_every == 0
+                self._relinearise_if_needed(force=check)
+                self._arm_second_start(image_id)
+            if opts.smoothing_lag is not None:
+                self._finalise_old(i)
+            self._prune_dormant(i)
+            self._remember_window_eops()  # what the next update's jump is measured against
+        outcome = self._second_start() if second_start else None
+        self._refine_ms = (time.perf_counter() - t0) * 1e3
+        return outcome
 
     def finish(self) -> None:
         """After the last image: re-adjust the window by Gauss-Newton to convergence (steps
@@ -257,6 +286,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
             self._initial.free_camera()
         if self._initial is None:
             with _BLAS.limit(limits=UPDATE_BLAS_THREADS, user_api="blas"):
+                self._refine(second_start=False)  # the last update's, if not yet done
                 if self.options.relinearise_px is not None:
                     if self.options.smoothing and self.options.final_reopen:
                         self._reopen_departed()
@@ -469,7 +499,6 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
 
     # ------------------------------------------------------------------ sequential stage
     def _add_sequential(self, frame: Frame) -> ImageUpdate:
-        t0 = time.perf_counter()
         opts, w = self.options, self._w
         assert self._origin is not None
         i = len(self._image_ids)
@@ -689,28 +718,18 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
             for j, _, _ in obs:
                 if ("e", j) in reopened and p not in self._img_points[j]:
                     self._img_points[j].append(p)
-        self._drift_m = self._drift_deg = float("nan")
-        if opts.relinearise_px is not None:
-            check = opts.drift_check_every is not None and i % opts.drift_check_every == 0
-            self._relinearise_if_needed(force=check)
-            self._arm_second_start(frame.image_id)
-        if opts.smoothing_lag is not None:
-            self._finalise_old(i)
-        self._prune_dormant(i)
-        # the published sigmas (the image's EOP, the window's GPs) are part of the update
+        # the published sigmas (the image's EOP, the window's GPs) are part of the update;
+        # the window's re-linearisation follows once the estimate is out (:meth:`refine`)
         late_used = len(late_pending) + len(y11)
         update = self._report(
             frame, i, 0.0, rows, n2, len(born),
             len(pts) - skipped - len(rejected_new) + late_used, skipped + late_skipped,
             iterations, dropped
         )
+        self._refine_due = (frame.image_id, i)
         return dataclasses.replace(
             update,
-            update_ms=(time.perf_counter() - t0) * 1e3,
             reopened=len(reopened),
-            drift_px=self._drift_px,
-            drift_m=self._drift_m,
-            drift_deg=self._drift_deg,
             rejected=tuple((self._image_ids[j], self._point_ids[p], round(wq, 2))
                            for j, p, wq in rejected),
             nav_downweighted=tuple(downweighted),

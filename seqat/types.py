@@ -10,6 +10,7 @@ optionally, OpenCV (Brown) lens distortion (:class:`PinholeCamera`).
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -329,6 +330,8 @@ class ImageUpdate:
     reopened: int = 0
     #: Largest gap (px) between the window's linearised rows and the collinearity equations
     #: after this update (nan: not checked); above relinearise_px the window is re-adjusted.
+    #: The check and the re-adjustment run once the update's estimate is out
+    #: (``SequentialAT.refine``; their time is ``refine_ms``, not in ``update_ms``).
     drift_px: float = float("nan")
     #: When the window was re-adjusted after this update (drift check or re-linearisation):
     #: the largest change of a window camera's position (m) and attitude (deg); else nan.
@@ -345,3 +348,14 @@ class ImageUpdate:
     #: out: "kept" or "not kept" ("" none), and its time (ms; not in ``update_ms``).
     second_start: str = ""
     second_start_ms: float = float("nan")
+    #: The refinement after this update (``SequentialAT.refine``: drift check,
+    #: re-linearisation, housekeeping and a second start), ms; nan: none run. Its image's
+    #: estimate was out before it: ``update_ms`` is that latency, ``update_ms + refine_ms``
+    #: the image's processing.
+    refine_ms: float = float("nan")
+
+    @property
+    def processing_ms(self) -> float:
+        """The image's AT processing: ``update_ms`` and ``refine_ms`` (when one ran)."""
+        refine = self.refine_ms
+        return self.update_ms + (refine if math.isfinite(refine) else 0.0)

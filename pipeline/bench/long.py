@@ -113,7 +113,7 @@ def _run(name: str, config: StripSimConfig, seed: int, lag: int | None, out: Pat
     t0 = time.perf_counter()
     for k, frame in enumerate(flight.frames()):
         u = est.add_frame(frame)
-        chunk.append(u.update_ms)
+        chunk.append(u.processing_ms)
         if (k + 1) % every == 0 or k + 1 == n:
             samples.append(Sample(images=k + 1, rss_mb=_rss_mb(),
                                   median_update_ms=float(np.median(chunk)),

@@ -143,7 +143,7 @@ def run_ortho_bench(n_images: int, out_dir: Path, *, occlusion: bool = True,
             compute.append(result.compute_ms)
             occlusion_ms.append(result.occlusion_ms)
             writing.append(result.write_ms)
-            updates.append(update.update_ms)
+            updates.append(update.processing_ms)
             cells.append(result.raster.shape[0] * result.raster.shape[1])
         pixel_m = float(ortho.pixel_m or 0.0)
     strip_ms = (time.perf_counter() - t_strip) * 1e3 / n_images  # pending write included

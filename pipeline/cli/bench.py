@@ -299,6 +299,8 @@ def _flight_bench(flight: Path, out: Path) -> None:
          f"{stats(b.read_ms)}; {stats(b.detect_ms)}; {stats(b.match_ms)}"),
         ("AT ms, latency ms (median, p95, max)", f"{stats(b.at_ms)}; {stats(b.latency_ms)}"),
         ("AT ms p99", f"{b.at_ms.p99:.0f}"),
+        ("AT + refinement after it ms (median, p95, p99, max)",
+         f"{stats(b.at_refine_ms)}, p99 {b.at_refine_ms.p99:.0f}"),
         ("Seq-R - Sim rms", diff(b.seq_r_minus_sim)),
         ("Seq-F - Sim rms", diff(b.seq_f_minus_sim)),
         ("nav - Sim rms", diff(b.nav_minus_sim)),

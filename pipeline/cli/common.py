@@ -188,6 +188,9 @@ def run_rows(summary: RunSummary, final_only: bool = False) -> list[tuple[str, s
     ts = summary.sequential_update_ms
     if math.isfinite(ts.median_ms):
         rows.append(("  sequential stage only", stats_ms(ts)))
+    if summary.sequential_refine_ms is not None:  # once each estimate was out
+        rows.append(("  refinement after the update (re-linearisation)",
+                     stats_ms(summary.sequential_refine_ms)))
     if summary.second_start_ms is not None:  # after the updates, not in their times
         rows.append(("second starts kept / tried, ms median / p95 / max",
                      f"{summary.second_starts_kept} / {summary.second_starts_tried}, "

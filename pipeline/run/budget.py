@@ -24,14 +24,15 @@ reaches it or :data:`MAX_WINDOW_CAP`; the threshold by ``RELAX_FACTOR``; the fea
 ``1 / FEATURE_FACTOR``).
 
 The budget is either **fixed** (``--budget-ms N``: processing, reading and tracking + the
-update, over N) or **keep-up** (``seqat watch``'s default): the budget is the interval at
-which the inputs arrive, over the last :data:`PERIOD_IMAGES` images' times of input complete
-(the span over the count of inputs after its start, not a median of intervals: rows one poll
-finds share their file's time). An image is also over it when its end-to-end latency exceeds
-:data:`BACKLOG_PERIODS` intervals and is not smaller than the last image's (images queue and
-the queue does not drain, whatever the reason). Inputs arriving faster than every
-:data:`MIN_PERIOD_MS` are a batch (a folder copied at once): there is no rate to keep up
-with, and nothing changes; once a rate was seen, such a burst leaves it in place.
+update + the refinement after it, ``ImageUpdate.processing_ms``, over N) or **keep-up**
+(``seqat watch``'s default): the budget is the interval at which the inputs arrive, over the
+last :data:`PERIOD_IMAGES` images' times of input complete (the span over the count of
+inputs after its start, not a median of intervals: rows one poll finds share their file's
+time). An image is also over it when its end-to-end latency exceeds :data:`BACKLOG_PERIODS`
+intervals and is not smaller than the last image's (images queue and the queue does not
+drain, whatever the reason). Inputs arriving faster than every :data:`MIN_PERIOD_MS` are a
+batch (a folder copied at once): there is no rate to keep up with, and nothing changes; once
+a rate was seen, such a burst leaves it in place.
 
 Each change is an event (image, old and new threshold, features and cap, the measured
 milliseconds), journaled (a resumed run replays it) and kept in ``run.json``

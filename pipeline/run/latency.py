@@ -4,9 +4,11 @@ Stages, per image (milliseconds; the ``*_ms`` fields of docs/formats.md):
 
 * tracking (image flights): ``read`` (the tracker's reduced gray decode), ``detect``,
   ``match`` and ``tracking`` (detection + matching + track bookkeeping, ``total_ms``);
-* ``AT update``: the estimator's update (``update_ms``); ``second start (after the AT
-  update)``: the second starts tried once an update was out (``second_start_ms``; listed
-  when there are any, not in ``end to end``: the image's estimate was out before);
+* ``AT update``: the estimator's update (``update_ms``); ``refinement (after the AT
+  update)``: what ran once the update's estimate was out (``refine_ms``: the drift check and
+  re-linearisation of the window, a second start); ``second start (after the AT update)``:
+  the second starts among it (``second_start_ms``); each listed when there are any, not in
+  ``end to end``: the image's estimate was out before;
 * ortho, live (``seqat run --ortho``): waiting for the ortho worker (``queue_ms``), the
   colour decode, the orthorectification (``compute_ms``), waiting for the previous COG
   write, the mosaic update, and ``AT update -> mosaic``: from the end of the image's AT
@@ -93,6 +95,9 @@ def latency_table(record: Mapping[str, object],
         end_to_end = end_to_end + np.nan_to_num(_field(tracking, "read_ms")) + np.asarray(
             _field(tracking, "total_ms"))
     stages.append(_stage("AT update", _field(images, "update_ms")))
+    refine = _field(images, "refine_ms")
+    if np.isfinite(refine).any():
+        stages.append(_stage("refinement (after the AT update)", refine))
     trials = _field(images, "second_start_ms")
     if np.isfinite(trials).any():
         stages.append(_stage("second start (after the AT update)", trials))

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import hashlib
+import math
 import time
 from collections.abc import Sequence
 from contextlib import AbstractContextManager, nullcontext
@@ -211,6 +212,10 @@ class RunSummary:
     second_start_ms : TimingStats or None
         Second starts tried after updates (Seq-R, ``ImageUpdate.second_start``): their
         times; None when none was tried.
+    sequential_refine_ms : TimingStats or None
+        Seq-R / Seq-F: the refinements run after the sequential updates, once each image's
+        estimate was out (``ImageUpdate.refine_ms``: drift check, re-linearisation, second
+        start; not in the update times); None when none ran.
     second_starts_tried, second_starts_kept : int
     """
 
@@ -233,6 +238,7 @@ class RunSummary:
     skipped: tuple[SkippedImage, ...] = ()
     stopped: str = ""
     second_start_ms: TimingStats | None = None
+    sequential_refine_ms: TimingStats | None = None
     second_starts_tried: int = 0
     second_starts_kept: int = 0
 
@@ -377,6 +383,9 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
     latency = TimingStats.from_samples(latencies) if latencies else None
     trials = [u for u in updates if u.second_start]
     trial_ms = TimingStats.from_samples([u.second_start_ms for u in trials]) if trials else None
+    refine = [u.refine_ms for u in updates
+              if u.stage == "sequential" and math.isfinite(u.refine_ms)]
+    refine_ms = TimingStats.from_samples(refine) if refine else None
     budget = session.budget.report() if session.budget is not None else None
     totals = RunTotals(images=len(solution.eops), points=len(solution.points),
                        observations=session.n_observations, update_ms=timing,
@@ -384,7 +393,8 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                        wall_s=time.perf_counter() - t_start, sigma0=solution.sigma0,
                        redundancy=solution.redundancy, accuracy=accuracy, latency_ms=latency,
                        journal_ms=TimingStats.from_samples(session.journal_ms),
-                       late=session.late_summary(solution), second_start_ms=trial_ms)
+                       late=session.late_summary(solution), second_start_ms=trial_ms,
+                       sequential_refine_ms=refine_ms)
     record = RunRecord(method=method.value, flight=flight, inputs=inputs, options=options,
                        final_only=final_only, images=tuple(updates), totals=totals,
                        tracking_options=tracking_options, tracking=tuple(session.tracking),
@@ -404,7 +414,8 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                       sequential_update_ms=timing_seq, wall_s=time.perf_counter() - t_start,
                       accuracy=accuracy, replayed=session.replayed, latency_ms=latency,
                       budget=budget, skipped=inputs.skipped, stopped=stopped,
-                      second_start_ms=trial_ms, second_starts_tried=len(trials),
+                      second_start_ms=trial_ms, sequential_refine_ms=refine_ms,
+                      second_starts_tried=len(trials),
                       second_starts_kept=sum(u.second_start == "kept" for u in trials))
 
 

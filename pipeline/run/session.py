@@ -202,7 +202,8 @@ class RunSession:
         if self.budget is not None:
             self.budget.arrived(prepared.ready_s)
             event = self.budget.after_image(frame.image_id, update.stage,
-                                            prepared.prep_ms + update.update_ms,
+                                            # the refinement too: the next image waits
+                                            prepared.prep_ms + update.processing_ms,
                                             tracking_ms=prepared.prep_ms, latency_ms=latency,
                                             window_images=update.window_images)
             if event is not None:
@@ -241,8 +242,9 @@ class RunSession:
         update = dataclasses.replace(self._refined(self._update(frame)),
                                      update_ms=float(record.live["update_ms"]))  # type: ignore[arg-type]
         if self.budget is not None:
-            self.budget.account(update.stage, float(record.live["prep_ms"])  # type: ignore[arg-type]
-                                + update.update_ms)
+            self.budget.account(update.stage,
+                                float(record.live["prep_ms"])  # type: ignore[arg-type]
+                                + update.processing_ms)
             if record.budget_event is not None:
                 event = BudgetEvent(**record.budget_event)  # type: ignore[arg-type]
                 self.budget.apply(event)

@@ -243,6 +243,9 @@ class RunTotals:
     late: Mapping[str, object] | None = None
     #: second starts tried after updates (``images[].second_start_ms``); None: none
     second_start_ms: TimingStats | None = None
+    #: refinements after the sequential updates (``images[].refine_ms``: drift check,
+    #: re-linearisation, second start; not in ``update_ms``); None: none run
+    sequential_refine_ms: TimingStats | None = None
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

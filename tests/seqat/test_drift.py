@@ -24,6 +24,36 @@ def test_drift_is_reported_and_small_on_the_paper_strip() -> None:
     assert max(u.drift_px for u in seq) < 1.0
 
 
+def test_the_refinement_follows_the_estimate_and_changes_no_result() -> None:
+    """The drift check and the re-linearisation run once the update's estimate is out
+    (``refine``): ``add_frame`` runs them and names them in its update; a caller that
+    never calls ``refine`` has them run first in the next update and in finish(): every
+    estimate the same, bit for bit."""
+    f = simulate_strip(StripSimConfig(n_images=60, n_points=64), seed=3)
+    a = SequentialAT(f.camera, SequentialOptions(drift_check_every=7))
+    b = SequentialAT(f.camera, SequentialOptions(drift_check_every=7))
+    ups_a, ups_b = [], []
+    for k, fr in enumerate(f.frames()):
+        ups_a.append(a.add_frame(fr))
+        ups_b.append(b.add_frame(fr, refine=False))
+        if k % 2:  # every other image refined by the caller, the others by the next update
+            b.refine()
+    seq = [u for u in ups_a if u.stage == "sequential"]
+    assert seq and all(np.isfinite(u.drift_px) and u.refine_ms > 0 for u in seq)
+    assert sum(np.isfinite(u.drift_m) for u in seq) >= 7  # the checks re-adjusted
+    later = [u for u in ups_b if u.stage == "sequential"]
+    assert all(np.isnan(u.drift_px) and np.isnan(u.refine_ms) for u in later)
+    for ua, ub in zip(ups_a, ups_b, strict=True):  # each estimate is out before its refinement
+        np.testing.assert_array_equal(ua.eop.eop, ub.eop.eop)
+        np.testing.assert_array_equal(ua.eop.sigma, ub.eop.sigma)
+    a.finish()
+    b.finish()
+    sa, sb = a.solution(), b.solution()
+    np.testing.assert_array_equal([e.eop for e in sa.eops], [e.eop for e in sb.eops])
+    np.testing.assert_array_equal([p.xyz_m for p in sa.points], [p.xyz_m for p in sb.points])
+    assert a.relinearisations == b.relinearisations > 0
+
+
 def test_drift_check_needs_relinearisation() -> None:
     with pytest.raises(ConfigError, match="drift_check_every"):
         SequentialOptions(drift_check_every=5, relinearise_px=None)

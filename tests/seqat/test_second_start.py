@@ -100,7 +100,7 @@ def test_the_release_gives_the_rows_their_camera_back(flown: SequentialAT) -> No
 def test_a_jump_is_an_earlier_image_moved_beyond_three_sigma(flown: SequentialAT) -> None:
     est = copy.deepcopy(flown)
     w = est._w
-    est._remember_window_eops(w.q_diagonal())
+    est._remember_window_eops()
     images, x, sd = est._eop_before
     assert not est._jumped()
     k = w.index(("e", images[0]))
@@ -194,10 +194,13 @@ def test_the_update_is_out_before_the_trial(block: SimulatedFlight) -> None:
     now = est.add_frame(frames[-1])
     out = later.add_frame(frames[-1], refine=False)
     assert out.second_start == "" and np.isnan(out.second_start_ms)
-    assert later._second_start_due == frames[-1].image_id and later.second_starts_tried == 0
+    assert np.isnan(out.refine_ms) and np.isnan(out.drift_px)  # the check follows too
+    assert later._refine_due == (frames[-1].image_id, len(frames) - 1)
+    assert later.second_starts_tried == 0
     outcome = later.refine()
     assert outcome is not None and later._second_start_due is None
     assert now.second_start == ("kept" if outcome.kept else "not kept")
     assert now.second_start_ms > 0 and est.second_starts_tried == 1
+    assert now.refine_ms >= now.second_start_ms and np.isfinite(now.drift_px)
     np.testing.assert_array_equal(now.eop.eop, out.eop.eop)  # the update's, not the trial's
     np.testing.assert_array_equal(est._w.x, later._w.x)
