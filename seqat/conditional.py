@@ -13,6 +13,7 @@ factorisation of ``L_FF`` (:class:`seqat.information.InformationFactor`, GPs eli
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,7 +21,7 @@ import scipy.sparse
 
 from seqat.information import InformationFactor
 from seqat.types import FloatArray
-from seqat.window import Key
+from seqat.window import Key, key_size
 
 
 class Conditional:
@@ -140,6 +141,11 @@ class Departure:
     coupling_cols: np.ndarray  # S: positions in W's parameters at departure
     gain_width: int  # |W| at departure
     splits: tuple[tuple[np.ndarray, FloatArray, np.ndarray], ...] = ()
+
+    @functools.cached_property
+    def staying_sizes(self) -> np.ndarray:
+        """Each staying key's number of parameters (the gain's columns, key by key)."""
+        return np.fromiter((key_size(k) for k in self.staying), np.int64, len(self.staying))
 
     def departure_gain(self) -> FloatArray:
         """``J`` as the record left (|F0|, |W0|): before any split. It never changes while the

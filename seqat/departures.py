@@ -667,7 +667,6 @@ class DepartureMixin:
             row += size
         const = np.zeros(m)
         C = np.zeros((m, m))
-        queued = set(keys)
         while pending:
             rec = min(pending)
             members = pending.pop(rec)
@@ -682,18 +681,19 @@ class DepartureMixin:
             const += JK @ (dep.x_leaving[src] - G @ dep.x_staying)
             C += dep.conditional.quadratic(src, JK)
             JG = JK @ G
-            ucols = np.empty(JG.shape[1], dtype=np.int64)
-            off = 0
-            for sk in dep.staying:
-                size = key_size(sk)
-                c = column(sk)
-                ucols[off : off + size] = c + np.arange(size)
-                off += size
-                if sk not in w.offset and sk not in queued and sk not in self._dropped_value:
-                    queued.add(sk)
+            # the staying keys' columns of buf (new ones appended): a key with one already
+            # is queued, in the window or dropped; a departed new one is queued now
+            for sk in [sk for sk in dep.staying if sk not in col_of]:
+                column(sk)
+                if sk not in w.offset and sk not in self._dropped_value:
                     later = self._departed[sk][1]
                     assert later > rec, "a departure record refers to an older one"
                     pending.setdefault(later, []).append(sk)
+            sizes = dep.staying_sizes
+            starts = np.fromiter((col_of[sk] for sk in dep.staying), np.int64, sizes.size)
+            # key by key, the gain's columns are consecutive, as are their columns of buf
+            ucols = np.arange(JG.shape[1]) + np.repeat(starts - (np.cumsum(sizes) - sizes),
+                                                       sizes)
             buf[:, ucols] += JG
         n = w.x.size
         J = np.zeros((m, n))
