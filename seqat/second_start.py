@@ -140,13 +140,11 @@ class SecondStartMixin:
             self._restore_state(saved)
         return SecondStart(image_id=image_id, kept=kept, ms=(time.perf_counter() - t0) * 1e3)
 
-    def refined(self, update: ImageUpdate) -> ImageUpdate:
-        """``update`` with what :meth:`refine`, run now, did after it: the drift check and
-        re-linearisation, its time (``refine_ms``) and a second start's outcome (unchanged
-        if nothing was due)."""
+    def _refined(self, update: ImageUpdate) -> ImageUpdate:
+        """:meth:`SequentialAT.refined` (its caller limits the BLAS threads)."""
         if self._refine_due is None or self._refine_due[0] != update.image_id:
             return update
-        outcome = self.refine()  # type: ignore[attr-defined]
+        outcome = self._refine(second_start=True)  # type: ignore[attr-defined]
         update = dataclasses.replace(update, drift_px=self._drift_px, drift_m=self._drift_m,
                                      drift_deg=self._drift_deg, refine_ms=self._refine_ms)
         if outcome is None:

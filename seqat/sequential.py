@@ -243,7 +243,14 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
             self._refine(second_start=False)  # the last update's, if its caller did not
             update = dataclasses.replace(self._add_sequential(frame),
                                          update_ms=(time.perf_counter() - t0) * 1e3)
-        return self.refined(update) if refine else update
+            return self._refined(update) if refine else update
+
+    def refined(self, update: ImageUpdate) -> ImageUpdate:
+        """``update`` with what :meth:`refine`, run now, did after it: the drift check and
+        re-linearisation, its time (``refine_ms``) and a second start's outcome (unchanged
+        if nothing was due)."""
+        with _BLAS.limit(limits=UPDATE_BLAS_THREADS, user_api="blas"):
+            return self._refined(update)
 
     def refine(self) -> SecondStart | None:
         """Work the last update made due that can wait until its image's estimate is out

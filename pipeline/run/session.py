@@ -266,23 +266,24 @@ class RunSession:
             self.source.set_max_features(event.new_features)
 
     def _update(self, frame: Frame) -> ImageUpdate:
-        """The estimator's update of ``frame``, given to the tracker and the listeners (the
-        live map): the image's estimate is out. The refinement it made due follows
-        (:meth:`_refined`)."""
+        """The estimator's update of ``frame``, given to the listeners (the live map): the
+        image's estimate is out. The refinement it made due follows (:meth:`_refined`)."""
         if hasattr(self.estimator, "refined"):
             update = self.estimator.add_frame(frame, refine=False)  # type: ignore[call-arg]
         else:
             update = self.estimator.add_frame(frame)
-        self.source.feedback(update, self.estimator)
         for listener in self.listeners:
             listener.on_image(frame, update, self.estimator)
         return update
 
     def _refined(self, update: ImageUpdate) -> ImageUpdate:
-        """``update`` and the refinement it made due, run now (``SequentialAT.refined``: a
-        second start, named in the update; its time is not the update's)."""
+        """``update`` and the refinement it made due, run now (``SequentialAT.refined``: the
+        re-linearisation, a second start, named in the update; its time is not the
+        update's); then the tracker takes the refined window, the next image's start."""
         refined = getattr(self.estimator, "refined", None)
-        return update if refined is None else refined(update)
+        update = update if refined is None else refined(update)
+        self.source.feedback(update, self.estimator)
+        return update
 
     def _keep(self, update: ImageUpdate, live: ImageLive, tracking: Mapping[str, object] | None,
               time_s: float, observed_px: np.ndarray, frame: Frame,
