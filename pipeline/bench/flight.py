@@ -214,7 +214,7 @@ def run_flight_bench(flight: Path | str, out: Path | str) -> FlightBench:
     match = [float(t["match_ms"]) for t in tracking]
     total = [float(t["total_ms"]) for t in tracking]
     at = [float(im["update_ms"]) for im in images]  # type: ignore[index]
-    at_refine = [a + (0.0 if im.get("refine_ms") is None else float(im["refine_ms"]))  # type: ignore[union-attr]
+    at_refine = [a + float(im.get("refine_ms") or 0.0)  # type: ignore[union-attr]
                  for a, im in zip(at, images, strict=True)]  # type: ignore[arg-type]
     latency = [r + t + a for r, t, a in zip(read_ms, total, at, strict=True)]
     _plot(out / "latency.png", list(seq_r.eop.image_ids),

@@ -161,7 +161,8 @@ class RealTime:
 class LiveOperation:
     """How the main run kept up (``run.json`` ``mode``, ``images[].live``, ``latency_budget``).
 
-    ``processing_ms_*``: tracking + update (+ a second start after it) per image;
+    ``processing_ms_*``: tracking + update + the refinement after it (re-linearisation, a
+    second start) per image;
     ``latency_ms_*``: input complete -> estimate (watch mode only, else None);
     ``budget_mode``: ``fixed``, ``keep-up`` or None (no budget); ``threshold_changes``: the
     latency budget's events (image, old and new threshold and features, measured ms, reason).
@@ -431,10 +432,13 @@ def live_operation(record: Mapping[str, object]) -> LiveOperation | None:
     """The live section of a run (None for runs written before per-image timings existed)."""
     images = record.get("images", [])
     assert isinstance(images, list)
-    live = [im["live"] for im in images if isinstance(im.get("live"), dict)]
+    with_live = [im for im in images if isinstance(im.get("live"), dict)]
+    live = [im["live"] for im in with_live]
     if not live:
         return None
-    proc = np.array([float(x["prep_ms"]) + float(x["update_ms"]) for x in live])
+    # reading and tracking, the update and the refinement after it (the next image waits)
+    proc = np.array([float(x["prep_ms"]) + float(x["update_ms"]) + float(im.get("refine_ms") or 0.0)
+                     for x, im in zip(live, with_live, strict=True)])
     lat = np.array([float(x["latency_ms"]) for x in live if x.get("latency_ms") is not None])
     budget = record.get("latency_budget")
 
