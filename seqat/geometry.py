@@ -33,6 +33,24 @@ def wrap_angle(angle_rad: FloatArray | float) -> FloatArray:
     return (np.asarray(angle_rad) + np.pi) % (2.0 * np.pi) - np.pi
 
 
+def nearest_branch(angles_rad: FloatArray, reference_rad: FloatArray) -> FloatArray:
+    """``(omega, phi, kappa)`` (k, 3) as the same rotations, each on the Euler branch
+    nearest its ``reference`` (k, 3; the largest wrapped difference of the three angles),
+    wrapped to ``[-pi, pi)``. ``Rx(omega + pi) Ry(pi - phi) Rz(kappa + pi)`` is
+    ``Rx(omega) Ry(phi) Rz(kappa)``: an adjustment can reach either, and a GPS/INS prior
+    compared angle by angle must see the one on its own branch. A reference with a NaN
+    (no attitude) takes the branch with ``|phi| <= pi / 2``."""
+    a = np.asarray(angles_rad, dtype=np.float64)
+    a = np.where((a >= -np.pi) & (a < np.pi), a, wrap_angle(a))  # in range: not rounded
+    b = wrap_angle(a * np.array([1.0, -1.0, 1.0]) + np.array([np.pi, np.pi, np.pi]))
+    ref = np.asarray(reference_rad, dtype=np.float64)
+    known = np.all(np.isfinite(ref), axis=1)
+    ref = np.where(known[:, None], ref, 0.0)
+    da = np.where(known, np.max(np.abs(wrap_angle(a - ref)), axis=1), np.abs(a[:, 1]))
+    db = np.where(known, np.max(np.abs(wrap_angle(b - ref)), axis=1), np.abs(b[:, 1]))
+    return np.where((db < da)[:, None], b, a)
+
+
 def rotation_matrix(
     omega_rad: FloatArray | float, phi_rad: FloatArray | float, kappa_rad: FloatArray | float
 ) -> FloatArray:

@@ -17,7 +17,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from seqat.errors import EstimationError
-from seqat.geometry import depth, project, project_with_jacobians, wrap_angle
+from seqat.geometry import depth, nearest_branch, project, project_with_jacobians, wrap_angle
 from seqat.robust import cauchy_cost, cauchy_weight, nav_cost, nav_weight
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray, PinholeCamera
 
@@ -103,6 +103,19 @@ class Normals:
     n_camera: int  # c: free interior parameters (last in R)
     Npp: FloatArray  # (m, 3, 3)
     undetermined: np.ndarray  # (m,) bool: points out of this linearisation
+
+
+def on_nav_branch(eop: FloatArray, nav_eop: FloatArray) -> bool:
+    """Put the angles of ``eop`` (n, 6, in place) on the Euler branch of the GPS/INS
+    attitude ``nav_eop``, the same rotations (:func:`seqat.geometry.nearest_branch`),
+    wrapped; True: an image changed branch. An adjustment's step can reach the other branch
+    (a turn of a weak-GPS block: omega -182, phi 182, kappa 855 degrees), where the prior,
+    compared angle by angle (:func:`eop_residual`), is ~180 degrees off: the robust loss
+    then drops it and the angles are published as they are."""
+    angles = nearest_branch(eop[:, 3:], nav_eop[:, 3:])
+    turned = bool(np.any(np.abs(wrap_angle(angles - eop[:, 3:])) > 0.5 * np.pi))
+    eop[:, 3:] = angles
+    return turned
 
 
 def eop_residual(nav_eop: FloatArray, eop: FloatArray) -> FloatArray:

@@ -37,6 +37,7 @@ from seqat.normals import (
     full_normal,
     gp_cofactors,
     linearise,
+    on_nav_branch,
     weighted_ssr,
 )
 from seqat.precision import deviations, rms_point_sigma, sigma_scale
@@ -214,6 +215,7 @@ def adjust_block(
     if not np.all(np.isfinite(gp0)):
         raise EstimationError("initial ground point coordinates must be finite")
     eop = np.array(eop0, dtype=np.float64)
+    on_nav_branch(eop, data.nav_eop)
     gp = np.array(gp0, dtype=np.float64)
     c = calib.size if calib is not None else 0
     free_cam = FreeCamera(camera, calib.index if calib is not None
@@ -221,11 +223,9 @@ def adjust_block(
     camera_at = free_cam.at
     cam_x = camera.intrinsics[free_cam.index]
     cam = camera
-    converged = False
-    iterations = 0
+    converged = turned = was_damped = False
     nrm: Normals | None = None
     damping = 0.0
-    was_damped = False
     robust = options.robust_scale
     # GPS/INS least squares until converged or settled (the datum), then robust if any is off
     # (robust.py); robust from the start when ``nav_on``
@@ -270,6 +270,8 @@ def adjust_block(
         gp += delta_p
         cam_x = cam_x + dc
         cam = camera_at(cam_x)
+        if turned := on_nav_branch(eop, data.nav_eop):  # a step can reach the other branch
+            new_cost = weighted_ssr(cam, data, eop, gp, robust, calib, nav_robust)
         settled = cost - new_cost <= SETTLED_TOLERANCE * cost
         cost = new_cost
         was_damped = damping > 0.0 or step < 1.0
@@ -290,12 +292,11 @@ def adjust_block(
             if small:
                 converged = True
                 break
-    if was_damped or not converged:
-        # the system at the estimate returned: undamped, and (unconverged) linearised where
-        # the estimate is, not one step before it. The sequential stage takes this normal
-        # matrix as its window's information and later subtracts the rays' rows from it as
-        # linearised at the estimate: a normal matrix from elsewhere left that difference
-        # indefinite (an initial block stopped 20 iterations short, camera self-calibrated)
+    if was_damped or not converged or turned:
+        # the system at the estimate returned, undamped and on its branch, not one step
+        # before: the sequential stage subtracts the rays' rows linearised at the estimate
+        # from it, and from a system linearised elsewhere that left an indefinite matrix
+        # (an initial block stopped 20 iterations short, camera self-calibrated)
         nrm, rhs, _ = linearise(cam, data, eop, gp, 0.0, robust, calib, nav_robust)
     assert nrm is not None
     model_step = None
