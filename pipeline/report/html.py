@@ -296,7 +296,9 @@ def _appendix(report: Report, extras: Mapping[str, object]) -> list[str]:
                             [(s.stage, s.images, s.median_ms, s.p95_ms, s.max_ms)
                              for s in lat.stages], digits=1))
         parts.append("<p class='note'>End to end: read + tracking + AT update (+ AT update "
-                     "-> mosaic with the live ortho), per image. The live ortho runs on a "
+                     "-> mosaic with the live ortho), per image. The refinement after the AT "
+                     "update (the window's re-linearisation) runs once the image's estimate is "
+                     "out, before the next image: not in end to end. The live ortho runs on a "
                      "worker thread while the next image is tracked and adjusted, on the same "
                      "cores.</p>")
         series = extras.get("series", {})
