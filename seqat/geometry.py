@@ -42,7 +42,7 @@ def nearest_branch(angles_rad: FloatArray, reference_rad: FloatArray) -> FloatAr
     (no attitude) takes the branch with ``|phi| <= pi / 2``."""
     a = np.asarray(angles_rad, dtype=np.float64)
     a = np.where((a >= -np.pi) & (a < np.pi), a, wrap_angle(a))  # in range: not rounded
-    b = wrap_angle(a * np.array([1.0, -1.0, 1.0]) + np.array([np.pi, np.pi, np.pi]))
+    b = wrap_angle(a * np.array([1.0, -1.0, 1.0]) + np.pi)
     ref = np.asarray(reference_rad, dtype=np.float64)
     known = np.all(np.isfinite(ref), axis=1)
     ref = np.where(known[:, None], ref, 0.0)

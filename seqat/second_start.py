@@ -15,7 +15,6 @@ re-linearised to finish()'s tolerance — were needed to leave it.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -25,7 +24,7 @@ from seqat.calibration import undetermined
 from seqat.errors import EstimationError
 from seqat.geometry import wrap_angle
 from seqat.relinearise import FINAL_RELINEARISE_PX
-from seqat.types import EOP_SIZE, FloatArray, ImageUpdate
+from seqat.types import EOP_SIZE, FloatArray
 
 #: An update "jumped" when it moved an earlier window image by more than this many of that
 #: image's sigma before the update (each EOP component; a priori units scaled by
@@ -139,18 +138,6 @@ class SecondStartMixin:
         else:
             self._restore_state(saved)
         return SecondStart(image_id=image_id, kept=kept, ms=(time.perf_counter() - t0) * 1e3)
-
-    def _refined(self, update: ImageUpdate) -> ImageUpdate:
-        """:meth:`SequentialAT.refined` (its caller limits the BLAS threads)."""
-        if self._refine_due is None or self._refine_due[0] != update.image_id:
-            return update
-        outcome = self._refine(second_start=True)  # type: ignore[attr-defined]
-        update = dataclasses.replace(update, drift_px=self._drift_px, drift_m=self._drift_m,
-                                     drift_deg=self._drift_deg, refine_ms=self._refine_ms)
-        if outcome is None:
-            return update
-        return dataclasses.replace(update, second_start="kept" if outcome.kept else "not kept",
-                                   second_start_ms=outcome.ms)
 
     def _second_start_possible(self) -> bool:
         """On, the information engine, re-linearisation, and a self-calibrated camera

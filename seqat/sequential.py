@@ -220,7 +220,6 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         self._second_start_due: str | None = None  # the image after whose update one is due
         # what the last update left for refine(): its image's id and index
         self._refine_due: tuple[str, int] | None = None
-        self._refine_ms = float("nan")  # the last refinement's time, its second start included
         self.second_starts: list[str] = []
         self.second_starts_tried = 0
 
@@ -264,7 +263,6 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
 
     def _refine(self, *, second_start: bool) -> SecondStart | None:
         due, self._refine_due = self._refine_due, None
-        t0 = time.perf_counter()
         if due is not None:
             image_id, i = due
             opts = self.options
@@ -277,9 +275,21 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
                 self._finalise_old(i)
             self._prune_dormant(i)
             self._remember_window_eops()  # what the next update's jump is measured against
-        outcome = self._second_start() if second_start else None
-        self._refine_ms = (time.perf_counter() - t0) * 1e3
-        return outcome
+        return self._second_start() if second_start else None
+
+    def _refined(self, update: ImageUpdate) -> ImageUpdate:
+        """:meth:`refined` (its caller limits the BLAS threads)."""
+        if self._refine_due is None or self._refine_due[0] != update.image_id:
+            return update
+        t0 = time.perf_counter()
+        outcome = self._refine(second_start=True)
+        update = dataclasses.replace(update, drift_px=self._drift_px, drift_m=self._drift_m,
+                                     drift_deg=self._drift_deg,
+                                     refine_ms=(time.perf_counter() - t0) * 1e3)
+        if outcome is None:
+            return update
+        return dataclasses.replace(update, second_start="kept" if outcome.kept else "not kept",
+                                   second_start_ms=outcome.ms)
 
     def finish(self) -> None:
         """After the last image: re-adjust the window by Gauss-Newton to convergence (steps
