@@ -1,12 +1,15 @@
-"""From the ``flight.yaml`` camera to seqat's ideal pinhole camera, and back.
+"""From the ``flight.yaml`` camera to seqat's camera and its frames' pixels, and back.
 
-seqat works with an ideal pinhole camera with square pixels (:class:`seqat.types.PinholeCamera`).
-A ``PINHOLE`` camera maps 1:1 (``f_px = fx_px = fy_px``). For an ``OPENCV`` camera, observed
-pixels are mapped to *ideal pixels* with ``cv2.undistortPoints`` using the new camera matrix
-``P = [[fx, 0, cx], [0, fx, cy], [0, 0, 1]]``: this is ``P = K`` when ``fx = fy``, and
-otherwise also rescales ``v`` so that the ideal camera has square pixels with ``f_px = fx``.
-The way back (ideal -> observed, :func:`distort_normalized`, used by the orthorectifier) applies
-the OpenCV model in closed form, vectorised over whole grids.
+seqat's camera has square pixels (:class:`seqat.types.PinholeCamera`, ``f_px = fx_px``) and
+carries the lens distortion in its model: the image points reach seqat as observed pixels
+with only the pixel aspect made square (``v`` scaled by ``fx / fy`` about ``cy``;
+:func:`frame_camera`), so their residuals, weights and σ0 are in the pixels the features were
+measured in, with or without self-calibration (docs/architecture.md, *Distortion is in the
+model*). *Ideal pixels* (:class:`PixelCorrector`, ``cv2.undistortPoints`` with the new camera
+matrix ``P = [[fx, 0, cx], [0, fx, cy], [0, 0, 1]]``) serve the geometry outside the
+estimator: rays for intersections, footprints and the orthorectifier. The way back (ideal ->
+observed, :func:`distort_normalized`, used by the orthorectifier) applies the OpenCV model in
+closed form, vectorised over whole grids.
 """
 
 from __future__ import annotations
@@ -42,14 +45,14 @@ def pinhole_camera(camera: CameraConfig) -> PinholeCamera:
                          width_px=camera.width_px, height_px=camera.height_px)
 
 
-def self_calibrating_camera(camera: CameraConfig) -> tuple[PinholeCamera, CameraConfig]:
-    """seqat's camera and the pixel camera of a self-calibrating flight.
+def seqat_camera(camera: CameraConfig) -> tuple[PinholeCamera, CameraConfig]:
+    """seqat's camera for ``camera`` and the pixel camera of its frames.
 
-    Self-calibration estimates the distortion in the model (docs/algorithm.md,
-    *Self-calibration*): image points reach seqat as observed pixels with only the pixel
-    aspect made square (``v`` scaled by ``fx / fy`` about ``cy``), and seqat's camera carries
-    ``camera``'s distortion as the prior. Returns that camera and the distortion-free camera
-    whose :class:`PixelCorrector` maps observed pixels to seqat's.
+    seqat's camera carries ``camera``'s distortion (fixed, or the prior of self-calibration:
+    docs/algorithm.md, *Self-calibration*); image points reach it as observed pixels with
+    only the pixel aspect made square (``v`` scaled by ``fx / fy`` about ``cy``). Returns
+    that camera and the distortion-free camera whose :class:`PixelCorrector` maps observed
+    pixels to seqat's.
     """
     prior = dataclasses.replace(pinhole_camera(camera), k1=camera.k1, k2=camera.k2,
                                 p1=camera.p1, p2=camera.p2, k3=camera.k3)
@@ -63,17 +66,15 @@ def frame_camera(camera: CameraConfig, self_calibration: SelfCalibrationConfig,
                                            PixelCorrector]:
     """The flight's self-calibration (``flight.yaml`` ``self_calibration:`` for a camera
     from EXIF or not), seqat's camera and the corrector from observed pixels to its
-    frames'."""
-    calibration = self_calibration.resolve(from_exif)
-    if calibration is not None:
-        prior, square = self_calibrating_camera(camera)
-        return calibration, prior, PixelCorrector(camera=square)
-    return None, pinhole_camera(camera), PixelCorrector(camera=camera)
+    frames' (:func:`seqat_camera`: the same with or without self-calibration, so a
+    calibration whose every parameter is held gives the fixed camera's solution)."""
+    seqat_cam, square = seqat_camera(camera)
+    return self_calibration.resolve(from_exif), seqat_cam, PixelCorrector(camera=square)
 
 
 def estimated_camera(prior: CameraConfig, estimate: PinholeCamera) -> CameraConfig:
     """The ``flight.yaml``-style camera of a self-calibrated seqat camera ``estimate``
-    (:func:`self_calibrating_camera` inverted: the aspect of ``prior`` restored)."""
+    (:func:`seqat_camera` inverted: the aspect of ``prior`` restored)."""
     aspect = prior.fy_px / prior.fx_px
     return dataclasses.replace(
         prior, model="OPENCV", fx_px=estimate.f_px, fy_px=estimate.f_px * aspect,

@@ -2,14 +2,14 @@
 
 A dropout image reaches the estimator with ``nav_sigma = inf`` for its missing components
 (no constraint) and ``initial_eop`` from a resection on the ground points the estimator
-currently holds (its window): OpenCV's ``solvePnPRansac`` on ideal pixels, refined by
+currently holds (its window): OpenCV's ``solvePnPRansac`` with the camera's distortion, refined by
 Levenberg-Marquardt on the inliers (``solvePnPRefineLM``). The resection is only the start
 value of the linearisation; the image's EOP and its σ come from the adjustment (issue 7).
 
 Conventions: OpenCV's camera frame is ours with y and z negated (``seqat.cvframe``), so
 ``cam_from_world`` of OpenCV maps to EOPs with :func:`seqat.cvframe.eop_from_cv_pose`; the
-ideal pinhole pixels of seqat are OpenCV pixels of ``K = [[f, 0, cx], [0, f, cy], [0, 0, 1]]``
-without distortion (docs/conventions.md).
+pixels of seqat's camera are OpenCV pixels of ``K = [[f, 0, cx], [0, f, cy], [0, 0, 1]]``
+with its distortion coefficients ``(k1, k2, p1, p2, k3)`` (docs/conventions.md).
 
 Start values of the missing components (:func:`predict_missing`) come from the past only
 (no look-ahead): the last fix moved on at the velocity of the last two fixes, the last
@@ -84,7 +84,7 @@ def resect_pose(xyz_m: FloatArray, uv_px: FloatArray, camera: PinholeCamera, *,
     xyz_m : (k, 3) float
         Ground points, world metres.
     uv_px : (k, 2) float
-        Their ideal pinhole pixels in the image.
+        Their pixels in the image, of ``camera`` (with its distortion).
     camera : PinholeCamera
     sigma_px : float
         Image point σ; the RANSAC threshold is ``max(5 σ, 2 px)``.
@@ -105,10 +105,12 @@ def resect_pose(xyz_m: FloatArray, uv_px: FloatArray, camera: PinholeCamera, *,
     obj = xyz - origin
     K = np.array([[camera.f_px, 0.0, camera.cx_px], [0.0, camera.f_px, camera.cy_px],
                   [0.0, 0.0, 1.0]])
+    dist = (np.array([camera.k1, camera.k2, camera.p1, camera.p2, camera.k3])
+            if camera.has_distortion else None)
     threshold = max(THRESHOLD_SIGMAS * sigma_px, MIN_THRESHOLD_PX)
     cv2.setRNGSeed(RANSAC_SEED)
     ok, rvec, tvec, idx = cv2.solvePnPRansac(
-        obj, uv, K, None, iterationsCount=RANSAC_ITERATIONS, reprojectionError=threshold,
+        obj, uv, K, dist, iterationsCount=RANSAC_ITERATIONS, reprojectionError=threshold,
         confidence=RANSAC_CONFIDENCE, flags=cv2.SOLVEPNP_SQPNP)
     if (not ok or idx is None) and start_eop is not None:
         guess = np.asarray(start_eop, dtype=np.float64).copy()
@@ -116,7 +118,7 @@ def resect_pose(xyz_m: FloatArray, uv_px: FloatArray, camera: PinholeCamera, *,
         R_cv, t = cv_pose_from_eop(guess[None])
         rvec, _ = cv2.Rodrigues(R_cv[0])
         ok, rvec, tvec, idx = cv2.solvePnPRansac(
-            obj, uv, K, None, rvec=rvec, tvec=t[0].reshape(3, 1).copy(),
+            obj, uv, K, dist, rvec=rvec, tvec=t[0].reshape(3, 1).copy(),
             useExtrinsicGuess=True, iterationsCount=RANSAC_ITERATIONS,
             reprojectionError=threshold, confidence=RANSAC_CONFIDENCE,
             flags=cv2.SOLVEPNP_ITERATIVE)
@@ -125,7 +127,7 @@ def resect_pose(xyz_m: FloatArray, uv_px: FloatArray, camera: PinholeCamera, *,
     inl = np.zeros(k, dtype=bool)
     inl[np.asarray(idx).ravel()] = True
     if inl.sum() >= 4:
-        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], uv[inl], K, None, rvec, tvec)
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], uv[inl], K, dist, rvec, tvec)
     R_cv, _ = cv2.Rodrigues(rvec)
     eop = eop_from_cv_pose(R_cv[None], np.asarray(tvec, dtype=np.float64).reshape(1, 3))[0]
     eop[:3] += origin

@@ -96,10 +96,11 @@ class Flight:
     camera_approximate : bool
         The camera comes from EXIF, not from ``flight.yaml``.
     camera : PinholeCamera
-        Camera of the frames: the ideal pinhole camera (distortion removed), or with
-        ``calibration`` the prior of the self-calibration, distortion included.
+        Camera of the frames (:func:`pipeline.flight.camera.seqat_camera`): square pixels,
+        the lens distortion in the model (fixed, or the prior of the self-calibration).
     corrector : PixelCorrector
-        Observed -> frame pixels (ideal ones; with ``calibration`` only the aspect squared).
+        Observed -> frame pixels (only the pixel aspect squared: ``ideal_pixels`` of a
+        camera without distortion).
     calibration : SelfCalibration or None
         Self-calibration (``flight.yaml`` ``self_calibration:``); None: the camera is fixed.
     nav : NavTable
@@ -150,6 +151,11 @@ class Flight:
         missing = np.isnan(self.nav.eop[row])
         start: FloatArray = self._nav_start[row]  # type: ignore[attr-defined]
         return start, dropout_sigma(self.nav_sigma, missing)
+
+    def frame_pixels(self, observed_px: FloatArray) -> FloatArray:
+        """Observed pixels ``(k, 2)`` as the frames carry them to :attr:`camera` (the pixel
+        aspect squared; the distortion stays, :attr:`camera` models it)."""
+        return self.corrector.ideal_pixels(observed_px)
 
     def is_dropout(self, row: int) -> bool:
         """Whether nav row ``row`` misses its position or attitude (a GNSS dropout)."""
@@ -585,15 +591,14 @@ class FrameSource:
         ``(k, 2)``, and of their late observations, ``(m, 2)``."""
         next_row = 0
         empty = np.zeros((0, 2))
-        corrector = self._flight.corrector
         for group in self._groups():
             while next_row < group.nav_row:
                 yield self._frame(next_row, (), empty), empty, empty
                 next_row += 1
             frame = dataclasses.replace(
-                self._frame(group.nav_row, group.point_ids, corrector.ideal_pixels(group.uv_px)),
+                self._frame(group.nav_row, group.point_ids, self._flight.frame_pixels(group.uv_px)),
                 late_image_ids=group.late_image_ids, late_point_ids=group.late_point_ids,
-                late_uv_px=corrector.ideal_pixels(group.late_uv_px))
+                late_uv_px=self._flight.frame_pixels(group.late_uv_px))
             yield frame, group.uv_px, group.late_uv_px
             next_row = group.nav_row + 1
         while next_row < len(self._flight.nav):

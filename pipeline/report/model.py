@@ -344,8 +344,9 @@ def _same_flight(main: RunFolder, other: RunFolder) -> None:
 
 def image_residuals_px(run: RunFolder, obs: tuple[np.ndarray, tuple[str, ...], np.ndarray,
                                                    FloatArray] | None = None) -> FloatArray:
-    """Image residuals (ideal pixels, ``(k, 2)``) of the observations of ``observations.csv``
-    whose image and point the run estimated, at the run's estimates.
+    """Image residuals (observed pixels, ``(k, 2)``: the pixels the features were measured
+    in, as the adjustment weighs them) of the observations of ``observations.csv`` whose
+    image and point the run estimated, at the run's estimates.
 
     A sequential run may leave some observations out (rays of images that left its window
     before a second ray came, observations of points that had left it); they are counted
@@ -362,9 +363,9 @@ def image_residuals_px(run: RunFolder, obs: tuple[np.ndarray, tuple[str, ...], n
     sel &= img_rows >= 0
     if not np.any(sel):
         return np.zeros((0, 2))
-    ideal = PixelCorrector(camera=run.camera).ideal_pixels(uv[sel])
     xyz = run.points.xyz_m[[est[point_ids[j]] for j in obs_point[sel]]]
-    return ideal - project(run.eop.eop[img_rows[sel]], xyz, pinhole_camera(run.camera))
+    ideal = project(run.eop.eop[img_rows[sel]], xyz, pinhole_camera(run.camera))
+    return uv[sel] - PixelCorrector(camera=run.camera).observed_pixels(ideal)
 
 
 def _tie_points(run: RunFolder, obs: tuple[np.ndarray, tuple[str, ...], np.ndarray,

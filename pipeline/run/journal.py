@@ -68,7 +68,7 @@ class ImageRecord:
     seq : int
         0-based position among the journal's image records.
     frame : Frame
-        Exactly what :meth:`add_frame` received (ideal pixels, initial EOP).
+        Exactly what :meth:`add_frame` received (frame pixels, initial EOP).
     time_s : float
         Acquisition time of the nav row.
     observed_px : (k, 2) float

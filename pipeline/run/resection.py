@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from seqat.geometry import angles_from_rotation
-from seqat.types import FloatArray, PinholeCamera
+from seqat.geometry import angles_from_rotation, rays_world
+from seqat.types import EOP_SIZE, FloatArray, PinholeCamera
 
 #: Fewest points to try a resection.
 MIN_POINTS = 6
@@ -71,7 +71,7 @@ def resect_attitude(xyz_m: FloatArray, uv_px: FloatArray, camera: PinholeCamera,
     xyz_m : (k, 3) float
         Points, world metres.
     uv_px : (k, 2) float
-        Their ideal pixels in the image.
+        Their pixels in the image (of ``camera``, whose distortion the rays take out).
     camera : PinholeCamera
     nav_eop : (6,) float
         GPS/INS EOP; its position is kept.
@@ -87,9 +87,7 @@ def resect_attitude(xyz_m: FloatArray, uv_px: FloatArray, camera: PinholeCamera,
     k = len(xyz)
     if k < MIN_POINTS:
         return Resection(eop=None, inliers=np.ones(k, dtype=bool), n_points=k, n_inliers=0)
-    cam = np.column_stack([uv[:, 0] - camera.cx_px, camera.cy_px - uv[:, 1],
-                           np.full(k, -camera.f_px)])
-    cam /= np.linalg.norm(cam, axis=1, keepdims=True)
+    cam = rays_world(np.zeros((k, EOP_SIZE)), uv, camera)  # camera frame: no rotation
     world = xyz - np.asarray(nav_eop[:3], dtype=np.float64)
     world /= np.linalg.norm(world, axis=1, keepdims=True)
     cos_thr = np.cos(np.radians(threshold_deg))

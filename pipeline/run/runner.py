@@ -286,11 +286,18 @@ def make_budget(budget_ms: float | str | None, method: Method,
                          base_window_cap=options.max_window_images)
 
 
+#: What the journal's frames hold (fingerprint ``frame_pixels``): the observed pixels, with
+#: the lens distortion in seqat's camera (:func:`pipeline.flight.camera.seqat_camera`); the
+#: journals of earlier versions held ideal pixels and are not resumed.
+FRAME_PIXELS = "observed"
+
+
 def run_fingerprint(flight_dir: Path, method: Method, options: SequentialOptions | SimOptions,
                     final_only: bool, observations: Path | None,
                     control: GroundControl | None = None) -> dict[str, object]:
     """What a journal must have been written with to be resumed (flight and options; the
-    ground control file and its points, when the flight has GCPs)."""
+    ground control file and its points, when the flight has GCPs; what its frames' pixels
+    are)."""
     yaml_path = flight_dir / FLIGHT_YAML
     digest = (hashlib.sha256(yaml_path.read_bytes()).hexdigest() if yaml_path.is_file()
               else None)
@@ -300,6 +307,7 @@ def run_fingerprint(flight_dir: Path, method: Method, options: SequentialOptions
                         "sha256": hashlib.sha256(control.path.read_bytes()).hexdigest(),
                         "sigma_m": [repr(p.sigma_m.tolist()) for p in control.points]}
     return {**extra, "flight": str(flight_dir.resolve()), "flight_yaml_sha256": digest,
+            "frame_pixels": FRAME_PIXELS,
             "method": method.value, "options": to_jsonable(options), "final_only": final_only,
             "observations": None if observations is None else str(observations.resolve())}
 

@@ -67,11 +67,12 @@ class Initialiser:
         self.ground_z: float | None = None
         self._known: dict[str, FloatArray] = {}
         self._eops: dict[str, FloatArray] = {}
-        self._last_obs: dict[str, tuple[str, FloatArray]] = {}  # point -> (image, ideal uv)
+        self._last_obs: dict[str, tuple[str, FloatArray]] = {}  # point -> (image, frame uv)
 
     def resect(self, frame: Frame, *, reject: bool = True) -> tuple[Frame, Resection, int,
                                                                     np.ndarray]:
-        """Resect a new frame (ideal pixels) and leave out the observations it rejects.
+        """Resect a new frame (pixels of :attr:`camera`) and leave out the observations it
+        rejects.
 
         ``reject=False`` keeps every observation (precomputed or replayed image points,
         already cleaned by the run that wrote them).
@@ -88,7 +89,7 @@ class Initialiser:
         keep : (k,) bool
             The observations kept (``False``: left out).
         """
-        point_ids, ideal = frame.point_ids, frame.uv_px
+        point_ids, uv = frame.point_ids, frame.uv_px
         known = [k for k, p in enumerate(point_ids) if p in self._known]
         xyz = [self._known[point_ids[k]] for k in known]
         used = list(known)
@@ -103,7 +104,7 @@ class Initialiser:
                 t = (self.ground_z - eops[down, 2]) / rays[down, 2]
                 xyz += list(eops[down, :3] + t[:, None] * rays[down])
                 used += [k for k, d in zip(plane, down, strict=True) if d]
-        res = resect_attitude(np.array(xyz).reshape(-1, 3), ideal[used], self.camera,
+        res = resect_attitude(np.array(xyz).reshape(-1, 3), uv[used], self.camera,
                               frame.nav_eop, self.threshold_deg)
         keep = np.ones(len(point_ids), dtype=bool)
         if res.eop is not None and reject:
@@ -115,7 +116,7 @@ class Initialiser:
                    if point_ids[k] not in late]
             keep[np.asarray(out, dtype=np.int64)] = False
         frame = dataclasses.replace(frame, point_ids=tuple(np.asarray(point_ids)[keep]),
-                                    uv_px=ideal[keep], initial_eop=res.eop)
+                                    uv_px=uv[keep], initial_eop=res.eop)
         return frame, res, len(known), keep
 
     def bridge(self, frame: Frame, *, reject: bool = True) -> tuple[Frame | None, PoseResection,
@@ -220,9 +221,8 @@ def with_control(flight: Flight, frame: Frame, observed_px: FloatArray) -> tuple
     gcp = set(ids)
     keep = np.array([p not in gcp for p in frame.point_ids], dtype=bool)
     point_ids = tuple(p for p, k in zip(frame.point_ids, keep, strict=True) if k) + ids
-    ideal = flight.corrector.ideal_pixels(uv)
     frame = dataclasses.replace(frame, point_ids=point_ids,
-                                uv_px=np.vstack([frame.uv_px[keep], ideal]))
+                                uv_px=np.vstack([frame.uv_px[keep], flight.frame_pixels(uv)]))
     return frame, np.vstack([np.asarray(observed_px).reshape(-1, 2)[keep], uv])
 
 
@@ -370,11 +370,11 @@ class ImageSource(_InitialisedSource):
         observed: FloatArray = np.asarray(tracked.uv_px, dtype=np.float64).reshape(-1, 2)
         late_observed = np.asarray(tracked.late_uv_px, dtype=np.float64).reshape(-1, 2)
         frame = Frame(image_id=image_id, nav_eop=nav_eop, nav_sigma=nav_sigma,
-                      point_ids=tracked.point_ids, uv_px=flight.corrector.ideal_pixels(observed),
+                      point_ids=tracked.point_ids, uv_px=flight.frame_pixels(observed),
                       sigma_px=flight.config.sigma_image_px,
                       late_image_ids=tracked.late_image_ids,
                       late_point_ids=tracked.late_point_ids,
-                      late_uv_px=flight.corrector.ideal_pixels(late_observed))
+                      late_uv_px=flight.frame_pixels(late_observed))
         # the late rays of earlier images: plane points of this image's resection
         self._init.record_late(frame)
         stats: dict[str, object] = {**dataclasses.asdict(tracked.stats), "read_ms": read_ms}

@@ -790,10 +790,10 @@ def _prepare(source: ObservationSource | ImageSource, item: Arrival,
     if isinstance(source, ObservationSource):
         frame = Frame(image_id=item.image, nav_eop=item.nav_eop, nav_sigma=flight.nav_sigma,
                       point_ids=item.point_ids,
-                      uv_px=flight.corrector.ideal_pixels(item.observed_px),
+                      uv_px=flight.frame_pixels(item.observed_px),
                       sigma_px=flight.config.sigma_image_px,
                       late_image_ids=item.late_image_ids, late_point_ids=item.late_point_ids,
-                      late_uv_px=flight.corrector.ideal_pixels(item.late_observed_px))
+                      late_uv_px=flight.frame_pixels(item.late_observed_px))
         return source.prepare(frame, item.observed_px, item.time_s, item.ready_s,
                               late_observed_px=item.late_observed_px)
     assert item.path is not None

@@ -41,7 +41,7 @@ from seqat.errors import InputDataError
 from seqat.geometry import intersect_rays, project
 from seqat.types import FloatArray
 
-#: A track with a ray this far (ideal pixels) from its intersection with the true EOPs is a
+#: A track with a ray this far (frame pixels) from its intersection with the true EOPs is a
 #: wrong match of the tracker: it has no reference point.
 REFERENCE_MAX_PX = 2.0
 #: WGS 84 semi-major axis (m) and first eccentricity squared: metres -> degrees of a jump.
@@ -104,13 +104,13 @@ class FolderCase(Case):
         origin = np.round(self.truth_eop[0, :3])
         e = self.truth_eop[self.obs_image].copy()
         e[:, :3] -= origin
-        ideal = flight.corrector.ideal_pixels(self.obs_uv)
+        uv = flight.frame_pixels(self.obs_uv)  # the pixels of flight.camera
         m = len(self.point_ids)
-        X, _ = intersect_rays(e, ideal, self.obs_point, m, flight.camera)
+        X, _ = intersect_rays(e, uv, self.obs_point, m, flight.camera)
         ok = np.all(np.isfinite(X), axis=1) & (np.bincount(self.obs_point, minlength=m) >= 2)
         miss = np.zeros(m)
         sel = ok[self.obs_point]
-        res = np.linalg.norm(project(e[sel], X[self.obs_point[sel]], flight.camera) - ideal[sel],
+        res = np.linalg.norm(project(e[sel], X[self.obs_point[sel]], flight.camera) - uv[sel],
                              axis=1)
         np.maximum.at(miss, self.obs_point[sel], res)
         ok &= miss <= REFERENCE_MAX_PX

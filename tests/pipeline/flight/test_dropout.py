@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -44,16 +45,20 @@ def test_resection_recovers_the_pose_despite_a_blunder(short_strip: SimulatedFli
         assert res.rms_px < 3.0 * f.sigma_px
 
 
-def test_resection_uses_the_opencv_pose_convention(short_strip: SimulatedFlight) -> None:
-    """Noise-free pixels: the pose is exact (a sign slip in the OpenCV frame would not be)."""
+@pytest.mark.parametrize("distortion", [{}, {"k1": -0.25, "k2": 0.06, "p2": -0.002}])
+def test_resection_uses_the_opencv_pose_convention(short_strip: SimulatedFlight,
+                                                   distortion: dict[str, float]) -> None:
+    """Noise-free pixels: the pose is exact (a sign slip in the OpenCV frame would not be),
+    through a distorted camera too (its coefficients in OpenCV's order)."""
     f = short_strip
     i = 20
     m = f.obs_image == i
     from seqat.geometry import project
 
+    camera = dataclasses.replace(f.camera, **distortion)
     xyz = f.truth_xyz[f.obs_point[m]]
-    uv = project(np.broadcast_to(f.truth_eop[i], (xyz.shape[0], 6)), xyz, f.camera)
-    res = resect_pose(xyz, uv, f.camera)
+    uv = project(np.broadcast_to(f.truth_eop[i], (xyz.shape[0], 6)), xyz, camera)
+    res = resect_pose(xyz, uv, camera)
     assert res.eop is not None
     R_est, t_est = cv_pose_from_eop(res.eop[None])
     R_true, t_true = cv_pose_from_eop(f.truth_eop[i][None])

@@ -189,9 +189,12 @@ def test_lever_arm_is_applied_in_the_body_frame(yaw_deg: float, east: float,
     np.testing.assert_allclose(moved[0, 3:], base[0, 3:], atol=0)
 
 
-def test_resection_recovers_the_rotation_despite_outliers() -> None:
+@pytest.mark.parametrize("distortion", [{}, {"k1": -0.25, "k2": 0.06, "p1": 0.002}])
+def test_resection_recovers_the_rotation_despite_outliers(distortion: dict[str, float]) -> None:
+    """Also through a strongly distorted camera (the frames' pixels are observed ones)."""
     rng = np.random.default_rng(3)
-    cam = PinholeCamera(f_px=1000.0, cx_px=499.5, cy_px=374.5, width_px=1000, height_px=750)
+    cam = PinholeCamera(f_px=500.0, cx_px=499.5, cy_px=374.5, width_px=1000, height_px=750,
+                        **distortion)
     truth = np.array([100.0, 200.0, 80.0, 0.12, -0.08, 1.3])
     xyz = np.column_stack([rng.uniform(40, 160, 60), rng.uniform(160, 240, 60),
                            rng.uniform(-2, 2, 60)])
