@@ -137,7 +137,7 @@ class TiePointSummary:
     track_length_mean: float
     track_length_median: float
     track_length_max: int
-    image_residual_rms_px: float  # of the run's solution, ideal pixels
+    image_residual_rms_px: float  # of the run's solution, observed pixels
 
 
 @dataclass(frozen=True, kw_only=True)
