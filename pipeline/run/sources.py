@@ -27,6 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipeline.flight.camera import PixelCorrector
 from pipeline.flight.dropout import PoseResection, resect_from_known
 from pipeline.flight.folder import Flight, ObservationStats
 from pipeline.flight.inputs import SkippedImage
@@ -332,7 +333,9 @@ class ImageSource(_InitialisedSource):
     def __init__(self, flight: Flight, options: TrackerOptions) -> None:
         self._flight = flight
         self.tracking_options = options
-        self._tracker = Tracker(options, flight.camera_config)
+        camera = flight.camera_config
+        self._tracker = Tracker(options, camera, ideal_pixels=(
+            PixelCorrector(camera=camera).ideal_pixels if camera.has_distortion else None))
         self._init = Initialiser(flight.camera, options.resection_threshold_deg)
         #: GNSS dropout images left out (no resection) and bridged so far.
         self.skipped: list[SkippedImage] = []

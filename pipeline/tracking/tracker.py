@@ -12,7 +12,9 @@ When image ``i`` arrives (:meth:`Tracker.add_image`) the tracker
 3. matches ``i`` against each candidate (FLANN kd-tree or brute force for SIFT, brute-force
    Hamming for ORB; ``knnMatch`` k = 2 and Lowe's ratio test; one match per feature of ``i``)
    and verifies the pair with ``USAC_MAGSAC`` on the fundamental matrix (or a homography) at
-   working resolution; pairs with fewer than ``min_inliers`` inliers are rejected;
+   working resolution, on the keypoints with the lens distortion removed (the epipolar
+   geometry holds for ideal pixels, not for a wide lens's observed ones); pairs with fewer
+   than ``min_inliers`` inliers are rejected;
 4. gives each feature of ``i`` a point id: the id of the track its verified matches point to,
    or a fresh id (``t`` + 7-digit counter, unique over the flight); features at one pixel
    (SIFT's orientations of one blob, :func:`feature_sites`) are one observation.
@@ -63,6 +65,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
@@ -209,6 +212,10 @@ class HeldImage:
     #: (m, 2) [keypoint index, point number] of every late emission (``point_nums`` includes
     #: them): what changed since the image was added.
     late: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+    #: (n, 2) ``kp_work`` with the lens distortion removed, where the pairs are verified
+    #: (:meth:`Tracker.geometric_keypoints`); None: not formed (the state files do not keep
+    #: it, :meth:`Tracker.restore` forms it again).
+    kp_geo: NDArray[np.float32] | None = None
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -255,11 +262,17 @@ class Tracker:
     camera : TrackerCamera
         A :class:`pipeline.flight.schema.CameraConfig`: size and ``fx_px, cx_px, cy_px``
         (ideal pinhole, for the footprint prediction only).
+    ideal_pixels : callable, optional
+        Observed full-resolution pixels ``(k, 2)`` -> ideal pinhole pixels, the lens
+        distortion removed (:meth:`pipeline.flight.camera.PixelCorrector.ideal_pixels`): the
+        pairs are verified on them. None: the observed pixels are ideal (no distortion).
     """
 
-    def __init__(self, options: TrackerOptions, camera: TrackerCamera) -> None:
+    def __init__(self, options: TrackerOptions, camera: TrackerCamera,
+                 ideal_pixels: Callable[[FloatArray], FloatArray] | None = None) -> None:
         self.options = options
         self.camera = camera
+        self._ideal_pixels = ideal_pixels
         self._pinhole = PinholeCamera(f_px=camera.fx_px, cx_px=camera.cx_px,
                                       cy_px=camera.cy_px, width_px=camera.width_px,
                                       height_px=camera.height_px)
@@ -322,7 +335,8 @@ class Tracker:
         """Continue from ``state`` (taken from a tracker of the same options and camera)."""
         self._seq, self._next_point = state.seq, state.next_point
         self._origin_xy = None if state.origin_xy is None else np.array(state.origin_xy)
-        self._held = [dataclasses.replace(h) for h in state.held]
+        self._held = [dataclasses.replace(h, kp_geo=self.geometric_keypoints(h.kp_work))
+                      for h in state.held]
         self._tracks = {int(n): [int(length), int(held)] for n, length, held in state.tracks}
 
     def to_full_px(self, uv_work: FloatArray) -> FloatArray:
@@ -339,6 +353,15 @@ class Tracker:
         uv = np.asarray(uv_work, dtype=np.float64).reshape(-1, 2)
         s = np.asarray(self.scale_uv)
         return (uv + 0.5) * s - 0.5
+
+    def geometric_keypoints(self, kp_work: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Working-resolution keypoints with the lens distortion removed (ideal pixels at the
+        working scale), where a pair's epipolar geometry holds; ``kp_work`` itself without
+        ``ideal_pixels``."""
+        if self._ideal_pixels is None or len(kp_work) == 0:
+            return kp_work
+        ideal = self._ideal_pixels(self.to_full_px(kp_work))
+        return ((ideal + 0.5) / np.asarray(self.scale_uv) - 0.5).astype(np.float32)
 
     # ----------------------------------------------------------------------------------------
     def add_image(self, image_id: str, image: NDArray[np.uint8], nav_eop: FloatArray,
@@ -373,6 +396,7 @@ class Tracker:
         t0 = time.perf_counter()
         nav = self._check_input(image_id, image, nav_eop)
         kp_work, desc, response = self._detect(image)
+        kp_geo = self.geometric_keypoints(kp_work)
         n_detected = len(kp_work)
         t1 = time.perf_counter()
 
@@ -380,7 +404,7 @@ class Tracker:
                    else float(nav[2]) - self.options.default_height_above_ground_m)
         candidates = self._select_candidates(nav, plane_z)
         links, unlinked, n_matches, n_inliers, n_pairs = self._match(
-            kp_work, desc, candidates, nav, plane_z)
+            kp_geo, desc, candidates, nav, plane_z)
         site = feature_sites(kp_work)
         # held images none of whose tracks reached a second image yet: untied, whatever
         # this image's links to them (the larger cap of late observations)
@@ -415,7 +439,8 @@ class Tracker:
         # every feature is held for matching (verification needs many matches); only the
         # emitted ones carry tracks
         held = HeldImage(image_id=image_id, seq=self._seq, nav_eop=nav, kp_work=kp_work,
-                          desc=desc, point_nums=held_nums, last_overlap_seq=self._seq)
+                          desc=desc, point_nums=held_nums, last_overlap_seq=self._seq,
+                          kp_geo=kp_geo)
         self._held.append(held)
         self._seq += 1
         self._prune()
@@ -528,8 +553,10 @@ class Tracker:
                                         list[tuple[int, int, int, float]], int, int, int]:
         """Match the new image with each candidate and verify each pair.
 
-        Verification: the geometric model (MAGSAC), then, with the fundamental matrix and
-        ``max_relief_fraction`` set, the plane gate (:meth:`_plane_gate`).
+        Verification, on the keypoints ``kp`` and the held ones with the lens distortion
+        removed (:meth:`geometric_keypoints`): the geometric model (MAGSAC), then, with the
+        fundamental matrix and ``max_relief_fraction`` set, the plane gate
+        (:meth:`_plane_gate`).
 
         Returns
         -------
@@ -551,16 +578,17 @@ class Tracker:
             held = cand.held
             if len(held.kp_work) < MIN_MODEL_POINTS:
                 continue
+            geo = held.kp_geo if held.kp_geo is not None else held.kp_work
             # ratio test; then one match per new feature (the smallest distance)
             idx_new, idx_old, dist = ratio_matches(*matcher.nearest_two(held.desc), opts.ratio)
             n_matches += len(idx_new)
             if len(idx_new) < opts.min_inliers:
                 continue
-            mask = self._verify(held.kp_work[idx_old], kp[idx_new])
+            mask = self._verify(geo[idx_old], kp[idx_new])
             if mask is None or int(mask.sum()) < opts.min_inliers:
                 continue
             if opts.geometry == "fundamental" and opts.max_relief_fraction is not None:
-                mask &= self._plane_gate(held.kp_work[idx_old], kp[idx_new], mask,
+                mask &= self._plane_gate(geo[idx_old], kp[idx_new], mask,
                                          held.nav_eop, nav, plane_z)
                 if int(mask.sum()) < opts.min_inliers:
                     continue
