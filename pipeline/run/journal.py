@@ -36,7 +36,7 @@ import numpy as np
 from pipeline.common.atomic import fsync_dir
 from pipeline.flight.inputs import SkippedImage
 from pipeline.run.store import to_jsonable
-from pipeline.tracking.tracker import HeldImage, TrackerState
+from pipeline.tracking.records import HeldImage, TrackerState
 from seqat.errors import ConfigError, InputDataError
 from seqat.types import FloatArray, Frame
 

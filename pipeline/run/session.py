@@ -29,7 +29,7 @@ from pipeline.run.journal import ImageRecord, Journal
 from pipeline.run.sources import PreparedFrame
 from pipeline.run.store import format_observation_lines
 from pipeline.tracking.options import TrackerOptions
-from pipeline.tracking.tracker import TrackerState
+from pipeline.tracking.records import TrackerState
 from seqat.surface import without_off_surface
 from seqat.types import Frame, ImageUpdate, Solution
 

@@ -33,7 +33,8 @@ from pipeline.flight.folder import Flight, ObservationStats
 from pipeline.flight.inputs import SkippedImage
 from pipeline.run.resection import Resection, resect_attitude
 from pipeline.tracking.options import TrackerOptions
-from pipeline.tracking.tracker import Tracker, TrackerState, read_gray_image
+from pipeline.tracking.records import TrackerState
+from pipeline.tracking.tracker import Tracker, read_gray_image
 from seqat.errors import InputDataError
 from seqat.geometry import rays_world
 from seqat.types import FloatArray, Frame, ImageUpdate, PinholeCamera
