@@ -275,7 +275,7 @@ class RelinearisationMixin:
         pts, at = np.unique(f.pt[rows], return_index=True)  # each point's first row
         for p, row in zip(pts.tolist(), rows[at].tolist(), strict=True):
             x[p_idx[row]] = start[p]
-        res = f.residuals(x[e_idx[rows]], x[p_idx[rows]], self._cam)
+        res = f.uv[rows] - self._cam.project(x[e_idx[rows]], x[p_idx[rows]])
         wf = wf.copy()
         wf[rows] = f.w0[rows] * robust_weight(np.sum(res**2, axis=1) * f.w0[rows],
                                               self.options.robust_scale)

@@ -17,7 +17,8 @@ from pipeline.flight.navigation import BoresightConfig
 from pipeline.tracking.options import TrackerOptions
 from seqat.calibration import DEFAULT_FREE, SelfCalibration
 from seqat.errors import ConfigError
-from seqat.types import FloatArray
+from seqat.geometry import distort_normalized
+from seqat.types import FloatArray, PinholeCamera
 
 #: Number of components of a position or attitude sigma given as a list.
 AXES = 3
@@ -30,6 +31,12 @@ SigmaTriple = float | tuple[float, float, float]
 MAX_IMAGE_SIDE_PX = 100_000
 MAX_FOCAL_PX = 1e6
 MAX_DISTORTION = 100.0
+#: The lens distortion is checked invertible over the image (:meth:`CameraConfig.fold`) along
+#: this many directions from the principal point, in steps of this normalised radius, out to
+#: this radius (tan 80°: no OPENCV lens sees wider).
+FOLD_DIRECTIONS = 48
+FOLD_STEP = 0.005
+FOLD_MAX_RADIUS = 5.7
 MAX_SIGMA_IMAGE_PX = 1000.0
 MAX_SIGMA_POSITION_M = 1e5
 MAX_SIGMA_ATTITUDE_DEG = 180.0
@@ -70,8 +77,8 @@ class CameraConfig:
     """``camera:`` section of ``flight.yaml`` (OpenCV pixel convention, docs/conventions.md).
 
     ``model: PINHOLE`` is an ideal camera with square pixels (``fx_px == fy_px``) and no
-    distortion; ``model: OPENCV`` adds the OpenCV distortion ``k1 k2 p1 p2 k3``, removed by
-    :mod:`pipeline.flight.camera` before image points reach seqat.
+    distortion; ``model: OPENCV`` adds the OpenCV distortion ``k1 k2 p1 p2 k3``, which
+    seqat's camera models (:mod:`pipeline.flight.camera`).
     """
 
     model: Literal["PINHOLE", "OPENCV"]
@@ -121,6 +128,45 @@ class CameraConfig:
     @property
     def has_distortion(self) -> bool:
         return bool(np.any(self.distortion != 0.0))
+
+    def fold(self) -> str | None:
+        """Why the distortion is no lens over this image, or None: going out from the
+        principal point, the OpenCV polynomial must map the ideal image plane onto the image
+        one to one (its Jacobian determinant > 0) until it reaches the image border. A
+        polynomial that folds back first (k1 -0.9 where -0.09 was meant: the corners'
+        pixels then have two rays, or none) leaves the adjustment singular. Not checked
+        with the principal point outside the image."""
+        w, h = self.width_px, self.height_px
+        if not self.has_distortion or not (-0.5 <= self.cx_px <= w - 0.5
+                                           and -0.5 <= self.cy_px <= h - 0.5):
+            return None
+        cam = PinholeCamera(f_px=self.fx_px, cx_px=self.cx_px, cy_px=self.cy_px, width_px=w,
+                            height_px=h, k1=self.k1, k2=self.k2, p1=self.p1, p2=self.p2,
+                            k3=self.k3)
+        angle = np.linspace(0.0, 2.0 * np.pi, FOLD_DIRECTIONS, endpoint=False)[:, None]
+        r = np.arange(1, int(FOLD_MAX_RADIUS / FOLD_STEP) + 1)[None, :] * FOLD_STEP
+        xd, yd, D, _ = distort_normalized((r * np.cos(angle)).ravel(),
+                                          (r * np.sin(angle)).ravel(), cam, jacobians=True)
+        u = (self.fx_px * xd + self.cx_px).reshape(angle.size, -1)
+        v = (self.fy_px * yd + self.cy_px).reshape(angle.size, -1)
+        det = (D[:, 0, 0] * D[:, 1, 1] - D[:, 0, 1] * D[:, 1, 0]).reshape(angle.size, -1)
+        inside = (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
+        # each direction up to its first sample outside the image (all of it if none)
+        reach = np.where(inside.all(axis=1), r.size, np.argmin(inside, axis=1))
+        before = np.arange(r.size)[None, :] <= np.minimum(reach, r.size - 1)[:, None]
+        folded = before & ~(det > 0.0)
+        coeffs = ", ".join(f"{n} {getattr(self, n):g}" for n in ("k1", "k2", "p1", "p2", "k3"))
+        if folded.any():
+            d, k = np.unravel_index(np.argmax(folded), folded.shape)
+            return (f"the distortion ({coeffs}) folds back inside the {w} x {h} px image, "
+                    f"{float(np.hypot(u[d, k] - self.cx_px, v[d, k] - self.cy_px)):.0f} px "
+                    "from the principal point: no lens maps so (check the coefficients' "
+                    "signs and that they are OpenCV's, on normalised coordinates)")
+        if (reach == r.size).any():
+            return (f"the distortion ({coeffs}) keeps rays 80 degrees off the axis inside the "
+                    f"{w} x {h} px image: no OPENCV lens sees so wide (check the "
+                    "coefficients' signs and that they are OpenCV's)")
+        return None
 
 
 #: Default a priori σ of GPS positions (x, y, z), metres: a consumer GNSS receiver.
@@ -258,6 +304,9 @@ class FlightConfig:
                     MAX_SIGMA_IMAGE_PX)
         if not self.crs.strip():
             raise ConfigError("crs: expected a CRS such as 'EPSG:32652', got an empty string")
+        fold = self.camera.fold() if self.camera is not None else None
+        if fold is not None:
+            raise ConfigError(f"camera: {fold}")
 
 
 def load_flight_config(path: Path | str) -> FlightConfig:

@@ -153,6 +153,11 @@ class RenderSimulateConfig:
     nav: NavNoiseConfig = NavNoiseConfig()
     output: RenderOutputConfig = RenderOutputConfig()
 
+    def __post_init__(self) -> None:
+        fold = self.camera.fold()  # as flight.yaml's (the rendered flight's own)
+        if fold is not None:
+            raise ConfigError(f"camera: {fold}")
+
 
 def load_simulate_config(path: Path | str) -> SimulateConfig | RenderSimulateConfig:
     """Read and validate a simulation config; ``kind`` chooses the class.

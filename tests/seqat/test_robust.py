@@ -622,6 +622,35 @@ def test_a_contaminated_flight_leaves_its_two_ray_points_out() -> None:
         np.testing.assert_allclose(seq[:, 3:], sim[:, 3:], rtol=0, atol=5e-6)
 
 
+def test_a_contaminated_flight_too_long_to_reopen_finishes(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """finish() of a flight whose departed parameters are not re-opened (more than
+    FINAL_REBUILD_MAX_IMAGES images and FINAL_REOPEN_MAX_PARAMS departed parameters, patched
+    to 0 here): with 15 % of its rays wrong matches, the window's points are intersected
+    anew and their rays re-weighted at that start. It failed with a ValueError (the
+    re-weighted points' rows against all the factors' image points) on points that keep
+    rays in departed images; it ends as the re-opened flight does."""
+    strip = simulate_strip(StripSimConfig(n_images=100, n_points=160), seed=11)
+    f, _ = _contaminated(strip, 0.15)
+    rmse = {}
+    for reopen in (True, False):
+        if not reopen:
+            monkeypatch.setattr("seqat.departures.FINAL_REOPEN_MAX_PARAMS", 0)
+            monkeypatch.setattr("seqat.departures.FINAL_REBUILD_MAX_IMAGES", 0)
+        est = SequentialAT(f.camera, SequentialOptions())
+        windows = [est.add_frame(fr).window_images for fr in f.frames()]
+        est.finish()
+        sol = est.solution()
+        eop = np.array([e.eop for e in sol.eops])
+        sigma = np.array([e.sigma for e in sol.eops])
+        assert max(windows) < len(windows) and est.contamination > MAX_CONTAMINATION
+        assert est.options.robust_scale == CONTAMINATED_SCALE
+        assert np.all(np.isfinite(eop)) and np.all(sigma > 0)
+        assert (est.final_reopen_skipped > 0) is not reopen
+        rmse[reopen] = float(np.sqrt(np.mean((eop[:, :3] - f.truth_eop[:, :3]) ** 2)))
+    assert rmse[False] < 1.1 * rmse[True]
+
+
 def test_the_narrower_core_of_a_contaminated_flight_is_closer_to_the_truth(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """A seeded simulation against truth: a fifth of the strip's rays moved 5-15 σ, the

@@ -108,6 +108,10 @@ BAD_INPUTS = [
      "flight.yaml: sigma_image: unknown key"),
     ("flight.yaml", "observations: observations.csv", "observations: obs.csv", InputDataError,
      "obs.csv: no such file (observations in"),
+    # k1 -3 where -0.3 was meant: the polynomial folds back before the corners (f 1000 px)
+    ("flight.yaml", "model: PINHOLE", "model: OPENCV\n  k1: -3.0", ConfigError,
+     "flight.yaml: camera: the distortion (k1 -3, k2 0, p1 0, p2 0, k3 0) folds back inside "
+     "the 640 x 480 px image, 222 px from the principal point"),
 ]
 
 
@@ -200,3 +204,21 @@ def test_real_feet_crs_is_rejected_with_its_name(shared_data: Path,
     with pytest.raises(InputDataError, match=r"\(NAD_1983_HARN_Lambert_Conformal_Conic\) has "
                                              r"axes in foot; a metre CRS is needed"):
         read_flight(make_flight(**{"flight.yaml": text}))
+
+
+@pytest.mark.parametrize(("k1", "k2", "folds"), [
+    (-0.25, 0.06, False), (-0.08, 0.02, False), (0.5, 0.0, False),  # lenses
+    (-0.3, 0.0, True),  # folds 281 px from the principal point, the corners at 400 px
+    (-0.9, 0.06, True)])
+def test_a_distortion_that_folds_inside_the_image_is_no_lens(k1: float, k2: float,
+                                                             folds: bool) -> None:
+    """Known answers at f 400 px, 640 x 480 px: k1 alone folds where 1 + 3 k1 r² = 0, at
+    r_d = (2/3) / sqrt(-3 k1) normalised (281 px for k1 -0.3, inside the 400 px corners)."""
+    from pipeline.flight.schema import CameraConfig
+
+    cam = CameraConfig(model="OPENCV", width_px=640, height_px=480, fx_px=400.0, fy_px=400.0,
+                       cx_px=319.5, cy_px=239.5, k1=k1, k2=k2)
+    fold = cam.fold()
+    assert (fold is not None) is folds
+    if k1 == -0.3:
+        assert fold is not None and "281 px from the principal point" in fold

@@ -201,6 +201,15 @@ def test_unknown_key_names_it(sources: Path) -> None:
         load_simulate_config(path)
 
 
+def test_a_folding_distortion_names_the_camera(sources: Path) -> None:
+    """The rendered flight's camera is checked as a flight.yaml's: k1 -5 where -0.05 was
+    meant folds back inside the image."""
+    path = write_config(sources)
+    path.write_text(path.read_text().replace("k1: -0.05", "k1: -5.0"))
+    with pytest.raises(ConfigError, match=r"camera: the distortion \(k1 -5, k2 0.01.*folds back"):
+        load_simulate_config(path)
+
+
 def test_missing_texture_names_the_file(sources: Path, tmp_path: Path) -> None:
     path = write_config(sources)
     path.write_text(path.read_text().replace("tex.png", "nope.png"))
