@@ -33,9 +33,9 @@ INTRINSICS = ("f_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3")
 class PinholeCamera:
     """Central-projection camera in pixels: square pixels, OpenCV lens distortion.
 
-    With every distortion coefficient 0 (the default) it is the ideal pinhole camera the
-    image points of a flight without self-calibration are mapped to before seqat. With
-    coefficients it is COLMAP's ``OPENCV`` model with ``fx = fy = f_px``: normalised camera
+    With every distortion coefficient 0 (the default) it is the ideal pinhole camera. With
+    coefficients (a flight's lens, fixed or self-calibrated: its image points reach seqat as
+    observed) it is COLMAP's ``OPENCV`` model with ``fx = fy = f_px``: normalised camera
     coordinates ``(xn, yn)`` (OpenCV frame), ``r2 = xn^2 + yn^2``,
     ``xd = xn (1 + k1 r2 + k2 r2^2 + k3 r2^3) + 2 p1 xn yn + p2 (r2 + 2 xn^2)``,
     ``yd = yn (1 + ...) + p1 (r2 + 2 yn^2) + 2 p2 xn yn``, ``u = cx + f xd``, ``v = cy + f yd``.

@@ -40,7 +40,8 @@ LUT_BORDER_SAMPLES = 64
 
 
 def pinhole_camera(camera: CameraConfig) -> PinholeCamera:
-    """The ideal pinhole camera seqat uses for ``camera`` (``f_px = fx_px``)."""
+    """The ideal pinhole camera of ``camera`` (``f_px = fx_px``, no distortion): the camera of
+    its ideal pixels (:class:`PixelCorrector`)."""
     return PinholeCamera(f_px=camera.fx_px, cx_px=camera.cx_px, cy_px=camera.cy_px,
                          width_px=camera.width_px, height_px=camera.height_px)
 
@@ -54,11 +55,9 @@ def seqat_camera(camera: CameraConfig) -> tuple[PinholeCamera, CameraConfig]:
     that camera and the distortion-free camera whose :class:`PixelCorrector` maps observed
     pixels to seqat's.
     """
-    prior = dataclasses.replace(pinhole_camera(camera), k1=camera.k1, k2=camera.k2,
-                                p1=camera.p1, p2=camera.p2, k3=camera.k3)
     square = dataclasses.replace(camera, model="OPENCV", k1=0.0, k2=0.0, p1=0.0, p2=0.0,
                                  k3=0.0)
-    return prior, square
+    return camera.model_camera, square
 
 
 def frame_camera(camera: CameraConfig, self_calibration: SelfCalibrationConfig,

@@ -129,6 +129,14 @@ class CameraConfig:
     def has_distortion(self) -> bool:
         return bool(np.any(self.distortion != 0.0))
 
+    @property
+    def model_camera(self) -> PinholeCamera:
+        """seqat's camera of these pixels with their aspect made square: ``f_px = fx_px``,
+        the distortion in the model (:func:`pipeline.flight.camera.seqat_camera`)."""
+        return PinholeCamera(f_px=self.fx_px, cx_px=self.cx_px, cy_px=self.cy_px,
+                             width_px=self.width_px, height_px=self.height_px, k1=self.k1,
+                             k2=self.k2, p1=self.p1, p2=self.p2, k3=self.k3)
+
     def fold(self) -> str | None:
         """Why the distortion is no lens over this image, or None: going out from the
         principal point, the OpenCV polynomial must map the ideal image plane onto the image
@@ -140,13 +148,11 @@ class CameraConfig:
         if not self.has_distortion or not (-0.5 <= self.cx_px <= w - 0.5
                                            and -0.5 <= self.cy_px <= h - 0.5):
             return None
-        cam = PinholeCamera(f_px=self.fx_px, cx_px=self.cx_px, cy_px=self.cy_px, width_px=w,
-                            height_px=h, k1=self.k1, k2=self.k2, p1=self.p1, p2=self.p2,
-                            k3=self.k3)
         angle = np.linspace(0.0, 2.0 * np.pi, FOLD_DIRECTIONS, endpoint=False)[:, None]
         r = np.arange(1, int(FOLD_MAX_RADIUS / FOLD_STEP) + 1)[None, :] * FOLD_STEP
         xd, yd, D, _ = distort_normalized((r * np.cos(angle)).ravel(),
-                                          (r * np.sin(angle)).ravel(), cam, jacobians=True)
+                                          (r * np.sin(angle)).ravel(), self.model_camera,
+                                          jacobians=True)
         u = (self.fx_px * xd + self.cx_px).reshape(angle.size, -1)
         v = (self.fy_px * yd + self.cy_px).reshape(angle.size, -1)
         det = (D[:, 0, 0] * D[:, 1, 1] - D[:, 0, 1] * D[:, 1, 0]).reshape(angle.size, -1)

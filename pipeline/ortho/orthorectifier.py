@@ -109,8 +109,7 @@ class Orthorectifier(FootprintMixin, ProjectionMixin, OcclusionMixin):
         self._pinhole = pinhole_camera(camera)
         self._lut = DistortionTable.for_camera(camera)
         # An ideal camera (no distortion, square pixels) skips the table: ideal = observed.
-        self._distorted = (any((camera.k1, camera.k2, camera.p1, camera.p2, camera.k3))
-                           or camera.fy_px != camera.fx_px)
+        self._distorted = not self._corrector.is_identity
         self._buffers: dict[str, np.ndarray] = {}
         self._mesh: DsmMesh | None = None  # the DSM for ray-cast occlusion, built on first use
         self._pool = ThreadPoolExecutor(max_workers=self.options.threads)
