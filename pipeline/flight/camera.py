@@ -5,8 +5,9 @@ carries the lens distortion in its model: the image points reach seqat as observ
 with only the pixel aspect made square (``v`` scaled by ``fx / fy`` about ``cy``;
 :func:`frame_camera`), so their residuals, weights and σ0 are in the pixels the features were
 measured in, with or without self-calibration (docs/architecture.md, *Distortion is in the
-model*). *Ideal pixels* (:class:`PixelCorrector`, ``cv2.undistortPoints`` with the new camera
-matrix ``P = [[fx, 0, cx], [0, fx, cy], [0, 0, 1]]``) serve the geometry outside the
+model*). *Ideal pixels* (:class:`PixelCorrector`: the distortion inverted by seqat's Newton
+iteration, :func:`seqat.geometry.undistort_normalized`, then the camera matrix
+``P = [[fx, 0, cx], [0, fx, cy], [0, 0, 1]]``) serve the geometry outside the
 estimator: rays for intersections, footprints and the orthorectifier. The way back (ideal ->
 observed, :func:`distort_normalized`, used by the orthorectifier) applies the OpenCV model in
 closed form, vectorised over whole grids.
@@ -18,17 +19,13 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from pipeline.flight.schema import CameraConfig, SelfCalibrationConfig
 from seqat.calibration import SelfCalibration
+from seqat.geometry import undistort_normalized
 from seqat.types import FloatArray, PinholeCamera
 
-#: Iterations of OpenCV's iterative undistortion (its default of 5 leaves ~1e-5 px errors).
-UNDISTORT_MAX_ITERATIONS = 100
-#: Convergence threshold of the iterative undistortion, normalised image units.
-UNDISTORT_EPS = 1e-14
 #: Default number of samples per image edge of :func:`border_pixels`.
 BORDER_SAMPLES_PER_EDGE = 16
 #: Distortion lookup table: node spacing and margin around the image's ideal pixels (px),
@@ -114,12 +111,11 @@ class PixelCorrector:
         if self.is_identity or uv.shape[0] == 0:
             return uv.copy()
         cam = self.camera
-        K = np.array([[cam.fx_px, 0.0, cam.cx_px], [0.0, cam.fy_px, cam.cy_px], [0.0, 0.0, 1.0]])
-        P = np.array([[cam.fx_px, 0.0, cam.cx_px], [0.0, cam.fx_px, cam.cy_px], [0.0, 0.0, 1.0]])
-        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, UNDISTORT_MAX_ITERATIONS,
-                    UNDISTORT_EPS)
-        out = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, cam.distortion, P=P, criteria=criteria)
-        return np.asarray(out, dtype=np.float64).reshape(-1, 2)
+        # seqat's inverse of the distortion, the estimator's own (OpenCV's fixed-point
+        # undistortPoints stopped up to 1 px short in a strong barrel lens's corners)
+        xn, yn = undistort_normalized((uv[:, 0] - cam.cx_px) / cam.fx_px,
+                                      (uv[:, 1] - cam.cy_px) / cam.fy_px, cam.model_camera)
+        return np.column_stack([cam.fx_px * xn + cam.cx_px, cam.fx_px * yn + cam.cy_px])
 
     def observed_pixels(self, uv_px: FloatArray) -> FloatArray:
         """Add lens distortion (and pixel aspect) to ideal pixels: inverse of :meth:`ideal_pixels`.

@@ -17,7 +17,7 @@ from pipeline.flight.navigation import BoresightConfig
 from pipeline.tracking.options import TrackerOptions
 from seqat.calibration import DEFAULT_FREE, SelfCalibration
 from seqat.errors import ConfigError
-from seqat.geometry import distort_normalized
+from seqat.geometry import distort_normalized, inverse_distortion
 from seqat.types import FloatArray, PinholeCamera
 
 #: Number of components of a position or attitude sigma given as a list.
@@ -37,6 +37,10 @@ MAX_DISTORTION = 100.0
 FOLD_DIRECTIONS = 48
 FOLD_STEP = 0.005
 FOLD_MAX_RADIUS = 5.7
+#: ... and every pixel of this many per image edge (corners included) checked to have a ray
+#: on the principal point's side of any fold (:func:`seqat.geometry.inverse_distortion`):
+#: with tangential terms the unfolded part can stop short of a corner.
+FOLD_BORDER_SAMPLES = 256
 MAX_SIGMA_IMAGE_PX = 1000.0
 MAX_SIGMA_POSITION_M = 1e5
 MAX_SIGMA_ATTITUDE_DEG = 180.0
@@ -142,8 +146,9 @@ class CameraConfig:
         principal point, the OpenCV polynomial must map the ideal image plane onto the image
         one to one (its Jacobian determinant > 0) until it reaches the image border. A
         polynomial that folds back first (k1 -0.9 where -0.09 was meant: the corners'
-        pixels then have two rays, or none) leaves the adjustment singular. Not checked
-        with the principal point outside the image."""
+        pixels then have two rays, or none) leaves the adjustment singular; so does one
+        whose unfolded part stops short of a border pixel (tangential terms can leave a
+        corner without a ray). Not checked with the principal point outside the image."""
         w, h = self.width_px, self.height_px
         if not self.has_distortion or not (-0.5 <= self.cx_px <= w - 0.5
                                            and -0.5 <= self.cy_px <= h - 0.5):
@@ -172,6 +177,17 @@ class CameraConfig:
             return (f"the distortion ({coeffs}) keeps rays 80 degrees off the axis inside the "
                     f"{w} x {h} px image: no OPENCV lens sees so wide (check the "
                     "coefficients' signs and that they are OpenCV's)")
+        t = np.linspace(0.0, 1.0, FOLD_BORDER_SAMPLES)
+        u = np.concatenate([t * (w - 1), t * (w - 1), np.zeros_like(t), np.full_like(t, w - 1)])
+        v = np.concatenate([np.zeros_like(t), np.full_like(t, h - 1), t * (h - 1), t * (h - 1)])
+        _, _, found = inverse_distortion((u - self.cx_px) / self.fx_px,
+                                         (v - self.cy_px) / self.fy_px, self.model_camera)
+        if not found.all():
+            k = int(np.argmin(found))
+            return (f"the distortion ({coeffs}) folds back before the border of the {w} x {h} "
+                    f"px image: no ray reaches the pixel ({u[k]:.0f}, {v[k]:.0f}) (check the "
+                    "coefficients' signs and that they are OpenCV's, on normalised "
+                    "coordinates)")
         return None
 
 

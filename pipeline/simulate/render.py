@@ -4,7 +4,7 @@ A :class:`Scene` is a height field (:class:`HeightField`, bilinear between cell 
 working CRS, metres) and a texture (:class:`Texture`, an image with a map from working-CRS
 coordinates to texture pixels). :class:`Renderer` renders the *observed* image of an OpenCV
 camera: every observed pixel is undistorted once per camera (:class:`pipeline.flight.camera.
-PixelCorrector`, ``cv2.undistortPoints``) into an ideal pinhole ray, the ray is rotated into
+PixelCorrector`) into an ideal pinhole ray, the ray is rotated into
 the world for each pose, marched down in steps of at most ``MARCH_STEP_CELLS`` cells until it
 first passes below the surface (first hit = visibility), and the crossing is refined by
 bisection on the bilinear surface. The march starts where the ray first meets a triangle mesh

@@ -8,10 +8,13 @@ import pytest
 from seqat.geometry import (
     angles_from_rotation,
     depth,
+    distort_normalized,
     intersect_rays,
+    inverse_distortion,
     project,
     project_with_jacobians,
     rotation_matrix,
+    undistort_normalized,
 )
 from seqat.types import PinholeCamera
 
@@ -171,3 +174,78 @@ def test_distorted_project_intersect_round_trip() -> None:
     X_bad, _ = intersect_rays(eop[img], uv, pt, n_pts, DISTORTED.with_intrinsics(
         np.r_[DISTORTED.intrinsics[:3], np.zeros(5)]))
     assert np.max(np.abs(X_bad - X)) > 0.5
+
+
+#: Strong lenses at f 400 px, 640 x 480 px that flight.yaml's fold check accepts: a barrel
+#: lens whose corners sit where the polynomial's derivative nears zero (8 plain Newton steps
+#: left 0.12 px there, OpenCV's undistortPoints 1.3 px), and one on which Newton from the
+#: distorted point landed on a root beyond the fold (482 px off).
+STRONG_BARREL = PinholeCamera(f_px=400.0, cx_px=319.5, cy_px=239.5, width_px=640,
+                              height_px=480, k1=-0.6, k2=0.2, p1=0.01)
+OTHER_BRANCH = PinholeCamera(f_px=400.0, cx_px=319.5, cy_px=239.5, width_px=640,
+                             height_px=480, k1=-0.785, k2=0.398, k3=-0.0445, p1=0.0134,
+                             p2=-0.0102)
+
+
+def _image_grid(camera: PinholeCamera, n: int) -> tuple[np.ndarray, np.ndarray]:
+    u, v = np.meshgrid(np.linspace(0.0, camera.width_px - 1.0, n),
+                       np.linspace(0.0, camera.height_px - 1.0, n))
+    return (u.ravel() - camera.cx_px) / camera.f_px, (v.ravel() - camera.cy_px) / camera.f_px
+
+
+def _continuation(xd: np.ndarray, yd: np.ndarray, camera: PinholeCamera,
+                  steps: int = 400) -> tuple[np.ndarray, np.ndarray]:
+    """Reference: plain Newton along the straight segment of distorted points from the
+    principal point, in small steps (stays on the principal point's branch), polished at
+    the end (near a fold 4 iterations a step leave ~1e-4 px)."""
+    x, y = np.zeros_like(xd), np.zeros_like(yd)
+    for t in np.arange(1, steps + 1) / steps:
+        for _ in range(4 if t < 1.0 else 30):
+            fx, fy, D, _ = distort_normalized(x, y, camera, jacobians=True)
+            rx, ry = t * xd - fx, t * yd - fy
+            det = D[:, 0, 0] * D[:, 1, 1] - D[:, 0, 1] * D[:, 1, 0]
+            x = x + (D[:, 1, 1] * rx - D[:, 0, 1] * ry) / det
+            y = y + (D[:, 0, 0] * ry - D[:, 1, 0] * rx) / det
+    return x, y
+
+
+@pytest.mark.parametrize("camera", [DISTORTED, STRONG_BARREL, OTHER_BRANCH])
+def test_inverse_distortion_solves_every_pixel_on_the_principal_points_branch(
+        camera: PinholeCamera) -> None:
+    xd, yd = _image_grid(camera, 81)
+    xn, yn, found = inverse_distortion(xd, yd, camera)
+    assert found.all()
+    bx, by = distort_normalized(xn, yn, camera)
+    assert np.max(np.hypot(bx - xd, by - yd)) * camera.f_px < 1e-9  # pixels
+    # the root of the principal point's branch, the one a ray through the lens has
+    rx, ry = _continuation(xd, yd, camera)
+    np.testing.assert_allclose(xn, rx, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(yn, ry, rtol=0, atol=1e-10)
+    np.testing.assert_array_equal(np.column_stack(undistort_normalized(xd, yd, camera)),
+                                  np.column_stack([xn, yn]))
+
+
+def test_inverse_distortion_keeps_the_input_shape_and_passes_a_pinhole_through() -> None:
+    xd, yd = np.array([[0.1, -0.2], [0.3, 0.0]]), np.array([[0.0, 0.1], [-0.2, 0.25]])
+    xn, yn, found = inverse_distortion(xd, yd, STRONG_BARREL)
+    assert xn.shape == yn.shape == found.shape == (2, 2) and found.all()
+    xp, yp, found = inverse_distortion(xd, yd, CAM)
+    np.testing.assert_array_equal(xp, xd)
+    np.testing.assert_array_equal(yp, yd)
+    assert found.all()
+
+
+def test_a_pixel_beyond_the_fold_is_not_found() -> None:
+    """With these tangential terms the part of the image plane before the fold stops 10.7 px
+    short of the image's lower right corner (a polar grid of 20 million ideal points up to
+    the fold comes no closer): that pixel has no ray; the centre's pixels have."""
+    camera = PinholeCamera(f_px=400.0, cx_px=319.5, cy_px=239.5, width_px=640,
+                           height_px=480, k1=0.203, k2=-0.112, k3=-0.0756, p1=-0.0098,
+                           p2=-0.0177)
+    corner = np.array([(639.0 - 319.5) / 400.0]), np.array([(479.0 - 239.5) / 400.0])
+    _, _, found = inverse_distortion(*corner, camera)
+    assert not found.any()
+    _, _, found = inverse_distortion(*_image_grid(
+        PinholeCamera(f_px=400.0, cx_px=319.5, cy_px=239.5, width_px=400, height_px=300), 21),
+        camera)
+    assert found.all()

@@ -222,3 +222,19 @@ def test_a_distortion_that_folds_inside_the_image_is_no_lens(k1: float, k2: floa
     assert (fold is not None) is folds
     if k1 == -0.3:
         assert fold is not None and "281 px from the principal point" in fold
+
+
+def test_a_distortion_that_leaves_a_corner_without_a_ray_is_no_lens() -> None:
+    """Every direction from the principal point reaches the border unfolded, but with these
+    tangential terms the unfolded part stops short of the lower right corner (1.3 px: a
+    polar grid of ideal points up to the fold comes no closer)."""
+    from pipeline.flight.schema import CameraConfig
+
+    cam = CameraConfig(model="OPENCV", width_px=640, height_px=480, fx_px=400.0, fy_px=404.0,
+                       cx_px=319.5, cy_px=239.5, k1=0.203, k2=-0.112, k3=-0.0756, p1=-0.0098,
+                       p2=-0.0177)
+    assert cam.fold() == (
+        "the distortion (k1 0.203, k2 -0.112, p1 -0.0098, p2 -0.0177, k3 -0.0756) folds back "
+        "before the border of the 640 x 480 px image: no ray reaches the pixel (629, 479) "
+        "(check the coefficients' signs and that they are OpenCV's, on normalised "
+        "coordinates)")
