@@ -415,14 +415,18 @@ def scale_in_force(scale: float | None, eps: float) -> float | None:
     return min(scale, CONTAMINATED_SCALE)
 
 
-def robust_cost(u2: FloatArray, scale: float | None) -> float:
-    """``Σ ρ(u²)`` of squared normalised residuals ``u2`` (``Σ u²`` without a scale)."""
+def robust_rho(u2: FloatArray, scale: float | None) -> FloatArray:
+    """``ρ(u²)`` of each squared normalised residual ``u2`` (``u²`` without a scale)."""
     u2 = np.asarray(u2, dtype=np.float64)
     if scale is None:
-        return float(np.sum(u2))
+        return u2.copy()
     k2 = scale**2
-    tail = u2 > k2
-    return float(np.sum(u2[~tail]) + np.sum(k2 + k2 * np.log1p((u2[tail] - k2) / k2)))
+    return np.where(u2 > k2, k2 + k2 * np.log1p(np.maximum(u2 - k2, 0.0) / k2), u2)
+
+
+def robust_cost(u2: FloatArray, scale: float | None) -> float:
+    """``Σ ρ(u²)`` of squared normalised residuals ``u2`` (``Σ u²`` without a scale)."""
+    return float(np.sum(robust_rho(u2, scale)))
 
 
 def cauchy_weight(res_px: FloatArray, sigma_px: FloatArray, scale: float | None) -> FloatArray:

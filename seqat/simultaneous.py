@@ -45,6 +45,7 @@ from seqat.robust import ROBUST_SCALE, cauchy_weight
 from seqat.sim_points import PointChecksMixin
 from seqat.sim_restart import RestartMixin
 from seqat.sim_snooping import SnoopingMixin
+from seqat.tail_points import TAIL_NEWTON_FROM, newton_on_tail_points
 from seqat.types import (
     EOP_SIZE,
     GP_SIZE,
@@ -270,13 +271,18 @@ def adjust_block(
         gp += delta_p
         cam_x = cam_x + dc
         cam = camera_at(cam_x)
-        if turned := on_nav_branch(eop, data.nav_eop):  # a step can reach the other branch
+        turned = on_nav_branch(eop, data.nav_eop)  # a step can reach the other branch
+        moved = 0.0  # once in the basin: from a poor start it led the points astray
+        if damping == 0.0 and step == 1.0 and cost - new_cost <= TAIL_NEWTON_FROM * cost:
+            gp, moved = newton_on_tail_points(cam, data, eop, gp, robust, nrm.undetermined)
+        if turned or moved:
             new_cost = weighted_ssr(cam, data, eop, gp, robust, calib, nav_robust)
         settled = cost - new_cost <= SETTLED_TOLERANCE * cost
         cost = new_cost
         was_damped = damping > 0.0 or step < 1.0
         damping = damping / DAMPING_FACTOR if damping > MIN_DAMPING else 0.0
-        max_pos = max(np.max(np.abs(de[:, :3]), initial=0.0), np.max(np.abs(delta_p), initial=0.0))
+        max_pos = max(np.max(np.abs(de[:, :3]), initial=0.0),
+                      np.max(np.abs(delta_p), initial=0.0), moved)
         max_ang = np.max(np.abs(de[:, 3:]), initial=0.0)
         # the camera: its correction small against its own prior sigma
         max_cam = np.max(np.abs(dc) / calib.sigma, initial=0.0) if c else 0.0  # type: ignore[union-attr]
@@ -329,16 +335,8 @@ def adjust_block(
         normal = full_normal(nrm, n, m)
         eop_cof = np.stack([full[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] for i in range(n)])
         off = EOP_SIZE * n + c
-        gp_cof = (
-            np.stack(
-                [
-                    full[off + 3 * j : off + 3 * j + 3, off + 3 * j : off + 3 * j + 3]
-                    for j in range(m)
-                ]
-            )
-            if m
-            else np.zeros((0, 3, 3))
-        )
+        gp_cof = (np.stack([full[off + 3 * j : off + 3 * j + 3, off + 3 * j : off + 3 * j + 3]
+                            for j in range(m)]) if m else np.zeros((0, 3, 3)))
     elif covariance is Covariance.BLOCKS:
         eop_cof = eop_cofactor_blocks(nrm, n)
         gp_cof = gp_cofactors(nrm, data) if m else np.zeros((0, 3, 3))
