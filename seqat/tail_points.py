@@ -16,8 +16,9 @@ cost, its rays' ``ρ`` (and its ground control) with the images where
 they are: the Hessian of the loss as it is, ``Jᵀ ρ' (I - 2 r̂ r̂ᵀ) J`` per tail ray (``r̂``
 the residual's direction), where that keeps the point's 3x3 block positive definite, the
 IRLS block otherwise; a step is halved until the point's cost falls, else not taken. The
-points are separable with the images held, so each point's lower cost lowers the block's,
-and the minimum is the same: only the way there is shorter.
+points are separable with the images held, so each point's lower cost lowers the block's.
+The block stops where it stopped before, at a stationary point of its cost, by a shorter
+way; only a saddle of a point's own cost, where IRLS could stop, is left for lower cost.
 """
 
 from __future__ import annotations
