@@ -28,8 +28,7 @@ def rms_point_sigma(variances_m2: FloatArray) -> tuple[float, float, float]:
         Metres, over the points whose three variances are > 0 (:func:`deviations`: the
         others have no sigma; an unconverged initial block of 8 images, its second INS
         45 deg off, had 126 of its points' 261 variances <= 0 and took the root of a
-        negative mean); NaN
-        without such points.
+        negative mean); NaN without such points.
     """
     var = np.asarray(variances_m2, dtype=np.float64).reshape(-1, 3)
     var = var[np.all(var > 0.0, axis=1) & np.all(np.isfinite(var), axis=1)]

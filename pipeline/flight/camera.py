@@ -6,7 +6,7 @@ with only the pixel aspect made square (``v`` scaled by ``fx / fy`` about ``cy``
 :func:`frame_camera`), so their residuals, weights and σ0 are in the pixels the features were
 measured in, with or without self-calibration (docs/architecture.md, *Distortion is in the
 model*). *Ideal pixels* (:class:`PixelCorrector`: the distortion inverted by seqat's Newton
-iteration, :func:`seqat.geometry.undistort_normalized`, then the camera matrix
+iteration, :meth:`CameraConfig.ideal_normalized`, then the camera matrix
 ``P = [[fx, 0, cx], [0, fx, cy], [0, 0, 1]]``) serve the geometry outside the
 estimator: rays for intersections, footprints and the orthorectifier. The way back (ideal ->
 observed, :func:`distort_normalized`, used by the orthorectifier) applies the OpenCV model in
@@ -23,7 +23,6 @@ import numpy as np
 
 from pipeline.flight.schema import CameraConfig, SelfCalibrationConfig
 from seqat.calibration import SelfCalibration
-from seqat.geometry import undistort_normalized
 from seqat.types import FloatArray, PinholeCamera
 
 #: Default number of samples per image edge of :func:`border_pixels`.
@@ -113,8 +112,7 @@ class PixelCorrector:
         cam = self.camera
         # seqat's inverse of the distortion, the estimator's own (OpenCV's fixed-point
         # undistortPoints stopped up to 1 px short in a strong barrel lens's corners)
-        xn, yn = undistort_normalized((uv[:, 0] - cam.cx_px) / cam.fx_px,
-                                      (uv[:, 1] - cam.cy_px) / cam.fy_px, cam.model_camera)
+        xn, yn, _ = cam.ideal_normalized(uv[:, 0], uv[:, 1])
         return np.column_stack([cam.fx_px * xn + cam.cx_px, cam.fx_px * yn + cam.cy_px])
 
     def observed_pixels(self, uv_px: FloatArray) -> FloatArray:

@@ -141,6 +141,15 @@ class CameraConfig:
                              width_px=self.width_px, height_px=self.height_px, k1=self.k1,
                              k2=self.k2, p1=self.p1, p2=self.p2, k3=self.k3)
 
+    def ideal_normalized(self, u_px: FloatArray, v_px: FloatArray
+                         ) -> tuple[FloatArray, FloatArray, np.ndarray]:
+        """Ideal normalised coordinates of observed pixels ``(u, v)``: the distortion of
+        :attr:`model_camera` inverted (:func:`seqat.geometry.inverse_distortion`), and
+        whether each pixel has a ray (on the principal point's side of any fold)."""
+        return inverse_distortion((np.asarray(u_px) - self.cx_px) / self.fx_px,
+                                  (np.asarray(v_px) - self.cy_px) / self.fy_px,
+                                  self.model_camera)
+
     def fold(self) -> str | None:
         """Why the distortion is no lens over this image, or None: going out from the
         principal point, the OpenCV polynomial must map the ideal image plane onto the image
@@ -180,8 +189,7 @@ class CameraConfig:
         t = np.linspace(0.0, 1.0, FOLD_BORDER_SAMPLES)
         u = np.concatenate([t * (w - 1), t * (w - 1), np.zeros_like(t), np.full_like(t, w - 1)])
         v = np.concatenate([np.zeros_like(t), np.full_like(t, h - 1), t * (h - 1), t * (h - 1)])
-        _, _, found = inverse_distortion((u - self.cx_px) / self.fx_px,
-                                         (v - self.cy_px) / self.fy_px, self.model_camera)
+        _, _, found = self.ideal_normalized(u, v)
         if not found.all():
             k = int(np.argmin(found))
             return (f"the distortion ({coeffs}) folds back before the border of the {w} x {h} "
