@@ -41,13 +41,18 @@ demo: $(STAMP) sysdeps
 	@echo "  results: $(DEMO)/seneca (eop.csv, points.csv, run.json; reference/)"
 	@echo "  report:  $(DEMO)/seneca/report.html (and report.pdf)"
 
+# The suite on TEST_WORKERS processes (pytest-xdist; 2 = the 2-core machine it is budgeted
+# on, ~10 min), each with a single-threaded BLAS so that they do not compete for the cores.
+TEST_WORKERS ?= 2
+
 test: $(STAMP) sysdeps
-	$(BIN)/python -m pytest -q
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist worksteal
 
 # The estimator's tests on another OpenBLAS kernel than the machine's own (Sandy Bridge: AVX,
 # no FMA): results must not depend on the CPU (docs/algorithm.md, *BLAS kernels*).
 test-kernels: $(STAMP)
-	OPENBLAS_CORETYPE=Sandybridge $(BIN)/python -m pytest -q -p no:cacheprovider \
+	OPENBLAS_CORETYPE=Sandybridge OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q \
+		-p no:cacheprovider -n $(TEST_WORKERS) --dist worksteal \
 		tests/seqat tests/pipeline/bench/test_bench_faults.py
 
 bench: $(STAMP) sysdeps

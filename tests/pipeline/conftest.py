@@ -7,6 +7,10 @@ CI checks it out) or ``/work/shared``. When neither exists they are skipped, nev
 
 from __future__ import annotations
 
+import fcntl
+import os
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -80,14 +84,35 @@ def small_sim_dir(small_sim: SimulatedFlight, tmp_path_factory: pytest.TempPathF
     return write_simulated_flight(small_sim, SIM_CRS, tmp_path_factory.mktemp("sim") / "flight")
 
 
+def built_once(tmp_path_factory: pytest.TempPathFactory, name: str,
+               build: Callable[[Path], None]) -> Path:
+    """A session fixture's folder ``name``, which ``build(folder)`` fills: once per test
+    session, not once per pytest-xdist worker (``make test`` runs two). The first worker
+    to ask builds it in the session's shared temporary folder under a lock and marks it
+    done; the others wait for the lock and read it. A build that failed leaves no mark,
+    and the next worker that asks builds it again (and fails the same way)."""
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        folder = tmp_path_factory.mktemp(name)
+        build(folder)
+        return folder
+    folder = tmp_path_factory.getbasetemp().parent / f"once-{name}"
+    with open(folder.with_name(folder.name + ".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (folder / ".built").is_file():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            build(folder)
+            (folder / ".built").touch()
+    return folder
+
+
 @pytest.fixture(scope="session")
 def strip_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """``seqat run`` of ``sample_data/strip_demo`` (Seq-R; read-only for the tests)."""
     from pipeline.run.runner import run_flight
 
-    out = tmp_path_factory.mktemp("strip_run") / "out"
-    run_flight(STRIP, out, progress=False)
-    return out
+    return built_once(tmp_path_factory, "strip_run",
+                      lambda root: run_flight(STRIP, root / "out", progress=False)) / "out"
 
 
 @pytest.fixture(scope="session")
@@ -95,9 +120,8 @@ def autzen_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """``seqat run`` of ``sample_data/autzen_rendered`` (Seq-R; read-only for the tests)."""
     from pipeline.run.runner import run_flight
 
-    out = tmp_path_factory.mktemp("autzen_run") / "out"
-    run_flight(AUTZEN, out, progress=False)
-    return out
+    return built_once(tmp_path_factory, "autzen_run",
+                      lambda root: run_flight(AUTZEN, root / "out", progress=False)) / "out"
 
 
 @pytest.fixture(scope="session")
@@ -110,11 +134,12 @@ def mini_chain(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
     from pipeline.cli import app
 
-    root = tmp_path_factory.mktemp("mini_chain")
-    options = root / "ortho.yaml"
-    options.write_text(f"ortho:\n  pixel_m: {MINI_ORTHO_PIXEL_M}\n", encoding="utf-8")
-    out = root / "out"
-    result = CliRunner().invoke(app, ["run", str(MINI), "--out", str(out), "--no-progress",
-                                      "--ortho", "--ortho-options", str(options), "--report"])
-    assert result.exit_code == 0, result.output
-    return out
+    def build(root: Path) -> None:
+        options = root / "ortho.yaml"
+        options.write_text(f"ortho:\n  pixel_m: {MINI_ORTHO_PIXEL_M}\n", encoding="utf-8")
+        result = CliRunner().invoke(app, ["run", str(MINI), "--out", str(root / "out"),
+                                          "--no-progress", "--ortho", "--ortho-options",
+                                          str(options), "--report"])
+        assert result.exit_code == 0, result.output
+
+    return built_once(tmp_path_factory, "mini_chain", build) / "out"

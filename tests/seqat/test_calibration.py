@@ -253,10 +253,25 @@ def test_a_flight_shorter_than_the_initial_block_is_self_calibrated(
                                atol=1e-9)  # (both converged: to the solves' tolerance)
 
 
+def _seq_r_calibrated(flight: SimulatedFlight, sim: SimOptions) -> Solution:
+    est = SequentialAT(_prior(flight.camera),
+                       SequentialOptions(calibration=SelfCalibration(), sim=sim))
+    for f in flight.frames():
+        est.add_frame(f)
+    est.finish()
+    return est.solution()
+
+
+@pytest.fixture(scope="module")
+def small_block_seq_r(small_block: SimulatedFlight) -> Solution:
+    """Self-calibrating Seq-R of ``small_block`` (read-only for the tests)."""
+    return _seq_r_calibrated(small_block, SimOptions())
+
+
 @pytest.mark.parametrize("max_iterations", [1, 2])
 def test_a_window_handed_an_unconverged_block_starts_at_its_models_minimum(
-        small_block: SimulatedFlight, monkeypatch: pytest.MonkeyPatch,
-        max_iterations: int) -> None:
+        small_block: SimulatedFlight, small_block_seq_r: Solution,
+        monkeypatch: pytest.MonkeyPatch, max_iterations: int) -> None:
     """The initial block stopped after one or two Gauss-Newton iterations (and no further
     solve at the hand-over): the window took its estimate for the minimum of the block's
     model, and its first re-linearisation ran away (sigma0 2e7, no tie point left; or a
@@ -264,17 +279,9 @@ def test_a_window_handed_an_unconverged_block_starts_at_its_models_minimum(
     converged one."""
     import seqat.simultaneous
 
-    def run(sim: SimOptions) -> Solution:
-        est = SequentialAT(_prior(small_block.camera),
-                           SequentialOptions(calibration=SelfCalibration(), sim=sim))
-        for f in small_block.frames():
-            est.add_frame(f)
-        est.finish()
-        return est.solution()
-
-    ref = run(SimOptions())
+    ref = small_block_seq_r
     monkeypatch.setattr(seqat.simultaneous, "EXPORT_MORE_SOLVES", 0)
-    sol = run(SimOptions(max_iterations=max_iterations))
+    sol = _seq_r_calibrated(small_block, SimOptions(max_iterations=max_iterations))
     assert len(sol.points) == len(ref.points)
     np.testing.assert_allclose(sol.sigma0, ref.sigma0, rtol=1e-6)
     np.testing.assert_allclose([e.eop for e in sol.eops], [e.eop for e in ref.eops], rtol=0,

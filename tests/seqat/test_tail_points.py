@@ -88,8 +88,8 @@ def test_tail_points_reach_their_minimum_in_a_few_steps(short_strip: SimulatedFl
     assert 2 * calls < irls_calls, (calls, irls_calls)
     for j in points:
         best = minimize(lambda X, j=j: _point_cost(f, data, eop, j, X), gp[j],
-                        method="Nelder-Mead",
-                        options={"xatol": 1e-10, "fatol": 1e-14, "maxiter": 20000})
+                        method="Powell",
+                        options={"xtol": 1e-10, "ftol": 1e-15})
         assert np.max(np.abs(got[j] - best.x)) < 1e-5
         assert _point_cost(f, data, eop, j, got[j]) <= best.fun + 1e-9
     once, _ = tp.newton_on_tail_points(f.camera, data, eop, gp, ROBUST_SCALE, skip)
