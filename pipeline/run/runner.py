@@ -47,6 +47,7 @@ from pipeline.run.journal import (
     read_journal,
     replay_checks,
 )
+from pipeline.run.nav_agreement import nav_disagreement_warning
 from pipeline.run.robustness import RobustnessRecord, robustness_record
 from pipeline.run.session import Estimator, ImageListener, RunSession
 from pipeline.run.sources import ImageSource, ObservationSource
@@ -374,14 +375,19 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
                 stopped: str = "", robustness: RobustnessRecord | None = None,
                 control: GroundControl | None = None, echo_warnings: bool = True) -> RunSummary:
     """Write the run folder (atomically, all files or none) and summarise the run."""
+    eops, points = eop_table(solution.eops), point_table(solution.points)
     extra = session.tie_point_warnings(solution) + session.check_warnings()
+    disagreement = nav_disagreement_warning(
+        eops, inputs.nav, inputs.nav_sigma,
+        camera_fixed=getattr(options, "calibration", None) is None)
+    if disagreement is not None:
+        extra.append(disagreement)
     if extra and echo_warnings:
         console = Console(stderr=True, soft_wrap=True)
         for warning in extra:
             console.print(f"seqat: warning: {warning}", highlight=False, markup=False)
     if extra:
         inputs = dataclasses.replace(inputs, warnings=(*inputs.warnings, *extra))
-    eops, points = eop_table(solution.eops), point_table(solution.points)
     accuracy = (compare_with_truth(eops, points, truth.eop, truth.points, inputs.nav)
                 if truth is not None else None)
     updates = session.updates

@@ -1,0 +1,74 @@
+"""Whether the adjusted EOPs and the GPS/INS disagree systematically (a ``run.json`` warning).
+
+A GNSS jump moves a few images' GPS/INS away from where their rays put them; the robust
+loss and data snooping handle that (docs/algorithm.md, *Blunders and GNSS faults*). When
+most images' adjusted EOPs lie beyond a few σ of their GPS/INS, the two disagree as a
+whole: the model is wrong, not the odd fix. The commonest cause is a camera held fixed
+with a wrong calibration (focal length, distortion): the tie points bend the block away
+from the GPS/INS, by metres and degrees, whatever the GPS/INS's weight. The run cannot
+tell which model is wrong, so it says what it saw and what to try (docs/algorithm.md,
+*The GPS/INS and the images disagree*).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.common.tables import EopTable, NavTable
+from pipeline.run.accuracy import eop_differences
+from seqat.types import FloatArray
+
+#: An image's adjusted position (or attitude) disagrees with its GPS/INS when it lies
+#: beyond this many σ per degree of freedom from it (r.m.s. over X, Y, Z or ω, φ, κ).
+IMAGE_LIMIT_SIGMA = 3.0
+#: The disagreement is systematic when more than this share of the images disagree: a
+#: GNSS jump or two is a fault here and there, half the flight is the model.
+SYSTEMATIC_SHARE = 0.25
+#: Fewer images with a GPS/INS fix than this are not judged.
+MIN_IMAGES = 8
+
+
+def nav_disagreement_warning(eops: EopTable, nav: NavTable, nav_sigma: FloatArray, *,
+                             camera_fixed: bool) -> str | None:
+    """A one-line warning when the images and the GPS/INS disagree systematically.
+
+    Parameters
+    ----------
+    eops : EopTable
+        The published EOPs (metres, radians).
+    nav : NavTable
+        The GPS/INS EOPs the run was given, in the same CRS; rows of a GNSS dropout
+        (non-finite) are not judged.
+    nav_sigma : (6,) float
+        Their a priori σ: metres and radians.
+    camera_fixed : bool
+        The camera was held fixed (no self-calibration): then the warning names it as
+        the likely cause.
+
+    Returns
+    -------
+    str or None
+        ``None`` when at most :data:`SYSTEMATIC_SHARE` of the images disagree (or fewer
+        than :data:`MIN_IMAGES` have a fix).
+    """
+    fix = np.all(np.isfinite(nav.eop), axis=1)
+    ids = tuple(iid for iid, ok in zip(nav.image_ids, fix, strict=True) if ok)
+    rows, d_pos, d_att = eop_differences(eops.image_ids, eops.eop, ids, nav.eop[fix])
+    if rows.size < MIN_IMAGES:
+        return None
+    sigma = np.asarray(nav_sigma, dtype=np.float64)
+    u_pos = np.sqrt(np.mean((d_pos / sigma[:3]) ** 2, axis=1))
+    u_att = np.sqrt(np.mean((np.radians(d_att) / sigma[3:]) ** 2, axis=1))
+    off = (u_pos > IMAGE_LIMIT_SIGMA) | (u_att > IMAGE_LIMIT_SIGMA)
+    if np.count_nonzero(off) <= SYSTEMATIC_SHARE * rows.size:
+        return None
+    rms_pos, rms_att = np.sqrt(np.mean(u_pos**2)), np.sqrt(np.mean(u_att**2))
+    check = "check the lever arm, the nav's frame and time offset, and its σ"
+    cause = ("the camera was held fixed: if its model is wrong (focal length, distortion), "
+             "it bends the block; run again with --self-calibration (flight.yaml: "
+             f"self_calibration: {{enabled: true}}); else {check}"
+             if camera_fixed else check)
+    return (f"the adjusted EOPs of {np.count_nonzero(off)} of {rows.size} images lie beyond "
+            f"{IMAGE_LIMIT_SIGMA:g} σ of their GPS/INS (r.m.s. {rms_pos:.1f} σ in position, "
+            f"{rms_att:.1f} σ in attitude): the images and the GPS/INS disagree on much of "
+            f"the flight; {cause}")
