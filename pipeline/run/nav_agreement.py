@@ -3,9 +3,10 @@
 A GNSS jump moves a few images' GPS/INS away from where their rays put them; the robust
 loss and data snooping handle that (docs/algorithm.md, *Blunders and GNSS faults*). When
 most images' adjusted EOPs lie beyond a few σ of their GPS/INS, the two disagree as a
-whole: the model is wrong, not the odd fix. The commonest cause is a camera held fixed
-with a wrong calibration (focal length, distortion): the tie points bend the block away
-from the GPS/INS, by metres and degrees, whatever the GPS/INS's weight. The run cannot
+whole: the model is wrong, not the odd fix. A camera held fixed with a wrong calibration
+(focal length, distortion) does it: the tie points bend the block away from the GPS/INS,
+by metres and degrees, whatever the GPS/INS's weight (a rendered block in
+docs/benchmarks.md); so can a wrong lever arm, nav frame or time offset. The run cannot
 tell which model is wrong, so it says what it saw and what to try (docs/algorithm.md,
 *The GPS/INS and the images disagree*).
 """
