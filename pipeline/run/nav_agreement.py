@@ -6,7 +6,8 @@ most images' adjusted EOPs lie beyond a few σ of their GPS/INS, the two disagre
 whole: the model is wrong, not the odd fix. A camera held fixed with a wrong calibration
 (focal length, distortion) does it: the tie points bend the block away from the GPS/INS,
 by metres and degrees, whatever the GPS/INS's weight (a rendered block in
-docs/benchmarks.md); so can a wrong lever arm, nav frame or time offset. The run cannot
+docs/benchmarks.md); so can a wrong lever arm, nav frame or time offset, or a GNSS step
+that lasts over much of the flight. The run cannot
 tell which model is wrong, so it says what it saw and what to try (docs/algorithm.md,
 *The GPS/INS and the images disagree*).
 """
@@ -64,7 +65,8 @@ def nav_disagreement_warning(eops: EopTable, nav: NavTable, nav_sigma: FloatArra
     if np.count_nonzero(off) <= SYSTEMATIC_SHARE * rows.size:
         return None
     rms_pos, rms_att = np.sqrt(np.mean(u_pos**2)), np.sqrt(np.mean(u_att**2))
-    check = "check the lever arm, the nav's frame and time offset, and its σ"
+    check = ("check the lever arm, the nav's frame, time offset and σ, and for a GNSS step "
+             "that lasted")
     cause = ("the camera was held fixed: if its model is wrong (focal length, distortion), "
              "it bends the block; run again with --self-calibration (flight.yaml: "
              f"self_calibration: {{enabled: true}}); else {check}"
