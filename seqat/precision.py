@@ -31,7 +31,7 @@ def rms_point_sigma(variances_m2: FloatArray) -> tuple[float, float, float]:
         negative mean); NaN without such points.
     """
     var = np.asarray(variances_m2, dtype=np.float64).reshape(-1, 3)
-    var = var[np.all(var > 0.0, axis=1) & np.all(np.isfinite(var), axis=1)]
+    var = var[np.all(np.isfinite(deviations(var)), axis=1)]
     if var.shape[0] == 0:
         return (float("nan"),) * 3  # type: ignore[return-value]
     rms = np.sqrt(np.mean(var, axis=0))

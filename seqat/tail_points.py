@@ -67,7 +67,8 @@ def newton_on_tail_points(camera: PinholeCamera, data: BlockData, eop: FloatArra
     local[pts] = np.arange(q)
     rays = np.flatnonzero(local[pt] >= 0)
     r_eop, r_pt = eop[img[rays]], local[pt[rays]]
-    uv_obs, s2 = data.obs_uv[rays], data.obs_sigma_px[rays] ** 2
+    uv_obs, sigma = data.obs_uv[rays], data.obs_sigma_px[rays]
+    s2 = sigma**2
     controlled = local[data.control_point] >= 0
     c_pt = local[data.control_point[controlled]]
     c_w, c_xyz = data.control_weight[controlled], data.control_xyz[controlled]
@@ -75,8 +76,7 @@ def newton_on_tail_points(camera: PinholeCamera, data: BlockData, eop: FloatArra
     def costs(X: FloatArray) -> FloatArray:
         """Each point's cost: its rays' ρ and its control; inf behind a camera."""
         res = uv_obs - project(r_eop, X[r_pt], camera)
-        c = np.bincount(r_pt, weights=robust_rho(np.sum(res**2, axis=1) / s2, scale),
-                        minlength=q)
+        c = np.bincount(r_pt, weights=robust_rho(ray_u2(res, sigma), scale), minlength=q)
         np.add.at(c, c_pt, np.sum(c_w * (X[c_pt] - c_xyz) ** 2, axis=1))
         behind = np.bincount(r_pt, weights=(depth(r_eop, X[r_pt]) <= 0.0).astype(np.float64),
                              minlength=q) > 0
@@ -88,7 +88,7 @@ def newton_on_tail_points(camera: PinholeCamera, data: BlockData, eop: FloatArra
     for _ in range(TAIL_NEWTON_ITERATIONS):
         uv, _, Jp = project_with_jacobians(r_eop, X[r_pt], camera)
         ell = uv_obs - uv
-        uu = np.sum(ell**2, axis=1) / s2
+        uu = ray_u2(ell, sigma)
         w = robust_weight(uu, scale) / s2
         wJ = Jp * w[:, None, None]
         irls = np.zeros((q, GP_SIZE, GP_SIZE))

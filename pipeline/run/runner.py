@@ -379,7 +379,7 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
     extra = session.tie_point_warnings(solution) + session.check_warnings()
     disagreement = nav_disagreement_warning(
         eops, inputs.nav, inputs.nav_sigma,
-        camera_fixed=getattr(options, "calibration", None) is None)
+        camera_fixed=options.calibration is None)
     if disagreement is not None:
         extra.append(disagreement)
     if extra and echo_warnings:
