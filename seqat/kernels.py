@@ -7,7 +7,9 @@ point by point, as a bundle adjuster's Schur eliminator takes them (Ceres'
 ``SchurEliminator``). In numpy a point costs some ten calls of microseconds each, which is
 why the large windows went through sparse or grouped BLAS products instead, at the price of
 products over zeros (points of different strips share no rows); compiled, the per-point loop
-costs its flops (docs/algorithm.md, *Engines*).
+costs its flops (docs/algorithm.md, *Engines*). Sim's small blocks are reduced the same
+way (:func:`eliminate_points`, from each ray's block; docs/algorithm.md, *Sim*), their
+per-image and per-point sums made by :func:`scatter_add`.
 
 The loops add in a fixed order (points in turn, rows in storage order) and without
 ``fastmath`` (no reassociation, no fused multiply-add): the results do not depend on the CPU
@@ -186,3 +188,98 @@ def point_quadratic(indptr: np.ndarray, indices: np.ndarray, data: FloatArray,
     _quadratic(*_csc(indptr, indices, data), np.ascontiguousarray(Q, dtype=np.float64),
                np.ascontiguousarray(pts, dtype=np.int64), out)
     return out
+
+
+@njit("void(float64[:, ::1], int64[::1], float64[:, ::1])", cache=True, nogil=True)
+def _scatter_add(out, idx, vals):  # noqa: ANN001, ANN202
+    for k in range(idx.shape[0]):
+        i = idx[k]
+        for j in range(vals.shape[1]):
+            out[i, j] += vals[k, j]
+
+
+def scatter_add(out: FloatArray, idx: np.ndarray, vals: FloatArray) -> None:
+    """``out[idx[k]] += vals[k]`` for every ``k`` in turn (``np.add.at``'s sums, in its
+    order); ``out`` (g, ...) C-contiguous, ``vals`` (len(idx), ...) of the same trailing
+    shape."""
+    k = np.size(idx)
+    if k == 0:
+        return
+    assert out.flags.c_contiguous, "scatter_add: out must be C-contiguous"
+    flat = out.reshape(out.shape[0], -1)
+    _scatter_add(flat, np.ascontiguousarray(idx, dtype=np.int64),
+                 np.ascontiguousarray(vals, dtype=np.float64).reshape(k, flat.shape[1]))
+
+
+@njit("void(int64[::1], int64[::1], int64[::1], float64[:, :, ::1], float64[:, :, ::1], "
+      "float64[:, ::1], int64, float64[:, ::1], float64[::1])", cache=True, nogil=True)
+def _eliminate_points(order, start, img, blocks, Dinv, bp, c, N, rhs):  # noqa: ANN001, ANN202
+    npt = Dinv.shape[0]
+    cam0 = N.shape[0] - c
+    most = 0
+    for p in range(npt):
+        most = max(most, start[p + 1] - start[p])
+    rows = np.empty(6 * most + c, np.int64)
+    M = np.empty((6 * most + c, 3))
+    B = np.empty((6 * most + c, 3))
+    for p in range(npt):
+        t = start[p + 1] - start[p]
+        if t == 0:
+            continue
+        size = 6 * t + c
+        for a in range(c):  # the camera's rows: every ray of the point adds to them
+            rows[6 * t + a] = cam0 + a
+            M[6 * t + a, 0] = 0.0
+            M[6 * t + a, 1] = 0.0
+            M[6 * t + a, 2] = 0.0
+        for s in range(t):
+            o = order[start[p] + s]
+            e0 = 6 * img[o]
+            for a in range(6):
+                rows[6 * s + a] = e0 + a
+                M[6 * s + a, 0] = blocks[o, a, 0]
+                M[6 * s + a, 1] = blocks[o, a, 1]
+                M[6 * s + a, 2] = blocks[o, a, 2]
+            for a in range(c):
+                M[6 * t + a, 0] += blocks[o, 6 + a, 0]
+                M[6 * t + a, 1] += blocks[o, 6 + a, 1]
+                M[6 * t + a, 2] += blocks[o, 6 + a, 2]
+        D = Dinv[p]
+        z0 = D[0, 0] * bp[p, 0] + D[0, 1] * bp[p, 1] + D[0, 2] * bp[p, 2]
+        z1 = D[1, 0] * bp[p, 0] + D[1, 1] * bp[p, 1] + D[1, 2] * bp[p, 2]
+        z2 = D[2, 0] * bp[p, 0] + D[2, 1] * bp[p, 1] + D[2, 2] * bp[p, 2]
+        for a in range(size):
+            m0, m1, m2 = M[a, 0], M[a, 1], M[a, 2]
+            B[a, 0] = m0 * D[0, 0] + m1 * D[1, 0] + m2 * D[2, 0]
+            B[a, 1] = m0 * D[0, 1] + m1 * D[1, 1] + m2 * D[2, 1]
+            B[a, 2] = m0 * D[0, 2] + m1 * D[1, 2] + m2 * D[2, 2]
+            rhs[rows[a]] -= m0 * z0 + m1 * z1 + m2 * z2
+        for a in range(size):  # the upper triangle, added to both halves: exactly symmetric
+            ra = rows[a]
+            b0, b1, b2 = B[a, 0], B[a, 1], B[a, 2]
+            N[ra, ra] -= b0 * M[a, 0] + b1 * M[a, 1] + b2 * M[a, 2]
+            for b in range(a + 1, size):
+                v = b0 * M[b, 0] + b1 * M[b, 1] + b2 * M[b, 2]
+                rb = rows[b]
+                N[ra, rb] -= v
+                N[rb, ra] -= v
+
+
+def eliminate_points(obs_point: np.ndarray, obs_image: np.ndarray, blocks: FloatArray,
+                     Dinv: FloatArray, b_p: FloatArray, c: int, N: FloatArray,
+                     rhs: FloatArray) -> None:
+    """Eliminate the points of a block from its normal equations, in place: ``N -= sum_p
+    M_p D_p^-1 M_p^T`` and ``rhs -= sum_p M_p D_p^-1 b_p`` (Eq. 5), point by point in
+    order of their number, their rays in storage order. ``M_p`` gathers the rays'
+    ``blocks`` (k, 6 + c, 3) ``N_Rp`` blocks: a ray's first six rows at its image's EOP
+    rows (``6 obs_image``), its last ``c`` (the camera's) added at ``N``'s last ``c``
+    rows. ``Dinv`` (m, 3, 3) and ``b_p`` (m, 3) are the points'; ``N`` (r, r) C-contiguous
+    keeps exact symmetry."""
+    pt = np.ascontiguousarray(obs_point, dtype=np.int64)
+    order = np.argsort(pt, kind="stable")
+    start = np.zeros(Dinv.shape[0] + 1, dtype=np.int64)
+    np.cumsum(np.bincount(pt, minlength=Dinv.shape[0]), out=start[1:])
+    _eliminate_points(order, start, np.ascontiguousarray(obs_image, dtype=np.int64),
+                      np.ascontiguousarray(blocks, dtype=np.float64),
+                      np.ascontiguousarray(Dinv, dtype=np.float64),
+                      np.ascontiguousarray(b_p, dtype=np.float64), int(c), N, rhs)

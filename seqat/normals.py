@@ -1,23 +1,29 @@
 """Sim's normal equations: one linearisation of a block, GP-reduced, and its cofactors.
 
-The reduced normal matrix ``N_r = N_RR + N_z - N_Rp N_pp^-1 N_Rp^T`` (sparse, banded along
-a strip) is factorised by sparse LU; GP corrections follow by back-substitution (seed 000
-Eq. 5-6). ``R`` are the parameters kept in the reduced system: the EOPs (``6 n``, image by
-image) and, with self-calibration, the free interior parameters of the camera (``c``, last;
-:mod:`seqat.calibration`). Used by :func:`seqat.simultaneous.adjust_block`.
+The reduced normal matrix ``N_r = N_RR + N_z - N_Rp N_pp^-1 N_Rp^T`` of a block of up to
+:data:`DENSE_REDUCED_MAX` parameters is formed dense, its points eliminated one by one
+(:func:`seqat.kernels.eliminate_points`), and factorised by dense LU; a larger one's is
+sparse (banded along a strip) and factorised by sparse LU. GP corrections follow by
+back-substitution (seed 000 Eq. 5-6). ``R`` are the parameters kept in the reduced
+system: the EOPs (``6 n``, image by image) and, with self-calibration, the free interior
+parameters of the camera (``c``, last; :mod:`seqat.calibration`). Used by
+:func:`seqat.simultaneous.adjust_block`.
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from seqat.errors import EstimationError
 from seqat.geometry import depth, nearest_branch, project, project_with_jacobians, wrap_angle
+from seqat.kernels import eliminate_points, scatter_add
 from seqat.robust import cauchy_cost, cauchy_weight, nav_cost, nav_weight
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray, PinholeCamera
 
@@ -90,19 +96,66 @@ class CameraBlock:
         return self.prior - camera.intrinsics[self.index]
 
 
+#: Reduced systems up to this order (150 images) are formed and factorised dense; larger
+#: ones sparse (a strip's banded system: dense and sparse cost the same at ~1100).
+DENSE_REDUCED_MAX = 900
+
+
+class DenseLU:
+    """LU factors (partial pivoting) of a dense reduced normal matrix, solved as
+    :class:`scipy.sparse.linalg.SuperLU` is; an exactly singular matrix is an
+    :class:`~seqat.errors.EstimationError`, as for the sparse factorisation."""
+
+    def __init__(self, a: FloatArray) -> None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", sla.LinAlgWarning)  # singular: checked below
+            self._lu, self._piv = sla.lu_factor(a, check_finite=False)
+        if np.any(np.diagonal(self._lu) == 0.0):
+            raise EstimationError(f"reduced EOP normal matrix ({a.shape[0]}) is singular")
+
+    def solve(self, rhs: FloatArray) -> FloatArray:
+        return np.asarray(sla.lu_solve((self._lu, self._piv), rhs, check_finite=False))
+
+
+Factor = spla.SuperLU | DenseLU
+
+
 @dataclass(eq=False)
 class Normals:
-    """Normal equations of one linearisation, GP-reduced."""
+    """Normal equations of one linearisation, GP-reduced.
 
-    lu: spla.SuperLU
-    N_Rp: sp.csr_matrix  # (r, 3m)
-    N_RR: sp.csr_matrix  # (r, r) EOPs and camera (nav and camera prior included)
+    ``N_Rp`` (r, 3m) is kept as its rays' blocks (``obs_blocks`` at rows ``obs_rows``,
+    columns of point ``obs_point``) and made a sparse matrix only when asked for (the
+    cofactors): a step's back-substitution takes the blocks themselves."""
+
+    lu: Factor
+    N_RR: sp.csr_matrix | FloatArray  # (r, r) EOPs and camera (nav and camera prior included)
     Npp_inv: FloatArray  # (m, 3, 3)
     b_p: FloatArray  # (3m,)
     size: int  # r = 6 n + c
     n_camera: int  # c: free interior parameters (last in R)
     Npp: FloatArray  # (m, 3, 3)
     undetermined: np.ndarray  # (m,) bool: points out of this linearisation
+    obs_blocks: FloatArray  # (k, 6 + c, 3) each ray's block of N_Rp
+    obs_rows: np.ndarray  # (k, 6 + c) its rows in R
+    obs_point: np.ndarray  # (k,) its point
+    _N_Rp: sp.csr_matrix | None = None
+
+    @property
+    def N_Rp(self) -> sp.csr_matrix:
+        """(r, 3m) sparse, the rays' blocks summed (the camera's rows of a point's rays)."""
+        if self._N_Rp is None:
+            q = self.obs_rows.shape[1]
+            rows = np.repeat(self.obs_rows[:, :, None], GP_SIZE, axis=2)
+            cols = np.repeat(GP_SIZE * self.obs_point[:, None, None]
+                             + np.arange(GP_SIZE)[None, None, :], q, axis=1)
+            self._N_Rp = sp.csr_matrix(
+                (self.obs_blocks.ravel(), (rows.ravel(), cols.ravel())),
+                shape=(self.size, GP_SIZE * self.Npp.shape[0]))
+        return self._N_Rp
+
+    def dense_N_RR(self) -> FloatArray:
+        return self.N_RR.toarray() if sp.issparse(self.N_RR) else np.array(self.N_RR)
 
 
 def on_nav_branch(eop: FloatArray, nav_eop: FloatArray) -> bool:
@@ -141,22 +194,24 @@ def linearise(
     """
     n, m = data.n_images, data.n_points
     img, pt = data.obs_image, data.obs_point
+    k = img.size
     c = calib.size if calib is not None else 0
     if c:
         uv, Je, Jp, Jc = project_with_jacobians(eop[img], gp[pt], camera, intrinsics=True)
         JR = np.concatenate([Je, Jc[:, :, calib.index]], axis=2)  # type: ignore[union-attr]
     else:
         uv, JR, Jp = project_with_jacobians(eop[img], gp[pt], camera)
-    r = EOP_SIZE * n + c
+    ne = EOP_SIZE * n
+    r = ne + c
     rcol = np.concatenate([EOP_SIZE * img[:, None] + np.arange(EOP_SIZE),
-                           np.broadcast_to(EOP_SIZE * n + np.arange(c), (img.size, c))], axis=1)
+                           np.broadcast_to(ne + np.arange(c), (k, c))], axis=1)
     ell = data.obs_uv - uv  # (k, 2)
     w = cauchy_weight(ell, data.obs_sigma_px, robust_scale) / data.obs_sigma_px**2
     # Points the data do not determine here (parallel rays, an iterate sent far off by a
     # blunder): their rows get no weight in this linearisation and their block is the
     # identity (no step), instead of a singular system that rounding decides.
     Npp = np.zeros((m, GP_SIZE, GP_SIZE))
-    np.add.at(Npp, pt, np.einsum("kri,krj->kij", Jp * w[:, None, None], Jp))
+    scatter_add(Npp, pt, np.einsum("kri,krj->kij", Jp * w[:, None, None], Jp))
     cp = data.control_point
     diag3 = np.arange(GP_SIZE)
     Npp[cp[:, None], diag3, diag3] += data.control_weight  # surveyed coordinates (A = I)
@@ -172,67 +227,74 @@ def linearise(
     # N_RR: the EOP blocks per image (nav on their diagonal), the camera rows (camera x EOP
     # per image, camera x camera with its prior), summed per image before scattering
     Nee = np.zeros((n, EOP_SIZE, EOP_SIZE))
-    np.add.at(Nee, img, np.einsum("kri,krj->kij", wJR[:, :, :EOP_SIZE], JR[:, :, :EOP_SIZE]))
+    scatter_add(Nee, img, np.einsum("kri,krj->kij", wJR[:, :, :EOP_SIZE], JR[:, :, :EOP_SIZE]))
     res_nav = eop_residual(data.nav_eop, eop)
     w_nav = nav_weight(res_nav, data.nav_sigma, nav_robust_scale) / data.nav_sigma**2
     Nee[:, np.arange(EOP_SIZE), np.arange(EOP_SIZE)] += w_nav
     b_R = np.zeros(r)
     be = np.zeros((n, EOP_SIZE))
-    np.add.at(be, img, np.einsum("kri,kr->ki", wJR[:, :, :EOP_SIZE], ell))
-    b_R[: EOP_SIZE * n] = (be + w_nav * res_nav).ravel()
-    N_RR = sp.bsr_matrix((Nee, np.arange(n), np.arange(n + 1)),
-                         shape=(EOP_SIZE * n, EOP_SIZE * n)).tocsr()
+    scatter_add(be, img, np.einsum("kri,kr->ki", wJR[:, :, :EOP_SIZE], ell))
+    b_R[:ne] = (be + w_nav * res_nav).ravel()
+    dense = r <= DENSE_REDUCED_MAX
+    N_RR: sp.csr_matrix | FloatArray
+    if dense:
+        N_RR = np.zeros((r, r))
+        at = EOP_SIZE * np.arange(n)[:, None, None]
+        N_RR[at + np.arange(EOP_SIZE)[None, :, None],
+             at + np.arange(EOP_SIZE)[None, None, :]] = Nee
+    else:
+        N_RR = sp.bsr_matrix((Nee, np.arange(n), np.arange(n + 1)), shape=(ne, ne)).tocsr()
     if c:
         assert calib is not None
         Nce = np.zeros((n, c, EOP_SIZE))
-        np.add.at(Nce, img, np.einsum("kri,krj->kij", wJR[:, :, EOP_SIZE:], JR[:, :, :EOP_SIZE]))
+        scatter_add(Nce, img, np.einsum("kri,krj->kij", wJR[:, :, EOP_SIZE:],
+                                        JR[:, :, :EOP_SIZE]))
         Ncc = np.einsum("kri,krj->ij", wJR[:, :, EOP_SIZE:], JR[:, :, EOP_SIZE:])
         Ncc[np.arange(c), np.arange(c)] += 1.0 / calib.sigma**2
-        Nce_flat = Nce.transpose(1, 0, 2).reshape(c, EOP_SIZE * n)
-        N_RR = sp.bmat([[N_RR, sp.csr_matrix(Nce_flat.T)],
-                        [sp.csr_matrix(Nce_flat), sp.csr_matrix(Ncc)]], format="csr")
-        b_R[EOP_SIZE * n :] = (np.einsum("kri,kr->i", wJR[:, :, EOP_SIZE:], ell)
-                               + calib.residual(camera) / calib.sigma**2)
+        Nce_flat = Nce.transpose(1, 0, 2).reshape(c, ne)
+        if dense:
+            N_RR[ne:, :ne] = Nce_flat
+            N_RR[:ne, ne:] = Nce_flat.T
+            N_RR[ne:, ne:] = Ncc
+        else:
+            N_RR = sp.bmat([[N_RR, sp.csr_matrix(Nce_flat.T)],
+                            [sp.csr_matrix(Nce_flat), sp.csr_matrix(Ncc)]], format="csr")
+        b_R[ne:] = (np.einsum("kri,kr->i", wJR[:, :, EOP_SIZE:], ell)
+                    + calib.residual(camera) / calib.sigma**2)
     Npp[undetermined] = np.eye(GP_SIZE)  # the other blocks keep their rows' weights
     b_p = np.zeros((m, GP_SIZE))
-    np.add.at(b_p, pt, np.einsum("kri,kr->ki", wJp, ell))
+    scatter_add(b_p, pt, np.einsum("kri,kr->ki", wJp, ell))
     b_p[cp] += data.control_weight * (data.control_xyz - gp[cp])
     if damping > 0.0:
         Npp[:, diag3, diag3] *= 1.0 + damping
-        N_RR = N_RR + sp.diags(damping * N_RR.diagonal())
+        if dense:
+            N_RR[np.arange(r), np.arange(r)] *= 1.0 + damping
+        else:
+            N_RR = N_RR + sp.diags(damping * N_RR.diagonal())
     NRp_blocks = np.einsum("kri,krj->kij", wJR, Jp)  # (k, 6 + c, 3)
     try:
         Npp_inv = np.linalg.inv(Npp)
     except np.linalg.LinAlgError as err:
         raise EstimationError(f"singular 3x3 ground point normal block ({m} points)") from err
-    rows = np.repeat(rcol[:, :, None], GP_SIZE, axis=2)
-    cols = np.repeat((GP_SIZE * pt[:, None, None] + np.arange(GP_SIZE)[None, None, :]),
-                     rcol.shape[1], axis=1)
-    N_Rp = sp.csr_matrix((NRp_blocks.ravel(), (rows.ravel(), cols.ravel())),
-                         shape=(r, GP_SIZE * m))
-    Npp_inv_sp = _block_diagonal(Npp_inv)
-    U1 = N_Rp @ Npp_inv_sp  # N_Rp N_pp^-1  (Eq. 5, U_1)
-    N_r = (N_RR - U1 @ N_Rp.T).tocsc()
-    rhs = b_R - U1 @ b_p.ravel()
-    try:
-        lu = spla.splu(N_r)
-    except RuntimeError as err:
-        raise EstimationError(f"reduced EOP normal matrix ({N_r.shape[0]}) is singular") from err
-    return (
-        Normals(
-            lu=lu,
-            N_Rp=N_Rp,
-            N_RR=N_RR,
-            Npp_inv=Npp_inv,
-            b_p=b_p.ravel(),
-            size=r,
-            n_camera=c,
-            Npp=Npp,
-            undetermined=undetermined,
-        ),
-        rhs,
-        ell,
-    )
+    nrm = Normals(lu=None, N_RR=N_RR, Npp_inv=Npp_inv, b_p=b_p.ravel(),  # type: ignore[arg-type]
+                  size=r, n_camera=c, Npp=Npp, undetermined=undetermined,
+                  obs_blocks=NRp_blocks, obs_rows=rcol, obs_point=pt)
+    if dense:
+        # a small block (the initial one, a short flight): the points eliminated one by one
+        # into a dense matrix and a dense LU (seqat.kernels), not sparse products whose
+        # bookkeeping cost more than their flops (docs/algorithm.md, *Engines*)
+        N_r = np.array(N_RR)
+        rhs = b_R.copy()
+        eliminate_points(pt, img, NRp_blocks, Npp_inv, b_p, c, N_r, rhs)
+        nrm.lu = DenseLU(N_r)
+    else:
+        U1 = nrm.N_Rp @ _block_diagonal(Npp_inv)  # N_Rp N_pp^-1  (Eq. 5, U_1)
+        rhs = b_R - U1 @ b_p.ravel()
+        try:
+            nrm.lu = spla.splu((N_RR - U1 @ nrm.N_Rp.T).tocsc())
+        except RuntimeError as err:
+            raise EstimationError(f"reduced EOP normal matrix ({r}) is singular") from err
+    return nrm, rhs, ell
 
 
 def _block_diagonal(blocks: FloatArray) -> sp.csr_matrix:
@@ -263,8 +325,10 @@ def weighted_ssr(camera: PinholeCamera, data: BlockData, eop: FloatArray,
 
 def back_substitute(nrm: Normals, delta_r: FloatArray) -> FloatArray:
     """GP corrections ``N_pp^-1 (b_p - N_Rp^T delta_R)`` (Eq. 6)."""
-    r = (nrm.b_p - nrm.N_Rp.T @ delta_r).reshape(-1, GP_SIZE)
-    return np.einsum("mij,mj->mi", nrm.Npp_inv, r)
+    coupled = np.zeros((nrm.Npp.shape[0], GP_SIZE))
+    scatter_add(coupled, nrm.obs_point,
+                np.einsum("kqi,kq->ki", nrm.obs_blocks, delta_r[nrm.obs_rows]))
+    return np.einsum("mij,mj->mi", nrm.Npp_inv, nrm.b_p.reshape(-1, GP_SIZE) - coupled)
 
 
 def eop_cofactor_blocks(nrm: Normals, n: int) -> FloatArray:
@@ -322,7 +386,7 @@ def full_normal(nrm: Normals, n: int, m: int) -> FloatArray:
     diagonal (the sequential information engine eliminates those blocks)."""
     r = nrm.size
     N = np.zeros((r + GP_SIZE * m, r + GP_SIZE * m))
-    N[:r, :r] = nrm.N_RR.toarray()
+    N[:r, :r] = nrm.dense_N_RR()
     for j in range(m):
         o = r + GP_SIZE * j
         N[o : o + GP_SIZE, o : o + GP_SIZE] = nrm.Npp[j]

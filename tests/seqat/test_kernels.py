@@ -7,7 +7,7 @@ import pytest
 import scipy.linalg
 import scipy.sparse
 
-from seqat.kernels import point_quadratic, schur_product
+from seqat.kernels import eliminate_points, point_quadratic, scatter_add, schur_product
 
 
 def _columns(rng: np.random.Generator, r: int, npt: int) -> np.ndarray:
@@ -65,3 +65,46 @@ def test_kernels_take_empty_input() -> None:
         schur_product(Cs.indptr, Cs.indices, Cs.data, np.zeros((0, 3, 3)), 4), np.zeros((4, 4)))
     assert point_quadratic(Cs.indptr, Cs.indices, Cs.data, np.eye(4),
                            np.zeros(0, dtype=np.int64)).shape == (0, 3, 3)
+
+
+@pytest.mark.parametrize(("seed", "c"), [(1, 0), (2, 3)])
+def test_eliminate_points_equals_the_dense_schur_complement(seed: int, c: int) -> None:
+    """Rays in any order, a point seen twice from one image (their rows add), a point with
+    no ray, the camera's rows shared by every ray: ``N - M D^-1 M^T`` and ``rhs - M D^-1
+    b_p`` of the dense ``M`` (r, 3 m) the rays' blocks make, exactly symmetric."""
+    rng = np.random.default_rng(seed)
+    n, m, k = 7, 12, 40
+    r = 6 * n + c
+    img = rng.integers(0, n, k)
+    pt = rng.integers(0, m - 1, k)  # the last point has no ray
+    img[1], pt[1] = img[0], pt[0]  # a second ray of one point from the same image
+    blocks = rng.standard_normal((k, 6 + c, 3))
+    rows = np.concatenate([6 * img[:, None] + np.arange(6),
+                           np.broadcast_to(6 * n + np.arange(c), (k, c))], axis=1)
+    M = np.zeros((r, 3 * m))
+    for o in range(k):
+        np.add.at(M, (rows[o][:, None], 3 * pt[o] + np.arange(3)[None, :]), blocks[o])
+    A = rng.standard_normal((m, 3, 3))
+    Dinv = A @ np.swapaxes(A, 1, 2) + np.eye(3)
+    b_p = rng.standard_normal((m, 3))
+    V = rng.standard_normal((r, r))
+    N0, rhs0 = V @ V.T, rng.standard_normal(r)
+    D = scipy.linalg.block_diag(*Dinv)
+    N, rhs = N0.copy(), rhs0.copy()
+    eliminate_points(pt, img, blocks, Dinv, b_p, c, N, rhs)
+    np.testing.assert_allclose(N, N0 - M @ D @ M.T, rtol=1e-12, atol=1e-11)
+    np.testing.assert_allclose(rhs, rhs0 - M @ D @ b_p.ravel(), rtol=1e-12, atol=1e-11)
+    np.testing.assert_array_equal(N, N.T)
+
+
+def test_scatter_add_sums_as_numpy_add_at_does() -> None:
+    rng = np.random.default_rng(4)
+    idx = rng.integers(0, 5, 200)
+    vals = rng.standard_normal((200, 3, 2))
+    want = np.zeros((5, 3, 2))
+    np.add.at(want, idx, vals)
+    got = np.zeros((5, 3, 2))
+    scatter_add(got, idx, vals)
+    np.testing.assert_array_equal(got, want)  # the same sums in the same order
+    scatter_add(got, idx[:0], vals[:0])  # nothing to add
+    np.testing.assert_array_equal(got, want)

@@ -118,6 +118,47 @@ def test_an_unconverged_block_returns_the_normal_matrix_at_its_estimate(
     np.testing.assert_allclose(res.full_normal / scale, expected / scale, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("self_calibrating", [False, True])
+def test_the_dense_and_the_sparse_reduced_systems_agree(
+        short_strip: SimulatedFlight, self_calibrating: bool,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A small block's reduced system is formed dense (its points eliminated one by one)
+    and a large one's sparse: the same step, normal matrix and cofactors either way, with
+    the camera free and with damping."""
+    import seqat.normals as normals
+    from seqat.calibration import FreeCamera
+    from seqat.normals import CameraBlock, back_substitute, full_cofactor
+
+    data, eop0, gp0 = _local_block(short_strip)
+    eop0 = eop0 + np.array([0.5, -0.5, 0.3, 0.004, -0.003, 0.005])  # a step from the minimum
+    cam = short_strip.camera
+    calib = None
+    if self_calibrating:
+        idx = np.array([0, 1, 2, 3])
+        calib = CameraBlock(index=idx, prior=cam.intrinsics[idx],
+                            sigma=np.array([5.0, 2.0, 2.0, 1e-3]))
+        cam = FreeCamera(cam, idx).at(cam.intrinsics[idx] + np.array([3.0, -1.0, 1.0, 2e-4]))
+    n, m = data.n_images, data.n_points
+    got = {}
+    small = normals.DENSE_REDUCED_MAX
+    assert 6 * data.n_images + 4 <= small  # the block is formed dense by default
+    for most in (small, 0):
+        monkeypatch.setattr(normals, "DENSE_REDUCED_MAX", most)
+        nrm, rhs, _ = linearise(cam, data, eop0, gp0, 1e-3, 3.0, calib)
+        step = nrm.lu.solve(rhs)
+        got[most] = (step, back_substitute(nrm, step), full_normal(nrm, n, m),
+                     full_cofactor(nrm, n, m))
+    r = 6 * n + (4 if calib else 0)
+    assert got[0][0].size == r
+    d = np.sqrt(np.diagonal(got[0][2]))  # each parameter on the scale of its information
+    dense, sparse = got[small], got[0]
+    for a, b, unit in [(dense[0], sparse[0], d[:r]), (dense[1].ravel(), sparse[1].ravel(), d[r:]),
+                       (dense[2], sparse[2], 1.0 / np.outer(d, d)),
+                       (dense[3], sparse[3], np.outer(d, d))]:
+        np.testing.assert_allclose(a * unit, b * unit, rtol=0,
+                                   atol=1e-11 * np.max(np.abs(b * unit)))
+
+
 def test_adjust_block_rejects_non_finite_start(short_strip: SimulatedFlight) -> None:
     from seqat.errors import EstimationError
 
