@@ -145,17 +145,23 @@ class Normals:
     def N_Rp(self) -> sp.csr_matrix:
         """(r, 3m) sparse, the rays' blocks summed (the camera's rows of a point's rays)."""
         if self._N_Rp is None:
-            q = self.obs_rows.shape[1]
-            rows = np.repeat(self.obs_rows[:, :, None], GP_SIZE, axis=2)
-            cols = np.repeat(GP_SIZE * self.obs_point[:, None, None]
-                             + np.arange(GP_SIZE)[None, None, :], q, axis=1)
-            self._N_Rp = sp.csr_matrix(
-                (self.obs_blocks.ravel(), (rows.ravel(), cols.ravel())),
-                shape=(self.size, GP_SIZE * self.Npp.shape[0]))
+            self._N_Rp = _sparse_N_Rp(self.obs_blocks, self.obs_rows, self.obs_point,
+                                      self.size, self.Npp.shape[0])
         return self._N_Rp
 
     def dense_N_RR(self) -> FloatArray:
+        """``N_RR`` as a dense (r, r) array, whichever way it was formed."""
         return self.N_RR.toarray() if sp.issparse(self.N_RR) else np.array(self.N_RR)
+
+
+def _sparse_N_Rp(blocks: FloatArray, rows: np.ndarray, point: np.ndarray, r: int,
+                 m: int) -> sp.csr_matrix:
+    """(r, 3m) sparse of the rays' ``blocks`` (k, q, 3) at ``rows`` (k, q), in the columns
+    of their ``point`` (k,), the duplicates (the camera's rows of a point's rays) summed."""
+    cols = GP_SIZE * point[:, None, None] + np.arange(GP_SIZE)[None, None, :]
+    return sp.csr_matrix((blocks.ravel(), (np.repeat(rows[:, :, None], GP_SIZE, axis=2).ravel(),
+                                           np.repeat(cols, rows.shape[1], axis=1).ravel())),
+                         shape=(r, GP_SIZE * m))
 
 
 def on_nav_branch(eop: FloatArray, nav_eop: FloatArray) -> bool:
@@ -276,25 +282,27 @@ def linearise(
         Npp_inv = np.linalg.inv(Npp)
     except np.linalg.LinAlgError as err:
         raise EstimationError(f"singular 3x3 ground point normal block ({m} points)") from err
-    nrm = Normals(lu=None, N_RR=N_RR, Npp_inv=Npp_inv, b_p=b_p.ravel(),  # type: ignore[arg-type]
-                  size=r, n_camera=c, Npp=Npp, undetermined=undetermined,
-                  obs_blocks=NRp_blocks, obs_rows=rcol, obs_point=pt)
+    lu: Factor
+    N_Rp: sp.csr_matrix | None = None
     if dense:
         # a small block (the initial one, a short flight): the points eliminated one by one
         # into a dense matrix and a dense LU (seqat.kernels), not sparse products whose
-        # bookkeeping cost more than their flops (docs/algorithm.md, *Engines*)
+        # bookkeeping costs more than their flops (docs/algorithm.md, *Sim*)
         N_r = np.array(N_RR)
         rhs = b_R.copy()
         eliminate_points(pt, img, NRp_blocks, Npp_inv, b_p, c, N_r, rhs)
-        nrm.lu = DenseLU(N_r)
+        lu = DenseLU(N_r)
     else:
-        U1 = nrm.N_Rp @ _block_diagonal(Npp_inv)  # N_Rp N_pp^-1  (Eq. 5, U_1)
+        N_Rp = _sparse_N_Rp(NRp_blocks, rcol, pt, r, m)
+        U1 = N_Rp @ _block_diagonal(Npp_inv)  # N_Rp N_pp^-1  (Eq. 5, U_1)
         rhs = b_R - U1 @ b_p.ravel()
         try:
-            nrm.lu = spla.splu((N_RR - U1 @ nrm.N_Rp.T).tocsc())
+            lu = spla.splu((N_RR - U1 @ N_Rp.T).tocsc())
         except RuntimeError as err:
             raise EstimationError(f"reduced EOP normal matrix ({r}) is singular") from err
-    return nrm, rhs, ell
+    return Normals(lu=lu, N_RR=N_RR, Npp_inv=Npp_inv, b_p=b_p.ravel(), size=r, n_camera=c,
+                   Npp=Npp, undetermined=undetermined, obs_blocks=NRp_blocks, obs_rows=rcol,
+                   obs_point=pt, _N_Rp=N_Rp), rhs, ell
 
 
 def _block_diagonal(blocks: FloatArray) -> sp.csr_matrix:
