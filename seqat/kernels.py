@@ -8,8 +8,9 @@ point by point, as a bundle adjuster's Schur eliminator takes them (Ceres'
 why the large windows went through sparse or grouped BLAS products instead, at the price of
 products over zeros (points of different strips share no rows); compiled, the per-point loop
 costs its flops (docs/algorithm.md, *Engines*). Sim's small blocks are reduced the same
-way (:func:`eliminate_points`, from each ray's block; docs/algorithm.md, *Sim*), their
-per-image and per-point sums made by :func:`scatter_add`.
+way (:func:`eliminate_points`, from each ray's block; docs/algorithm.md, *Sim*), the rays'
+weighted products summed by :func:`ray_products` and other per-image and per-point sums by
+:func:`scatter_add`.
 
 The loops add in a fixed order (points in turn, rows in storage order) and without
 ``fastmath`` (no reassociation, no fused multiply-add): the results do not depend on the CPU
@@ -283,3 +284,62 @@ def eliminate_points(obs_point: np.ndarray, obs_image: np.ndarray, blocks: Float
                       np.ascontiguousarray(blocks, dtype=np.float64),
                       np.ascontiguousarray(Dinv, dtype=np.float64),
                       np.ascontiguousarray(b_p, dtype=np.float64), int(c), N, rhs)
+
+
+@njit("void(int64[::1], int64[::1], float64[:, :, ::1], float64[:, :, ::1], float64[::1], "
+      "float64[:, ::1], float64[:, :, ::1], float64[:, ::1], float64[:, :, ::1], "
+      "float64[:, ::1], float64[::1], float64[:, ::1], float64[:, :, ::1])",
+      cache=True, nogil=True)
+def _ray_products(img, pt, JR, Jp, w, ell, Nee, be, Nce, Ncc, bc, bp, NRp):  # noqa: ANN001, ANN202
+    q = JR.shape[2]
+    for o in range(img.shape[0]):
+        wo = w[o]
+        if wo == 0.0:
+            continue
+        i = img[o]
+        p = pt[o]
+        for r in range(2):
+            e = ell[o, r]
+            for a in range(q):
+                wa = wo * JR[o, r, a]
+                if a < 6:
+                    for b in range(6):
+                        Nee[i, a, b] += wa * JR[o, r, b]
+                    be[i, a] += wa * e
+                else:
+                    for b in range(6):
+                        Nce[i, a - 6, b] += wa * JR[o, r, b]
+                    for b in range(6, q):
+                        Ncc[a - 6, b - 6] += wa * JR[o, r, b]
+                    bc[a - 6] += wa * e
+                NRp[o, a, 0] += wa * Jp[o, r, 0]
+                NRp[o, a, 1] += wa * Jp[o, r, 1]
+                NRp[o, a, 2] += wa * Jp[o, r, 2]
+            we = wo * e
+            bp[p, 0] += we * Jp[o, r, 0]
+            bp[p, 1] += we * Jp[o, r, 1]
+            bp[p, 2] += we * Jp[o, r, 2]
+
+
+def ray_products(img: np.ndarray, pt: np.ndarray, JR: FloatArray, Jp: FloatArray,
+                 w: FloatArray, ell: FloatArray, n: int,
+                 m: int) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray,
+                                  FloatArray, FloatArray]:
+    """The weighted products of a block's rays, summed per image and per point: ``w A^T A``
+    and ``w A^T ell`` of each ray's two rows ``A = [JR | Jp]`` (``JR`` (k, 2, 6 + c): its
+    EOP and camera columns, ``Jp`` (k, 2, 3) its point's; ``w`` (k,) its weight, ``ell``
+    (k, 2) its residual). Returns ``N_ee`` (n, 6, 6) and ``b_e`` (n, 6) per image, ``N_ce``
+    (n, c, 6), ``N_cc`` (c, c) and ``b_c`` (c,) of the camera, ``b_p`` (m, 3) per point and
+    each ray's ``N_Rp`` block ``w JR^T Jp`` (k, 6 + c, 3), rays of weight 0 left out."""
+    k, _, q = JR.shape
+    c = q - 6
+    out = (np.zeros((n, 6, 6)), np.zeros((n, 6)), np.zeros((n, c, 6)), np.zeros((c, c)),
+           np.zeros(c), np.zeros((m, 3)), np.zeros((k, q, 3)))
+    if k:
+        _ray_products(np.ascontiguousarray(img, dtype=np.int64),
+                      np.ascontiguousarray(pt, dtype=np.int64),
+                      np.ascontiguousarray(JR, dtype=np.float64),
+                      np.ascontiguousarray(Jp, dtype=np.float64),
+                      np.ascontiguousarray(w, dtype=np.float64),
+                      np.ascontiguousarray(ell, dtype=np.float64), *out)
+    return out

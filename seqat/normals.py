@@ -23,7 +23,7 @@ import scipy.sparse.linalg as spla
 
 from seqat.errors import EstimationError
 from seqat.geometry import depth, nearest_branch, project, project_with_jacobians, wrap_angle
-from seqat.kernels import eliminate_points, scatter_add
+from seqat.kernels import eliminate_points, ray_products, scatter_add
 from seqat.robust import cauchy_cost, cauchy_weight, nav_cost, nav_weight
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray, PinholeCamera
 
@@ -228,18 +228,13 @@ def linearise(
             ev[:, 0])
         if undetermined.any():
             w = np.where(undetermined[pt], 0.0, w)
-    wJR = JR * w[:, None, None]
-    wJp = Jp * w[:, None, None]
-    # N_RR: the EOP blocks per image (nav on their diagonal), the camera rows (camera x EOP
-    # per image, camera x camera with its prior), summed per image before scattering
-    Nee = np.zeros((n, EOP_SIZE, EOP_SIZE))
-    scatter_add(Nee, img, np.einsum("kri,krj->kij", wJR[:, :, :EOP_SIZE], JR[:, :, :EOP_SIZE]))
+    # the rays' weighted products, summed per image (N_ee, b_e), over the camera (N_ce,
+    # N_cc, b_c) and per point (b_p), and each ray's N_Rp block (seqat.kernels)
+    Nee, be, Nce, Ncc, bc, b_p, NRp_blocks = ray_products(img, pt, JR, Jp, w, ell, n, m)
     res_nav = eop_residual(data.nav_eop, eop)
     w_nav = nav_weight(res_nav, data.nav_sigma, nav_robust_scale) / data.nav_sigma**2
     Nee[:, np.arange(EOP_SIZE), np.arange(EOP_SIZE)] += w_nav
     b_R = np.zeros(r)
-    be = np.zeros((n, EOP_SIZE))
-    scatter_add(be, img, np.einsum("kri,kr->ki", wJR[:, :, :EOP_SIZE], ell))
     b_R[:ne] = (be + w_nav * res_nav).ravel()
     dense = r <= DENSE_REDUCED_MAX
     N_RR: sp.csr_matrix | FloatArray
@@ -252,10 +247,6 @@ def linearise(
         N_RR = sp.bsr_matrix((Nee, np.arange(n), np.arange(n + 1)), shape=(ne, ne)).tocsr()
     if c:
         assert calib is not None
-        Nce = np.zeros((n, c, EOP_SIZE))
-        scatter_add(Nce, img, np.einsum("kri,krj->kij", wJR[:, :, EOP_SIZE:],
-                                        JR[:, :, :EOP_SIZE]))
-        Ncc = np.einsum("kri,krj->ij", wJR[:, :, EOP_SIZE:], JR[:, :, EOP_SIZE:])
         Ncc[np.arange(c), np.arange(c)] += 1.0 / calib.sigma**2
         Nce_flat = Nce.transpose(1, 0, 2).reshape(c, ne)
         if dense:
@@ -265,11 +256,8 @@ def linearise(
         else:
             N_RR = sp.bmat([[N_RR, sp.csr_matrix(Nce_flat.T)],
                             [sp.csr_matrix(Nce_flat), sp.csr_matrix(Ncc)]], format="csr")
-        b_R[ne:] = (np.einsum("kri,kr->i", wJR[:, :, EOP_SIZE:], ell)
-                    + calib.residual(camera) / calib.sigma**2)
+        b_R[ne:] = bc + calib.residual(camera) / calib.sigma**2
     Npp[undetermined] = np.eye(GP_SIZE)  # the other blocks keep their rows' weights
-    b_p = np.zeros((m, GP_SIZE))
-    scatter_add(b_p, pt, np.einsum("kri,kr->ki", wJp, ell))
     b_p[cp] += data.control_weight * (data.control_xyz - gp[cp])
     if damping > 0.0:
         Npp[:, diag3, diag3] *= 1.0 + damping
@@ -277,7 +265,6 @@ def linearise(
             N_RR[np.arange(r), np.arange(r)] *= 1.0 + damping
         else:
             N_RR = N_RR + sp.diags(damping * N_RR.diagonal())
-    NRp_blocks = np.einsum("kri,krj->kij", wJR, Jp)  # (k, 6 + c, 3)
     try:
         Npp_inv = np.linalg.inv(Npp)
     except np.linalg.LinAlgError as err:

@@ -7,7 +7,13 @@ import pytest
 import scipy.linalg
 import scipy.sparse
 
-from seqat.kernels import eliminate_points, point_quadratic, scatter_add, schur_product
+from seqat.kernels import (
+    eliminate_points,
+    point_quadratic,
+    ray_products,
+    scatter_add,
+    schur_product,
+)
 
 
 def _columns(rng: np.random.Generator, r: int, npt: int) -> np.ndarray:
@@ -108,3 +114,33 @@ def test_scatter_add_sums_as_numpy_add_at_does() -> None:
     np.testing.assert_array_equal(got, want)  # the same sums in the same order
     scatter_add(got, idx[:0], vals[:0])  # nothing to add
     np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("c", [0, 4])
+def test_ray_products_sum_each_rays_weighted_products(c: int) -> None:
+    """Per image, over the camera and per point, the sums of ``w A^T A`` and ``w A^T ell``
+    of each ray's rows ``A = [JR | Jp]``, and each ray's ``w JR^T Jp``: against numpy's
+    products, a ray of weight 0 left out, an image and a point without rays."""
+    rng = np.random.default_rng(5 + c)
+    n, m, k = 6, 9, 50
+    img, pt = rng.integers(0, n - 1, k), rng.integers(0, m - 1, k)
+    JR, Jp = rng.standard_normal((k, 2, 6 + c)), rng.standard_normal((k, 2, 3))
+    w, ell = rng.uniform(0.1, 2.0, k), rng.standard_normal((k, 2))
+    w[3] = 0.0
+    Nee, be, Nce, Ncc, bc, bp, NRp = ray_products(img, pt, JR, Jp, w, ell, n, m)
+    wA = np.concatenate([JR, Jp], axis=2) * w[:, None, None]
+    A = np.concatenate([JR, Jp], axis=2)
+    per_ray = np.einsum("kri,krj->kij", wA, A)  # (k, 9 + c, 9 + c)
+    grad = np.einsum("kri,kr->ki", wA, ell)
+    want_ee, want_be = np.zeros((n, 6, 6)), np.zeros((n, 6))
+    want_ce, want_bp = np.zeros((n, c, 6)), np.zeros((m, 3))
+    np.add.at(want_ee, img, per_ray[:, :6, :6])
+    np.add.at(want_be, img, grad[:, :6])
+    np.add.at(want_ce, img, per_ray[:, 6:6 + c, :6])
+    np.add.at(want_bp, pt, grad[:, 6 + c:])
+    for got, want in [(Nee, want_ee), (be, want_be), (Nce, want_ce),
+                      (Ncc, per_ray[:, 6:6 + c, 6:6 + c].sum(axis=0)),
+                      (bc, grad[:, 6:6 + c].sum(axis=0)), (bp, want_bp),
+                      (NRp, per_ray[:, :6 + c, 6 + c:])]:
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    assert not Nee[n - 1].any() and not bp[m - 1].any()  # no ray: nothing
