@@ -677,7 +677,7 @@ class DepartureMixin:
                                    for k in members])
             JK = buf[:, cols].copy()
             buf[:, cols] = 0.0
-            G = dep.rts_gain(self._departure_gain(rec, dep))[src]
+            G = dep.rts_gain(self._departure_gain(rec, dep), rows=src)
             const += JK @ (dep.x_leaving[src] - G @ dep.x_staying)
             C += dep.conditional.quadratic(src, JK)
             JG = JK @ G

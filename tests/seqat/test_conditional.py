@@ -124,3 +124,6 @@ def test_a_records_gain_formed_on_request_equals_the_dense_one_after_two_splits(
                         splits=dep.splits + ((m, Kc, r),))
         C = C_next
         np.testing.assert_allclose(dep.rts_gain(), J, rtol=1e-8, atol=1e-11)
+        # a few rows (in any order) carried through the splits alone: the same rows
+        rows = np.array([m.size - 1, 0, 5, 2])
+        np.testing.assert_allclose(dep.rts_gain(rows=rows), J[rows], rtol=1e-12, atol=1e-14)
