@@ -176,6 +176,6 @@ class Departure:
         sub = G[need[0]]
         for level, (m_idx, K, r_idx) in enumerate(self.splits):
             at, want = need[level], need[level + 1]  # ``at`` sorted, unique
-            sub = np.hstack([sub[np.searchsorted(at, m_idx[want])]
-                             - K[want] @ sub[np.searchsorted(at, r_idx)], K[want]])
+            sub = split_gain(sub, np.searchsorted(at, m_idx[want]), K[want],
+                             np.searchsorted(at, r_idx))
         return sub
