@@ -211,6 +211,7 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         self._astray_tried: dict[int, int] = {}  # astray GP -> its window rays when last tried
         self._drift_px = self._drift_m = self._drift_deg = float("nan")
         self.recorded: list[RecordedRows] | None = [] if record else None
+        # (keys, x, Q) the window started from: kept with the inverse engine or ``record``
         self.initial_state: tuple[list[Key], FloatArray, FloatArray] | None = None
         # A second start during the flight (seqat/second_start.py): the window's EOPs and
         # sigmas after the last update, updates left to try one, images after whose update
@@ -427,17 +428,23 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         return dataclasses.replace(upd, stage="initial-sim", update_ms=ms)
 
     def _start_sequential(self, sim: SimultaneousAT) -> None:
-        """Take the initial Sim solution with its full inverse normal matrix as the window."""
-        st = sim.export_state(Covariance.FULL)
+        """Take the initial Sim solution as the window: its normal matrix (information
+        engine), its full inverse normal matrix (inverse engine; and to record the rows)."""
+        # the information engine factorises the normal matrix point by point (its first
+        # update does anyway); the dense inverse of 1000+ parameters, and a Cholesky of it
+        # to see it positive definite, cost the hand-over ~100 ms (Seneca)
+        full = self._inverse or self.recorded is not None
+        st = sim.export_state(Covariance.FULL if full else Covariance.NORMAL)
         res = st.result
-        assert res.full_cofactor is not None
-        try:
-            np.linalg.cholesky(res.full_cofactor)
-        except np.linalg.LinAlgError as err:
-            raise EstimationError(
-                f"the initial simultaneous block ({len(st.image_ids)} images) is singular or "
-                f"ill-conditioned: its cofactor matrix is not positive definite (its datum is "
-                f"fixed by the GPS/INS constraints alone: are the nav sigmas plausible?)") from err
+        singular = (f"the initial simultaneous block ({len(st.image_ids)} images) is singular or "
+                    f"ill-conditioned: its cofactor matrix is not positive definite (its datum "
+                    f"is fixed by the GPS/INS constraints alone: are the nav sigmas plausible?)")
+        if full:
+            assert res.full_cofactor is not None
+            try:
+                np.linalg.cholesky(res.full_cofactor)
+            except np.linalg.LinAlgError as err:
+                raise EstimationError(singular) from err
         self._origin = st.origin
         n = len(st.image_ids)
         keys: list[Key] = [("e", i) for i in range(n)]
@@ -503,11 +510,17 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
             self._factors.add(img, pt, np.asarray(st.obs_uv)[use],
                               np.asarray(st.obs_sigma_px)[use], e_lin, res.gp[gp_row],
                               self._cam, self.options.robust_scale)
-        self.initial_state = (keys, self._w.x.copy(), res.full_cofactor.copy())
+        if res.full_cofactor is not None:
+            self.initial_state = (keys, self._w.x.copy(), res.full_cofactor.copy())
         if res.undetermined is not None and res.undetermined.any():  # rows of weight 0 in L
             und = [int(j) for j, bad in zip(st.selected, res.undetermined, strict=True) if bad]
             self._factors.forget(set(und))
             self._drop_undetermined([("p", j) for j in und])
+        if not full:
+            try:  # positive definite: GPs it does not determine leave (Window.on_singular)
+                w.factor()
+            except EstimationError as err:
+                raise EstimationError(singular) from err
         self.rejections.extend(sim.rejections)
         self.nav_downweighted.extend(sim.nav_downweighted)
         self.diverged.extend(sim.diverged)

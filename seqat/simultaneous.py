@@ -93,6 +93,9 @@ class Covariance(Enum):
     NONE = "none"
     BLOCKS = "blocks"  # 6x6 per image, 3x3 per point
     FULL = "full"  # dense matrix over [EOPs..., GPs...] (small blocks only)
+    #: the dense normal matrix over [EOPs, camera, GPs] alone (``full_normal``): what the
+    #: sequential information engine starts from; its inverse is never formed
+    NORMAL = "normal"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -151,7 +154,8 @@ class SimResult:
     eop_cofactor: FloatArray | None = None
     gp_cofactor: FloatArray | None = None
     full_cofactor: FloatArray | None = None
-    full_normal: FloatArray | None = None  # its inverse, the normal matrix (Covariance.FULL)
+    #: the normal matrix (Covariance.FULL: the inverse of ``full_cofactor``; and NORMAL)
+    full_normal: FloatArray | None = None
     undetermined: np.ndarray | None = None  # (m,) bool: points the data do not determine
     #: The camera at the solution (the input camera unless self-calibrating) and the
     #: cofactor of its free interior parameters, (c, c); ``full_*`` then hold them between
@@ -337,6 +341,8 @@ def adjust_block(
         off = EOP_SIZE * n + c
         gp_cof = (np.stack([full[off + 3 * j : off + 3 * j + 3, off + 3 * j : off + 3 * j + 3]
                             for j in range(m)]) if m else np.zeros((0, 3, 3)))
+    elif covariance is Covariance.NORMAL:
+        normal = full_normal(nrm, n, m)
     elif covariance is Covariance.BLOCKS:
         eop_cof = eop_cofactor_blocks(nrm, n)
         gp_cof = gp_cofactors(nrm, data) if m else np.zeros((0, 3, 3))

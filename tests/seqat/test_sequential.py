@@ -7,7 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from seqat.errors import ConfigError
+from seqat.errors import ConfigError, EstimationError
+from seqat.information import RankDeficiency
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight, StripSimConfig, simulate_strip
 from seqat.simultaneous import SimOptions, SimultaneousAT
@@ -69,6 +70,34 @@ def test_seq_f_equals_batch_of_same_linearisation(
     sd = np.sqrt(np.diagonal(Q_batch))
     rel_Q = np.max(np.abs(Q_seq - Q_batch) / np.outer(sd, sd))
     assert rel_Q < BATCH_REL_TOL
+
+
+def test_the_information_engine_starts_from_the_normal_matrix_alone(
+        short_strip: SimulatedFlight, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The information engine's window starts from the initial block's normal matrix,
+    without the block's dense inverse (formed only to record rows or for the inverse
+    engine): the same estimates either way, and a block whose normal matrix cannot be
+    factorised is named at the hand-over."""
+    frames = list(short_strip.frames())[:8]
+    opts = SequentialOptions(initial_images=5)
+    plain = SequentialAT(short_strip.camera, opts)
+    recorded = SequentialAT(short_strip.camera, opts, record=True)
+    for fr in frames:
+        plain.add_frame(fr)
+        recorded.add_frame(fr)
+    assert plain.initial_state is None and recorded.initial_state is not None
+    np.testing.assert_array_equal(plain._w.x, recorded._w.x)
+
+    def singular(*a: object, **k: object) -> None:
+        raise RankDeficiency("the reduced system is singular", np.arange(6),
+                             np.zeros(0, dtype=np.int64))
+
+    monkeypatch.setattr("seqat.window.InformationFactor", singular)
+    est = SequentialAT(short_strip.camera, opts)
+    with pytest.raises(EstimationError, match="initial simultaneous block .5 images. is "
+                                              "singular"):
+        for fr in frames[:5]:
+            est.add_frame(fr)
 
 
 def test_seq_r_with_zero_threshold_is_seq_f(short_strip: SimulatedFlight) -> None:

@@ -118,6 +118,24 @@ def test_an_unconverged_block_returns_the_normal_matrix_at_its_estimate(
     np.testing.assert_allclose(res.full_normal / scale, expected / scale, rtol=0, atol=1e-12)
 
 
+def test_the_normal_mode_returns_the_full_modes_normal_matrix_alone(
+        short_strip: SimulatedFlight) -> None:
+    """``Covariance.NORMAL`` (the sequential information engine's start) returns the very
+    normal matrix ``FULL`` does, and no inverse of it."""
+    data, eop0, gp0 = _local_block(short_strip)
+    eop0 = eop0 + np.array([2.0, -2.0, 1.0, 0.02, -0.02, 0.03])
+    for opts in (SimOptions(), SimOptions(max_iterations=2)):  # converged, and stopped short
+        full = adjust_block(short_strip.camera, data, eop0, gp0, opts, Covariance.FULL)
+        normal = adjust_block(short_strip.camera, data, eop0, gp0, opts, Covariance.NORMAL)
+        assert normal.full_cofactor is None and normal.eop_cofactor is None
+        assert full.full_normal is not None and normal.full_normal is not None
+        np.testing.assert_array_equal(normal.full_normal, full.full_normal)
+        np.testing.assert_array_equal(normal.eop, full.eop)
+        if not full.converged:
+            assert full.model_step is not None and normal.model_step is not None
+            np.testing.assert_array_equal(normal.model_step, full.model_step)
+
+
 @pytest.mark.parametrize("self_calibrating", [False, True])
 def test_the_dense_and_the_sparse_reduced_systems_agree(
         short_strip: SimulatedFlight, self_calibrating: bool,
