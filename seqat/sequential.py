@@ -479,8 +479,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         if self.options.smoothing or not self._inverse:
             # the initial block's normal matrix itself (not the inverse of its cofactor:
             # inverting that would cost digits and blur the GPs' block-diagonal structure)
-            assert res.full_normal is not None  # Covariance.FULL exports it
-            w.L = window_matrix(0.5 * (res.full_normal + res.full_normal.T))
+            assert res.full_normal is not None  # FULL and NORMAL export it; the window owns it
+            w.L = window_matrix(res.full_normal)  # exactly symmetric (normals.full_normal)
         self._window_images.extend(range(n))
         selected = set(int(j) for j in st.selected)
         self._gp_order = [int(j) for j in st.selected]
