@@ -599,6 +599,7 @@ class DepartureMixin:
             Q[n:, :n] = QJt.T
             Q[n:, n:] = J @ QJt + C
             w.Q = Q
+        base = w.current_solver()  # answers for the window before: Q' from it and the prior
         if w.L is not None:
             # the prior ties the re-opened keys to the window keys its chain refers to
             w.couple(keys_of(w.keys, np.flatnonzero(np.any(J != 0.0, axis=0))) + keys)
@@ -610,6 +611,7 @@ class DepartureMixin:
             M = Js.T @ Ci @ Js
             w.L = window_matrix(add_block(padded(w.L, n + m), cols, 0.5 * (M + M.T)))
         self._rejoin(keys, mean)
+        w.augment(base, J, C)
 
     def _rejoin(self, keys: list[Key], values: FloatArray) -> None:
         """Re-opened ``keys`` (left :attr:`_departed`) join the window's bookkeeping and

@@ -19,9 +19,11 @@ import numpy as np
 
 from seqat.errors import EstimationError
 from seqat.information import (
+    AugmentedFactor,
     InformationFactor,
     MarginalFactor,
     RankDeficiency,
+    SolverLike,
     WindowMatrix,
     submatrix,
 )
@@ -140,9 +142,10 @@ class Window:
     coupled: set[Key] = field(default_factory=set)
     _Q: FloatArray | None = None
     _factor: InformationFactor | None = None
-    #: Right after a departure: the factorisation the departed parameters left, answering
-    #: for the marginal (``Q' = Q[keep, keep]``) until ``L`` changes again.
-    _marginal: MarginalFactor | None = None
+    #: Right after a departure or a re-opening: a view of the factorisation the window had
+    #: before (:meth:`marginalise`, :meth:`augment`), answering for ``Q`` until ``L``
+    #: changes again.
+    _marginal: MarginalFactor | AugmentedFactor | None = None
     _diag: FloatArray | None = None
     _lookup: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     #: Called with the GP keys whose information is singular (the data do not determine
@@ -198,12 +201,13 @@ class Window:
     def settle(self) -> None:
         """Information engine: factorise now, so that GPs the data do not determine leave
         (:attr:`on_singular`) before offsets are read; no-op for the inverse engine and right
-        after a departure (the marginal of a factorised, positive definite ``L`` is positive
-        definite: :meth:`marginalise`)."""
+        after a departure or a re-opening (the marginal of a factorised, positive definite
+        ``L`` is positive definite, as is ``L`` with a positive definite prior of new
+        parameters: :meth:`marginalise`, :meth:`augment`)."""
         if not self.inverse and self.L is not None and self._marginal is None:
             self.factor()
 
-    def _solver(self) -> InformationFactor | MarginalFactor:
+    def _solver(self) -> SolverLike:
         """What answers for ``Q`` (information engine): the factorisation of ``L``, or, right
         after a departure, the one the departed parameters left (:meth:`marginalise`)."""
         if self._factor is None and self._marginal is not None:
@@ -226,6 +230,20 @@ class Window:
         self.relayout(keep_keys)
         if base is not None:
             self._marginal = MarginalFactor.of(base, keep)
+
+    def augment(self, base: SolverLike | None, J: FloatArray, C: FloatArray) -> None:
+        """Departed parameters re-opened at the end of the layout with the prior
+        ``x_R = mean + J x_W + e``, ``e ~ (0, C)``, after ``L`` took that prior and the layout
+        the keys: until ``L`` changes again the cofactor blocks come from ``base``, what
+        answered for the window before (:class:`seqat.information.AugmentedFactor`): a
+        re-opening costs no factorisation. No-op without one (the inverse engine, or no
+        factorisation at hand: the next request factorises)."""
+        if not self.inverse and base is not None:
+            self._marginal = AugmentedFactor(base, J, C)
+
+    def current_solver(self) -> SolverLike | None:
+        """What answers for ``Q`` now without factorising (None: nothing at hand)."""
+        return self._factor or self._marginal
 
     def couple(self, keys: list[Key]) -> None:
         """A prior now ties ``keys`` together: if two or more are GPs, those are no longer

@@ -5,7 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from seqat.information import InformationFactor, MarginalFactor, RankDeficiency
+from seqat.information import (
+    AugmentedFactor,
+    InformationFactor,
+    MarginalFactor,
+    RankDeficiency,
+)
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight
 
@@ -72,6 +77,52 @@ def test_marginal_factor_answers_for_the_schur_complement() -> None:
     np.testing.assert_allclose(m.block(idx), Qm[np.ix_(idx, idx)], rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(m.entries(idx[:2], idx), Qm[np.ix_(idx[:2], idx)], rtol=1e-9,
                                atol=1e-12)
+
+
+@pytest.mark.parametrize("marginal_first", [False, True])
+def test_augmented_factor_answers_for_the_reopened_window(marginal_first: bool) -> None:
+    """After a re-opening the update reads ``Q'`` from the factorisation the window had
+    (AugmentedFactor): the inverse of ``L`` with the prior ``x_R = J x_W + e``,
+    ``e ~ (0, C)``, of the parameters appended at its end; also on a marginal's view, twice
+    (two re-openings in one update), and through a departure after it."""
+    rng = np.random.default_rng(8)
+    L, gp = _window_like(rng)
+    base: InformationFactor | MarginalFactor = InformationFactor(L, gp)
+    if marginal_first:
+        keep = np.setdiff1d(np.arange(L.shape[0]), np.r_[6:12, 45:48])
+        L = np.linalg.inv(np.linalg.inv(L)[np.ix_(keep, keep)])
+        base = MarginalFactor.of(base, keep)
+    aug: InformationFactor | MarginalFactor | AugmentedFactor = base
+    for m in (9, 6):  # two re-openings: three points, then an image
+        n = L.shape[0]
+        J = rng.standard_normal((m, n)) * (rng.random((m, n)) < 0.1)
+        A = rng.standard_normal((m, m))
+        C = A @ A.T + m * np.eye(m)
+        Ci = np.linalg.inv(C)
+        Js = np.hstack([-J, np.eye(m)])  # x_R - J x_W
+        L = np.pad(L, ((0, m), (0, m))) + Js.T @ Ci @ Js
+        aug = AugmentedFactor(aug, J, C)
+    Q = np.linalg.inv(L)
+    n = L.shape[0]
+    assert aug.n == n
+    b = rng.standard_normal((n, 2))
+    np.testing.assert_allclose(aug.solve(b), Q @ b, rtol=1e-9, atol=1e-12)
+    idx = np.array([0, 5, 30, 31, 40, n - 14, n - 12, n - 1])  # old and re-opened, both times
+    np.testing.assert_allclose(aug.columns(idx), Q[:, idx], rtol=1e-9, atol=1e-12)
+    got = aug.block(idx)
+    np.testing.assert_allclose(got, Q[np.ix_(idx, idx)], rtol=1e-9, atol=1e-12)
+    assert np.array_equal(got, got.T)
+    for rows, cols in ((idx[:3], idx[3:]), (idx[4:], idx[:5]), (idx[5:6], idx[6:])):
+        np.testing.assert_allclose(aug.entries(rows, cols), Q[np.ix_(rows, cols)], rtol=1e-9,
+                                   atol=1e-12)
+    keys = np.r_[0:6, 36:39, n - 15:n - 12, n - 6:n]  # an image, a point, re-opened ones
+    blocks = aug.diagonal_blocks(keys, np.array([6, 3, 3, 6]))
+    for blk, sub in zip(blocks, (keys[:6], keys[6:9], keys[9:12], keys[12:]), strict=True):
+        np.testing.assert_allclose(blk, Q[np.ix_(sub, sub)], rtol=1e-9, atol=1e-12)
+    keep = np.setdiff1d(np.arange(n), np.r_[0:6, n - 3:n])  # then a departure
+    np.testing.assert_allclose(MarginalFactor.of(aug, keep).block(idx[1:5] - 6),
+                               Q[np.ix_(keep, keep)][np.ix_(idx[1:5] - 6, idx[1:5] - 6)],
+                               rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize("sparse", [False, True])
