@@ -93,9 +93,7 @@ class Covariance(Enum):
     NONE = "none"
     BLOCKS = "blocks"  # 6x6 per image, 3x3 per point
     FULL = "full"  # dense matrix over [EOPs..., GPs...] (small blocks only)
-    #: the dense normal matrix over [EOPs, camera, GPs] alone (``full_normal``): what the
-    #: sequential information engine starts from; its inverse is never formed
-    NORMAL = "normal"
+    NORMAL = "normal"  # the normal matrix alone (full_normal): the information engine
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -154,8 +152,7 @@ class SimResult:
     eop_cofactor: FloatArray | None = None
     gp_cofactor: FloatArray | None = None
     full_cofactor: FloatArray | None = None
-    #: the normal matrix (Covariance.FULL: the inverse of ``full_cofactor``; and NORMAL)
-    full_normal: FloatArray | None = None
+    full_normal: FloatArray | None = None  # the normal matrix (Covariance.FULL, NORMAL)
     undetermined: np.ndarray | None = None  # (m,) bool: points the data do not determine
     #: The camera at the solution (the input camera unless self-calibrating) and the
     #: cofactor of its free interior parameters, (c, c); ``full_*`` then hold them between
@@ -334,15 +331,14 @@ def adjust_block(
     rms_px = float(np.sqrt(np.mean(res_img**2))) if img.size else float("nan")
     eop_cof = gp_cof = full = normal = None
     cam_cof = camera_cofactor(nrm) if c else None
+    if covariance in (Covariance.FULL, Covariance.NORMAL):
+        normal = full_normal(nrm, n, m)
     if covariance is Covariance.FULL:
         full = full_cofactor(nrm, n, m)
-        normal = full_normal(nrm, n, m)
         eop_cof = np.stack([full[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] for i in range(n)])
         off = EOP_SIZE * n + c
         gp_cof = (np.stack([full[off + 3 * j : off + 3 * j + 3, off + 3 * j : off + 3 * j + 3]
                             for j in range(m)]) if m else np.zeros((0, 3, 3)))
-    elif covariance is Covariance.NORMAL:
-        normal = full_normal(nrm, n, m)
     elif covariance is Covariance.BLOCKS:
         eop_cof = eop_cofactor_blocks(nrm, n)
         gp_cof = gp_cofactors(nrm, data) if m else np.zeros((0, 3, 3))
