@@ -75,3 +75,46 @@ def nav_disagreement_warning(eops: EopTable, nav: NavTable, nav_sigma: FloatArra
             f"{IMAGE_LIMIT_SIGMA:g} σ of their GPS/INS (r.m.s. {rms_pos:.1f} σ in position, "
             f"{rms_att:.1f} σ in attitude): the images and the GPS/INS disagree on much of "
             f"the flight; {cause}")
+
+
+#: A single fix is named (:func:`nav_fault_warnings`) when one of its components lies
+#: beyond this many σ of the adjusted EOP: clean flights stay within 3.5 σ (Seneca's INS,
+#: 5-20 deg off at σ 5 / 15 deg, and four rendered flights), a GNSS blunder of 30-40 m at
+#: σ 3-5 m lies 8-12 σ off.
+FAULT_LIMIT_SIGMA = 5.0
+#: At most this many fixes are named, then counted.
+MAX_FAULT_WARNINGS = 10
+_GROUPS = (("position", "a GNSS", ("X", "Y", "Z"), " m"),
+           ("attitude", "an INS", ("ω", "φ", "κ"), "°"))
+
+
+def nav_fault_warnings(eops: EopTable, nav: NavTable, nav_sigma: FloatArray) -> list[str]:
+    """One line per GPS/INS fix (an image's position or attitude) that one of its components
+    puts beyond :data:`FAULT_LIMIT_SIGMA` σ of the adjusted EOP: the tie points placed the
+    image and the robust loss weighed the fix down, but only run.json said so
+    (``robustness.nav_robust``, a weight). Not when the disagreement is systematic
+    (:func:`nav_disagreement_warning` says it then); an image without tie points rests on
+    its fix and is not judged here (its own warning)."""
+    fix = np.all(np.isfinite(nav.eop), axis=1)
+    ids = tuple(iid for iid, ok in zip(nav.image_ids, fix, strict=True) if ok)
+    rows, d_pos, d_att = eop_differences(eops.image_ids, eops.eop, ids, nav.eop[fix])
+    sigma = np.asarray(nav_sigma, dtype=np.float64)
+    diffs = (d_pos, d_att)  # metres; degrees
+    sig = (sigma[:3], np.degrees(sigma[3:]))
+    lines = []
+    for k, row in enumerate(rows):
+        for (group, source, names, unit), d, s in zip(_GROUPS, diffs, sig, strict=True):
+            z = np.abs(d[k] / s)
+            worst = int(np.argmax(z))
+            if z[worst] > FAULT_LIMIT_SIGMA:
+                lines.append(
+                    f"{eops.image_ids[row]}: its GPS/INS {group} lies "
+                    f"{np.linalg.norm(d[k]):.1f}{unit} from the adjusted one "
+                    f"({names[worst]} {-d[k][worst]:+.1f}{unit}: {z[worst]:.1f} σ): {source} "
+                    f"fault? The tie points place the image; the robust loss weighed that "
+                    f"fix down")
+    if len(lines) > MAX_FAULT_WARNINGS:
+        lines = lines[:MAX_FAULT_WARNINGS] + [
+            f"{len(lines) - MAX_FAULT_WARNINGS} more GPS/INS fix(es) beyond "
+            f"{FAULT_LIMIT_SIGMA:g} σ of the adjusted EOPs"]
+    return lines

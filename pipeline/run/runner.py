@@ -47,7 +47,7 @@ from pipeline.run.journal import (
     read_journal,
     replay_checks,
 )
-from pipeline.run.nav_agreement import nav_disagreement_warning
+from pipeline.run.nav_agreement import nav_disagreement_warning, nav_fault_warnings
 from pipeline.run.robustness import RobustnessRecord, robustness_record
 from pipeline.run.session import Estimator, ImageListener, RunSession
 from pipeline.run.sources import ImageSource, ObservationSource
@@ -382,6 +382,8 @@ def publish_run(out: Path, session: RunSession, solution: Solution, *, method: M
         camera_fixed=options.calibration is None)
     if disagreement is not None:
         extra.append(disagreement)
+    else:  # the odd fix the tie points overruled
+        extra += nav_fault_warnings(eops, inputs.nav, inputs.nav_sigma)
     if extra and echo_warnings:
         console = Console(stderr=True, soft_wrap=True)
         for warning in extra:

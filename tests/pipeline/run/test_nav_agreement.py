@@ -1,12 +1,16 @@
-"""The warning that the adjusted EOPs and the GPS/INS disagree as a whole
-(pipeline.run.nav_agreement)."""
+"""The warnings that the adjusted EOPs and the GPS/INS disagree as a whole, or for the odd
+fix (pipeline.run.nav_agreement)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from pipeline.common.tables import EopTable, NavTable
-from pipeline.run.nav_agreement import nav_disagreement_warning
+from pipeline.run.nav_agreement import (
+    MAX_FAULT_WARNINGS,
+    nav_disagreement_warning,
+    nav_fault_warnings,
+)
 
 #: The GPS/INS σ of the tests: 1.5 m, 2° (metres, radians).
 SIGMA = np.r_[1.5, 1.5, 1.5, np.radians([2.0, 2.0, 2.0])]
@@ -65,3 +69,27 @@ def test_dropouts_and_images_left_out_are_not_judged() -> None:
     assert nav_disagreement_warning(eops, dropped, SIGMA, camera_fixed=True) is None
     few = EopTable(image_ids=eops.image_ids[:7], eop=eops.eop[:7], sigma=eops.sigma[:7])
     assert nav_disagreement_warning(few, bent, SIGMA, camera_fixed=True) is None
+
+
+def test_the_odd_fix_beyond_five_sigma_is_named_with_its_offset() -> None:
+    """A GNSS blunder the tie points overruled was a weight in run.json only: now a line
+    names the image, the fix's offset and its component (Seneca with one height 40 m off:
+    the warning below, and nothing for the clean flight)."""
+    eops, nav = _tables(40, seed=4)
+    assert nav_fault_warnings(eops, nav, SIGMA) == []  # clean: within ~3 σ
+    faults = _shift(nav, np.array([7]), np.r_[0.0, 0.0, 12.0, 0.0, 0.0, 0.0])
+    faults = _shift(faults, np.array([20]), np.r_[0.0, 0.0, 0.0, 0.0, 0.0, np.radians(30.0)])
+    lines = nav_fault_warnings(eops, faults, SIGMA)
+    assert len(lines) == 2 and all("\n" not in line for line in lines)
+    assert lines[0].startswith("img_007: its GPS/INS position lies 1")
+    assert "(Z +1" in lines[0] and "a GNSS fault?" in lines[0]
+    assert lines[1].startswith("img_020: its GPS/INS attitude lies 2")
+    assert "° from the adjusted one (κ +2" in lines[1] and "an INS fault?" in lines[1]
+    # a dropout is not judged; many faults are counted beyond the first ten
+    gaps = faults.eop.copy()
+    gaps[7] = np.nan
+    dropped = NavTable(image_ids=nav.image_ids, times_s=nav.times_s, eop=gaps)
+    assert len(nav_fault_warnings(eops, dropped, SIGMA)) == 1
+    many = _shift(nav, np.arange(0, 36, 3), np.r_[0.0, 0.0, 12.0, 0.0, 0.0, 0.0])
+    lines = nav_fault_warnings(eops, many, SIGMA)
+    assert len(lines) == MAX_FAULT_WARNINGS + 1 and lines[-1].startswith("2 more GPS/INS fix")
