@@ -222,7 +222,7 @@ class Window:
         ``L`` changes again (the next update adds its rows), the cofactor blocks the update
         needs come from the factorisation of the ``L`` before the departure
         (:class:`seqat.information.MarginalFactor`): a departure costs no factorisation."""
-        base = None if self.inverse else (self._factor or self._marginal)
+        base = None if self.inverse else self.current_solver()
         if self.inverse:
             self._Q = self.Q[np.ix_(keep, keep)]
         self.L = L
