@@ -208,11 +208,10 @@ class Window:
             self.factor()
 
     def _solver(self) -> SolverLike:
-        """What answers for ``Q`` (information engine): the factorisation of ``L``, or, right
-        after a departure, the one the departed parameters left (:meth:`marginalise`)."""
-        if self._factor is None and self._marginal is not None:
-            return self._marginal
-        return self.factor()
+        """What answers for ``Q`` (information engine): :meth:`current_solver` (the
+        factorisation of ``L``, or right after a departure or a re-opening a view of the
+        one before), else a factorisation of ``L`` now."""
+        return self.current_solver() or self.factor()
 
     def marginalise(self, keep_keys: list[Key], keep: np.ndarray, L: WindowMatrix | None) -> None:
         """The window after parameters left: ``keep_keys`` stay (window indices ``keep``),

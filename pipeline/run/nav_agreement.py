@@ -30,6 +30,14 @@ SYSTEMATIC_SHARE = 0.25
 MIN_IMAGES = 8
 
 
+def _from_fixes(eops: EopTable, nav: NavTable) -> tuple[np.ndarray, FloatArray, FloatArray]:
+    """:func:`eop_differences` of the published EOPs from the GPS/INS fixes (rows of a GNSS
+    dropout, non-finite, left out)."""
+    fix = np.all(np.isfinite(nav.eop), axis=1)
+    ids = tuple(iid for iid, ok in zip(nav.image_ids, fix, strict=True) if ok)
+    return eop_differences(eops.image_ids, eops.eop, ids, nav.eop[fix])
+
+
 def nav_disagreement_warning(eops: EopTable, nav: NavTable, nav_sigma: FloatArray, *,
                              camera_fixed: bool) -> str | None:
     """A one-line warning when the images and the GPS/INS disagree systematically.
@@ -53,9 +61,7 @@ def nav_disagreement_warning(eops: EopTable, nav: NavTable, nav_sigma: FloatArra
         ``None`` when at most :data:`SYSTEMATIC_SHARE` of the images disagree (or fewer
         than :data:`MIN_IMAGES` have a fix).
     """
-    fix = np.all(np.isfinite(nav.eop), axis=1)
-    ids = tuple(iid for iid, ok in zip(nav.image_ids, fix, strict=True) if ok)
-    rows, d_pos, d_att = eop_differences(eops.image_ids, eops.eop, ids, nav.eop[fix])
+    rows, d_pos, d_att = _from_fixes(eops, nav)
     if rows.size < MIN_IMAGES:
         return None
     sigma = np.asarray(nav_sigma, dtype=np.float64)
@@ -95,9 +101,7 @@ def nav_fault_warnings(eops: EopTable, nav: NavTable, nav_sigma: FloatArray) -> 
     (``robustness.nav_robust``, a weight). Not when the disagreement is systematic
     (:func:`nav_disagreement_warning` says it then); an image without tie points rests on
     its fix and is not judged here (its own warning)."""
-    fix = np.all(np.isfinite(nav.eop), axis=1)
-    ids = tuple(iid for iid, ok in zip(nav.image_ids, fix, strict=True) if ok)
-    rows, d_pos, d_att = eop_differences(eops.image_ids, eops.eop, ids, nav.eop[fix])
+    rows, d_pos, d_att = _from_fixes(eops, nav)
     sigma = np.asarray(nav_sigma, dtype=np.float64)
     diffs = (d_pos, d_att)  # metres; degrees
     sig = (sigma[:3], np.degrees(sigma[3:]))
