@@ -27,8 +27,6 @@ negative variances downstream.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 import scipy.linalg
 import scipy.sparse
@@ -202,6 +200,13 @@ def gather_parts(L: FloatArray | SparseMatrix, r_idx: np.ndarray, p_idx: np.ndar
     D = np.bincount(flat, weights=Lpp.data[same],
                     minlength=npt * GP_SIZE**2).reshape(npt, GP_SIZE, GP_SIZE)
     return D, L_RR, L_RP
+
+
+def _csc_ranges(indptr: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Positions in a CSC matrix's ``indices``/``data`` of the entries of columns ``cols``."""
+    lo, hi = indptr[cols], indptr[cols + 1]
+    counts = hi - lo
+    return np.repeat(lo - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())
 
 
 def _canonical_csc(M: FloatArray | SparseMatrix) -> scipy.sparse.csc_array:
@@ -446,7 +451,21 @@ class InformationFactor:
         reads the block of ``Q_RR`` on the rows its columns of ``B`` live on
         (:func:`seqat.kernels.point_quadratic`)."""
         B = self._by_columns("B")
-        extra = kernels.point_quadratic(B.indptr, B.indices, B.data, self._q_rr(), pts)
+        indices = B.indices
+        if self._Qrr is None:
+            # only the rows B_p lives on: the images' (and the camera's), not the coupled
+            # GPs' (of a block's 909 kept parameters, 615 were; their Q_RR, from V, was 20 of
+            # a 350 ms update)
+            pts = np.asarray(pts, dtype=np.int64)
+            cols = (pts[:, None] * GP_SIZE + np.arange(GP_SIZE)).ravel()
+            sub = np.unique(indices[_csc_ranges(B.indptr, cols)])
+            if 2 * sub.size <= self.r_idx.size:
+                remap = np.zeros(self.r_idx.size, dtype=np.int64)
+                remap[sub] = np.arange(sub.size)
+                extra = kernels.point_quadratic(B.indptr, remap[indices], B.data,
+                                                self._q_rr_block(sub), pts)
+                return extra if full else np.einsum("pii->pi", extra)
+        extra = kernels.point_quadratic(B.indptr, indices, B.data, self._q_rr(), pts)
         return extra if full else np.einsum("pii->pi", extra)
 
     def block(self, idx: np.ndarray) -> FloatArray:
@@ -630,143 +649,3 @@ class InformationFactor:
         blocked = np.block([[Qrr, Qrp], [Qrp.T, Qpp]])  # R first, then P
         order = np.argsort(np.concatenate([self.r_idx, self.p_idx.ravel()]))
         return blocked.take(order, axis=0)[:, order]
-
-
-class MarginalFactor:
-    """The factorisation of a window's ``L`` answering for the window after parameters
-    left it: marginalising is deleting rows and columns of ``Q = L^-1``, so
-    ``Q' = Q[keep, keep]`` (``keep``: the staying parameters' indices in ``L``). The
-    Schur complement ``L'`` the departure forms has exactly this inverse; until ``L'``
-    changes, the update reads its cofactor blocks here instead of factorising ``L'``
-    (docs/algorithm.md, *Engines*)."""
-
-    def __init__(self, base: InformationFactor | AugmentedFactor, keep: np.ndarray) -> None:
-        self.base = base
-        self.keep = np.asarray(keep, dtype=np.int64)
-        self.n = self.keep.size
-
-    @classmethod
-    def of(cls, base: SolverLike, keep: np.ndarray) -> MarginalFactor:
-        """The marginal on ``keep`` of ``base`` (itself possibly a marginal)."""
-        if isinstance(base, MarginalFactor):
-            return cls(base.base, base.keep[keep])
-        return cls(base, keep)
-
-    def solve(self, b: FloatArray) -> FloatArray:
-        """``Q' b`` (``b`` of shape (n,) or (n, k))."""
-        full = np.zeros((self.base.n,) + b.shape[1:])
-        full[self.keep] = b
-        return self.base.solve(full)[self.keep]
-
-    def columns(self, idx: np.ndarray) -> FloatArray:
-        """``Q'[:, idx]``."""
-        return self.base.columns(self.keep[idx])[self.keep]
-
-    def block(self, idx: np.ndarray) -> FloatArray:
-        """``Q'[idx, idx]``."""
-        return self.base.block(self.keep[idx])
-
-    def diagonal_blocks(self, idx: np.ndarray, sizes: np.ndarray) -> list[FloatArray]:
-        """:meth:`InformationFactor.diagonal_blocks` of ``Q'``."""
-        return self.base.diagonal_blocks(self.keep[idx], sizes)
-
-    def entries(self, rows: np.ndarray, cols: np.ndarray) -> FloatArray:
-        """``Q'[rows, cols]`` (outer)."""
-        return self.base.entries(self.keep[rows], self.keep[cols])
-
-
-class AugmentedFactor:
-    """The factorisation of a window's ``L`` answering for the window after departed
-    parameters were re-opened at its end with the conditional prior
-    ``x_R = mean + J x_W + e``, ``e ~ (0, C)`` (docs/algorithm.md, *Re-opening departed
-    parameters*). A prior of new parameters given the window does not change the window's
-    marginal, so with ``Q = L^-1``::
-
-        Q' = [[Q,   Q J^T        ],
-              [J Q, J Q J^T + C ]]
-
-    is the exact inverse of the augmented ``L'`` the re-opening forms. Until ``L'`` changes
-    (the update adds its rows), the update reads its cofactor blocks here, with solves of
-    ``base`` on at most ``m`` columns, instead of factorising ``L'`` (a block's returning
-    strip re-opened 35-45 keys per image into ~4000-parameter windows: a factorisation of
-    ~50 ms each, twice per update). ``L'`` is positive definite when ``L`` and ``C`` are,
-    so no rank check is lost."""
-
-    def __init__(self, base: SolverLike, J: FloatArray, C: FloatArray) -> None:
-        self.base = base
-        self.J = np.asarray(J, dtype=np.float64)
-        self.C = 0.5 * (C + C.T)
-        self.nw = self.J.shape[1]
-        self.n = self.nw + self.J.shape[0]
-
-    def solve(self, b: FloatArray) -> FloatArray:
-        """``Q' b`` (``b`` of shape (n,) or (n, k)): one solve of ``base``."""
-        b_w, b_r = b[: self.nw], b[self.nw :]
-        y = self.base.solve(b_w + self.J.T @ b_r)
-        return np.concatenate([y, self.J @ y + self.C @ b_r])
-
-    def columns(self, idx: np.ndarray) -> FloatArray:
-        """``Q'[:, idx]``."""
-        idx = np.asarray(idx, dtype=np.int64)
-        E = np.zeros((self.n, idx.size))
-        E[idx, np.arange(idx.size)] = 1.0
-        return self.solve(E)
-
-    def entries(self, rows: np.ndarray, cols: np.ndarray) -> FloatArray:
-        """``Q'[rows, cols]`` (outer): ``base``'s entries on the window's parameters, one
-        solve on the re-opened ones (``Q J^T``) for the rest."""
-        rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
-        return self._outer(rows, cols, self.base.entries)
-
-    def block(self, idx: np.ndarray) -> FloatArray:
-        """``Q'[idx, idx]``, exactly symmetric (``base``'s own block on the window's)."""
-        idx = np.asarray(idx, dtype=np.int64)
-        out = self._outer(idx, idx, lambda r, c: self.base.block(r))
-        return 0.5 * (out + out.T)
-
-    def _outer(self, rows: np.ndarray, cols: np.ndarray,
-               window: Callable[[np.ndarray, np.ndarray], FloatArray]) -> FloatArray:
-        """``Q'[rows, cols]`` with ``window(rows_w, cols_w)`` giving ``Q``'s part."""
-        nw = self.nw
-        rw, cw = rows < nw, cols < nw
-        out = np.empty((rows.size, cols.size))
-        if rw.any() and cw.any():
-            out[np.ix_(rw, cw)] = window(rows[rw], cols[cw])
-        re = np.union1d(rows[~rw], cols[~cw]) - nw  # the re-opened parameters asked for
-        if not re.size:
-            return out
-        JQ = self.base.solve(self.J[re].T).T  # (len(re), nw): rows ``re`` of J Q
-        at = np.full(self.n - nw, -1, dtype=np.int64)
-        at[re] = np.arange(re.size)
-        r_re, c_re = rows[~rw] - nw, cols[~cw] - nw
-        if r_re.size:  # J Q on the window's columns, J Q J^T + C on the re-opened ones
-            out[np.ix_(~rw, cw)] = JQ[np.ix_(at[r_re], cols[cw])]
-            out[np.ix_(~rw, ~cw)] = JQ[at[r_re]] @ self.J[c_re].T + self.C[np.ix_(r_re, c_re)]
-        if c_re.size and rw.any():  # Q J^T
-            out[np.ix_(rw, ~cw)] = JQ[np.ix_(at[c_re], rows[rw])].T
-        return out
-
-    def diagonal_blocks(self, idx: np.ndarray, sizes: np.ndarray) -> list[FloatArray]:
-        """The diagonal blocks of ``Q'[idx, idx]``, ``idx`` consecutive groups of ``sizes``
-        (one key each: wholly in the window or wholly re-opened)."""
-        idx = np.asarray(idx, dtype=np.int64)
-        sizes = np.asarray(sizes, dtype=np.int64)
-        starts = np.cumsum(sizes) - sizes
-        groups = [idx[a:a + m] for a, m in zip(starts, sizes, strict=True)]
-        old = [g for g in range(len(groups)) if groups[g][0] < self.nw]
-        out: list[FloatArray] = [np.zeros((0, 0))] * len(groups)
-        if old:
-            sub = self.base.diagonal_blocks(np.concatenate([groups[g] for g in old]),
-                                            sizes[old])
-            for g, q in zip(old, sub, strict=True):
-                out[g] = q
-        for g in range(len(groups)):
-            if groups[g][0] >= self.nw:
-                out[g] = self.block(groups[g])
-        return out
-
-
-#: What answers for a window's cofactor blocks: its factorisation, or a view of the one it
-#: had before a departure (:class:`MarginalFactor`) or a re-opening
-#: (:class:`AugmentedFactor`).
-SolverLike = InformationFactor | MarginalFactor | AugmentedFactor

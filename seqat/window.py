@@ -18,15 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from seqat.errors import EstimationError
-from seqat.information import (
-    AugmentedFactor,
-    InformationFactor,
-    MarginalFactor,
-    RankDeficiency,
-    SolverLike,
-    WindowMatrix,
-    submatrix,
-)
+from seqat.factor_views import AugmentedFactor, MarginalFactor, SolverLike
+from seqat.information import InformationFactor, RankDeficiency, WindowMatrix, submatrix
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray
 
 #: Parameter key: (kind, index) with kind "e" (EOP of image index), "p" (GP index) or "c"
@@ -220,7 +213,7 @@ class Window:
         Marginalising is deleting rows and columns of ``Q``: ``Q' = Q[keep, keep]``. Until
         ``L`` changes again (the next update adds its rows), the cofactor blocks the update
         needs come from the factorisation of the ``L`` before the departure
-        (:class:`seqat.information.MarginalFactor`): a departure costs no factorisation."""
+        (:class:`seqat.factor_views.MarginalFactor`): a departure costs no factorisation."""
         base = None if self.inverse else self.current_solver()
         if self.inverse:
             self._Q = self.Q[np.ix_(keep, keep)]
@@ -234,7 +227,7 @@ class Window:
         """Departed parameters re-opened at the end of the layout with the prior
         ``x_R = mean + J x_W + e``, ``e ~ (0, C)``, after ``L`` took that prior and the layout
         the keys: until ``L`` changes again the cofactor blocks come from ``base``, what
-        answered for the window before (:class:`seqat.information.AugmentedFactor`): a
+        answered for the window before (:class:`seqat.factor_views.AugmentedFactor`): a
         re-opening costs no factorisation. No-op without one (the inverse engine, or no
         factorisation at hand: the next request factorises)."""
         if not self.inverse and base is not None:

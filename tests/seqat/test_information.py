@@ -5,12 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from seqat.information import (
-    AugmentedFactor,
-    InformationFactor,
-    MarginalFactor,
-    RankDeficiency,
-)
+from seqat.factor_views import AugmentedFactor, MarginalFactor
+from seqat.information import InformationFactor, RankDeficiency
 from seqat.sequential import SequentialAT, SequentialOptions
 from seqat.simulate import SimulatedFlight
 
@@ -188,22 +184,26 @@ def test_point_marginals_read_per_point_blocks_even_when_its_columns_differ(
         np.testing.assert_array_equal(blk, blk.T)
 
 
-@pytest.mark.parametrize("sparse_l", [False, True])
+@pytest.mark.parametrize(("sparse_l", "n_e", "coupled"),
+                         [(False, 5, 3), (True, 5, 3), (True, 2, 8)])
 def test_sparse_window_factor_equals_the_dense_inverse(
-        sparse_l: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+        sparse_l: bool, n_e: int, coupled: int, monkeypatch: pytest.MonkeyPatch) -> None:
     """A large window (``L`` sparse, or dense with a large ``L_RP``): the Schur product and
-    the points' marginals point by point (seqat.kernels) give the dense inverse."""
+    the points' marginals point by point (seqat.kernels) give the dense inverse; with more
+    coupled (kept) GPs than EOPs, the points read ``Q_RR`` on the EOPs' rows only."""
     import scipy.sparse
 
     import seqat.information as information
 
     monkeypatch.setattr(information, "SPARSE_FROM", 0)
     rng = np.random.default_rng(17)
-    L, gp = _window_like(rng, n_e=5, n_p=30, coupled=3)
+    L, gp = _window_like(rng, n_e=n_e, n_p=30, coupled=coupled)
     Q = np.linalg.inv(L)
     f = InformationFactor(scipy.sparse.csr_array(L) if sparse_l else L, gp)
     assert scipy.sparse.issparse(f.B)
     np.testing.assert_allclose(f.diagonal(), np.diagonal(Q), rtol=1e-9)
+    # the EOPs' rows of Q_RR alone (not all of it) when the coupled GPs are most of R
+    assert (f._Qrr is None) == (3 * coupled > 6 * n_e)
     b = rng.standard_normal(L.shape[0])
     np.testing.assert_allclose(f.solve(b), Q @ b, rtol=1e-9, atol=1e-12)
     groups = [np.arange(6, 12), np.arange(int(gp[0]), int(gp[0]) + 3),
