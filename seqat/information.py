@@ -469,39 +469,52 @@ class InformationFactor:
         return extra if full else np.einsum("pii->pi", extra)
 
     def block(self, idx: np.ndarray) -> FloatArray:
-        """``Q[idx, idx]``, (k, k), without the n x k columns :meth:`columns` forms.
+        """``Q[idx, idx]``, (k, k), exactly symmetric, from the block of ``Q_RR`` on the rows
+        it reads: ``idx``'s kept parameters ``R`` and the rows ``e`` its eliminated points'
+        columns of ``B = L_RP D^-1`` live on (their images'), as
+        ``Q_Rp = -Q_RR B_p`` and ``Q_pp' = D_p^-1 [p = p'] + B_p^T Q_RR B_p'``.
 
-        With ``E`` the unit columns of ``idx``: ``x_R = S^-1 (E_R - B E_P)`` (r x k; ``B E_P``
-        is a selection of ``B``'s columns) and, on the eliminated rows of ``idx`` only,
-        ``x_p = D_p^-1 (E_p - L_Rp^T x_R)``. An update's touched block costs O(r^2 k), not
-        O(n r k) (docs/algorithm.md, *Engines*)."""
+        ``Q_RR`` on those ``t = |R u e|`` rows is ``V_t V_t^T`` when :meth:`_v` is at hand
+        (a small window, or the sigmas formed it: O(t^2 r)), else ``t`` columns of ``S^-1``
+        by one ``potrs`` (O(r^2 t)). An update's touched block on a block flight's returning
+        strip had k ~ 450 columns (a hundred points, three each) on ~150 such rows: the
+        points' columns were solved for one by one, O(r^2 k) (docs/algorithm.md,
+        *Engines*)."""
         idx = np.asarray(idx, dtype=np.int64)
-        k = idx.size
         rpos, ppos = self._positions()
-        if self._small():
-            return self._block_from_q_rr(idx, rpos, ppos)
-        in_r, in_p = rpos[idx] >= 0, ppos[idx] >= 0
-        M = np.zeros((self.r_idx.size, k))
-        M[rpos[idx[in_r]], np.flatnonzero(in_r)] = 1.0
-        jp = np.flatnonzero(in_p)
-        if jp.size:
-            M[:, jp] -= self._columns_of("B", ppos[idx[jp]])
-        xR = self._solve_S(M)
-        out = np.empty((k, k))
-        out[in_r] = xR[rpos[idx[in_r]]]
-        if jp.size:
-            q = ppos[idx[jp]]  # positions in P of the eliminated rows asked for
-            pts, at = np.unique(q // GP_SIZE, return_inverse=True)  # once per point
-            cols3 = (pts[:, None] * GP_SIZE + np.arange(GP_SIZE)).ravel()
-            if scipy.sparse.issparse(self.L_RP):  # its columns' few non-zeros: O(nnz k)
-                rhs = -(self._by_columns("L_RP")[:, cols3].T @ xR)
-            else:
-                rhs = -(self.L_RP[:, cols3].T @ xR)
-            rhs = rhs.reshape(pts.size, GP_SIZE, k)
-            rhs[at, q % GP_SIZE, jp] += 1.0  # E_p: the unit entries of idx's eliminated ones
-            x_p = np.matmul(self.Dinv[pts], rhs)  # (points, 3, k)
-            out[jp] = x_p[at, q % GP_SIZE]
-        return 0.5 * (out + out.T)
+        in_r = rpos[idx] >= 0
+        jr, jp = np.flatnonzero(in_r), np.flatnonzero(~in_r)
+        R = rpos[idx[jr]]
+        q = ppos[idx[jp]]  # positions in P of the eliminated entries asked for
+        Bq = self._columns_of("B", q)  # (r, |jp|)
+        e = np.flatnonzero(np.any(Bq != 0.0, axis=1))
+        T = np.union1d(R, e)  # the rows of Q_RR read, sorted
+        if self._V is not None or self._small():
+            QT = self._q_rr_block(T)
+        else:
+            E = np.zeros((self.r_idx.size, T.size))
+            E[T, np.arange(T.size)] = 1.0
+            QT = self._solve_S(E)[T]
+            QT = 0.5 * (QT + QT.T)
+        aR = np.searchsorted(T, R)
+        QRR = QT[np.ix_(aR, aR)]
+        if not jp.size:
+            return QRR
+        Be = Bq[e]
+        QB = QT[:, np.searchsorted(T, e)] @ Be  # Q_RR B_q on the rows T
+        PP = Be.T @ QB[np.searchsorted(T, e)]
+        blk, comp = q // GP_SIZE, q % GP_SIZE
+        a, b = np.nonzero(blk[:, None] == blk[None, :])  # the same point's entries
+        PP[a, b] += self.Dinv[blk[a], comp[a], comp[b]]
+        QRP = -QB[aR]
+        nr = jr.size  # kept entries first, then the eliminated ones; idx's order after
+        out = np.empty((idx.size, idx.size))
+        out[:nr, :nr] = QRR
+        out[:nr, nr:] = QRP
+        out[nr:, :nr] = QRP.T
+        out[nr:, nr:] = 0.5 * (PP + PP.T)
+        order = np.argsort(np.concatenate([jr, jp]))
+        return out.take(order, axis=0)[:, order]
 
     def diagonal_blocks(self, idx: np.ndarray, sizes: np.ndarray) -> list[FloatArray]:
         """The diagonal blocks of ``Q[idx, idx]``: ``idx`` is consecutive groups of
@@ -589,35 +602,6 @@ class InformationFactor:
         """A window whose ``L`` is dense (:data:`DENSE_UP_TO`): its cofactor blocks come
         from ``V = U^-1`` formed once (:meth:`_v`), cheaper there than a solve per request."""
         return self.n <= DENSE_UP_TO and not scipy.sparse.issparse(self.B)
-
-    def _block_from_q_rr(self, idx: np.ndarray, rpos: np.ndarray,
-                         ppos: np.ndarray) -> FloatArray:
-        """:meth:`block` from ``Q_RR = V V^T`` (:meth:`_v`): ``Q_Rp = -Q_RR B_p``,
-        ``Q_pp' = D_p^-1 [p = p'] + B_p^T Q_RR B_p'`` (``B = L_RP D^-1``) on the eliminated
-        entries asked for."""
-        V = self._v()
-        in_r = rpos[idx] >= 0
-        jr, jp = np.flatnonzero(in_r), np.flatnonzero(~in_r)
-        R = rpos[idx[jr]]
-        QRR = self._q_rr_block(R)
-        if not jp.size:
-            return QRR
-        q = ppos[idx[jp]]  # positions in P of the eliminated entries asked for
-        Bq = np.asarray(self.B)[:, q]
-        W = V.T @ Bq  # (r, |jp|): Q_RR B_q = V W
-        PP = W.T @ W
-        blk, comp = q // GP_SIZE, q % GP_SIZE
-        a, b = np.nonzero(blk[:, None] == blk[None, :])  # the same point's entries
-        PP[a, b] += self.Dinv[blk[a], comp[a], comp[b]]
-        QRP = -(V.take(R, axis=0) @ W)
-        nr = jr.size  # kept entries first, then the eliminated ones; idx's order after
-        out = np.empty((idx.size, idx.size))
-        out[:nr, :nr] = QRR
-        out[:nr, nr:] = QRP
-        out[nr:, :nr] = QRP.T
-        out[nr:, nr:] = 0.5 * (PP + PP.T)
-        order = np.argsort(np.concatenate([jr, jp]))
-        return out.take(order, axis=0)[:, order]
 
     def _by_columns(self, name: str) -> scipy.sparse.csc_array:
         """``B`` or ``L_RP`` (sparse: a large window's) by columns, rows sorted: as kept."""

@@ -201,7 +201,17 @@ def test_sparse_window_factor_equals_the_dense_inverse(
     Q = np.linalg.inv(L)
     f = InformationFactor(scipy.sparse.csr_array(L) if sparse_l else L, gp)
     assert scipy.sparse.issparse(f.B)
+    # a touched block: eliminated points, EOPs and a kept GP, in any order; by solves on the
+    # rows of Q_RR it reads, then (the sigmas formed V = U^-1) by V's rows
+    pts = gp[[4, 11, 20]]
+    idx = np.concatenate([pts[:2] + 2, [7, 1], pts[2] + np.arange(3), [6 * n_e + 1], [29]])
+    blocks = [f.block(idx)]
+    assert f._V is None
     np.testing.assert_allclose(f.diagonal(), np.diagonal(Q), rtol=1e-9)
+    blocks.append(f.block(idx))
+    for got in blocks:
+        np.testing.assert_allclose(got, Q[np.ix_(idx, idx)], rtol=1e-9, atol=1e-12)
+        np.testing.assert_array_equal(got, got.T)
     # the EOPs' rows of Q_RR alone (not all of it) when the coupled GPs are most of R
     assert (f._Qrr is None) == (3 * coupled > 6 * n_e)
     b = rng.standard_normal(L.shape[0])
