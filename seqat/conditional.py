@@ -156,6 +156,14 @@ class Departure:
                 self.coupling.toarray())
         return G
 
+    def split(self, G: FloatArray, start: int = 0) -> FloatArray:
+        """``G``, the gain with the first ``start`` splits applied, with the rest applied
+        too: every row (a re-opening keeps it for the next ones,
+        :meth:`seqat.departures.DepartureMixin._record_gain`)."""
+        for m_idx, K, r_idx in self.splits[start:]:
+            G = split_gain(G, m_idx, K, r_idx)
+        return G
+
     def rts_gain(self, departure_gain: FloatArray | None = None,
                  rows: np.ndarray | None = None) -> FloatArray:
         """``J`` (|F|, |W|): :meth:`departure_gain` (or the one given, the same kept by the
@@ -166,9 +174,7 @@ class Departure:
         whole of it, split after split, was 88 of a 369 ms update on a 196-image flight)."""
         G = self.departure_gain() if departure_gain is None else departure_gain
         if rows is None:
-            for m_idx, K, r_idx in self.splits:
-                G = split_gain(G, m_idx, K, r_idx)
-            return G
+            return self.split(G)
         need = [np.asarray(rows, np.int64)]  # the rows wanted of each level, last first
         for m_idx, _, r_idx in reversed(self.splits):
             need.append(np.union1d(m_idx[need[-1]], r_idx))

@@ -52,7 +52,7 @@ from seqat.window import (
 #: 0.39 s at 56). The paper strip (25), Seneca (70) and the rendered blocks (<= 70) are not
 #: cut by it (docs/benchmarks.md, *A block on a weak GPS/INS*).
 DEFAULT_MAX_WINDOW_IMAGES = 70
-#: The departure records' gains kept for re-openings (:meth:`DepartureMixin._departure_gain`)
+#: The departure records' gains kept for re-openings (:meth:`DepartureMixin._record_gain`)
 #: take at most this many bytes (a record's gain is |F| x |blanket|: ~0.2-3 MB on a block).
 GAIN_CACHE_BYTES = 64 * 2**20
 #: finish() re-opens the departed keys through their records only when they are at most this
@@ -679,7 +679,7 @@ class DepartureMixin:
                                    for k in members])
             JK = buf[:, cols].copy()
             buf[:, cols] = 0.0
-            G = dep.rts_gain(self._departure_gain(rec, dep), rows=src)
+            G = self._record_gain(rec, dep)[src]
             const += JK @ (dep.x_leaving[src] - G @ dep.x_staying)
             C += dep.conditional.quadratic(src, JK)
             JG = JK @ G
@@ -709,25 +709,41 @@ class DepartureMixin:
         mean = const + J @ w.x
         return mean, J, C
 
-    def _departure_gain(self, rec: int, dep: Departure) -> FloatArray:
-        """Record ``rec``'s :meth:`Departure.departure_gain`, kept for the next re-openings
-        while the kept ones stay under :data:`GAIN_CACHE_BYTES` (the least recently used
-        leave first).
+    def _record_gain(self, rec: int, dep: Departure) -> FloatArray:
+        """Record ``rec``'s RTS gain as it stands (:meth:`Departure.rts_gain`: its departure
+        gain with every split since applied), kept for the next re-openings while the kept
+        ones stay under :data:`GAIN_CACHE_BYTES` (the least recently used leave first).
 
         Successive re-openings on a block walk the same chain of records (the previous
-        strip's), each forming the same gain by a solve with one column per parameter of
-        its blanket: ~12 records per re-opening, 1011 solves and 1.26 s of a 204-image
-        flight's updates, 106 solves with the gains kept (docs/benchmarks.md, *Compiled
-        point kernels*)."""
+        strip's), each forming the same departure gain by a solve with one column per
+        parameter of its blanket: ~12 records per re-opening, 1011 solves and 1.26 s of a
+        204-image flight's updates, 106 solves with the gains kept (docs/benchmarks.md,
+        *Compiled point kernels*). Each split is applied once, to every row, when a
+        re-opening first reads the record after it, not again through every split at each
+        reading (a record split nine times took 5 ms per reading on a block's returning
+        strip). The departure gain is kept beside it: a second start's trial can leave
+        splits that the estimator's state no longer has (the splits applied are compared by
+        identity)."""
         gains = self._gains
-        G = gains.pop(rec, None)
-        if G is None:
-            G = dep.departure_gain()
-            G.setflags(write=False)  # shared by the re-openings to come: read only
-        gains[rec] = G  # the most recent last
-        total = sum(g.nbytes for g in gains.values())
+        kept = gains.pop(rec, None)
+        if kept is None:
+            G0 = dep.departure_gain()
+            G0.setflags(write=False)  # shared by the re-openings to come: read only
+            kept = (G0, G0, ())
+        G0, G, done = kept
+        if len(done) > len(dep.splits) or any(a is not b for a, b
+                                              in zip(done, dep.splits, strict=False)):
+            G, done = G0, ()
+        if len(done) < len(dep.splits):
+            G = dep.split(G, len(done))
+            G.setflags(write=False)
+            done = dep.splits
+        gains[rec] = (G0, G, done)  # the most recent last
+        total = sum(g0.nbytes + (g.nbytes if g is not g0 else 0)
+                    for g0, g, _ in gains.values())
         while total > GAIN_CACHE_BYTES and len(gains) > 1:
-            total -= gains.pop(next(iter(gains))).nbytes
+            g0, g, _ = gains.pop(next(iter(gains)))
+            total -= g0.nbytes + (g.nbytes if g is not g0 else 0)
         return G
 
     def _split_records(self, keys: list[Key]) -> None:

@@ -162,8 +162,9 @@ class SecondStartMixin:
         self.__dict__.update(saved)
         self._sink, self.recorded, self.second_starts_tried = sink, recorded, tried
         self._w.on_singular = self._drop_undetermined
-        # a record's departure gain does not change while it lives (splits keep it); the
-        # records the trial added are gone with it, and their numbers will be reused
+        # a record's departure gain does not change while it lives (splits keep it; the split
+        # gain kept beside it is checked against the record's splits); the records the trial
+        # added are gone with it, and their numbers will be reused
         n = len(self._departures)
         self._gains = {r: g for r, g in gains.items() if r < n}
 

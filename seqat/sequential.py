@@ -165,7 +165,8 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
         self._frozen_eop: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._frozen_gp: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._departures: list[Departure | None] = []  # None: finalised (smoothing_lag)
-        self._gains: dict[int, FloatArray] = {}  # records' departure gains, least recent first
+        # records' gains (departure gain, split gain, splits applied), least recent first
+        self._gains: dict[int, tuple[FloatArray, FloatArray, tuple]] = {}
         self._first_record = 0  # records before this one are finalised
         self._last_finalised = 0
         # Final parameters (smoothing_lag): local value and sigma (and GP observations).

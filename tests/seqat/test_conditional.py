@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import copy
+import types
+
 import numpy as np
 import pytest
 
 from seqat.conditional import Conditional
+from seqat.departures import DepartureMixin
 from seqat.information import InformationFactor
 from tests.seqat.test_information import _window_like
 
@@ -111,19 +115,47 @@ def test_a_records_gain_formed_on_request_equals_the_dense_one_after_two_splits(
     J[:, support] = -Q @ L_fs
     np.testing.assert_allclose(dep.rts_gain(), J, rtol=1e-9, atol=1e-12)
     C = Q
+    # the gain a re-opening reads, kept from one split to the next (each applied once)
+    holder = types.SimpleNamespace(_gains={})
+    np.testing.assert_allclose(DepartureMixin._record_gain(holder, 0, dep), J, rtol=1e-9,
+                               atol=1e-12)
+    seen = []
     for r in (np.array([0, 1, 2, 3, 4, 5]), np.array([2, 3, 4])):  # an image, then a GP
         m = np.setdiff1d(np.arange(C.shape[0]), r)
         K, C_next = _split(C, r, m)
         J = np.hstack([J[m] - K @ J[r], K])
-        Kc = np.linalg.solve(dep.conditional.block(r), dep.conditional.entries(r, m)).T
-        dep = Departure(leaving=(), staying=(), x_leaving=np.zeros(m.size),
-                        x_staying=np.zeros(J.shape[1]),
-                        conditional=dep.conditional.restricted(m, Kc, dep.conditional.entries(
-                            r, m)), at=0, coupling=dep.coupling,
-                        coupling_cols=dep.coupling_cols, gain_width=dep.gain_width,
-                        splits=dep.splits + ((m, Kc, r),))
+        dep = _split_record(dep, r, m, J.shape[1])
         C = C_next
         np.testing.assert_allclose(dep.rts_gain(), J, rtol=1e-8, atol=1e-11)
         # a few rows (in any order) carried through the splits alone: the same rows
         rows = np.array([m.size - 1, 0, 5, 2])
         np.testing.assert_allclose(dep.rts_gain(rows=rows), J[rows], rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(DepartureMixin._record_gain(holder, 0, dep), J,
+                                   rtol=1e-8, atol=1e-11)
+        assert holder._gains[0][2] is dep.splits  # applied, kept
+        seen.append((dep, J))
+    # a second start's restored state: the same splits, copied (not the ones applied); the
+    # record before its last split (a trial's split undone): formed again, not misread
+    for old, J_old in (copy.deepcopy(seen[-1]), seen[0]):
+        np.testing.assert_allclose(DepartureMixin._record_gain(holder, 0, old), J_old,
+                                   rtol=1e-8, atol=1e-11)
+    # ... and as many splits as the kept gain has, but not the same ones
+    DepartureMixin._record_gain(holder, 0, seen[-1][0])
+    r = np.array([6, 7, 8])
+    other = _split_record(seen[0][0], r, np.setdiff1d(np.arange(seen[0][1].shape[0]), r),
+                          seen[0][1].shape[1] + r.size)
+    np.testing.assert_allclose(DepartureMixin._record_gain(holder, 0, other), other.rts_gain(),
+                               rtol=1e-12, atol=1e-14)
+
+
+def _split_record(dep, r: np.ndarray, m: np.ndarray, width: int):  # noqa: ANN001, ANN202
+    """``dep`` split on its rows ``r`` (re-opened; ``m`` stay), as a re-opening splits it."""
+    from seqat.conditional import Departure
+
+    Kc = np.linalg.solve(dep.conditional.block(r), dep.conditional.entries(r, m)).T
+    return Departure(leaving=(), staying=(), x_leaving=np.zeros(m.size),
+                     x_staying=np.zeros(width),
+                     conditional=dep.conditional.restricted(m, Kc,
+                                                            dep.conditional.entries(r, m)),
+                     at=0, coupling=dep.coupling, coupling_cols=dep.coupling_cols,
+                     gain_width=dep.gain_width, splits=dep.splits + ((m, Kc, r),))

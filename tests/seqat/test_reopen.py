@@ -68,7 +68,7 @@ def test_reopened_parameters_equal_seq_f_through_a_chain_of_departures(
         _reopen_and_compare(cut, full, gone[:1])
         gone = gone[1:]
         # the records' departure gains are kept: the next re-opening applies the split to
-        # the kept gain of the record it split (DepartureMixin._departure_gain)
+        # the kept gain of the record it split (DepartureMixin._record_gain)
         assert cut._gains
     _reopen_and_compare(cut, full, gone, cofactor=not one_first)
     assert cut.reopened == len(gone) + one_first
