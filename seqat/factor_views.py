@@ -34,11 +34,13 @@ class MarginalFactor:
             return cls(base.base, base.keep[keep])
         return cls(base, keep)
 
-    def solve(self, b: FloatArray) -> FloatArray:
-        """``Q' b`` (``b`` of shape (n,) or (n, k))."""
+    def solve(self, b: FloatArray, rows: np.ndarray | None = None) -> FloatArray:
+        """``Q' b`` (``b`` of shape (n,) or (n, k)); with ``rows``, only those rows."""
         full = np.zeros((self.base.n,) + b.shape[1:])
         full[self.keep] = b
-        return self.base.solve(full)[self.keep]
+        if rows is None:
+            return self.base.solve(full)[self.keep]
+        return self.base.solve(full, self.keep[np.asarray(rows, dtype=np.int64)])
 
     def columns(self, idx: np.ndarray) -> FloatArray:
         """``Q'[:, idx]``."""
@@ -80,12 +82,28 @@ class AugmentedFactor:
         self.C = 0.5 * (C + C.T)
         self.nw = self.J.shape[1]
         self.n = self.nw + self.J.shape[0]
+        #: the window parameters the prior refers to (J's non-zero columns)
+        self.support = np.flatnonzero(np.any(self.J != 0.0, axis=0))
 
-    def solve(self, b: FloatArray) -> FloatArray:
-        """``Q' b`` (``b`` of shape (n,) or (n, k)): one solve of ``base``."""
+    def solve(self, b: FloatArray, rows: np.ndarray | None = None) -> FloatArray:
+        """``Q' b`` (``b`` of shape (n,) or (n, k)): one solve of ``base``; with ``rows``,
+        only those rows (of ``base``'s solution, those rows and ``J``'s support)."""
         b_w, b_r = b[: self.nw], b[self.nw :]
-        y = self.base.solve(b_w + self.J.T @ b_r)
-        return np.concatenate([y, self.J @ y + self.C @ b_r])
+        if rows is None:
+            y = self.base.solve(b_w + self.J.T @ b_r)
+            return np.concatenate([y, self.J @ y + self.C @ b_r])
+        rows = np.asarray(rows, dtype=np.int64)
+        win = rows < self.nw
+        need = np.union1d(rows[win], self.support if not win.all() else [])
+        y = self.base.solve(b_w + self.J.T @ b_r, need.astype(np.int64))
+        out = np.empty((rows.size,) + b.shape[1:])
+        out[win] = y[np.searchsorted(need, rows[win])]
+        if not win.all():
+            re = rows[~win] - self.nw
+            out[~win] = (self.J[np.ix_(re, self.support)] @ y[np.searchsorted(need,
+                                                                            self.support)]
+                         + self.C[re] @ b_r)
+        return out
 
     def columns(self, idx: np.ndarray) -> FloatArray:
         """``Q'[:, idx]``."""
@@ -117,15 +135,20 @@ class AugmentedFactor:
         re = np.union1d(rows[~rw], cols[~cw]) - nw  # the re-opened parameters asked for
         if not re.size:
             return out
-        JQ = self.base.solve(self.J[re].T).T  # (len(re), nw): rows ``re`` of J Q
+        # rows ``re`` of J Q on the window's parameters asked for and J's support only
+        need = np.union1d(np.union1d(rows[rw], cols[cw]), self.support)
+        JQ = self.base.solve(self.J[re].T, need).T  # (len(re), len(need))
         at = np.full(self.n - nw, -1, dtype=np.int64)
         at[re] = np.arange(re.size)
         r_re, c_re = rows[~rw] - nw, cols[~cw] - nw
         if r_re.size:  # J Q on the window's columns, J Q J^T + C on the re-opened ones
-            out[np.ix_(~rw, cw)] = JQ[np.ix_(at[r_re], cols[cw])]
-            out[np.ix_(~rw, ~cw)] = JQ[at[r_re]] @ self.J[c_re].T + self.C[np.ix_(r_re, c_re)]
+            out[np.ix_(~rw, cw)] = JQ[np.ix_(at[r_re], np.searchsorted(need, cols[cw]))]
+            sup = np.searchsorted(need, self.support)
+            out[np.ix_(~rw, ~cw)] = (JQ[np.ix_(at[r_re], sup)]
+                                     @ self.J[np.ix_(c_re, self.support)].T
+                                     + self.C[np.ix_(r_re, c_re)])
         if c_re.size and rw.any():  # Q J^T
-            out[np.ix_(rw, ~cw)] = JQ[np.ix_(at[c_re], rows[rw])].T
+            out[np.ix_(rw, ~cw)] = JQ[np.ix_(at[c_re], np.searchsorted(need, rows[rw]))].T
         return out
 
     def diagonal_blocks(self, idx: np.ndarray, sizes: np.ndarray) -> list[FloatArray]:

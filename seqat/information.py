@@ -360,8 +360,9 @@ class InformationFactor:
             raise EstimationError(f"LAPACK potrs failed on the reduced system ({info})")
         return x
 
-    def solve(self, b: FloatArray) -> FloatArray:
-        """``L^-1 b`` for ``b`` of shape (n,) or (n, k)."""
+    def solve(self, b: FloatArray, rows: np.ndarray | None = None) -> FloatArray:
+        """``L^-1 b`` for ``b`` of shape (n,) or (n, k); with ``rows``, only those rows of it
+        (the eliminated points back-substituted are those ``rows`` fall on, not all)."""
         vec = b.ndim == 1
         B2 = b[:, None] if vec else b
         k = B2.shape[1]
@@ -369,12 +370,36 @@ class InformationFactor:
         bR = B2[self.r_idx]
         bP = B2[self.p_idx.ravel()]  # (3 np, k)
         xR = self._solve_S(bR - self.B @ bP)
+        if rows is not None:
+            out = self._rows_of_solution(np.asarray(rows, dtype=np.int64), xR, bP)
+            return out[:, 0] if vec else out
         rhsP = (bP - self.L_RP.T @ xR).reshape(npt, GP_SIZE, k)
         xP = np.matmul(self.Dinv, rhsP).reshape(GP_SIZE * npt, k)
         out = np.empty((self.n, k))
         out[self.r_idx] = xR
         out[self.p_idx.ravel()] = xP
         return out[:, 0] if vec else out
+
+    def _rows_of_solution(self, rows: np.ndarray, xR: FloatArray, bP: FloatArray) -> FloatArray:
+        """Rows ``rows`` of ``L^-1 b`` given its kept part ``xR`` and ``b``'s eliminated rows
+        ``bP``: ``x_p = D_p^-1 (b_p - L_Rp^T x_R)`` for the points ``rows`` fall on."""
+        rpos, ppos = self._positions()
+        k = xR.shape[1]
+        out = np.empty((rows.size, k))
+        in_r = rpos[rows] >= 0
+        out[in_r] = xR[rpos[rows[in_r]]]
+        jp = np.flatnonzero(~in_r)
+        if jp.size:
+            q = ppos[rows[jp]]
+            pts, at = np.unique(q // GP_SIZE, return_inverse=True)
+            cols3 = (pts[:, None] * GP_SIZE + np.arange(GP_SIZE)).ravel()
+            if scipy.sparse.issparse(self.L_RP):  # its columns' few non-zeros: O(nnz k)
+                rhs = bP[cols3] - self._by_columns("L_RP")[:, cols3].T @ xR
+            else:
+                rhs = bP[cols3] - self.L_RP[:, cols3].T @ xR
+            x_p = np.matmul(self.Dinv[pts], rhs.reshape(pts.size, GP_SIZE, k))
+            out[jp] = x_p[at, q % GP_SIZE]
+        return out
 
     def columns(self, idx: np.ndarray) -> FloatArray:
         """Columns ``Q[:, idx]`` of the cofactor ``Q = L^-1``, (n, len(idx))."""

@@ -44,6 +44,8 @@ def test_factor_solve_columns_and_marginals_equal_the_dense_inverse(
     b = rng.standard_normal(L.shape[0])
     np.testing.assert_allclose(f.solve(b), Q @ b, rtol=1e-9, atol=1e-12)
     idx = np.array([0, 5, 30, 31, 40])
+    np.testing.assert_allclose(f.solve(b, idx[::-1]), (Q @ b)[idx[::-1]], rtol=1e-9,
+                               atol=1e-12)
     np.testing.assert_allclose(f.columns(idx), Q[:, idx], rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(f.diagonal(), np.diagonal(Q), rtol=1e-9)
     np.testing.assert_allclose(f.block(idx), Q[np.ix_(idx, idx)], rtol=1e-9, atol=1e-12)
@@ -104,6 +106,8 @@ def test_augmented_factor_answers_for_the_reopened_window(marginal_first: bool) 
     b = rng.standard_normal((n, 2))
     np.testing.assert_allclose(aug.solve(b), Q @ b, rtol=1e-9, atol=1e-12)
     idx = np.array([0, 5, 30, 31, 40, n - 14, n - 12, n - 1])  # old and re-opened, both times
+    for rows in (idx, idx[:5], idx[5:]):  # some rows of the solution: the same rows
+        np.testing.assert_allclose(aug.solve(b, rows), (Q @ b)[rows], rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(aug.columns(idx), Q[:, idx], rtol=1e-9, atol=1e-12)
     got = aug.block(idx)
     np.testing.assert_allclose(got, Q[np.ix_(idx, idx)], rtol=1e-9, atol=1e-12)
