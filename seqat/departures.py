@@ -646,7 +646,9 @@ class DepartureMixin:
         w = self._w
         m = sum(sizes)
         col_of: dict[Key, int] = {}
-        buf = np.zeros((m, 8 * m + 64))
+        # the form's coefficients by rows, one per parameter referred to (a transposed
+        # layout: the chain gathers and adds whole columns of the form, here rows)
+        buf = np.zeros((8 * m + 64, m))
         ncol = 0
 
         def column(key: Key) -> int:
@@ -654,8 +656,8 @@ class DepartureMixin:
             c = col_of.get(key)
             if c is None:
                 size = key_size(key)
-                if ncol + size > buf.shape[1]:
-                    buf = np.concatenate([buf, np.zeros_like(buf)], axis=1)
+                if ncol + size > buf.shape[0]:
+                    buf = np.concatenate([buf, np.zeros_like(buf)], axis=0)
                 c = col_of[key] = ncol
                 ncol += size
             return c
@@ -664,7 +666,7 @@ class DepartureMixin:
         row = 0
         for key, size in zip(keys, sizes, strict=True):
             c = column(key)
-            buf[row : row + size, c : c + size] = np.eye(size)
+            buf[c : c + size, row : row + size] = np.eye(size)
             pending.setdefault(self._departed[key][1], []).append(key)
             row += size
         const = np.zeros(m)
@@ -677,13 +679,13 @@ class DepartureMixin:
                                   for k in members])
             cols = np.concatenate([col_of[k] + np.arange(key_size(k))
                                    for k in members])
-            JK = buf[:, cols].copy()
-            buf[:, cols] = 0.0
+            JK = buf[cols].T  # (m, |src|): a gather, a copy
+            buf[cols] = 0.0
             G = self._record_gain(rec, dep)[src]
             const += JK @ (dep.x_leaving[src] - G @ dep.x_staying)
             C += dep.conditional.quadratic(src, JK)
-            JG = JK @ G
-            # the staying keys' columns of buf (new ones appended): a key with one already
+            JG = G.T @ JK.T  # (JK G)^T, by rows
+            # the staying keys' rows of buf (new ones appended): a key with one already
             # is queued, in the window or dropped; a departed new one is queued now
             for sk in [sk for sk in dep.staying if sk not in col_of]:
                 column(sk)
@@ -693,19 +695,19 @@ class DepartureMixin:
                     pending.setdefault(later, []).append(sk)
             sizes = dep.staying_sizes
             starts = np.fromiter((col_of[sk] for sk in dep.staying), np.int64, sizes.size)
-            # key by key, the gain's columns are consecutive, as are their columns of buf
-            ucols = np.arange(JG.shape[1]) + np.repeat(starts - (np.cumsum(sizes) - sizes),
+            # key by key, the gain's columns are consecutive, as are their rows of buf
+            ucols = np.arange(JG.shape[0]) + np.repeat(starts - (np.cumsum(sizes) - sizes),
                                                        sizes)
-            buf[:, ucols] += JG
+            buf[ucols] += JG
         n = w.x.size
         J = np.zeros((m, n))
         for key, c in col_of.items():
             if key in w.offset:
                 idx = w.index(key)
-                J[:, idx] = buf[:, c : c + idx.size]
+                J[:, idx] = buf[c : c + idx.size].T
             elif key in self._dropped_value:  # taken out as undetermined: a constant
                 val = self._dropped_value[key]
-                const += buf[:, c : c + val.size] @ val
+                const += val @ buf[c : c + val.size]
         mean = const + J @ w.x
         return mean, J, C
 
