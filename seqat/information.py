@@ -482,8 +482,13 @@ class InformationFactor:
             # GPs' (of a block's 909 kept parameters, 615 were; their Q_RR, from V, was 20 of
             # a 350 ms update)
             pts = np.asarray(pts, dtype=np.int64)
-            cols = (pts[:, None] * GP_SIZE + np.arange(GP_SIZE)).ravel()
-            sub = np.unique(indices[_csc_ranges(B.indptr, cols)])
+            on = np.zeros(self.r_idx.size, dtype=bool)
+            if pts.size == self.p_idx.shape[0]:  # every point: every entry
+                on[indices] = True
+            else:
+                cols = (pts[:, None] * GP_SIZE + np.arange(GP_SIZE)).ravel()
+                on[indices[_csc_ranges(B.indptr, cols)]] = True
+            sub = np.flatnonzero(on)
             if 2 * sub.size <= self.r_idx.size:
                 remap = np.zeros(self.r_idx.size, dtype=np.int64)
                 remap[sub] = np.arange(sub.size)
