@@ -277,7 +277,11 @@ class SequentialAT(DepartureMixin, RelinearisationMixin, BirthMixin, IterationMi
                 self._finalise_old(i)
             self._prune_dormant(i)
             self._remember_window_eops()  # what the next update's jump is measured against
-        return self._second_start() if second_start else None
+        outcome = self._second_start() if second_start else None
+        # the variances the next update's window rule reads first, from the factorisation a
+        # re-linearisation or second start left: formed now, with the estimate out
+        self._w.warm_diagonal()
+        return outcome
 
     def _refined(self, update: ImageUpdate) -> ImageUpdate:
         """:meth:`refined` (its caller limits the BLAS threads)."""

@@ -292,6 +292,12 @@ class Window:
             self._diag = d
         return self._diag
 
+    def warm_diagonal(self) -> None:
+        """Form :meth:`q_diagonal` now if the factorisation of ``L`` is at hand (never
+        factorise here: a factorisation can take GPs out, which is the next update's)."""
+        if not self.inverse and self._factor is not None:
+            self.q_diagonal()
+
     def q_apply(self, idx: np.ndarray, v: FloatArray) -> FloatArray:
         """``Q[:, idx] @ v``, (n,): one solve, not ``len(idx)`` columns."""
         if self.inverse:

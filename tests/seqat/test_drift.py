@@ -36,6 +36,8 @@ def test_the_refinement_follows_the_estimate_and_changes_no_result() -> None:
     for k, fr in enumerate(f.frames()):
         ups_a.append(a.add_frame(fr))
         ups_b.append(b.add_frame(fr, refine=False))
+        if ups_a[-1].stage == "sequential":  # the variances the next update reads first:
+            assert a._w._diag is not None  # formed in the refinement, after a re-adjustment
         if k % 2:  # every other image refined by the caller, the others by the next update
             b.refine()
     seq = [u for u in ups_a if u.stage == "sequential"]
