@@ -479,8 +479,8 @@ class InformationFactor:
         indices = B.indices
         if self._Qrr is None:
             # only the rows B_p lives on: the images' (and the camera's), not the coupled
-            # GPs' (of a block's 909 kept parameters, 615 were; their Q_RR, from V, was 20 of
-            # a 350 ms update)
+            # GPs' (of a block's 909 kept parameters, 615 were): the points' variances of
+            # F1's updates with r > 600 took 12.7 ms each with all of Q_RR, 6.9 ms so
             pts = np.asarray(pts, dtype=np.int64)
             on = np.zeros(self.r_idx.size, dtype=bool)
             if pts.size == self.p_idx.shape[0]:  # every point: every entry
