@@ -12,13 +12,14 @@ every third image, IMG_0507's first iterate moved the self-calibrated focal leng
 positive number": blamed on the input). And the robust loss, on from the second iterate,
 can keep a wrong minimum near such a start: every ray is then beyond its core, so it
 down-weights them all. An iterate outside the domain (not finite, a camera with a focal
-length <= 0, a failed solve) and a converged estimate that most of the new image's rays to
-known points lie far beyond the loss's core of (seqat.robust.unsupported_images) are not
-kept: the update starts again from its start values with the window held (its cofactor
-taken as zero: a least-squares resection of the new image with the birth of its points),
-then iterates jointly from there; a second time the held phase starts from the attitude of
-the window's last image. The third time, the image is diverged (its GPS/INS alone carries
-it, named).
+length <= 0, a failed solve), a converged estimate that most of the new image's rays to
+known points lie far beyond the loss's core of (seqat.robust.unsupported_images), and an
+estimate left short of convergence so far from a prior that the update would diverge the
+image (a GNSS fault at a start resected from it) are not kept: the update starts again from
+its start values with the window held (its cofactor taken as zero: a least-squares
+resection of the new image with the birth of its points), then iterates jointly from
+there; a second time the held phase starts from the attitude of the window's last image.
+The third time, the image is diverged (its GPS/INS alone carries it, named).
 """
 
 from __future__ import annotations
@@ -132,8 +133,14 @@ class IterationMixin:
                     continue
                 # an estimate most of the image's rays reject as outliers: the robust loss
                 # may have kept a poor start (not asked of a single least-squares iterate:
-                # the paper's one linearisation)
-                if not ((converged or builder.robust) and builder.unsupported(image, born)):
+                # the paper's one linearisation); and one the iterations left short of
+                # convergence so far from a prior that the update would diverge the image
+                # (a GNSS fault at a start resected from it: the rays and the GPS/INS pull
+                # apart, ten iterates crawl between them)
+                if not ((converged or builder.robust) and builder.unsupported(image, born)
+                        or not converged and self._diverged(  # type: ignore[attr-defined]
+                            builder.nav, builder.nav_sigma, x2_0, d2, Qtt, d1t,
+                            builder.rays_hold(image, born))):
                     return Iterated(rows, step, d1t, d2, iterations)
             # out of the models' domain, or rejected by the image's rays: started again with
             # the window held (_held_start); with no start left, the image diverges (named;
