@@ -14,8 +14,9 @@ can keep a wrong minimum near such a start: every ray is then beyond its core, s
 down-weights them all. An iterate outside the domain (not finite, a camera with a focal
 length <= 0, a failed solve), a converged estimate that most of the new image's rays to
 known points lie far beyond the loss's core of (seqat.robust.unsupported_images), and an
-estimate left short of convergence so far from a prior that the update would diverge the
-image (a GNSS fault at a start resected from it) are not kept: the update starts again from
+estimate left short of convergence that most of those rays lie beyond the core of, or so
+far from a prior that the update would diverge the image (a GNSS fault at a start resected
+from it) are not kept: the update starts again from
 its start values with the window held (its cofactor taken as zero: a least-squares
 resection of the new image with the birth of its points), then iterates jointly from
 there; a second time the held phase starts from the attitude of the window's last image.
@@ -134,13 +135,15 @@ class IterationMixin:
                 # an estimate most of the image's rays reject as outliers: the robust loss
                 # may have kept a poor start (not asked of a single least-squares iterate:
                 # the paper's one linearisation); and one the iterations left short of
-                # convergence so far from a prior that the update would diverge the image
-                # (a GNSS fault at a start resected from it: the rays and the GPS/INS pull
-                # apart, ten iterates crawl between them)
+                # convergence that most of its rays lie beyond the loss's core of, or so far
+                # from a prior that the update would diverge the image (a GNSS fault at a
+                # start resected from it: the rays and the GPS/INS pull apart, ten iterates
+                # crawl between them, or a tilt compensates the position over flat ground)
                 if not ((converged or builder.robust) and builder.unsupported(image, born)
-                        or not converged and self._diverged(  # type: ignore[attr-defined]
-                            builder.nav, builder.nav_sigma, x2_0, d2, Qtt, d1t,
-                            builder.rays_hold(image, born))):
+                        or not converged and (builder.unsupported(image, born, 1.0)
+                                              or self._diverged(  # type: ignore[attr-defined]
+                                                  builder.nav, builder.nav_sigma, x2_0, d2,
+                                                  Qtt, d1t, builder.rays_hold(image, born)))):
                     return Iterated(rows, step, d1t, d2, iterations)
             # out of the models' domain, or rejected by the image's rays: started again with
             # the window held (_held_start); with no start left, the image diverges (named;

@@ -105,10 +105,11 @@ def ray_u2(res_px: FloatArray, sigma_px: FloatArray) -> FloatArray:
     return np.sum(res**2, axis=1) / np.asarray(sigma_px, dtype=np.float64).reshape(-1) ** 2
 
 
-def unsupported_images(u2: FloatArray, image: np.ndarray, scale: float | None) -> np.ndarray:
+def unsupported_images(u2: FloatArray, image: np.ndarray, scale: float | None,
+                       beyond: float = POOR_START_BEYOND) -> np.ndarray:
     """Images (the distinct values of ``image``, sorted) most of whose rays lie far beyond
-    the loss's core (``u > POOR_START_BEYOND scale``) at the estimate: an estimate its own
-    image points reject.
+    the loss's core (``u > beyond scale``, :data:`POOR_START_BEYOND` unless said) at the
+    estimate: an estimate its own image points reject.
 
     The redescending loss keeps such an estimate near a poor start (an INS tens of degrees
     off: every ray is then hundreds of sigmas off and all are down-weighted) instead of where
@@ -123,7 +124,7 @@ def unsupported_images(u2: FloatArray, image: np.ndarray, scale: float | None) -
     ids, pos = np.unique(image, return_inverse=True)
     rays = np.bincount(pos, minlength=ids.size)
     inside = np.bincount(pos, weights=np.asarray(u2).reshape(-1)
-                         <= (POOR_START_BEYOND * scale) ** 2, minlength=ids.size)
+                         <= (beyond * scale) ** 2, minlength=ids.size)
     return ids[(2 * inside < rays) & (rays >= MIN_JUDGED_RAYS)]
 
 

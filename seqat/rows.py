@@ -332,16 +332,17 @@ class RowBuilder:
         u2 = np.sum(self._true.reshape(-1, 2) ** 2, axis=1) / self.sigmas**2
         return bool(np.all(u2 <= self.robust_scale**2))
 
-    def unsupported(self, image: int, born: Sequence[int] = ()) -> bool:
+    def unsupported(self, image: int, born: Sequence[int] = (),
+                    beyond: float = POOR_START_BEYOND) -> bool:
         """Most of ``image``'s rays to points not being ``born`` (points other images
-        determine) lie far beyond the robust loss's core at the estimate of the last
-        :meth:`linearisation_error` (:func:`seqat.robust.unsupported_images`)."""
+        determine) lie far (``beyond`` times) beyond the robust loss's core at the estimate
+        of the last :meth:`linearisation_error` (:func:`seqat.robust.unsupported_images`)."""
         known = ~np.isin(self.ids[:, 1], np.asarray(born, dtype=np.int64))
         mine = (self.ids[:, 0] == image) & known
         if not mine.any():
             return False
         u2 = ray_u2(self._true.reshape(-1, 2)[mine], self.sigmas[mine])
-        return unsupported_images(u2, self.ids[mine, 0], self.robust_scale).size > 0
+        return unsupported_images(u2, self.ids[mine, 0], self.robust_scale, beyond).size > 0
 
     def nav_loss_at(self, x1t: FloatArray, x2_0: FloatArray, image: int,
                     born: Sequence[int] = ()) -> None:
