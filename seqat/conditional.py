@@ -164,24 +164,8 @@ class Departure:
             G = split_gain(G, m_idx, K, r_idx)
         return G
 
-    def rts_gain(self, departure_gain: FloatArray | None = None,
-                 rows: np.ndarray | None = None) -> FloatArray:
-        """``J`` (|F|, |W|): :meth:`departure_gain` (or the one given, the same kept by the
-        caller) with the splits applied; ``rows``: only those rows of ``J`` (positions in
-        F), ``J[rows]``. A split's row ``i`` is the row ``m_idx[i]`` before it less
-        ``K[i]`` times the rows ``r_idx``: only the rows the wanted ones depend on are
-        carried through the splits (a re-opening reads a few rows of a record's gain; the
-        whole of it, split after split, was 88 of a 369 ms update on a 196-image flight)."""
-        G = self.departure_gain() if departure_gain is None else departure_gain
-        if rows is None:
-            return self.split(G)
-        need = [np.asarray(rows, np.int64)]  # the rows wanted of each level, last first
-        for m_idx, _, r_idx in reversed(self.splits):
-            need.append(np.union1d(m_idx[need[-1]], r_idx))
-        need.reverse()  # need[0]: of the departure gain; need[-1]: ``rows``
-        sub = G[need[0]]
-        for level, (m_idx, K, r_idx) in enumerate(self.splits):
-            at, want = need[level], need[level + 1]  # ``at`` sorted, unique
-            sub = split_gain(sub, np.searchsorted(at, m_idx[want]), K[want],
-                             np.searchsorted(at, r_idx))
-        return sub
+    def rts_gain(self) -> FloatArray:
+        """``J`` (|F|, |W|): :meth:`departure_gain` with the splits applied (a re-opening
+        reads the gain kept with its splits applied, each split once:
+        :meth:`seqat.departures.DepartureMixin._record_gain`)."""
+        return self.split(self.departure_gain())

@@ -600,18 +600,18 @@ class DepartureMixin:
             Q[n:, n:] = J @ QJt + C
             w.Q = Q
         base = w.current_solver()  # answers for the window before: Q' from it and the prior
+        support = np.flatnonzero(np.any(J != 0.0, axis=0))  # the window keys J refers to
         if w.L is not None:
             # the prior ties the re-opened keys to the window keys its chain refers to
-            w.couple(keys_of(w.keys, np.flatnonzero(np.any(J != 0.0, axis=0))) + keys)
+            w.couple(keys_of(w.keys, support) + keys)
             Ci = spd_inverse(C, "conditional cofactor of the re-opened parameters")
             # [[L + J^T Ci J, -J^T Ci], [-Ci J, Ci]] on the support of J and the new keys
-            support = np.flatnonzero(np.any(J != 0.0, axis=0))
             cols = np.concatenate([support, n + np.arange(m)])
             Js = np.hstack([-J[:, support], np.eye(m)])  # x_new - J x_W, on cols
             M = Js.T @ Ci @ Js
             w.L = window_matrix(add_block(padded(w.L, n + m), cols, 0.5 * (M + M.T)))
         self._rejoin(keys, mean)
-        w.augment(base, J, C)
+        w.augment(base, J, C, support)
 
     def _rejoin(self, keys: list[Key], values: FloatArray) -> None:
         """Re-opened ``keys`` (left :attr:`_departed`) join the window's bookkeeping and
@@ -741,11 +741,13 @@ class DepartureMixin:
             G.setflags(write=False)
             done = dep.splits
         gains[rec] = (G0, G, done)  # the most recent last
-        total = sum(g0.nbytes + (g.nbytes if g is not g0 else 0)
-                    for g0, g, _ in gains.values())
+
+        def nbytes(kept: tuple[FloatArray, FloatArray, tuple]) -> int:
+            return kept[0].nbytes + (kept[1].nbytes if kept[1] is not kept[0] else 0)
+
+        total = sum(nbytes(k) for k in gains.values())
         while total > GAIN_CACHE_BYTES and len(gains) > 1:
-            g0, g, _ = gains.pop(next(iter(gains)))
-            total -= g0.nbytes + (g.nbytes if g is not g0 else 0)
+            total -= nbytes(gains.pop(next(iter(gains))))
         return G
 
     def _split_records(self, keys: list[Key]) -> None:

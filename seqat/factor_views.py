@@ -76,14 +76,16 @@ class AugmentedFactor:
     ~50 ms each, twice per update). ``L'`` is positive definite when ``L`` and ``C`` are,
     so no rank check is lost."""
 
-    def __init__(self, base: SolverLike, J: FloatArray, C: FloatArray) -> None:
+    def __init__(self, base: SolverLike, J: FloatArray, C: FloatArray,
+                 support: np.ndarray | None = None) -> None:
         self.base = base
         self.J = np.asarray(J, dtype=np.float64)
         self.C = 0.5 * (C + C.T)
         self.nw = self.J.shape[1]
         self.n = self.nw + self.J.shape[0]
-        #: the window parameters the prior refers to (J's non-zero columns)
-        self.support = np.flatnonzero(np.any(self.J != 0.0, axis=0))
+        #: the window parameters the prior refers to (J's non-zero columns; the caller's)
+        self.support = (np.flatnonzero(np.any(self.J != 0.0, axis=0)) if support is None
+                        else np.asarray(support, dtype=np.int64))
 
     def solve(self, b: FloatArray, rows: np.ndarray | None = None) -> FloatArray:
         """``Q' b`` (``b`` of shape (n,) or (n, k)): one solve of ``base``; with ``rows``,

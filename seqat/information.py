@@ -532,9 +532,9 @@ class InformationFactor:
         QRR = QT[np.ix_(aR, aR)]
         if not jp.size:
             return QRR
-        Be = Bq[e]
-        QB = QT[:, np.searchsorted(T, e)] @ Be  # Q_RR B_q on the rows T
-        PP = Be.T @ QB[np.searchsorted(T, e)]
+        Be, ae = Bq[e], np.searchsorted(T, e)
+        QB = QT[:, ae] @ Be  # Q_RR B_q on the rows T
+        PP = Be.T @ QB[ae]
         return self._assemble_block(jr, jp, QRR, -QB[aR], PP, q)
 
     def _block_from_v(self, jr: np.ndarray, jp: np.ndarray, R: np.ndarray,

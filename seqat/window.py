@@ -223,15 +223,17 @@ class Window:
         if base is not None:
             self._marginal = MarginalFactor.of(base, keep)
 
-    def augment(self, base: SolverLike | None, J: FloatArray, C: FloatArray) -> None:
+    def augment(self, base: SolverLike | None, J: FloatArray, C: FloatArray,
+                support: np.ndarray | None = None) -> None:
         """Departed parameters re-opened at the end of the layout with the prior
         ``x_R = mean + J x_W + e``, ``e ~ (0, C)``, after ``L`` took that prior and the layout
         the keys: until ``L`` changes again the cofactor blocks come from ``base``, what
         answered for the window before (:class:`seqat.factor_views.AugmentedFactor`): a
         re-opening costs no factorisation. No-op without one (the inverse engine, or no
-        factorisation at hand: the next request factorises)."""
+        factorisation at hand: the next request factorises). ``support``: ``J``'s non-zero
+        columns, when the caller has them."""
         if not self.inverse and base is not None:
-            self._marginal = AugmentedFactor(base, J, C)
+            self._marginal = AugmentedFactor(base, J, C, support)
 
     def current_solver(self) -> SolverLike | None:
         """What answers for ``Q`` now without factorising (None: nothing at hand)."""
