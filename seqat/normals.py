@@ -7,7 +7,7 @@ sparse (banded along a strip) and factorised by sparse LU. GP corrections follow
 back-substitution (seed 000 Eq. 5-6). ``R`` are the parameters kept in the reduced
 system: the EOPs (``6 n``, image by image) and, with self-calibration, the free interior
 parameters of the camera (``c``, last; :mod:`seqat.calibration`). Used by
-:func:`seqat.simultaneous.adjust_block`.
+:func:`seqat.adjustment.adjust_block`.
 """
 
 from __future__ import annotations
@@ -24,8 +24,20 @@ import scipy.sparse.linalg as spla
 from seqat.errors import EstimationError
 from seqat.geometry import depth, nearest_branch, project, project_with_jacobians, wrap_angle
 from seqat.kernels import eliminate_points, ray_products, scatter_add
-from seqat.robust import cauchy_cost, cauchy_weight, nav_cost, nav_weight
+from seqat.robust import (
+    cauchy_cost,
+    cauchy_weight,
+    nav_cost,
+    nav_tail_curvature,
+    nav_weight,
+    ray_u2,
+)
 from seqat.types import EOP_SIZE, GP_SIZE, FloatArray, PinholeCamera
+
+#: A point's block with the loss's own curvature is used while its smallest eigenvalue is
+#: above this fraction of its largest (positive definite, not near singular); IRLS's else
+#: (:func:`_tail_rays`, :mod:`seqat.tail_points`).
+MIN_EIGENVALUE_RATIO = 1e-6
 
 #: Columns of the reduced inverse solved at once when extracting cofactor blocks.
 COVARIANCE_CHUNK_IMAGES = 200
@@ -188,6 +200,7 @@ def linearise(
     camera: PinholeCamera, data: BlockData, eop: FloatArray, gp: FloatArray,
     damping: float = 0.0, robust_scale: float | None = None,
     calib: CameraBlock | None = None, nav_robust_scale: float | None = None,
+    newton: bool = False,
 ) -> tuple[Normals, FloatArray, FloatArray]:
     """Build and factorise the reduced normal equations at ``(eop, gp, camera)``.
 
@@ -195,6 +208,11 @@ def linearise(
     Levenberg-Marquardt step); 0 is the Gauss-Newton system. ``calib``: the camera's free
     interior parameters are unknowns too (columns ``6 n ...`` of the reduced system).
     ``nav_robust_scale``: the GPS/INS groups weighted by their robust loss at ``eop``.
+    ``newton``: beyond the losses' cores their own curvature too, not IRLS's alone — the
+    GPS/INS groups' (:func:`seqat.robust.nav_tail_curvature`) and the rays' of each point
+    whose block stays positive definite with it (:func:`_tail_rays`): Newton's method on
+    the robust cost. The matrix may then be indefinite: a step for the line search to
+    judge, never a covariance.
 
     Returns the factorisation and the reduced right-hand side, plus the image residuals.
     """
@@ -231,9 +249,14 @@ def linearise(
     # the rays' weighted products, summed per image (N_ee, b_e), over the camera (N_ce,
     # N_cc, b_c) and per point (b_p), and each ray's N_Rp block (seqat.kernels)
     Nee, be, Nce, Ncc, bc, b_p, NRp_blocks = ray_products(img, pt, JR, Jp, w, ell, n, m)
+    if newton and robust_scale is not None:
+        _tail_rays(Npp, Nee, Nce, Ncc, NRp_blocks, img, pt, JR, Jp, w, ell,
+                   data.obs_sigma_px, robust_scale, undetermined)
     res_nav = eop_residual(data.nav_eop, eop)
     w_nav = nav_weight(res_nav, data.nav_sigma, nav_robust_scale) / data.nav_sigma**2
     Nee[:, np.arange(EOP_SIZE), np.arange(EOP_SIZE)] += w_nav
+    if newton:
+        Nee += nav_tail_curvature(res_nav, data.nav_sigma, nav_robust_scale)
     b_R = np.zeros(r)
     b_R[:ne] = (be + w_nav * res_nav).ravel()
     dense = r <= DENSE_REDUCED_MAX
@@ -290,6 +313,46 @@ def linearise(
     return Normals(lu=lu, N_RR=N_RR, Npp_inv=Npp_inv, b_p=b_p.ravel(), size=r, n_camera=c,
                    Npp=Npp, undetermined=undetermined, obs_blocks=NRp_blocks, obs_rows=rcol,
                    obs_point=pt, _N_Rp=N_Rp), rhs, ell
+
+
+def _tail_rays(Npp: FloatArray, Nee: FloatArray, Nce: FloatArray, Ncc: FloatArray,
+               NRp_blocks: FloatArray, img: np.ndarray, pt: np.ndarray, JR: FloatArray,
+               Jp: FloatArray, w: FloatArray, ell: FloatArray, sigma_px: FloatArray,
+               scale: float, undetermined: np.ndarray) -> None:
+    """Add to the rays' normal blocks, in place, what IRLS leaves out of the curvature of
+    each ray beyond the loss's core: ``-2 w (Aᵀ r̂)(Aᵀ r̂)ᵀ``, ``A = [JR | Jp]`` its rows,
+    ``r̂`` its residual's direction, ``w = ρ'/σ²`` its weight (the Cauchy tail is concave
+    along the residual: curvature ``-ρ'`` where IRLS takes ``+ρ'``;
+    :mod:`seqat.tail_points`). Only the rays of points whose 3x3 block stays positive
+    definite with them (smallest eigenvalue above :data:`MIN_EIGENVALUE_RATIO` of the
+    largest) and that are determined; the others keep IRLS's."""
+    tail = np.flatnonzero((ray_u2(ell, sigma_px) > scale**2) & (w > 0.0)
+                          & ~undetermined[pt])
+    if tail.size == 0:
+        return
+    direction = ell[tail] / np.linalg.norm(ell[tail], axis=1)[:, None]
+    vp = np.einsum("ka,kai->ki", direction, Jp[tail])
+    corr = -2.0 * w[tail, None, None] * vp[:, :, None] * vp[:, None, :]
+    exact = Npp.copy()
+    scatter_add(exact, pt[tail], corr)
+    ev = np.linalg.eigvalsh(exact)
+    keep = (ev[:, 0] > MIN_EIGENVALUE_RATIO * np.abs(ev[:, -1]))[pt[tail]]
+    tail, direction, vp, corr = tail[keep], direction[keep], vp[keep], corr[keep]
+    if tail.size == 0:
+        return
+    scatter_add(Npp, pt[tail], corr)
+    # each ray as one row r̂ᵀ A of weight -2 w (the kernel's products of a rank-one ray)
+    rows_R = np.zeros((tail.size, 2, JR.shape[2]))
+    rows_p = np.zeros((tail.size, 2, GP_SIZE))
+    rows_R[:, 0] = np.einsum("ka,kai->ki", direction, JR[tail])
+    rows_p[:, 0] = vp
+    dNee, _, dNce, dNcc, _, _, dNRp = ray_products(img[tail], pt[tail], rows_R, rows_p,
+                                                   -2.0 * w[tail], np.zeros((tail.size, 2)),
+                                                   Nee.shape[0], Npp.shape[0])
+    Nee += dNee
+    Nce += dNce
+    Ncc += dNcc
+    NRp_blocks[tail] += dNRp
 
 
 def _block_diagonal(blocks: FloatArray) -> sp.csr_matrix:

@@ -491,6 +491,34 @@ def nav_weight(res: FloatArray, sigma: FloatArray, scale: float | None,
     return nav_components(wg if on is None else np.where(on, wg, 1.0))
 
 
+def nav_tail_curvature(res: FloatArray, sigma: FloatArray, scale: float | None) -> FloatArray:
+    """(n, 6, 6): what IRLS leaves out of the GPS/INS groups' curvature, as the normal
+    matrix holds it (half the Hessian of :func:`nav_cost`): ``(2 ρ''(s) / d) a aᵀ`` per
+    group beyond the loss's core, ``s = u² / d``, ``a = r / σ²`` its components, zero
+    within the core and without a scale.
+
+    In the tail ``ρ'' = -k² / s²``: the group's cost is concave along its residual (the
+    curvature there is ``-ρ'`` where IRLS takes ``+ρ'``), so Gauss-Newton on IRLS weights
+    moves a GNSS fault's image toward its rays by a constant fraction per iteration
+    (``2 ρ' / (K + ρ')``, ``K`` the rays' stiffness). Added to the normal matrix, the
+    step is Newton's on the groups' loss (:func:`seqat.adjustment.adjust_block`)."""
+    r = np.asarray(res, dtype=np.float64).reshape(-1, 6)
+    sig = np.asarray(sigma, dtype=np.float64).reshape(-1, 6)
+    out = np.zeros((r.shape[0], 6, 6))
+    if scale is None:
+        return out
+    k2 = scale**2
+    a = r / sig**2
+    u2 = nav_u2(r, sig)
+    for g, (_, sl) in enumerate(NAV_GROUPS):
+        d = sl.stop - sl.start
+        s = u2[:, g] / d
+        coef = np.where(s > k2, -2.0 * k2 / (np.maximum(s, k2) ** 2 * d), 0.0)
+        ag = a[:, sl]
+        out[:, sl, sl] = coef[:, None, None] * ag[:, :, None] * ag[:, None, :]
+    return out
+
+
 def nav_cost(res: FloatArray, sigma: FloatArray, scale: float | None) -> float:
     """``Σ d ρ(u² / d)`` of the GPS/INS groups (``Σ (r / σ)²`` without a scale)."""
     u2 = nav_u2(res, sigma)

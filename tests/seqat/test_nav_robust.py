@@ -15,6 +15,7 @@ from seqat.robust import (
     nav_cost,
     nav_group_weight,
     nav_outside,
+    nav_tail_curvature,
     nav_u2,
     nav_weight,
     nav_within_core,
@@ -60,6 +61,40 @@ def test_nav_weight_is_the_derivative_of_the_cost() -> None:
         w = nav_weight(d[None], SIGMA, 3.0)[0, 0]
         assert (up - dn) / (2 * h) == pytest.approx(w, rel=1e-5)
     assert nav_cost(d[None], SIGMA, None) == pytest.approx(float(np.sum((d / SIGMA) ** 2)))
+
+
+def test_nav_tail_curvature_completes_the_hessian_of_the_cost() -> None:
+    """IRLS's ``w / σ²`` plus nav_tail_curvature is half the Hessian of nav_cost (the
+    normal matrix's scale), by central differences, for groups within the core (no
+    correction) and in the tail (concave along the residual: its curvature there -ρ')."""
+    rng = np.random.default_rng(2)
+    for pos_m, att in ((0.2, 1e-3), (2.0, 1e-3), (0.2, 0.02), (5.0, 0.05)):
+        d = rng.normal(size=6) * SIGMA
+        d[:3] *= pos_m / np.linalg.norm(d[:3])
+        d[3:] *= att / np.linalg.norm(d[3:])
+        half = (np.diag(nav_weight(d[None], SIGMA, 3.0)[0] / SIGMA**2)
+                + nav_tail_curvature(d[None], SIGMA, 3.0)[0])
+        numeric = np.zeros((6, 6))
+        for a in range(6):
+            for b in range(6):
+                ha, hb = 1e-3 * SIGMA[a], 1e-3 * SIGMA[b]
+
+                def cost(sa: float, sb: float, a: int = a, b: int = b, ha: float = ha,
+                         hb: float = hb, d: np.ndarray = d) -> float:
+                    x = d.copy()
+                    x[a] += sa * ha
+                    x[b] += sb * hb
+                    return nav_cost(x[None], SIGMA, 3.0)
+
+                numeric[a, b] = (cost(1, 1) - cost(1, -1) - cost(-1, 1) + cost(-1, -1)) / (
+                    8.0 * ha * hb)
+        np.testing.assert_allclose(half, numeric, rtol=1e-4,
+                                   atol=1e-6 * np.max(np.abs(numeric)))
+        tail = nav_outside(d[None], SIGMA, 3.0)[0]
+        for g, sl in enumerate((slice(0, 3), slice(3, 6))):
+            block = nav_tail_curvature(d[None], SIGMA, 3.0)[0][sl, sl]
+            assert np.any(block != 0.0) == tail[g]
+    np.testing.assert_array_equal(nav_tail_curvature(d[None], SIGMA, None), np.zeros((1, 6, 6)))
 
 
 @pytest.mark.parametrize("value", [0.0, -1.0, float("nan"), float("inf"), "3"])

@@ -189,7 +189,7 @@ def test_a_step_is_taken_only_into_the_models_domain() -> None:
     # From a start of infinite cost (a point behind a camera) a step of infinite cost, such as
     # one whose focal length is <= 0, was taken (inf <= inf): the next camera raised an input
     # error in the middle of a solve (a least-squares Sim of the real flight's take-off).
-    from seqat.simultaneous import _accepted
+    from seqat.adjustment import _accepted
 
     assert not _accepted(np.inf, np.inf)
     assert not _accepted(np.nan, 10.0)
