@@ -72,6 +72,11 @@ class RobustnessRecord:
         their points), left the models' domain, or most of whose rays reject their estimate
         from the GPS/INS start and again from a resection: carried by their GPS/INS alone,
         their rays left out (docs/algorithm.md, *A poor start*).
+    diverged_live : tuple[str, ...]
+        Images that diverged during the flight (the estimator the images went through) and
+        that a final check's adopted adjustment placed: the live map and the per-image
+        reports showed them at their GPS/INS; not in ``diverged_images``, which describes
+        the published solution. Empty when the run's own solution is published.
     rescued_points : tuple[str, ...]
         Tie points most of whose rays disagreed with their estimate (one born on a blunder),
         re-intersected robustly from their rays during a window re-linearisation.
@@ -126,6 +131,7 @@ class RobustnessRecord:
     robust_scale: float | None = None
     undetermined_points: tuple[str, ...] = ()
     diverged_images: tuple[str, ...] = ()
+    diverged_live: tuple[str, ...] = ()
     rescued_points: tuple[str, ...] = ()
     disagreeing_points: tuple[str, ...] = ()
     off_surface_points: tuple[str, ...] = ()
@@ -164,6 +170,7 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
         replaced ``estimator``: read for what happened during the flight (second starts).
     """
     flown = estimator if flown is None else flown
+    diverged = tuple(getattr(estimator, "diverged", ()))
     rejections = tuple(Rejection(image=i, point=p, w=round(float(w), 3))
                        for i, p, w in getattr(estimator, "rejections", ()))
     nav = tuple(NavDownweight(image=i, group=g)
@@ -174,7 +181,9 @@ def robustness_record(estimator: object, options: object, *, bridged: Sequence[s
                             dropout_bridged=tuple(bridged), dropout_skipped=tuple(skipped),
                             robust_scale=getattr(options, "robust_scale", None),
                             undetermined_points=tuple(getattr(estimator, "undetermined", ())),
-                            diverged_images=tuple(getattr(estimator, "diverged", ())),
+                            diverged_images=diverged,
+                            diverged_live=tuple(i for i in getattr(flown, "diverged", ())
+                                                if flown is not estimator and i not in diverged),
                             rescued_points=tuple(dict.fromkeys(getattr(estimator, "rescued",
                                                                        ()))),
                             disagreeing_points=tuple(getattr(estimator, "disagreeing", ())),

@@ -70,6 +70,22 @@ def test_points_left_out_reach_run_json_and_the_report() -> None:
     assert summary.final_robust_scale == summary.robust_scale == 3.0  # the configured one
 
 
+def test_images_diverged_live_are_named_after_an_adopted_final_check() -> None:
+    """The final check's Sim published (an adopted check): run.json names the images the
+    Sim leaves diverged in ``diverged_images`` and, apart, those that diverged during the
+    flight and that the check placed (``diverged_live``); with the run's own solution
+    published, its diverged images alone, and nothing live."""
+    flown = SimpleNamespace(diverged=["img_0030", "img_0031"], second_starts=["img_0005"])
+    sim = SimpleNamespace(diverged=["img_0031"])
+    record = robustness_record(sim, SequentialOptions(), flown=flown)
+    assert record.diverged_images == ("img_0031",)
+    assert record.diverged_live == ("img_0030",)
+    assert record.second_starts == ("img_0005",)
+    own = robustness_record(flown, SequentialOptions(), flown=flown)
+    assert own.diverged_images == ("img_0030", "img_0031") and own.diverged_live == ()
+    assert to_jsonable(record)["diverged_live"] == ["img_0030"]
+
+
 def _wrong_depth(f: SimulatedFlight, down_m: float) -> tuple[SimulatedFlight, str]:
     """A point of the strip's middle image cut to its first and last rays, the last a wrong
     match on the point ``down_m`` further down the first ray: along the first ray's
