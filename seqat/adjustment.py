@@ -192,7 +192,8 @@ def adjust_block(
         that found GPS/INS outliers (the datum set), not a least-squares phase first.
     accelerate : bool
         A full step that raises the cost is tried again with its points made optimal for
-        its images (:func:`seqat.tail_points.embedded_points`) before it is shortened, and
+        its images (:func:`seqat.tail_points.embedded_points`; once per iteration) before
+        it is shortened, and
         in the basin the step is Newton's on the robust cost where IRLS creeps (the losses'
         own curvature beyond their cores). False: Gauss-Newton on IRLS weights with its line
         search to the end, as the refits of :class:`seqat.simultaneous.SimultaneousAT` while
@@ -241,6 +242,9 @@ def adjust_block(
         # its steps lower it (IRLS's creeps), Gauss-Newton's again when one does not.
         # Near the minimum the full step is taken, so the solution is Gauss-Newton's (or
         # Newton's: the same stationary point) wherever Gauss-Newton converges.
+        # one trial with embedded points per iteration, at its least damped step (a trial
+        # at every damping: Seneca's hand-over 182 ms against 111, docs/benchmarks.md)
+        trial = accelerate and m > 0
         while True:
             try:
                 nrm, rhs, _ = linearise(cam, data, eop, gp, damping, robust, calib, nav_robust,
@@ -271,7 +275,8 @@ def adjust_block(
                                         gp + step * delta_p, robust, calib, nav_robust)
                 if _accepted(new_cost, cost):
                     break
-                if step == 1.0 and m and accelerate:  # its points optimal for its images
+                if step == 1.0 and trial:  # its points optimal for its images
+                    trial = False
                     trial_cam = camera_at(cam_x + dc)
                     trial_gp, _ = embedded_points(trial_cam, data, eop + de, gp + delta_p,
                                                   robust, nrm.undetermined)
