@@ -26,8 +26,9 @@ images (:func:`embedded_points`: "embedded point iterations", Jeong et al. 2012,
 the envelope of modern methods for bundle adjustment*). A two-ray point of little parallax
 moves along its rays far from where Gauss-Newton's linear model put it when its images
 turn: the full step of a self-calibrating initial block then raised the cost 80-fold and
-the line search took a quarter of it, iteration after iteration; with its points made
-optimal for its images, the full step is taken (docs/algorithm.md, *Sim's iterations*).
+the line search took a quarter of it, iteration after iteration; with each point moved by
+a Newton step for its images, the full step was taken (docs/algorithm.md, *Sim's
+iterations*).
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ TAIL_NEWTON_FROM = 1e-3
 TAIL_NEWTON_ITERATIONS = 2
 #: Newton iterations of the embedded points (:func:`embedded_points`) per trial step: one.
 #: Three cost Seneca's self-calibrating hand-over 291 ms against 182 ms for one, in the same
-#: 20 iterations (a trial is tried at most full steps, and most of them are not taken).
+#: 20 iterations: most trials are not taken, so their cost counts more than their depth.
 EMBEDDED_ITERATIONS = 1
 TAIL_STEP_FRACTIONS = (1.0, 0.5, 0.25)
 #: A point whose IRLS block has a smallest eigenvalue below this fraction of its largest is
@@ -75,9 +76,9 @@ def newton_on_tail_points(camera: PinholeCamera, data: BlockData, eop: FloatArra
 def embedded_points(camera: PinholeCamera, data: BlockData, eop: FloatArray, gp: FloatArray,
                     scale: float | None, skip: np.ndarray) -> tuple[FloatArray, float]:
     """Every point of ``gp`` but ``skip`` moved by :data:`EMBEDDED_ITERATIONS` step(s) of
-    Newton's method on its own cost, the images (and camera) held where they are: the points a trial
-    step of the block would have, were they optimal for its images (module docstring).
-    Returns the points and the largest coordinate change (m), as
+    Newton's method on its own cost, the images (and camera) held where they are: a trial
+    step of the block with its points moved toward their optimum for its images (module
+    docstring). Returns the points and the largest coordinate change (m), as
     :func:`newton_on_tail_points`."""
     if data.n_points == 0:
         return gp, 0.0
