@@ -132,18 +132,21 @@ class IterationMixin:
                 converged = lin < opts.iteration_tolerance_px and builder.settled()
                 if not (last or converged):
                     continue
-                # an estimate most of the image's rays reject as outliers: the robust loss
-                # may have kept a poor start (not asked of a single least-squares iterate:
-                # the paper's one linearisation); and one the iterations left short of
-                # convergence that most of its rays lie beyond the loss's core of, or so far
-                # from a prior that the update would diverge the image (a GNSS fault at a
-                # start resected from it: the rays and the GPS/INS pull apart, ten iterates
-                # crawl between them, or a tilt compensates the position over flat ground)
-                if not ((converged or builder.robust) and builder.unsupported(image, born)
-                        or not converged and (builder.unsupported(image, born, 1.0)
-                                              or self._diverged(  # type: ignore[attr-defined]
-                                                  builder.nav, builder.nav_sigma, x2_0, d2,
-                                                  Qtt, d1t, builder.rays_hold(image, born)))):
+                # a converged estimate most of the image's rays reject as outliers (far
+                # beyond the loss's core): the robust loss may have kept a poor start. One
+                # the iterations left short of convergence, already when most of its rays lie
+                # beyond the core (which those far beyond are too), or so far from a prior
+                # that the update would diverge the image (a GNSS fault at a start resected
+                # from it: the rays and the GPS/INS pull apart, ten iterates crawl between
+                # them, or a tilt compensates the position over flat ground)
+                if converged:
+                    rejected = builder.unsupported(image, born)
+                else:
+                    diverged = self._diverged  # type: ignore[attr-defined]
+                    rejected = builder.unsupported(image, born, 1.0) or diverged(
+                        builder.nav, builder.nav_sigma, x2_0, d2, Qtt, d1t,
+                        builder.rays_hold(image, born))
+                if not rejected:
                     return Iterated(rows, step, d1t, d2, iterations)
             # out of the models' domain, or rejected by the image's rays: started again with
             # the window held (_held_start); with no start left, the image diverges (named;

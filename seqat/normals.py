@@ -315,31 +315,45 @@ def linearise(
                    obs_point=pt, _N_Rp=N_Rp), rhs, ell
 
 
+def tail_ray_curvature(Jp: FloatArray, ell: FloatArray, u2: FloatArray, sigma_px: FloatArray,
+                       w: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Rays beyond the loss's core, their point's part of what IRLS leaves out of their
+    curvature: ``v = Jpᵀ r̂`` (k, 3), ``r̂`` the residual ``ell``'s direction (its norm
+    ``sqrt(u2) σ``), and ``-2 w v vᵀ`` (k, 3, 3), ``w = ρ'/σ²`` the ray's weight. The Cauchy
+    tail is concave along the residual: curvature ``-ρ'`` where IRLS takes ``+ρ'``."""
+    v = np.einsum("kai,ka->ki", Jp, ell) / np.sqrt(u2 * sigma_px**2)[:, None]
+    return v, -2.0 * w[:, None, None] * v[:, :, None] * v[:, None, :]
+
+
+def definite_enough(blocks: FloatArray) -> np.ndarray:
+    """(m,) bool: each 3x3 block's smallest eigenvalue above :data:`MIN_EIGENVALUE_RATIO` of
+    its largest (positive definite, not near singular): a point's block that may take the
+    loss's own curvature."""
+    ev = np.linalg.eigvalsh(blocks)
+    return ev[:, 0] > MIN_EIGENVALUE_RATIO * np.abs(ev[:, -1])
+
+
 def _tail_rays(Npp: FloatArray, Nee: FloatArray, Nce: FloatArray, Ncc: FloatArray,
                NRp_blocks: FloatArray, img: np.ndarray, pt: np.ndarray, JR: FloatArray,
                Jp: FloatArray, w: FloatArray, ell: FloatArray, sigma_px: FloatArray,
                scale: float, undetermined: np.ndarray) -> None:
     """Add to the rays' normal blocks, in place, what IRLS leaves out of the curvature of
     each ray beyond the loss's core: ``-2 w (Aᵀ r̂)(Aᵀ r̂)ᵀ``, ``A = [JR | Jp]`` its rows,
-    ``r̂`` its residual's direction, ``w = ρ'/σ²`` its weight (the Cauchy tail is concave
-    along the residual: curvature ``-ρ'`` where IRLS takes ``+ρ'``;
-    :mod:`seqat.tail_points`). Only the rays of points whose 3x3 block stays positive
-    definite with them (smallest eigenvalue above :data:`MIN_EIGENVALUE_RATIO` of the
-    largest) and that are determined; the others keep IRLS's."""
-    tail = np.flatnonzero((ray_u2(ell, sigma_px) > scale**2) & (w > 0.0)
-                          & ~undetermined[pt])
+    ``r̂`` its residual's direction, ``w = ρ'/σ²`` its weight (:func:`tail_ray_curvature`).
+    Only the rays of points whose 3x3 block stays positive definite with them
+    (:func:`definite_enough`) and that are determined; the others keep IRLS's."""
+    u2 = ray_u2(ell, sigma_px)
+    tail = np.flatnonzero((u2 > scale**2) & (w > 0.0) & ~undetermined[pt])
+    if tail.size == 0:
+        return
+    vp, corr = tail_ray_curvature(Jp[tail], ell[tail], u2[tail], sigma_px[tail], w[tail])
+    exact = Npp.copy()
+    scatter_add(exact, pt[tail], corr)
+    keep = definite_enough(exact)[pt[tail]]
+    tail, vp, corr = tail[keep], vp[keep], corr[keep]
     if tail.size == 0:
         return
     direction = ell[tail] / np.linalg.norm(ell[tail], axis=1)[:, None]
-    vp = np.einsum("ka,kai->ki", direction, Jp[tail])
-    corr = -2.0 * w[tail, None, None] * vp[:, :, None] * vp[:, None, :]
-    exact = Npp.copy()
-    scatter_add(exact, pt[tail], corr)
-    ev = np.linalg.eigvalsh(exact)
-    keep = (ev[:, 0] > MIN_EIGENVALUE_RATIO * np.abs(ev[:, -1]))[pt[tail]]
-    tail, direction, vp, corr = tail[keep], direction[keep], vp[keep], corr[keep]
-    if tail.size == 0:
-        return
     scatter_add(Npp, pt[tail], corr)
     # each ray as one row r̂ᵀ A of weight -2 w (the kernel's products of a rank-one ray)
     rows_R = np.zeros((tail.size, 2, JR.shape[2]))

@@ -36,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 
 from seqat.geometry import depth, project, project_with_jacobians
-from seqat.normals import MIN_EIGENVALUE_RATIO, BlockData
+from seqat.normals import BlockData, definite_enough, tail_ray_curvature
 from seqat.robust import ray_u2, robust_rho, robust_weight
 from seqat.types import GP_SIZE, FloatArray, PinholeCamera
 
@@ -133,12 +133,12 @@ def _newton_points(camera: PinholeCamera, data: BlockData, eop: FloatArray, gp: 
         g[c_pt] += c_w * (c_xyz - X[c_pt])
         # per tail ray -2 ρ' (Jᵀ r̂)(Jᵀ r̂)ᵀ: the loss's curvature along r̂ is -ρ', not +ρ'
         tail = uu > k2
-        v = np.einsum("kai,ka->ki", Jp[tail], ell[tail]) / np.sqrt(uu[tail] * s2[tail])[:, None]
+        _, corr = tail_ray_curvature(Jp[tail], ell[tail], uu[tail], sigma[tail], w[tail])
         exact = irls.copy()
-        np.add.at(exact, r_pt[tail], -2.0 * w[tail, None, None] * v[:, :, None] * v[:, None, :])
-        ev_irls, ev = np.linalg.eigvalsh(irls), np.linalg.eigvalsh(exact)
+        np.add.at(exact, r_pt[tail], corr)
+        ev_irls = np.linalg.eigvalsh(irls)
         determined = ev_irls[:, 0] > UNDETERMINED_RATIO * np.abs(ev_irls[:, -1])
-        use_exact = ev[:, 0] > MIN_EIGENVALUE_RATIO * np.abs(ev[:, -1])
+        use_exact = definite_enough(exact)
         H = np.where(use_exact[:, None, None], exact, irls)
         H[~determined] = np.eye(GP_SIZE)
         step = np.linalg.solve(H, np.where(determined[:, None], g, 0.0)[:, :, None])[:, :, 0]
